@@ -1,0 +1,140 @@
+"""Input validation shared by every module: float64, shapes, invertibility, positivity.
+
+The library never flips JAX's global x64 flag; it refuses to compute in float32 instead.
+Checks that need *values* (singular phi, positive-definite J) run only on concrete arrays:
+inside ``jax.jit`` the arguments are tracers and these checks are skipped, so validate
+eagerly once (as the config layer does) and then run the compiled code.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+X64_FIX = (
+    "affinebody computes in float64 only: call "
+    "jax.config.update('jax_enable_x64', True) (or set JAX_ENABLE_X64=1) before using it"
+)
+
+#: Relative tolerance below which |det phi| / prod(column norms) counts as singular.
+SINGULAR_RTOL = 1e-13
+
+
+def require_x64() -> None:
+    """Raise a one-line ValueError unless JAX's float64 mode is enabled."""
+    if not jax.config.read("jax_enable_x64"):
+        raise ValueError(X64_FIX)
+
+
+def is_concrete(a) -> bool:
+    """True when ``a`` holds values (not a tracer inside jit/vmap/grad)."""
+    return not isinstance(a, jax.core.Tracer)
+
+
+def as_float64(a, name: str = "array") -> jax.Array:
+    """``a`` as a float64 JAX array; refuses float32/float16 input and x64-disabled JAX."""
+    require_x64()
+    dtype = getattr(a, "dtype", None)
+    if dtype is not None and jnp.issubdtype(dtype, jnp.floating) and jnp.finfo(dtype).bits < 64:
+        raise ValueError(
+            f"{name} has dtype {dtype}: affinebody computes in float64 only "
+            f"(convert with .astype('float64'))"
+        )
+    if dtype is not None and jnp.issubdtype(dtype, jnp.complexfloating):
+        raise ValueError(f"{name} must be real (got dtype {dtype})")
+    return jnp.asarray(a, dtype=jnp.float64)
+
+
+def as_matrix(a, name: str = "phi", n: int | None = None) -> jax.Array:
+    """``a`` as a float64 array of shape [..., n, n]; ValueError naming ``name`` otherwise."""
+    a = as_float64(a, name)
+    if a.ndim < 2 or a.shape[-1] != a.shape[-2]:
+        raise ValueError(f"{name} must have shape [..., n, n] (got {tuple(a.shape)})")
+    if n is not None and a.shape[-1] != n:
+        raise ValueError(f"{name} must be {n}x{n} (got {a.shape[-2]}x{a.shape[-1]})")
+    return a
+
+
+def as_vector(a, name: str = "x", n: int | None = None) -> jax.Array:
+    """``a`` as a float64 array of shape [..., n]; ValueError naming ``name`` otherwise."""
+    a = as_float64(a, name)
+    if a.ndim < 1:
+        raise ValueError(f"{name} must have shape [..., n] (got a scalar)")
+    if n is not None and a.shape[-1] != n:
+        raise ValueError(f"{name} must have last dimension {n} (got shape {tuple(a.shape)})")
+    return a
+
+
+def same_n(matrix: jax.Array, other: jax.Array, names: tuple[str, str]) -> None:
+    """Check that ``other`` ([..., n] or [..., n, n]) has the ``n`` of ``matrix``."""
+    if other.shape[-1] != matrix.shape[-1]:
+        raise ValueError(
+            f"{names[1]} has dimension {other.shape[-1]} but {names[0]} is "
+            f"{matrix.shape[-1]}x{matrix.shape[-1]}"
+        )
+
+
+def check_invertible(phi: jax.Array, name: str = "phi") -> None:
+    """ValueError if any concrete matrix in the batch is (numerically) singular.
+
+    The test is scale-free: Hadamard's inequality |det phi| <= prod_j |phi e_j| makes
+    ``|det phi| / prod_j |phi e_j|`` a number in [0, 1] that is 0 exactly for singular phi.
+    """
+    if not is_concrete(phi):
+        return
+    a = np.asarray(phi)
+    det = np.abs(np.linalg.det(a))
+    norms = np.prod(np.linalg.norm(a, axis=-2), axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(norms > 0, det / norms, 0.0)
+    bad = ~(ratio > SINGULAR_RTOL) | ~np.all(np.isfinite(a), axis=(-2, -1))
+    if np.any(bad):
+        where = np.argwhere(np.atleast_1d(bad))[0] if np.ndim(bad) else ()
+        at = f" at batch index {tuple(int(i) for i in where)}" if np.ndim(bad) else ""
+        raise ValueError(
+            f"{name} is singular or not finite{at} (det {name} = {float(np.ravel(det)[0]):.3g}): "
+            f"an internal configuration must be an invertible matrix"
+        )
+
+
+def check_symmetric_positive_definite(a: jax.Array, name: str = "J") -> None:
+    """ValueError unless every concrete matrix in ``a`` is symmetric positive definite."""
+    if not is_concrete(a):
+        return
+    m = np.asarray(a)
+    scale = max(float(np.max(np.abs(m))), 1e-300)
+    if not np.all(np.isfinite(m)):
+        raise ValueError(f"{name} must be finite")
+    if np.max(np.abs(m - np.swapaxes(m, -1, -2))) > 1e-12 * scale:
+        raise ValueError(f"{name} must be symmetric (got {name} != {name}^T)")
+    eig = np.linalg.eigvalsh(m)
+    if np.min(eig) <= 1e-14 * scale:
+        raise ValueError(
+            f"{name} must be positive definite (smallest eigenvalue {np.min(eig):.3g})"
+        )
+
+
+def sym(a: jax.Array) -> jax.Array:
+    """Symmetric part (a + a^T)/2 over the last two axes."""
+    return 0.5 * (a + jnp.swapaxes(a, -1, -2))
+
+
+def skew(a: jax.Array) -> jax.Array:
+    """Skew-symmetric part (a - a^T)/2 over the last two axes."""
+    return 0.5 * (a - jnp.swapaxes(a, -1, -2))
+
+
+def transpose(a: jax.Array) -> jax.Array:
+    """Matrix transpose over the last two axes (batched)."""
+    return jnp.swapaxes(a, -1, -2)
+
+
+def trace(a: jax.Array) -> jax.Array:
+    """Matrix trace over the last two axes (batched)."""
+    return jnp.trace(a, axis1=-2, axis2=-1)
+
+
+def eye_like(a: jax.Array) -> jax.Array:
+    """Identity with the trailing n x n shape of ``a`` (broadcasts over the batch)."""
+    return jnp.eye(a.shape[-1], dtype=a.dtype)

@@ -1,0 +1,192 @@
+"""Configuration groups of an affinely-rigid body (paper §1) and their Lie algebras.
+
+The internal configuration phi lives in one of (paper §1, text around eqs. (2)-(4)):
+
+=========  ==========================================  ============================
+group      definition                                   Lie algebra
+=========  ==========================================  ============================
+``L``      all n x n matrices L(n, R) (not a group)     gl(n)
+``GL``     det phi != 0                                 gl(n)
+``GL+``    det phi > 0                                  gl(n)
+``SL``     det phi = 1 (incompressible body)            sl(n): Tr X = 0
+``UL``     |det phi| = 1 (unimodular)                   sl(n)
+``SO``     phi^T phi = Id, det phi = 1 (rigid body)     so(n): X^T = -X
+``O``      phi^T phi = Id                               so(n)
+``R+SO``   phi = s U, s > 0, U in SO(n)                 R Id + so(n)
+``R+O``    phi = s U, s > 0, U in O(n)                  R Id + so(n)
+=========  ==========================================  ============================
+
+All functions are batched over leading axes ``[..., n, n]`` and JAX-traceable.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from affinebody._checks import as_matrix, eye_like, skew, trace, transpose
+
+GROUPS = ("GL", "GL+", "SL", "UL", "SO", "O", "R+SO", "R+O")
+#: Groups plus the linear space L(n, R) that d'Alembert motion may use (paper §1).
+CONFIGURATION_SPACES = ("L",) + GROUPS
+
+_ALGEBRA = {
+    "L": "gl",
+    "GL": "gl",
+    "GL+": "gl",
+    "SL": "sl",
+    "UL": "sl",
+    "SO": "so",
+    "O": "so",
+    "R+SO": "R+so",
+    "R+O": "R+so",
+}
+
+
+def _check_group(group: str) -> str:
+    if group not in _ALGEBRA:
+        raise ValueError(
+            f"unknown configuration group {group!r} "
+            f"(choose one of {', '.join(CONFIGURATION_SPACES)})"
+        )
+    return group
+
+
+def lie_algebra(group: str) -> str:
+    """Name of the Lie algebra of ``group``: 'gl', 'sl', 'so' or 'R+so'."""
+    return _ALGEBRA[_check_group(group)]
+
+
+def is_member(phi, group: str, tol: float = 1e-10) -> jax.Array:
+    """Boolean [...]: whether each phi lies in ``group`` to relative tolerance ``tol``.
+
+    Metric conditions are tested on the Green tensor G = phi^T phi (11): ``|G - Id| <= tol``
+    for SO/O and ``|G - s^2 Id| <= tol s^2`` with s^2 = Tr G / n for R+SO/R+O; determinant
+    conditions as ``|det phi - 1| <= tol`` (SL) or ``||det phi| - 1| <= tol`` (UL); invertibility
+    as ``|det phi| / prod_j |phi e_j| > tol`` (scale-free, by Hadamard's inequality).
+    """
+    _check_group(group)
+    phi = as_matrix(phi, "phi")
+    n = phi.shape[-1]
+    det = jnp.linalg.det(phi)
+    column_norms = jnp.prod(jnp.linalg.norm(phi, axis=-2), axis=-1)
+    invertible = jnp.abs(det) > tol * column_norms
+    if group == "L":
+        return jnp.all(jnp.isfinite(phi), axis=(-2, -1))
+    if group == "GL":
+        return invertible
+    if group == "GL+":
+        return invertible & (det > 0)
+    if group == "SL":
+        return jnp.abs(det - 1.0) <= tol
+    if group == "UL":
+        return jnp.abs(jnp.abs(det) - 1.0) <= tol
+    g = transpose(phi) @ phi
+    if group in ("SO", "O"):
+        metric_ok = jnp.max(jnp.abs(g - eye_like(g)), axis=(-2, -1)) <= tol
+    else:
+        s2 = trace(g) / n
+        metric_ok = (jnp.max(jnp.abs(g - s2[..., None, None] * eye_like(g)), axis=(-2, -1))
+                     <= tol * s2) & (s2 > 0)
+    if group in ("SO", "R+SO"):
+        return metric_ok & (det > 0)
+    return metric_ok
+
+
+def project(phi, group: str) -> jax.Array:
+    """Project phi onto ``group``.
+
+    - SO / O: the nearest element in the Frobenius norm, from the polar decomposition
+      (Kabsch: L R^T of the two-polar decomposition for SO, the polar factor U for O);
+    - R+SO / R+O: the nearest scaled rotation s U, s = Tr(U^T phi) / n;
+    - SL / UL: determinant normalisation phi |det phi|^(-1/n) (for SL with det phi < 0 and n
+      odd the sign is flipped as well; for n even no scalar multiple of such phi is in SL);
+    - GL, GL+, L: open sets, phi itself.
+    """
+    from affinebody.polar import two_polar  # polar imports groups; import here to avoid a cycle
+
+    _check_group(group)
+    phi = as_matrix(phi, "phi")
+    n = phi.shape[-1]
+    if group in ("L", "GL", "GL+"):
+        return phi
+    if group in ("SL", "UL"):
+        det = jnp.linalg.det(phi)
+        scaled = phi * (jnp.abs(det) ** (-1.0 / n))[..., None, None]
+        if group == "SL" and n % 2 == 1:
+            scaled = scaled * jnp.sign(det)[..., None, None]
+        return scaled
+    tp = two_polar(phi)
+    rotation = tp.L @ transpose(tp.R)  # Kabsch: nearest element of SO(n)
+    signs = jnp.ones(tp.q.shape).at[..., -1].set(tp.sign)
+    orthogonal = (tp.L * signs[..., None, :]) @ transpose(tp.R)  # polar factor, in O(n)
+    u = rotation if group in ("SO", "R+SO") else orthogonal
+    if group in ("SO", "O"):
+        return u
+    scale = jnp.maximum(trace(transpose(u) @ phi) / n, jnp.finfo(phi.dtype).tiny)
+    return scale[..., None, None] * u
+
+
+def project_algebra(x, group: str) -> jax.Array:
+    """Orthogonal (Frobenius) projection of a matrix onto the Lie algebra of ``group``.
+
+    gl: X; sl: X - (Tr X / n) Id; so: (X - X^T)/2; R+so: (X - X^T)/2 + (Tr X / n) Id.
+    """
+    algebra = lie_algebra(group)
+    x = as_matrix(x, "X")
+    n = x.shape[-1]
+    if algebra == "gl":
+        return x
+    mean_trace = (trace(x) / n)[..., None, None] * eye_like(x)
+    if algebra == "sl":
+        return x - mean_trace
+    if algebra == "so":
+        return skew(x)
+    return skew(x) + mean_trace
+
+
+def expm(x) -> jax.Array:
+    """Matrix exponential (one-parameter subgroups t -> expm(t X)), batched."""
+    x = as_matrix(x, "X")
+    return jax.scipy.linalg.expm(x)
+
+
+def _sqrtm_denman_beavers(a: jax.Array, iterations: int) -> jax.Array:
+    """Principal square root by the Denman-Beavers iteration (quadratic convergence)."""
+
+    def body(_, yz):
+        y, z = yz
+        return 0.5 * (y + jnp.linalg.inv(z)), 0.5 * (z + jnp.linalg.inv(y))
+
+    y, _ = lax.fori_loop(0, iterations, body, (a, jnp.broadcast_to(eye_like(a), a.shape)))
+    return y
+
+
+def logm(phi, max_square_roots: int = 40) -> jax.Array:
+    """Principal matrix logarithm of phi (no eigenvalues on the closed negative real axis).
+
+    Inverse scaling and squaring: take k square roots until ``|A - Id| < 1/4`` (k <= 40, chosen
+    at run time for the whole batch), then ``log A = 2 atanh(Z) = 2 sum Z^(2j+1)/(2j+1)`` with
+    ``Z = (A - Id)(A + Id)^-1``, and multiply by 2^k. For analysis and tests: the run-time
+    loop is not reverse-mode differentiable.
+    """
+    a = as_matrix(phi, "phi")
+    ident = eye_like(a)
+
+    def far(state):
+        m, k = state
+        return (jnp.max(jnp.sum(jnp.abs(m - ident), axis=-2)) >= 0.25) & (k < max_square_roots)
+
+    def root(state):
+        m, k = state
+        return _sqrtm_denman_beavers(m, 12), k + 1
+
+    a, k = lax.while_loop(far, root, (a, 0))
+    z = (a - ident) @ jnp.linalg.inv(a + ident)
+    z2 = z @ z
+    term, series = z, z
+    for j in range(1, 14):
+        term = term @ z2
+        series = series + term / (2 * j + 1)
+    return (2.0 * 2.0**k) * series

@@ -1,0 +1,21 @@
+"""Test-session set-up: float64 JAX for every test, and the hypothesis profiles.
+
+The library itself never flips the x64 flag (tests/test_checks.py checks that it refuses
+float32); the suite enables it once here, as the CLI does for its own process.
+"""
+
+import os
+
+import jax
+from hypothesis import HealthCheck, settings
+
+jax.config.update("jax_enable_x64", True)
+
+settings.register_profile(
+    "default",
+    max_examples=20,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+settings.register_profile("ci", parent=settings.get_profile("default"), derandomize=True)
+settings.load_profile("ci" if os.environ.get("CI") else "default")
