@@ -6,8 +6,13 @@ float32); the suite enables it once here, as the CLI does for its own process.
 
 import os
 
-import jax
-from hypothesis import HealthCheck, settings
+# One BLAS thread per process: on the 2-core CI machine, threaded BLAS on small matrices is
+# 16-60x slower than serial (measured), and pytest-xdist already uses both cores.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import jax  # noqa: E402
+from hypothesis import HealthCheck, settings  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 

@@ -30,3 +30,13 @@ def kinematics_demo() -> None:
 
 # Until the simulator's demo lands, `affinebody demo` is the worked kinematics example.
 main.add_command(kinematics_demo, "demo")
+
+
+def _register_quantum() -> None:
+    from affinebody.quantum.cli import density, spectrum
+
+    main.add_command(spectrum)
+    main.add_command(density)
+
+
+_register_quantum()
