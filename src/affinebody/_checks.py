@@ -75,19 +75,33 @@ def same_n(matrix: jax.Array, other: jax.Array, names: tuple[str, str]) -> None:
         )
 
 
+def hadamard_ratio(phi):
+    """|det phi| / prod_j |phi e_j| in [0, 1], computed without over- or underflow.
+
+    The determinant of the column-normalised matrix: 0 exactly for singular phi, 1 for
+    orthogonal columns, and independent of the scale of each column. Works on NumPy and JAX
+    arrays (traceable).
+    """
+    xp = np if isinstance(phi, np.ndarray) else jnp
+    norms = xp.linalg.norm(phi, axis=-2)
+    safe = xp.where(norms > 0, norms, 1.0)
+    ratio = xp.abs(xp.linalg.det(phi / safe[..., None, :]))
+    return xp.where(xp.all(norms > 0, axis=-1), ratio, 0.0)
+
+
 def check_invertible(phi: jax.Array, name: str = "phi") -> None:
     """ValueError if any concrete matrix in the batch is (numerically) singular.
 
     The test is scale-free: Hadamard's inequality |det phi| <= prod_j |phi e_j| makes
-    ``|det phi| / prod_j |phi e_j|`` a number in [0, 1] that is 0 exactly for singular phi.
+    ``|det phi| / prod_j |phi e_j|`` (:func:`hadamard_ratio`) a number in [0, 1] that is 0
+    exactly for singular phi.
     """
     if not is_concrete(phi):
         return
     a = np.asarray(phi)
-    det = np.abs(np.linalg.det(a))
-    norms = np.prod(np.linalg.norm(a, axis=-2), axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(norms > 0, det / norms, 0.0)
+    ratio = np.asarray(hadamard_ratio(a))
+    with np.errstate(all="ignore"):
+        det = np.abs(np.linalg.det(a))
     bad = ~(ratio > SINGULAR_RTOL) | ~np.all(np.isfinite(a), axis=(-2, -1))
     if np.any(bad):
         where = np.argwhere(np.atleast_1d(bad))[0] if np.ndim(bad) else ()
@@ -103,13 +117,13 @@ def check_symmetric_positive_definite(a: jax.Array, name: str = "J") -> None:
     if not is_concrete(a):
         return
     m = np.asarray(a)
-    scale = max(float(np.max(np.abs(m))), 1e-300)
     if not np.all(np.isfinite(m)):
         raise ValueError(f"{name} must be finite")
-    if np.max(np.abs(m - np.swapaxes(m, -1, -2))) > 1e-12 * scale:
+    scale = np.maximum(np.max(np.abs(m), axis=(-2, -1)), 1e-300)  # per matrix of a batch
+    if np.any(np.max(np.abs(m - np.swapaxes(m, -1, -2)), axis=(-2, -1)) > 1e-12 * scale):
         raise ValueError(f"{name} must be symmetric (got {name} != {name}^T)")
     eig = np.linalg.eigvalsh(m)
-    if np.min(eig) <= 1e-14 * scale:
+    if np.any(eig[..., 0] <= 1e-14 * scale):
         raise ValueError(
             f"{name} must be positive definite (smallest eigenvalue {np.min(eig):.3g})"
         )

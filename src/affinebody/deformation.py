@@ -86,9 +86,11 @@ def green_eigenvalues(phi) -> jax.Array:
 def characteristic_invariants(phi) -> jax.Array:
     """I_1, ..., I_n of eq. (19) (I_0 = 1): elementary symmetric polynomials of G's eigenvalues.
 
-    Computed from G's power traces by Newton's identities; I_1 = Tr G and I_n = det G.
+    I_1 = Tr G and I_n = det G. Computed from the squared singular values of phi: going through
+    the power traces K_a (Newton's identities) cancels catastrophically for strong deformations
+    (phi = diag(1e3, 1, 1e-3) would give I_3 = 0 instead of 1).
     """
-    return characteristic_from_traces(trace_invariants(phi))
+    return characteristic_from_eigenvalues(green_eigenvalues(phi))
 
 
 def traces_from_eigenvalues(lam) -> jax.Array:

@@ -21,11 +21,21 @@ All functions are batched over leading axes ``[..., n, n]`` and JAX-traceable.
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 from jax import lax
 
-from affinebody._checks import as_matrix, eye_like, skew, trace, transpose
+from affinebody._checks import (
+    as_matrix,
+    eye_like,
+    hadamard_ratio,
+    is_concrete,
+    skew,
+    trace,
+    transpose,
+)
 
 GROUPS = ("GL", "GL+", "SL", "UL", "SO", "O", "R+SO", "R+O")
 #: Groups plus the linear space L(n, R) that d'Alembert motion may use (paper §1).
@@ -70,8 +80,7 @@ def is_member(phi, group: str, tol: float = 1e-10) -> jax.Array:
     phi = as_matrix(phi, "phi")
     n = phi.shape[-1]
     det = jnp.linalg.det(phi)
-    column_norms = jnp.prod(jnp.linalg.norm(phi, axis=-2), axis=-1)
-    invertible = jnp.abs(det) > tol * column_norms
+    invertible = hadamard_ratio(phi) > tol
     if group == "L":
         return jnp.all(jnp.isfinite(phi), axis=(-2, -1))
     if group == "GL":
@@ -103,16 +112,26 @@ def project(phi, group: str) -> jax.Array:
     - SL / UL: determinant normalisation phi |det phi|^(-1/n) (for SL with det phi < 0 and n
       odd the sign is flipped as well; for n even no scalar multiple of such phi is in SL);
     - GL, GL+, L: open sets, phi itself.
+
+    Where no element of the group is reachable this way (GL+ with det phi <= 0, SL with
+    det phi < 0 and n even, R+SO/R+O with Tr(U^T phi) <= 0, GL with singular phi) a concrete
+    input raises ValueError; traced inputs are not checked.
     """
     from affinebody.polar import two_polar  # polar imports groups; import here to avoid a cycle
 
     _check_group(group)
     phi = as_matrix(phi, "phi")
     n = phi.shape[-1]
+    det = jnp.linalg.det(phi)
+    if group in ("GL", "SL", "UL"):
+        singular = hadamard_ratio(phi) <= 1e-13
+        _refuse_if(singular, f"phi is singular: it has no projection onto {group}(n)")
+    if group == "GL+" or (group == "SL" and n % 2 == 0):
+        _refuse_if(det <= 0, f"det phi <= 0: phi has no projection onto {group}(n) "
+                             f"(the sign of det phi cannot change continuously)")
     if group in ("L", "GL", "GL+"):
         return phi
     if group in ("SL", "UL"):
-        det = jnp.linalg.det(phi)
         scaled = phi * (jnp.abs(det) ** (-1.0 / n))[..., None, None]
         if group == "SL" and n % 2 == 1:
             scaled = scaled * jnp.sign(det)[..., None, None]
@@ -124,8 +143,15 @@ def project(phi, group: str) -> jax.Array:
     u = rotation if group in ("SO", "R+SO") else orthogonal
     if group in ("SO", "O"):
         return u
-    scale = jnp.maximum(trace(transpose(u) @ phi) / n, jnp.finfo(phi.dtype).tiny)
+    scale = trace(transpose(u) @ phi) / n
+    _refuse_if(scale <= 0, f"phi has no nearest element of {group}(n): Tr(U^T phi) <= 0 for its "
+                           f"nearest rotation U")
     return scale[..., None, None] * u
+
+
+def _refuse_if(condition: jax.Array, message: str) -> None:
+    if is_concrete(condition) and bool(jnp.any(condition)):
+        raise ValueError(message)
 
 
 def project_algebra(x, group: str) -> jax.Array:
@@ -171,7 +197,11 @@ def logm(phi, max_square_roots: int = 40) -> jax.Array:
     ``Z = (A - Id)(A + Id)^-1``, and multiply by 2^k. For analysis and tests: the run-time
     loop is not reverse-mode differentiable.
     """
-    a = as_matrix(phi, "phi")
+    return _logm(as_matrix(phi, "phi"), max_square_roots)
+
+
+@partial(jax.jit, static_argnums=1)
+def _logm(a: jax.Array, max_square_roots: int) -> jax.Array:
     ident = eye_like(a)
 
     def far(state):

@@ -29,7 +29,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from affinebody._checks import as_matrix, as_vector, transpose
+from affinebody._checks import as_matrix, as_vector, check_invertible, transpose
 
 
 class TwoPolar(NamedTuple):
@@ -65,6 +65,7 @@ def two_polar(phi) -> TwoPolar:
     singular values coincide; q always is.
     """
     phi = as_matrix(phi, "phi")
+    check_invertible(phi)
     rot_l, s, rot_r, sign = _svd_rotations(phi)
     return TwoPolar(rot_l, jnp.log(s), rot_r, sign)
 
