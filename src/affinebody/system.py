@@ -1,0 +1,245 @@
+"""The Hamiltonian system of N affine bodies: H = T + V (75a), its vector field, kicks and drifts.
+
+``HamiltonianSystem(kinetic, potential=None, group="GL+")`` bundles a ``KineticEnergy``
+(``affinebody.kinetic``), a potential with ``energy(x, phi)`` (``affinebody.potentials``) or None,
+and the configuration space of every phi_K (``affinebody.groups``):
+
+- ``"GL+"`` (default) and ``"GL"``: the open group; a motion that reaches det phi = 0 has left it
+  (the run driver stops there, see ``simulate.run``);
+- ``"L"``: all of L(n, R), which the paper allows for d'Alembert motion (section 1);
+- ``"SL"``, ``"SO"``, ``"R+SO"``: constrained (incompressible, rigid, rigid + dilatation) bodies.
+
+Hamilton's equations in the project's placement pi[a, i] = pi^a_i (NOTES.md):
+``dx/dt = dH/dp, dp/dt = -dH/dx, dphi/dt = (dH/dpi)^T, dpi/dt = -(dH/dphi)^T`` (53), (87).
+
+Constrained groups. For a subgroup G with Lie algebra g, the momentum of the constrained system is
+a covector on T_phi G, i.e. pi modulo the annihilator {pi : Tr(pi phi X) = 0 for all X in g}. We
+represent it by the unique pi whose co-moving affine spin Sigma_hat = pi phi lies in g itself
+(traceless for SL, skew for SO, R Id + skew for R+SO):
+
+    pi  ->  P_g(pi phi) phi^-1,     P_g the Frobenius projection onto g (groups.project_algebra).
+
+A kick then projects its momentum increment, ``pi -= h P_g((dV/dphi)^T phi) phi^-1``, which is the
+exact flow of V restricted to G (phi is fixed during a kick). A kinetic drift is admissible on G
+when the model maps this representative into g, so that its exact flow phi -> phi exp(h Omega_hat)
+runs along a one-parameter subgroup of G and keeps Sigma_hat in g: the dynamics stays on the
+group by construction (isotropic af-af, af-is, is-af models, ...). Models whose drift leaves the
+group (d'Alembert: straight lines in L(n, R); anisotropic af-J, ...) are refused with a ValueError.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from affinebody._checks import as_matrix, as_vector, is_concrete, transpose
+from affinebody.groups import is_member, project_algebra
+from affinebody.state import State
+
+#: Configuration spaces a HamiltonianSystem accepts.
+SYSTEM_GROUPS = ("GL+", "GL", "L", "SL", "SO", "R+SO")
+#: Groups with a constraint on phi (and hence a projection of the momentum).
+CONSTRAINED_GROUPS = ("SL", "SO", "R+SO")
+#: Groups whose boundary det phi = 0 the run driver watches.
+OPEN_GROUPS = ("GL+", "GL")
+
+_CONSTRAINED_HINT = "needs the constrained integrator of issue 7"
+
+
+def kinetic_terms(kinetic) -> tuple[Any, ...]:
+    """The kinetic terms of ``kinetic`` in drift order: translational ones, then internal ones."""
+    terms: list[Any] = []
+    for part in (getattr(kinetic, "translational", None), getattr(kinetic, "internal", None)):
+        if part is None:
+            continue
+        if isinstance(part, Sequence):
+            terms.extend(t for t in part if t is not None)
+        else:
+            terms.append(part)
+    return tuple(terms)
+
+
+def project_momentum(phi: jax.Array, pi: jax.Array, group: str) -> jax.Array:
+    """Representative of the constrained momentum: pi -> P_g(pi phi) phi^-1 (module docstring).
+
+    Linear in pi; the identity on GL, GL+ and L.
+    """
+    if group not in CONSTRAINED_GROUPS:
+        return pi
+    sigma_hat = pi @ phi
+    removed = sigma_hat - project_algebra(sigma_hat, group)
+    # removed @ phi^-1, via a solve with phi^T
+    return pi - transpose(jnp.linalg.solve(transpose(phi), transpose(removed)))
+
+
+@dataclass(frozen=True)
+class HamiltonianSystem:
+    """H(x, phi, p, pi) = T(kinetic) + V(potential) on the configuration space ``group``.
+
+    kinetic: a ``KineticEnergy`` (``hamiltonian(State)``, terms with exact ``flow``).
+    potential: an object with ``energy(x, phi) -> scalar`` (summed over bodies), or None.
+    group: one of SYSTEM_GROUPS.
+    """
+
+    kinetic: Any
+    potential: Any = None
+    group: str = "GL+"
+
+    def __post_init__(self):
+        if self.group not in SYSTEM_GROUPS:
+            raise ValueError(
+                f"system.group must be one of {', '.join(SYSTEM_GROUPS)} (got {self.group!r})"
+            )
+        if not hasattr(self.kinetic, "hamiltonian"):
+            return  # a placeholder leaf while JAX maps over the pytree, not a user's system
+        if not kinetic_terms(self.kinetic):
+            raise ValueError("system.kinetic has no kinetic terms: give a translational or "
+                             "internal kinetic energy")
+        if self.group in CONSTRAINED_GROUPS:
+            for term in kinetic_terms(self.kinetic):
+                if type(term).__name__ == "DAlembert":
+                    raise ValueError(
+                        f"d'Alembert internal motion on {self.group}(n) {_CONSTRAINED_HINT}: its "
+                        f"drift is a straight line phi + t xi that leaves {self.group}(n); use "
+                        f"group = 'GL+' (or 'L') or an affinely invariant kinetic model"
+                    )
+
+    @property
+    def constrained(self) -> bool:
+        """True on SL, SO, R+SO."""
+        return self.group in CONSTRAINED_GROUPS
+
+    # ----------------------------------------------------------------- energies
+    def potential_energy(self, state: State) -> jax.Array:
+        """V(x, phi), a scalar per batch element (0 without a potential)."""
+        if self.potential is None:
+            return jnp.zeros(state.phi.shape[:-3], dtype=state.phi.dtype)
+        return self.potential.energy(state.x, state.phi)
+
+    def kinetic_energy(self, state: State) -> jax.Array:
+        """T(x, phi, p, pi) summed over bodies (76a)-(85)."""
+        return self.kinetic.hamiltonian(self.constrain(state))
+
+    def hamiltonian(self, state: State) -> jax.Array:
+        """H = T + V (75a)."""
+        return self.kinetic_energy(state) + self.potential_energy(state)
+
+    # ----------------------------------------------------------------- dynamics
+    def vector_field(self, state: State) -> State:
+        """(dx/dt, dphi/dt, dp/dt, dpi/dt) of Hamilton's equations, by autodiff of H.
+
+        Defined on GL+, GL and L, where phase space is an open subset of a vector space.
+        """
+        if self.constrained:
+            raise ValueError(
+                f"vector_field is defined on GL+, GL and L; on {self.group} use the splitting "
+                f"integrators, whose sub-flows stay on the group"
+            )
+        grad = jax.grad(lambda s: jnp.sum(self.hamiltonian(s)))(state)
+        return State(x=grad.p, phi=transpose(grad.pi), p=-grad.x, pi=-transpose(grad.phi))
+
+    def constrain(self, state: State) -> State:
+        """``state`` with pi replaced by the constrained-momentum representative (no-op on GL)."""
+        if not self.constrained:
+            return state
+        return state._replace(pi=project_momentum(state.phi, state.pi, self.group))
+
+    def kick(self, state: State, h) -> State:
+        """Exact flow of V for time h: p -= h dV/dx, pi -= h (dV/dphi)^T (projected on G)."""
+        if self.potential is None:
+            return state
+        gx, gphi = jax.grad(lambda x, phi: jnp.sum(self.potential.energy(x, phi)),
+                            argnums=(0, 1))(state.x, state.phi)
+        dpi = project_momentum(state.phi, -h * transpose(gphi), self.group)
+        return state._replace(p=state.p - h * gx, pi=state.pi + dpi)
+
+    def drift(self, state: State, h) -> State:
+        """Flow of T for time h: palindromic (Strang) composition of the terms' exact flows.
+
+        With one kinetic term (or commuting ones, e.g. d'Alembert translational + any internal
+        term) this is the exact geodesic flow; otherwise a symmetric second-order composition.
+        """
+        terms = kinetic_terms(self.kinetic)
+        if len(terms) == 1:
+            return self._term_flow(terms[0], state, h)
+        for term in terms[:-1]:
+            state = self._term_flow(term, state, 0.5 * h)
+        state = self._term_flow(terms[-1], state, h)
+        for term in reversed(terms[:-1]):
+            state = self._term_flow(term, state, 0.5 * h)
+        return state
+
+    def _term_flow(self, term, state: State, h) -> State:
+        state = term.flow(state, h)
+        # exact for terms that keep phi fixed (their momentum increment is constant), a
+        # round-off clean-up for internal terms that already keep Sigma_hat in g
+        return self.constrain(state)
+
+    # ----------------------------------------------------------------- validation
+    def check(self, state: State) -> State:
+        """Validate ``state`` eagerly (shapes, float64, group membership, model/group match).
+
+        Returns the state with the constrained-momentum representative. Call once before
+        compiled runs (``simulate.run`` does).
+        """
+        x = as_vector(state.x, "state.x")
+        phi = as_matrix(state.phi, "state.phi")
+        p = as_vector(state.p, "state.p", n=phi.shape[-1])
+        pi = as_matrix(state.pi, "state.pi", n=phi.shape[-1])
+        if x.shape != p.shape or phi.shape != pi.shape or x.shape[:-1] != phi.shape[:-2]:
+            raise ValueError(
+                f"state shapes disagree: x {tuple(x.shape)}, p {tuple(p.shape)} must be [N, n] "
+                f"and phi {tuple(phi.shape)}, pi {tuple(pi.shape)} [N, n, n] with the same N, n"
+            )
+        state = State(x, phi, p, pi)
+        if is_concrete(phi):
+            member = np.asarray(is_member(phi, self.group, tol=1e-9))
+            if not np.all(member):
+                body = int(np.argwhere(~np.atleast_1d(member))[0][-1])
+                raise ValueError(
+                    f"state.phi of body {body} is not in {self.group}(n) (tolerance 1e-9): "
+                    f"start on the group (e.g. groups.project(phi, {self.group!r}))"
+                )
+            if self.constrained:
+                self._check_drifts_preserve_group(phi.shape[-1])
+        return self.constrain(state)
+
+    def _check_drifts_preserve_group(self, n: int) -> None:
+        """Refuse kinetic terms whose exact drift leaves the constrained group (a numeric probe)."""
+        rng = np.random.default_rng(12345)
+        g = self.group
+        a = 0.3 * rng.standard_normal((1, n, n))
+        phi = jax.scipy.linalg.expm(project_algebra(jnp.asarray(a), g))
+        sigma_hat = project_algebra(jnp.asarray(rng.standard_normal((1, n, n))), g)
+        pi = sigma_hat @ jnp.linalg.inv(phi)
+        probe = State(jnp.asarray(rng.standard_normal((1, n))), phi,
+                      jnp.asarray(rng.standard_normal((1, n))), pi)
+        for term in kinetic_terms(self.kinetic):
+            out = term.flow(probe, 0.37)
+            sh = out.pi @ out.phi
+            stays = bool(np.all(np.asarray(is_member(out.phi, g, tol=1e-9))))
+            in_algebra = bool(np.max(np.abs(np.asarray(sh - project_algebra(sh, g)))) < 1e-9)
+            fixed_phi = bool(np.max(np.abs(np.asarray(out.phi - phi))) == 0.0)
+            if not stays or not (in_algebra or fixed_phi):
+                raise ValueError(
+                    f"kinetic term {type(term).__name__} does not keep phi in {g}(n): its exact "
+                    f"drift leaves the group, so this combination {_CONSTRAINED_HINT}; use "
+                    f"group = 'GL+' or a model whose inertia maps the algebra of {g} into itself"
+                )
+
+    def replace(self, **changes) -> HamiltonianSystem:
+        """A copy with some fields changed."""
+        return dataclasses.replace(self, **changes)
+
+
+# kinetic parameters are array leaves (traced under jit); potentials are hashable frozen
+# dataclasses and enter compiled functions as static data.
+jax.tree_util.register_dataclass(
+    HamiltonianSystem, data_fields=["kinetic"], meta_fields=["potential", "group"]
+)
