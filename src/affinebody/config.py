@@ -1,0 +1,731 @@
+"""Simulation configuration files (TOML), validated field by field with pydantic.
+
+A config has the sections ``[system]``, ``[body]`` or ``[[bodies]]``, ``[kinetic]``,
+``[[potential]]``, ``[initial]`` and ``[run]`` (README, "Config file", documents every field).
+Loading goes in two passes:
+
+1. :func:`parse_config` checks types and refuses unknown keys (pydantic, ``extra="forbid"``);
+2. :func:`check_config` checks meaning: shapes against ``system.n`` and the number of bodies,
+   positive masses and inertia, the kinetic model's parameters (e.g. af-is is positive definite
+   exactly when I + A > 0, I - A > 0 and I + A + nB > 0, NOTES.md), group membership of the
+   initial phi, potentials (expressions are compiled by the restricted evaluator of
+   :mod:`affinebody.expressions`, so a config can never run code).
+
+Every failure is a :class:`ConfigError` (a ``ValueError``) with one line that names the field,
+e.g. ``config error: kinetic.I must be > |kinetic.A| for af-is to be positive definite
+(got I=0.2, A=0.5)``.
+
+:func:`build` then turns a checked config into the objects of the dynamics: a
+:class:`~affinebody.system.HamiltonianSystem`, the initial :class:`~affinebody.state.State`,
+masses and drawing radii.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from affinebody.groups import GROUPS
+
+#: Internal kinetic models, with the parameters each one uses (paper's names, section 3).
+INTERNAL_MODELS: dict[str, tuple[str, ...]] = {
+    "dalembert": ("J",),  # (6), (76a)
+    "af-J": ("J",),  # (65), (79a)
+    "H-af": ("H",),  # (67), (81a)
+    "l-af": ("L",),  # (70), (82a)
+    "r-af": ("R",),  # (71), (83a)
+    "af-af": ("A", "B"),  # (72)
+    "is-af": ("I", "A", "B"),  # (73), (84a)
+    "af-is": ("I", "A", "B"),  # (74), (85)
+}
+#: Translational kinetic models: d'Alembert (63) (alias is-af) and af-is (64), (78a).
+TRANSLATIONAL_MODELS = ("dalembert", "is-af", "af-is")
+#: Integrator names accepted by run.integrator.
+INTEGRATOR_NAMES = ("strang", "yoshida4", "suzuki4", "yoshida6", "implicit-midpoint")
+#: Configuration groups accepted by system.group (the paper's list plus all matrices "L").
+CONFIG_GROUPS = ("L",) + GROUPS
+MAX_DIMENSION = 6
+
+
+class ConfigError(ValueError):
+    """A config that cannot be used; the message is one line naming the field."""
+
+    def __init__(self, message: str):
+        super().__init__(message if message.startswith("config error") else
+                         f"config error: {message}")
+
+
+# --------------------------------------------------------------------------- schema
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+
+Vector = list[float]
+Matrix = list[list[float]]
+Matrices = list[list[list[float]]]
+Tensor4 = list[list[list[list[float]]]]
+
+
+class SystemSection(_Section):
+    """``[system]``: dimension, configuration group, bodies, periodic box."""
+
+    n: int = Field(ge=1, le=MAX_DIMENSION, description="spatial dimension n")
+    group: str = Field("GL+", description="configuration group of each phi")
+    bodies: int | list[str] | None = Field(None, description="number of bodies or their labels")
+    box: Vector | None = Field(None, description="edges of a periodic orthorhombic box")
+
+
+class Constituents(_Section):
+    """Point masses making up a body, in material coordinates (eq. (8))."""
+
+    masses: Vector
+    positions: Matrix
+
+
+class BodySection(_Section):
+    """``[body]`` (all bodies alike) or one entry of ``[[bodies]]``."""
+
+    mass: float | None = Field(None, description="total mass M")
+    inertia: float | Matrix | None = Field(None, description="J of eq. (8), or a scalar for J Id")
+    constituents: Constituents | None = None
+    radius: float = Field(0.5, description="drawing radius: bodies are phi(ball of this radius)")
+    label: str | None = None
+
+
+class KineticSection(_Section):
+    """``[kinetic]``: model names (paper's labels) and their inertial parameters."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, populate_by_name=True)
+
+    translational: str = "dalembert"
+    internal: str = "dalembert"
+    I: float | None = None  # noqa: E741
+    A: float | None = None
+    B: float | None = None
+    J: float | Matrix | None = None
+    H: float | Matrix | None = None
+    L: Tensor4 | None = None
+    R: Tensor4 | None = None
+
+
+class PotentialSection(BaseModel):
+    """One ``[[potential]]`` entry: a built-in family by ``kind`` with its parameters, and/or an
+    ``expr`` in the invariants of that kind. Parameters are checked by :mod:`affinebody.potentials`.
+    """
+
+    model_config = ConfigDict(extra="allow", strict=True, frozen=True)
+
+    kind: str
+    expr: str | None = None
+
+
+class InitialSection(_Section):
+    """``[initial]``: explicit arrays, or a generator (lattice / random) they override."""
+
+    generator: Literal["explicit", "lattice", "random"] | None = None
+    x: Matrix | None = None
+    phi: Matrices | None = None
+    velocity: Matrix | None = None
+    phi_velocity: Matrices | None = None
+    momentum: Matrix | None = None
+    phi_momentum: Matrices | None = None
+    spacing: float = 1.0
+    shape: list[int] | None = None
+    origin: Vector | None = None
+    extent: float | None = None
+    jitter: float = 0.0
+    phi_noise: float = 0.0
+    momentum_scale: float = 0.0
+    phi_momentum_scale: float = 0.0
+    zero_momentum: bool = True
+    seed: int | None = None
+
+
+class RunSection(_Section):
+    """``[run]``: time step, length, integrator, output and checkpoint intervals, seed."""
+
+    dt: float
+    steps: int = Field(ge=1)
+    integrator: str = "strang"
+    every: int = Field(1, ge=1, description="write a frame every k steps")
+    checkpoint: int | None = Field(None, ge=1, description="checkpoint every m steps")
+    seed: int = 0
+
+
+class Config(_Section):
+    """A whole configuration file."""
+
+    system: SystemSection
+    body: BodySection | None = None
+    bodies: list[BodySection] | None = None
+    kinetic: KineticSection = KineticSection()
+    potential: list[PotentialSection] = []
+    initial: InitialSection = InitialSection()
+    run: RunSection
+    # the text the config was read from (not a TOML key)
+    source_text: str = Field("", exclude=True, repr=False)
+
+    @property
+    def n(self) -> int:
+        return self.system.n
+
+    @property
+    def bodies_count(self) -> int:
+        return _body_count(self)
+
+    @property
+    def checkpoint_every(self) -> int:
+        """Steps between checkpoints: run.checkpoint, or by default 10 frames' worth."""
+        if self.run.checkpoint is not None:
+            return self.run.checkpoint
+        return self.run.every * 10
+
+    def hash(self) -> str:
+        """SHA-256 of the config's meaning, ignoring run.steps (so a run can be extended)."""
+        data = self.model_dump(exclude={"source_text": True, "run": {"steps"}})
+        canonical = json.dumps(data, sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+# --------------------------------------------------------------------------- parsing
+_TYPE_WORDS = {
+    "float_type": "a number",
+    "float_parsing": "a number",
+    "int_type": "an integer",
+    "int_parsing": "an integer",
+    "int_from_float": "an integer",
+    "string_type": "a string",
+    "bool_type": "true or false",
+    "list_type": "an array",
+    "model_type": "a table",
+    "dict_type": "a table",
+}
+
+
+def _location(loc: tuple) -> str:
+    """Dotted field name from a pydantic location, dropping union-member tags."""
+    parts = []
+    for item in loc:
+        if isinstance(item, int):
+            parts.append(str(item))
+        elif isinstance(item, str) and (item.isidentifier() or item.replace("-", "").isalnum()):
+            if item in ("int", "float", "str", "bool", "list", "dict") and parts:
+                continue
+            parts.append(item)
+    return ".".join(parts) or "config"
+
+
+def _one_line(err: ValidationError) -> str:
+    """The most useful single error of a pydantic ValidationError, as one line."""
+    errors = err.errors(include_url=False)
+    unknown = [e for e in errors if e["type"] == "extra_forbidden"]
+    errors = unknown or errors  # a misspelt key explains the "missing" one it replaces
+    # a union reports one error per member: prefer the one that went deepest
+    first = max(errors, key=lambda e: len(e["loc"])) if len(
+        {_location(e["loc"][:1]) for e in errors}) == 1 else errors[0]
+    where = _location(first["loc"])
+    kind = first["type"]
+    value = first.get("input")
+    if kind == "extra_forbidden":
+        return f"{where}: unknown key (check the spelling; see the README for the fields)"
+    if kind == "missing":
+        return f"{where} is required"
+    if kind in _TYPE_WORDS:
+        union = [e for e in errors if _location(e["loc"]) == where]
+        words = sorted({_TYPE_WORDS.get(e["type"], e["type"]) for e in union})
+        return f"{where} must be {' or '.join(words)} (got {_show(value)})"
+    bounds = {"greater_than_equal": (">=", "ge"), "greater_than": (">", "gt"),
+              "less_than_equal": ("<=", "le"), "less_than": ("<", "lt")}
+    if kind in bounds:
+        symbol, key = bounds[kind]
+        return f"{where} must be {symbol} {first.get('ctx', {}).get(key)} (got {_show(value)})"
+    if kind == "literal_error":
+        return f"{where}: {first['msg'].replace('Input should be', 'must be')} (got {_show(value)})"
+    return f"{where}: {first['msg']} (got {_show(value)})"
+
+
+def _show(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def parse_config(text: str, source: str = "config") -> Config:
+    """Parse TOML ``text`` and check types and keys; raises :class:`ConfigError`."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{source} is not valid TOML: {err}") from None
+    try:
+        config = Config.model_validate({**data, "source_text": text} if "source_text" not in data
+                                       else data)
+    except ValidationError as err:
+        raise ConfigError(_one_line(err)) from None
+    return config
+
+
+def load_config(path: str | Path) -> Config:
+    """Read, parse and check a config file (both passes); raises :class:`ConfigError`."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"cannot read {path}: {err.strerror if hasattr(err, 'strerror') else err}"
+                          ) from None
+    config = parse_config(text, str(path))
+    check_config(config)
+    return config
+
+
+# --------------------------------------------------------------------------- meaning
+def _array(value, field: str, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a float64 array of exactly ``shape``; ConfigError naming ``field``."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (ValueError, TypeError):
+        raise ConfigError(f"{field} must be a rectangular array of shape {list(shape)} "
+                          f"(rows of different lengths)") from None
+    if arr.shape != shape:
+        raise ConfigError(f"{field} must have shape {list(shape)} (got {list(arr.shape)})")
+    if not np.all(np.isfinite(arr)):
+        raise ConfigError(f"{field} must be finite")
+    return arr
+
+
+def _body_count(config: Config) -> int:
+    """N from system.bodies, [[bodies]], initial.x or initial.shape (checked to agree)."""
+    counts: dict[str, int] = {}
+    b = config.system.bodies
+    if b is not None:
+        counts["system.bodies"] = b if isinstance(b, int) else len(b)
+    if config.bodies is not None:
+        counts["bodies"] = len(config.bodies)
+    if config.initial.x is not None:
+        counts["initial.x"] = len(config.initial.x)
+    if not counts:
+        raise ConfigError("system.bodies is required (the number of bodies or a list of labels)")
+    values = set(counts.values())
+    if len(values) > 1:
+        described = ", ".join(f"{k} gives {v}" for k, v in counts.items())
+        raise ConfigError(f"the number of bodies disagrees: {described}")
+    count = values.pop()
+    if count < 1:
+        raise ConfigError(f"{next(iter(counts))}: need at least one body")
+    return count
+
+
+def _positive(value: float | None, field: str) -> None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"{field} must be > 0 (got {value})")
+
+
+def _spd(value, field: str, n: int) -> np.ndarray:
+    """A symmetric positive definite n x n matrix from a scalar s (s Id) or a matrix."""
+    if isinstance(value, int | float):
+        _positive(value, field)
+        return float(value) * np.eye(n)
+    arr = _array(value, field, (n, n))
+    if not np.allclose(arr, arr.T, rtol=0, atol=1e-12 * max(1.0, np.abs(arr).max())):
+        raise ConfigError(f"{field} must be symmetric")
+    smallest = float(np.linalg.eigvalsh(arr).min())
+    if smallest <= 0:
+        raise ConfigError(f"{field} must be positive definite (smallest eigenvalue {smallest:.3g})")
+    return arr
+
+
+@dataclass(frozen=True)
+class Inertia:
+    """Per-body inertial data: mass [N], J [N, n, n] (or None if not derivable), radius [N]."""
+
+    mass: np.ndarray
+    J: np.ndarray
+    radius: np.ndarray
+    labels: tuple[str, ...]
+
+
+def body_inertia(config: Config) -> Inertia:
+    """Masses, J (eq. (8)) and drawing radii of every body, checked."""
+    n, count = config.n, config.bodies_count
+    if config.body is not None and config.bodies is not None:
+        raise ConfigError("give either [body] (identical bodies) or [[bodies]], not both")
+    if config.bodies is not None:
+        entries = [(f"bodies.{k}", b) for k, b in enumerate(config.bodies)]
+    else:
+        entries = [("body", config.body or BodySection())] * count
+    masses, inertias, radii, labels = [], [], [], []
+    system_labels = config.system.bodies if isinstance(config.system.bodies, list) else None
+    for k, (field, body) in enumerate(entries):
+        _positive(body.mass, f"{field}.mass")
+        _positive(body.radius, f"{field}.radius")
+        mass = body.mass
+        J = None
+        if body.constituents is not None:
+            c = body.constituents
+            cm = _array(c.masses, f"{field}.constituents.masses", (len(c.masses),))
+            pos = _array(c.positions, f"{field}.constituents.positions", (len(c.masses), n))
+            if np.any(cm <= 0):
+                raise ConfigError(f"{field}.constituents.masses must all be > 0")
+            total = float(cm.sum())
+            rel = pos - cm @ pos / total
+            J = np.einsum("p,pk,pl->kl", cm, rel, rel)
+            if np.linalg.eigvalsh(J).min() <= 1e-12 * max(1.0, np.abs(J).max()):
+                raise ConfigError(
+                    f"{field}.constituents span fewer than n = {n} dimensions, so J of eq. (8) "
+                    f"is singular (need n + 1 points not in one hyperplane)")
+            if mass is not None and not math.isclose(mass, total, rel_tol=1e-12):
+                raise ConfigError(f"{field}.mass = {mass} disagrees with the constituents' total "
+                                  f"mass {total} (drop one of them)")
+            if body.inertia is not None:
+                raise ConfigError(f"{field}: give inertia or constituents, not both")
+            mass = total
+        elif body.inertia is not None:
+            J = _spd(body.inertia, f"{field}.inertia", n)
+        mass = 1.0 if mass is None else mass
+        if J is None:  # a uniform ball of the drawing radius, J = M r^2 / (n + 2) Id
+            J = mass * body.radius**2 / (n + 2) * np.eye(n)
+        masses.append(mass)
+        inertias.append(J)
+        radii.append(body.radius)
+        label = body.label or (system_labels[k] if system_labels else f"B{k}")
+        labels.append(label)
+    return Inertia(np.asarray(masses), np.asarray(inertias), np.asarray(radii), tuple(labels))
+
+
+def check_kinetic(config: Config) -> None:
+    """Model names exist, every parameter the model needs is there, none it ignores is given,
+    and the quadratic form is positive definite (NOTES.md: (73)/(74) need I + A > 0, I - A > 0,
+    I + A + nB > 0; af-af (72) is indefinite by construction and allowed)."""
+    k, n = config.kinetic, config.n
+    if k.translational not in TRANSLATIONAL_MODELS:
+        raise ConfigError(f"kinetic.translational must be one of {', '.join(TRANSLATIONAL_MODELS)} "
+                          f"(got {k.translational!r})")
+    if k.internal not in INTERNAL_MODELS:
+        raise ConfigError(f"kinetic.internal must be one of {', '.join(INTERNAL_MODELS)} "
+                          f"(got {k.internal!r})")
+    needed = INTERNAL_MODELS[k.internal]
+    for name in ("I", "A", "B", "J", "H", "L", "R"):
+        value = getattr(k, name)
+        if name in needed and value is None and name not in ("J", "B"):
+            raise ConfigError(f"kinetic.{name} is required by the internal model {k.internal!r}")
+        if name not in needed and value is not None:
+            uses = ", ".join(needed)
+            raise ConfigError(f"kinetic.{name} is not a parameter of the internal model "
+                              f"{k.internal!r} (it uses {uses})")
+    if k.internal in ("is-af", "af-is"):
+        I, A, B = k.I, k.A, 0.0 if k.B is None else k.B
+        if not I > abs(A):
+            raise ConfigError(f"kinetic.I must be > |kinetic.A| for {k.internal} to be positive "
+                              f"definite (got I={I}, A={A})")
+        if not I + A + n * B > 0:
+            raise ConfigError(f"kinetic.B must be > -(I + A)/n for {k.internal} to be positive "
+                              f"definite (got I={I}, A={A}, B={B}, n={n})")
+    if k.internal == "af-af" and k.A == 0:
+        raise ConfigError("kinetic.A must be nonzero for af-af (72) (got A=0)")
+    if k.internal in ("dalembert", "af-J") and k.J is not None:
+        _spd(k.J, "kinetic.J", n)
+    if k.internal == "H-af":
+        _spd(k.H, "kinetic.H", n)
+    for name in ("L", "R"):
+        value = getattr(k, name)
+        if value is not None and name in needed:
+            tensor = _array(value, f"kinetic.{name}", (n, n, n, n))
+            matrix = tensor.reshape(n * n, n * n)
+            if not np.allclose(matrix, matrix.T, atol=1e-12 * max(1.0, np.abs(matrix).max())):
+                raise ConfigError(f"kinetic.{name} must be symmetric under exchanging its two "
+                                  f"index pairs")
+            if np.linalg.eigvalsh(matrix).min() <= 0:
+                raise ConfigError(f"kinetic.{name} must be positive definite as an "
+                                  f"n^2 x n^2 matrix")
+
+
+def check_run(config: Config) -> None:
+    r = config.run
+    if not (math.isfinite(r.dt) and r.dt > 0):
+        raise ConfigError(f"run.dt must be > 0 (got {r.dt})")
+    if r.integrator not in INTEGRATOR_NAMES:
+        raise ConfigError(f"run.integrator must be one of {', '.join(INTEGRATOR_NAMES)} "
+                          f"(got {r.integrator!r})")
+    if r.checkpoint is not None and r.checkpoint % r.every:
+        raise ConfigError(f"run.checkpoint must be a multiple of run.every (got checkpoint="
+                          f"{r.checkpoint}, every={r.every})")
+
+
+def check_system(config: Config) -> None:
+    s = config.system
+    if s.group not in CONFIG_GROUPS:
+        raise ConfigError(f"system.group must be one of {', '.join(CONFIG_GROUPS)} "
+                          f"(got {s.group!r})")
+    if s.box is not None:
+        box = _array(s.box, "system.box", (s.n,))
+        if np.any(box <= 0):
+            raise ConfigError(f"system.box edges must all be > 0 (got {s.box})")
+    if isinstance(s.bodies, list) and len(set(s.bodies)) != len(s.bodies):
+        raise ConfigError("system.bodies labels must be distinct")
+
+
+def check_initial(config: Config) -> None:
+    i, n, count = config.initial, config.n, config.bodies_count
+    for name in ("x", "velocity", "momentum"):
+        if getattr(i, name) is not None:
+            _array(getattr(i, name), f"initial.{name}", (count, n))
+    for name in ("phi", "phi_velocity", "phi_momentum"):
+        if getattr(i, name) is not None:
+            _array(getattr(i, name), f"initial.{name}", (count, n, n))
+    if i.velocity is not None and i.momentum is not None:
+        raise ConfigError("initial: give either velocity or momentum, not both")
+    if i.phi_velocity is not None and i.phi_momentum is not None:
+        raise ConfigError("initial: give either phi_velocity or phi_momentum, not both")
+    if i.phi is not None:
+        det = np.linalg.det(np.asarray(i.phi))
+        scale = np.prod(np.linalg.norm(np.asarray(i.phi), axis=-2), axis=-1)
+        bad = np.flatnonzero(~(np.abs(det) > 1e-12 * scale))
+        if bad.size:
+            raise ConfigError(f"initial.phi.{bad[0]} is singular (det = {det[bad[0]]:.3g}): an "
+                              f"internal configuration must be invertible")
+    generator = i.generator or ("explicit" if i.x is not None else None)
+    if generator is None:
+        raise ConfigError("initial.x is required (or set initial.generator = 'lattice' or "
+                          "'random')")
+    if generator == "explicit" and i.x is None:
+        raise ConfigError("initial.x is required when initial.generator = 'explicit'")
+    for name in ("spacing", "jitter", "phi_noise", "momentum_scale", "phi_momentum_scale"):
+        value = getattr(i, name)
+        if not (math.isfinite(value) and value >= 0) or (name == "spacing" and value == 0):
+            raise ConfigError(f"initial.{name} must be {'> 0' if name == 'spacing' else '>= 0'} "
+                              f"(got {value})")
+    if i.extent is not None:
+        _positive(i.extent, "initial.extent")
+    if i.shape is not None:
+        if len(i.shape) != n or any(s < 1 for s in i.shape):
+            raise ConfigError(f"initial.shape must be {n} positive integers (got {i.shape})")
+        if math.prod(i.shape) < count:
+            raise ConfigError(f"initial.shape {i.shape} has {math.prod(i.shape)} sites for "
+                              f"{count} bodies")
+    if i.origin is not None:
+        _array(i.origin, "initial.origin", (n,))
+
+
+def build_potential_entry(entry: PotentialSection, index: int, config: Config):
+    """The potential of ``[[potential]]`` entry ``index`` (:mod:`affinebody.potentials`).
+
+    ``kind = "dilatation"`` with an ``expr`` (as in the README's example) is the one-body
+    expression potential sum_K f(det phi_K) of (80), (81), restricted to the variable ``det``.
+    """
+    from affinebody import potentials
+
+    field = f"potential.{index}"
+    params = dict(entry.model_extra or {})
+    if entry.expr is not None:
+        params["expr"] = entry.expr
+    if entry.kind == "dilatation" and "expr" in params:
+        extra = sorted(set(params) - {"expr"})
+        if extra:
+            raise ConfigError(f"{field}: a dilatation expression takes no other parameters "
+                              f"(got {', '.join(extra)})")
+        try:
+            pot = potentials.OneBodyPotential.from_expression(params["expr"], config.n,
+                                                              field=f"{field}.expr")
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
+        other = sorted(set(pot.variables) - {"det"})
+        if other:
+            raise ConfigError(f"{field}.expr: a dilatation potential depends on det only "
+                              f"(got {', '.join(other)}; use kind = 'one-body')")
+        return pot
+    try:
+        return potentials.build_potential(entry.kind, params, n=config.n, box=config.system.box,
+                                          field=field)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+
+
+def check_potentials(config: Config) -> None:
+    """Every [[potential]] entry builds (kind known, parameters valid, expression allowed)."""
+    for k, entry in enumerate(config.potential):
+        build_potential_entry(entry, k, config)
+
+
+def check_config(config: Config) -> Config:
+    """Second pass: the meaning of every field (see the module docstring)."""
+    check_system(config)
+    config.bodies_count  # noqa: B018 - raises if the counts disagree
+    body_inertia(config)
+    check_kinetic(config)
+    check_initial(config)
+    check_run(config)
+    check_potentials(config)
+    return config
+
+
+# --------------------------------------------------------------------------- building
+@dataclass(frozen=True)
+class Built:
+    """A checked config turned into the objects of the dynamics."""
+
+    system: Any  # affinebody.system.HamiltonianSystem
+    state: Any  # affinebody.state.State, the initial state
+    inertia: Inertia
+
+
+@dataclass(frozen=True)
+class StaticPotential:
+    """A potential held as static (hashable) pytree metadata.
+
+    The potentials of :mod:`affinebody.potentials` are frozen dataclasses with only Python
+    numbers and compiled expressions inside; declaring them static lets every chunk of a run
+    reuse one compiled function instead of tracing the potential again.
+    """
+
+    potential: Any
+
+    def energy(self, x, phi):
+        return self.potential.energy(x, phi)
+
+    @property
+    def symmetry(self) -> frozenset[str]:
+        return self.potential.symmetry
+
+
+def _register_static() -> None:
+    import jax
+
+    jax.tree_util.register_dataclass(StaticPotential, data_fields=[], meta_fields=["potential"])
+
+
+_register_static()
+
+
+def build_kinetic(config: Config, inertia: Inertia):
+    """The :class:`~affinebody.kinetic.KineticEnergy` of ``[kinetic]`` (positive definiteness
+    checked here and again by the model's own ``check``)."""
+    from affinebody import kinetic as models
+
+    k, n = config.kinetic, config.n
+    translational = models.TRANSLATIONAL_MODELS[k.translational](mass=inertia.mass)
+    name = k.internal
+    if name in ("dalembert", "af-J"):
+        J = inertia.J if k.J is None else _spd(k.J, "kinetic.J", n)
+        internal = models.MODELS[name](J=J)
+    elif name == "H-af":
+        internal = models.MODELS[name](H=_spd(k.H, "kinetic.H", n))
+    elif name in ("l-af", "r-af"):
+        param = "L" if name == "l-af" else "R"
+        tensor = _array(getattr(k, param), f"kinetic.{param}", (n, n, n, n))
+        internal = models.MODELS[name](**{param: tensor})
+    elif name == "af-af":
+        internal = models.MODELS[name](A=float(k.A), B=float(k.B or 0.0))
+    else:
+        internal = models.MODELS[name](I=float(k.I), A=float(k.A), B=float(k.B or 0.0))
+    energy = models.KineticEnergy(translational, internal)
+    try:
+        energy.check(n)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    return energy
+
+
+def _rng(seed: int, stream: int) -> np.random.Generator:
+    """An independent random stream per generated quantity (order of use does not matter)."""
+    return np.random.default_rng([seed, stream])
+
+
+def _lattice_shape(count: int, n: int) -> list[int]:
+    side = 1
+    while side**n < count:
+        side += 1
+    return [side] * n
+
+
+def initial_configuration(config: Config) -> tuple[np.ndarray, np.ndarray]:
+    """(x [N, n], phi [N, n, n]) from ``[initial]``: explicit arrays, else the generator."""
+    from affinebody.groups import expm, project_algebra
+
+    i, n, count = config.initial, config.n, config.bodies_count
+    seed = config.run.seed if i.seed is None else i.seed
+    origin = np.zeros(n) if i.origin is None else np.asarray(i.origin, dtype=np.float64)
+    if i.x is not None:
+        x = np.asarray(i.x, dtype=np.float64)
+    elif i.generator == "random":
+        box = config.system.box
+        extent = i.extent or (None if box is None else np.asarray(box)) or i.spacing * count ** (
+            1 / n)
+        x = origin + _rng(seed, 0).uniform(0.0, 1.0, (count, n)) * extent
+    else:  # lattice
+        shape = i.shape or _lattice_shape(count, n)
+        sites = np.stack(np.unravel_index(np.arange(count), shape), axis=-1).astype(np.float64)
+        x = origin + i.spacing * sites
+        if i.jitter:
+            x = x + i.jitter * i.spacing * _rng(seed, 1).uniform(-1.0, 1.0, x.shape)
+    if i.phi is not None:
+        phi = np.asarray(i.phi, dtype=np.float64)
+    else:
+        phi = np.broadcast_to(np.eye(n), (count, n, n)).copy()
+        if i.phi_noise:
+            group = config.system.group
+            algebra = "GL" if group in ("L", "GL", "GL+") else group
+            noise = i.phi_noise * _rng(seed, 2).standard_normal((count, n, n))
+            phi = np.asarray(expm(project_algebra(noise, algebra)))
+    return x, phi
+
+
+def initial_state(config: Config, kinetic):
+    """The initial :class:`~affinebody.state.State`; velocities go through the Legendre maps."""
+    from affinebody.state import State
+
+    i, n, count = config.initial, config.n, config.bodies_count
+    seed = config.run.seed if i.seed is None else i.seed
+    x, phi = initial_configuration(config)
+    if i.momentum is not None:
+        p = np.asarray(i.momentum, dtype=np.float64)
+    elif i.velocity is not None:
+        p = np.asarray(kinetic.translational.legendre(phi, np.asarray(i.velocity, np.float64)))
+    else:
+        p = i.momentum_scale * _rng(seed, 3).standard_normal((count, n))
+        if i.zero_momentum and count > 1:
+            p = p - p.mean(axis=0)
+    if i.phi_momentum is not None:
+        pi = np.asarray(i.phi_momentum, dtype=np.float64)
+    elif i.phi_velocity is not None:
+        xi = np.asarray(i.phi_velocity, dtype=np.float64)
+        pi = np.asarray(kinetic.internal.legendre(phi, xi))
+    else:
+        pi = i.phi_momentum_scale * _rng(seed, 4).standard_normal((count, n, n))
+    return State(x, phi, p, pi)
+
+
+def build(config: Config) -> Built:
+    """System, initial state and inertia of a checked config (needs JAX's float64 mode)."""
+    from affinebody._checks import require_x64
+    from affinebody.potentials import total_potential
+    from affinebody.system import SYSTEM_GROUPS, HamiltonianSystem
+
+    require_x64()
+    inertia = body_inertia(config)
+    kinetic = build_kinetic(config, inertia)
+    terms = [build_potential_entry(e, k, config) for k, e in enumerate(config.potential)]
+    potential = StaticPotential(total_potential(terms)) if terms else None
+    group = config.system.group
+    if group not in SYSTEM_GROUPS:
+        raise ConfigError(f"system.group {group!r} is not supported by the integrators "
+                          f"(choose one of {', '.join(SYSTEM_GROUPS)})")
+    try:
+        system = HamiltonianSystem(kinetic, potential, group)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    state = initial_state(config, kinetic)
+    try:
+        state = system.check(state)
+    except ValueError as err:
+        raise ConfigError(f"initial: {err}") from None
+    energy = float(system.hamiltonian(state))
+    if not math.isfinite(energy):
+        raise ConfigError(f"initial: the energy of the initial state is {energy} (bodies on top "
+                          f"of each other in a singular potential, or det phi = 0?)")
+    return Built(system, state, inertia)

@@ -1,0 +1,1 @@
+"""Built-in example configurations (TOML resources), e.g. ``demo.toml`` for ``affinebody demo``."""

@@ -1,0 +1,150 @@
+"""Export of trajectories to extended XYZ for OVITO (ellipsoids from the two-polar decomposition).
+
+A body of drawing radius r is the image of the ball |u| <= r under phi. With the two-polar
+decomposition phi = L D R^T (paper, last section; :func:`affinebody.polar.two_polar`), L, R in
+SO(n) and D = diag(exp q), the image is the ellipsoid with semi-axes r * exp(q_a) along the
+columns of L (R^T maps the ball onto itself; for det phi < 0 the extra reflection does too).
+So each frame line carries
+
+- ``pos:R:3``               x (2D: z = 0),
+- ``aspherical_shape:R:3``  r * singular values of phi (2D: a thin third axis ``thickness * r``),
+- ``orientation:R:4``       the unit quaternion (x, y, z, w) of L, det L = +1, w >= 0,
+- ``deform:R:9``            phi embedded in 3x3 (2D: phi (+) 1), row-major: phi[0,0], phi[0,1], ...
+
+which OVITO's extended-XYZ reader maps to Position, Aspherical Shape, Orientation and a
+user property ``deform``. A periodic box becomes ``Lattice=`` with ``pbc=``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from affinebody.h5md import Trajectory
+
+PROPERTIES = "species:S:1:pos:R:3:aspherical_shape:R:3:orientation:R:4:deform:R:9"
+
+
+def quaternion_from_rotation(rotation: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w), w >= 0, of 3x3 rotations [..., 3, 3] (Shepperd's method).
+
+    Picks the numerically largest of 4w^2, 4x^2, 4y^2, 4z^2 to divide by, so it is accurate for
+    every rotation, including half-turns.
+    """
+    m = np.asarray(rotation, dtype=np.float64)
+    trace = np.trace(m, axis1=-2, axis2=-1)
+    choice = np.argmax(np.concatenate([np.diagonal(m, axis1=-2, axis2=-1), trace[..., None]], -1),
+                       axis=-1)
+    w = np.sqrt(np.maximum(1.0 + trace, 0.0)) / 2  # case "trace largest": divide by 4w
+    q = np.stack(
+        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1],
+         4 * w * w],
+        axis=-1,
+    ) / np.maximum(4 * w, 1e-300)[..., None]
+    for i in range(3):  # case "m_ii largest": divide by s = 4 q_i
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2 * np.sqrt(np.maximum(1.0 + m[..., i, i] - m[..., j, j] - m[..., k, k], 0.0))
+        safe = np.maximum(s, 1e-300)
+        part = np.empty(m.shape[:-2] + (4,))
+        part[..., i] = s / 4
+        part[..., j] = (m[..., j, i] + m[..., i, j]) / safe
+        part[..., k] = (m[..., k, i] + m[..., i, k]) / safe
+        part[..., 3] = (m[..., k, j] - m[..., j, k]) / safe
+        q = np.where((choice == i)[..., None], part, q)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., 3:4] < 0, -q, q)
+
+
+def rotation_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """3x3 rotation of unit quaternions (x, y, z, w), [..., 4] -> [..., 3, 3]."""
+    x, y, z, w = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=-2,
+    )
+
+
+def embed3(matrix: np.ndarray) -> np.ndarray:
+    """n x n matrices (n = 2 or 3) as 3 x 3: 2D blocks get a 1 in the zz entry."""
+    matrix = np.asarray(matrix, dtype=np.float64)
+    n = matrix.shape[-1]
+    if n == 3:
+        return matrix
+    out = np.zeros(matrix.shape[:-2] + (3, 3))
+    out[..., :n, :n] = matrix
+    out[..., 2, 2] = 1.0
+    return out
+
+
+def ellipsoids(phi: np.ndarray, radius: np.ndarray, thickness: float = 0.05):
+    """Semi-axes [..., 3], orientation quaternions [..., 4] and 3x3 deform [..., 3, 3] of bodies.
+
+    ``phi`` [..., N, n, n] with n = 2 or 3, ``radius`` [N]. Uses phi = L diag(exp q) R^T
+    (:func:`affinebody.polar.two_polar`, L in SO(n)); the quaternion is that of L (embedded as
+    a rotation about z for n = 2).
+    """
+    from affinebody.polar import two_polar
+
+    phi = np.asarray(phi, dtype=np.float64)
+    n = phi.shape[-1]
+    if n not in (2, 3):
+        raise ValueError(f"export needs n = 2 or 3 (got n = {n})")
+    decomposition = two_polar(phi)
+    rotation = np.asarray(decomposition.L)
+    radius = np.asarray(radius, dtype=np.float64)
+    axes = np.exp(np.asarray(decomposition.q)) * radius[:, None]
+    if n == 2:
+        axes = np.concatenate([axes, thickness * np.broadcast_to(radius[:, None],
+                                                                 axes.shape[:-1] + (1,))], -1)
+    return axes, quaternion_from_rotation(embed3(rotation)), embed3(phi)
+
+
+def _lattice(box: np.ndarray | None, n: int) -> str:
+    if box is None:
+        return ""
+    edges = np.zeros(3)
+    edges[:n] = np.asarray(box, dtype=np.float64)[:n]
+    if n == 2:
+        edges[2] = 1.0
+    cell = np.diag(edges).ravel()
+    pbc = " ".join("T" if a < n else "F" for a in range(3))
+    return f'Lattice="{" ".join(f"{v:.17g}" for v in cell)}" pbc="{pbc}" '
+
+
+def write_xyz(
+    trajectory: Trajectory,
+    path: str | Path,
+    *,
+    every: int = 1,
+    thickness: float = 0.05,
+    species: str = "B",
+) -> int:
+    """Write every ``every``-th frame of ``trajectory`` as extended XYZ; returns frames written."""
+    if every < 1:
+        raise ValueError(f"--every must be >= 1 (got {every})")
+    n = trajectory.n
+    frames = range(0, trajectory.frames, every)
+    axes, quat, deform = ellipsoids(trajectory.phi[::every], trajectory.radius, thickness)
+    position = np.zeros(trajectory.x[::every].shape[:-1] + (3,))
+    position[..., :n] = trajectory.x[::every]
+    lattice = _lattice(trajectory.box, n)
+    with open(path, "w", encoding="ascii") as out:
+        for index, frame in enumerate(frames):
+            out.write(f"{trajectory.bodies}\n")
+            out.write(
+                f"{lattice}Properties={PROPERTIES} "
+                f"Time={trajectory.time[frame]:.17g} Step={int(trajectory.step[frame])}\n"
+            )
+            rows = np.concatenate(
+                [position[index], axes[index], quat[index],
+                 deform[index].reshape(trajectory.bodies, 9)],
+                axis=-1,
+            )
+            for row in rows:
+                out.write(species + " " + " ".join(f"{v:.17g}" for v in row) + "\n")
+    return len(frames)

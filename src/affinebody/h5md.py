@@ -1,0 +1,327 @@
+"""Trajectory files in the H5MD 1.1 layout (https://www.nongnu.org/h5md/h5md.html).
+
+The layout is a public contract::
+
+    /h5md                        attrs version=[1, 1]; groups author, creator, modules/affine_bodies
+    /particles/bodies/position/{step, time, value}      value [T, N, n]      (x)
+    /particles/bodies/momentum/{step, time, value}      value [T, N, n]      (p)
+    /particles/bodies/phi/{step, time, value}           value [T, N, n, n]   (phi[i, a] = phi^i_a)
+    /particles/bodies/phi_momentum/{step, time, value}  value [T, N, n, n]   (pi[a, i] = pi^a_i)
+    /particles/bodies/mass  [N];  /particles/bodies/radius [N];  /particles/bodies/box (group)
+    /observables/{total_energy, kinetic_energy, potential_energy}/{step, time, value}   [T]
+    /observables/linear_momentum/...      value [T, n]      sum_K p_K              (103)
+    /observables/affine_momentum/...      value [T, n, n]   sum_K (x_K p_K^T + phi_K pi_K)  (109)
+    /observables/angular_momentum/...     value [T, n, n]   J - J^T of the affine momentum J
+    /parameters/{config, seed, version, dt, steps, config_hash}
+
+``phi_momentum`` keeps the paper's placement pi[a, i] = pi^a_i, so that Sigma = phi @ pi and
+Sigma_hat = pi @ phi (45).
+
+Crash safety: the writer creates every dataset first and then switches the file to HDF5's
+single-writer/multiple-reader (SWMR) mode, in which the library orders its metadata writes so
+that the file on disk stays readable when the writing process is killed. After such a kill HDF5
+refuses an ordinary open ("file is already open for write"); :func:`open_h5` falls back to a SWMR
+read, which is why every reader here goes through it. Frames are flushed as they are written.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from affinebody import __version__
+from affinebody.state import State
+
+H5MD_VERSION = (1, 1)
+MODULE_NAME = "affine_bodies"
+MODULE_VERSION = (1, 0)
+PARTICLE_GROUP = "bodies"
+
+#: State fields -> H5MD element names under /particles/bodies.
+STATE_ELEMENTS = {"x": "position", "p": "momentum", "phi": "phi", "pi": "phi_momentum"}
+#: Observable names -> number of trailing axes of size n (0: scalar, 1: vector, 2: matrix).
+OBSERVABLES = {
+    "total_energy": 0,
+    "kinetic_energy": 0,
+    "potential_energy": 0,
+    "linear_momentum": 1,
+    "affine_momentum": 2,
+    "angular_momentum": 2,
+}
+
+
+class TrajectoryFileError(ValueError):
+    """An output file that cannot be read as an affinebody H5MD trajectory."""
+
+
+def open_h5(path: str | Path) -> h5py.File:
+    """Open ``path`` read-only; falls back to a SWMR read for files whose writer was killed."""
+    path = Path(path)
+    if not path.is_file():
+        raise TrajectoryFileError(f"{path}: no such file")
+    try:
+        return h5py.File(path, "r")
+    except OSError as first:
+        # only a file left open by a (killed) SWMR writer is retried: a SWMR read of a
+        # truncated file can retry its metadata reads for a very long time
+        if "already open for write" not in str(first):
+            raise TrajectoryFileError(
+                f"{path}: not a readable HDF5 file (truncated or corrupt: {_short(first)})"
+            ) from None
+        try:
+            return h5py.File(path, "r", swmr=True)
+        except OSError as second:
+            raise TrajectoryFileError(
+                f"{path}: not a readable HDF5 file (truncated or corrupt: {_short(second)})"
+            ) from None
+
+
+def _short(err: Exception) -> str:
+    text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    return text if len(text) < 160 else text[:157] + "..."
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A trajectory read back from an H5MD file, as NumPy arrays (frames along axis 0)."""
+
+    step: np.ndarray
+    time: np.ndarray
+    x: np.ndarray
+    phi: np.ndarray
+    p: np.ndarray
+    pi: np.ndarray
+    mass: np.ndarray
+    radius: np.ndarray
+    box: np.ndarray | None
+    observables: Mapping[str, np.ndarray] = field(default_factory=dict)
+    config_text: str = ""
+    seed: int = 0
+    version: str = ""
+    dt: float = float("nan")
+
+    @property
+    def state(self) -> State:
+        """All frames as one batched :class:`State` ([T, N, ...] arrays)."""
+        return State(self.x, self.phi, self.p, self.pi)
+
+    @property
+    def frames(self) -> int:
+        return int(self.step.shape[0])
+
+    @property
+    def n(self) -> int:
+        return int(self.phi.shape[-1])
+
+    @property
+    def bodies(self) -> int:
+        return int(self.phi.shape[-3])
+
+    def frame(self, k: int) -> State:
+        """Frame ``k`` (negative counts from the end) as a :class:`State`."""
+        return State(self.x[k], self.phi[k], self.p[k], self.pi[k])
+
+
+def read_trajectory(path: str | Path) -> Trajectory:
+    """Read an affinebody H5MD file into a :class:`Trajectory`.
+
+    Raises :class:`TrajectoryFileError` (a ``ValueError``) with a one-line message for missing,
+    truncated or foreign files. Frames are cut to the length every element agrees on, so a file
+    whose writer was killed between two element writes still reads consistently.
+    """
+    with open_h5(path) as f:
+        try:
+            if "h5md" not in f or "particles" not in f or PARTICLE_GROUP not in f["particles"]:
+                raise TrajectoryFileError(
+                    f"{path}: not an affinebody H5MD file (no /h5md or /particles/{PARTICLE_GROUP})"
+                )
+            bodies = f["particles"][PARTICLE_GROUP]
+            elements = {}
+            for name, element in STATE_ELEMENTS.items():
+                if element not in bodies:
+                    raise TrajectoryFileError(f"{path}: missing /particles/bodies/{element}")
+                elements[name] = bodies[element]
+            obs_group = f["observables"] if "observables" in f else {}
+            lengths = [len(g["step"]) for g in elements.values()]
+            lengths += [len(g["value"]) for g in elements.values()]
+            lengths += [len(obs_group[k]["value"]) for k in obs_group]
+            count = min(lengths) if lengths else 0
+            arrays = {k: np.asarray(g["value"][:count]) for k, g in elements.items()}
+            step = np.asarray(elements["x"]["step"][:count])
+            time = np.asarray(elements["x"]["time"][:count])
+            observables = {k: np.asarray(obs_group[k]["value"][:count]) for k in obs_group}
+            box = None
+            if "box" in bodies and "edges" in bodies["box"]:
+                box = np.asarray(bodies["box"]["edges"][()])
+            params = f["parameters"] if "parameters" in f else {}
+            return Trajectory(
+                step=step,
+                time=time,
+                mass=np.asarray(bodies["mass"][()]),
+                radius=np.asarray(bodies["radius"][()]) if "radius" in bodies
+                else np.full(arrays["phi"].shape[-3], 0.5),
+                box=box,
+                observables=observables,
+                config_text=_read_string(params, "config"),
+                seed=int(params["seed"][()]) if "seed" in params else 0,
+                version=_read_string(params, "version"),
+                dt=float(params["dt"][()]) if "dt" in params else float("nan"),
+                **arrays,
+            )
+        except TrajectoryFileError:
+            raise
+        except (OSError, KeyError, ValueError, TypeError) as err:
+            raise TrajectoryFileError(
+                f"{path}: cannot read the trajectory (truncated or corrupt: {_short(err)})"
+            ) from None
+
+
+def _read_string(group, name: str) -> str:
+    if name not in group:
+        return ""
+    value = group[name][()]
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _time_series(parent: h5py.Group, name: str, shape: tuple[int, ...], chunk: int) -> None:
+    """Create an H5MD time-dependent element ``name`` with empty, growable step/time/value."""
+    group = parent.create_group(name)
+    group.create_dataset("step", shape=(0,), maxshape=(None,), dtype="i8", chunks=(chunk,))
+    group.create_dataset("time", shape=(0,), maxshape=(None,), dtype="f8", chunks=(chunk,))
+    group.create_dataset(
+        "value", shape=(0, *shape), maxshape=(None, *shape), dtype="f8", chunks=(chunk, *shape)
+    )
+
+
+class H5MDWriter:
+    """Append-only writer of an affinebody trajectory in the H5MD layout of this module.
+
+    Use as a context manager. ``append`` writes a block of frames and flushes them to disk.
+    ``parameters`` are stored under /parameters (strings and numbers only).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        mass: np.ndarray,
+        radius: np.ndarray,
+        n: int,
+        box: np.ndarray | None = None,
+        parameters: Mapping[str, object] | None = None,
+        author: str = "affinebody user",
+    ):
+        self.path = Path(path)
+        mass = np.asarray(mass, dtype=np.float64)
+        bodies = mass.shape[0]
+        self.n, self.bodies = int(n), int(bodies)
+        chunk = max(1, min(256, 2**16 // max(1, bodies * n * n)))
+        self.file = h5py.File(self.path, "w", libver="latest")
+        f = self.file
+        h5md = f.create_group("h5md")
+        h5md.attrs["version"] = np.asarray(H5MD_VERSION, dtype=np.int32)
+        h5md.create_group("author").attrs["name"] = author
+        creator = h5md.create_group("creator")
+        creator.attrs["name"] = "affinebody"
+        creator.attrs["version"] = __version__
+        module = h5md.create_group("modules").create_group(MODULE_NAME)
+        module.attrs["version"] = np.asarray(MODULE_VERSION, dtype=np.int32)
+
+        particles = f.create_group("particles").create_group(PARTICLE_GROUP)
+        for name, element in STATE_ELEMENTS.items():
+            shape = (bodies, n) if name in ("x", "p") else (bodies, n, n)
+            _time_series(particles, element, shape, chunk)
+        particles.create_dataset("mass", data=mass)
+        particles.create_dataset("radius", data=np.asarray(radius, dtype=np.float64))
+        box_group = particles.create_group("box")
+        box_group.attrs["dimension"] = np.int32(n)
+        periodic = box is not None
+        boundary = "periodic" if periodic else "none"
+        box_group.attrs.create("boundary", [boundary] * n, dtype=h5py.string_dtype())
+        if periodic:
+            box_group.create_dataset("edges", data=np.asarray(box, dtype=np.float64))
+
+        observables = f.create_group("observables")
+        for name, rank in OBSERVABLES.items():
+            _time_series(observables, name, (n,) * rank, max(chunk, 64))
+
+        params = f.create_group("parameters")
+        params.create_dataset("version", data=__version__, dtype=h5py.string_dtype())
+        for key, value in (parameters or {}).items():
+            if isinstance(value, str):
+                params.create_dataset(key, data=value, dtype=h5py.string_dtype())
+            else:
+                params.create_dataset(key, data=np.asarray(value))
+        f.flush()
+        self.file.swmr_mode = True
+        self.frames = 0
+
+    def append(
+        self,
+        step: np.ndarray,
+        time: np.ndarray,
+        state: State,
+        observables: Mapping[str, np.ndarray],
+    ) -> None:
+        """Append frames: ``step`` [F], ``time`` [F], ``state`` with [F, N, ...] arrays."""
+        step = np.atleast_1d(np.asarray(step, dtype=np.int64))
+        time = np.atleast_1d(np.asarray(time, dtype=np.float64))
+        count = step.shape[0]
+        if count == 0:
+            return
+        start, stop = self.frames, self.frames + count
+        groups = [
+            (self.file["particles"][PARTICLE_GROUP][element], getattr(state, name))
+            for name, element in STATE_ELEMENTS.items()
+        ]
+        groups += [(self.file["observables"][name], observables[name]) for name in OBSERVABLES]
+        for group, value in groups:
+            value = np.asarray(value, dtype=np.float64)
+            if value.shape[0] != count:
+                raise ValueError(f"{group.name}: got {value.shape[0]} frames, expected {count}")
+            for key, data in (("value", value), ("step", step), ("time", time)):
+                dataset = group[key]
+                dataset.resize(stop, axis=0)
+                dataset[start:stop] = data
+        self.frames = stop
+        self.flush()
+
+    def flush(self) -> None:
+        self.file.flush()
+
+    def close(self) -> None:
+        if self.file.id.valid:
+            self.file.close()
+
+    def __enter__(self) -> H5MDWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def copy_frames(source: Trajectory, writer: H5MDWriter, through_step: int) -> int:
+    """Append the frames of ``source`` with step <= ``through_step`` to ``writer``.
+
+    Used by ``--resume``: the output is rebuilt from the frames written before the last
+    checkpoint, so that the resumed file is identical to an uninterrupted run's.
+    Returns the number of frames copied.
+    """
+    keep = source.step <= through_step
+    count = int(np.count_nonzero(keep))
+    if count and not np.all(keep[:count]):
+        raise TrajectoryFileError(f"{writer.path}: steps are not increasing")
+    missing = [k for k in OBSERVABLES if k not in source.observables]
+    if missing:
+        raise TrajectoryFileError(f"missing observables {missing} in the file to resume")
+    writer.append(
+        source.step[:count],
+        source.time[:count],
+        State(source.x[:count], source.phi[:count], source.p[:count], source.pi[:count]),
+        {k: v[:count] for k, v in source.observables.items() if k in OBSERVABLES},
+    )
+    return count

@@ -1,0 +1,235 @@
+"""End to end through the CLI: run, resume (also after SIGKILL), failures, plot, export, validate.
+
+All runs share one tiny config (3 bodies in 2D), so JAX compiles its chunk function once.
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import click
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from matplotlib.image import imread
+
+from affinebody.checkpoint import checkpoint_path, load_checkpoint
+from affinebody.export import rotation_from_quaternion
+from affinebody.h5md import read_trajectory
+from affinebody.runner import COMMANDS
+
+CLI = click.Group("affinebody", commands={c.name: c for c in COMMANDS})
+TOTAL = 20000
+
+TINY = textwrap.dedent('''
+    [system]
+    n = 2
+    bodies = 3
+    [body]
+    mass = 1.0
+    inertia = 0.5
+    radius = 0.3
+    [kinetic]
+    translational = "dalembert"
+    internal = "dalembert"
+    [[potential]]
+    kind = "pair"
+    expr = "(r - 1)**2 + 0.1*(M1 - 2)**2"
+    [[potential]]
+    kind = "one-body"
+    expr = "2*(det - 1)**2 + 0.5*(trG - 2)**2"
+    [initial]
+    x = [[0.0, 0.0], [1.1, 0.0], [0.0, 0.9]]
+    momentum = [[0.1, 0.0], [0.0, -0.1], [-0.1, 0.1]]
+    phi_momentum = [[[0.0, 0.1], [0.0, 0.0]], [[0.0, 0.0], [0.05, 0.0]], [[0.0, 0.0], [0.0, 0.02]]]
+    [run]
+    dt = 0.01
+    steps = 20000
+    every = 500
+    checkpoint = 2000
+''')
+
+
+def invoke(*args):
+    result = CliRunner().invoke(CLI, [str(a) for a in args])
+    return result
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cli")
+    (path / "tiny.toml").write_text(TINY)
+    return path
+
+
+@pytest.fixture(scope="module")
+def reference(folder):
+    result = invoke("run", folder / "tiny.toml", "-o", folder / "ref.h5")
+    assert result.exit_code == 0, result.output + result.stderr
+    assert "max relative error" in result.output
+    return folder / "ref.h5"
+
+
+def datasets(path):
+    out = {}
+    with h5py.File(path, "r") as f:
+        for top in ("particles/bodies", "observables"):
+            for name, group in f[top].items():
+                if isinstance(group, h5py.Group) and "value" in group:
+                    for key in ("step", "time", "value"):
+                        out[f"{top}/{name}/{key}"] = group[key][()]
+    return out
+
+
+def assert_bitwise_equal(path, reference):
+    got, want = datasets(path), datasets(reference)
+    assert got.keys() == want.keys()
+    for key in want:
+        assert got[key].shape == want[key].shape, key
+        assert np.array_equal(got[key], want[key]), key
+
+
+def test_run_writes_the_h5md_layout_and_conserves(reference):
+    with h5py.File(reference, "r") as f:
+        assert list(f["h5md"].attrs["version"]) == [1, 1]
+        assert "affine_bodies" in f["h5md/modules"]
+        frames = TOTAL // 500 + 1
+        for name, shape in (("position", (3, 2)), ("momentum", (3, 2)), ("phi", (3, 2, 2)),
+                            ("phi_momentum", (3, 2, 2))):
+            assert f[f"particles/bodies/{name}/value"].shape == (frames, *shape)
+            np.testing.assert_array_equal(f[f"particles/bodies/{name}/step"][()],
+                                          np.arange(frames) * 500)
+        np.testing.assert_allclose(f["particles/bodies/phi/time"][()], np.arange(frames) * 5.0)
+        assert f["particles/bodies/mass"].shape == (3,)
+        assert "box" in f["particles/bodies"]
+        for name in ("total_energy", "kinetic_energy", "potential_energy", "linear_momentum",
+                     "affine_momentum", "angular_momentum"):
+            assert f[f"observables/{name}/value"].shape[0] == frames
+        assert f["parameters/config"][()].decode() == TINY
+        assert f["parameters/seed"][()] == 0 and f["parameters/version"][()]
+    traj = read_trajectory(reference)
+    obs = traj.observables
+    energy = obs["total_energy"]
+    assert np.max(np.abs(energy - energy[0])) < 1e-3 * abs(energy[0])
+    np.testing.assert_allclose(obs["kinetic_energy"] + obs["potential_energy"], energy,
+                               rtol=1e-12)
+    # translation- and rotation-invariant H: exact sub-flows keep p and J - J^T to round-off
+    assert np.max(np.abs(obs["linear_momentum"] - obs["linear_momentum"][0])) < 1e-11
+    assert np.max(np.abs(obs["angular_momentum"] - obs["angular_momentum"][0])) < 1e-10
+    np.testing.assert_allclose(obs["linear_momentum"], traj.p.sum(axis=1), atol=1e-15)
+
+
+def test_resume_reproduces_the_uninterrupted_run_bit_for_bit(folder, reference):
+    out = folder / "resumed.h5"
+    first = invoke("run", folder / "tiny.toml", "-o", out, "--steps", 8000, "--quiet")
+    assert first.exit_code == 0 and first.output == ""
+    assert load_checkpoint(checkpoint_path(out)).step == 8000
+    second = invoke("run", folder / "tiny.toml", "-o", out, "--resume", "--quiet")
+    assert second.exit_code == 0, second.stderr
+    assert_bitwise_equal(out, reference)
+
+
+def test_a_run_killed_with_sigkill_resumes_bit_for_bit(folder, reference):
+    out = folder / "killed.h5"
+    code = (f"from affinebody.runner import run; run.main([{str(folder / 'tiny.toml')!r}, "
+            f"'-o', {str(out)!r}, '--steps', '100000000', '--quiet'])")
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    ckpt = checkpoint_path(out)
+    deadline = time.monotonic() + 240
+    while not ckpt.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    step = load_checkpoint(ckpt).step
+    assert 0 < step < TOTAL
+    # the killed file is readable up to where it got (frames past the checkpoint included)
+    assert read_trajectory(out).frames >= step // 500 + 1
+    result = invoke("run", folder / "tiny.toml", "-o", out, "--resume", "--steps", TOTAL,
+                    "--quiet")
+    assert result.exit_code == 0, result.stderr
+    assert_bitwise_equal(out, reference)
+
+
+def test_a_blow_up_stops_with_step_body_and_cause_and_keeps_the_frames(folder):
+    (folder / "stiff.toml").write_text(TINY.replace("dt = 0.01", "dt = 3.0"))
+    out = folder / "stiff.h5"
+    result = invoke("run", folder / "stiff.toml", "-o", out, "--quiet")
+    assert result.exit_code not in (0, None)
+    message = result.stderr.strip()
+    assert "\n" not in message and "Traceback" not in message
+    assert "step" in message and "body" in message and "t =" in message
+    traj = read_trajectory(out)
+    assert traj.frames >= 1
+    assert all(np.all(np.isfinite(a)) for a in traj.state)
+
+
+def test_plot_writes_nonempty_images(folder, reference):
+    result = invoke("plot", reference, "-o", folder / "plots")
+    assert result.exit_code == 0, result.stderr
+    names = {"energy.png", "momenta.png", "deformation.png", "bodies.png"}
+    assert names <= {p.name for p in (folder / "plots").iterdir()}
+    for name in names:
+        image = imread(folder / "plots" / name)
+        assert image.shape[0] > 100 and image.shape[1] > 100
+        assert float(np.std(image[..., :3])) > 0.01  # something is drawn
+
+
+def test_plot_can_animate(folder, reference):
+    result = invoke("plot", reference, "-o", folder / "anim", "--animate", "gif")
+    assert result.exit_code == 0, result.stderr
+    gif = folder / "anim" / "bodies.gif"
+    assert gif.read_bytes()[:6] in (b"GIF87a", b"GIF89a")
+
+
+def test_export_quaternions_reproduce_phi(folder, reference):
+    xyz = folder / "out.xyz"
+    result = invoke("export", reference, "--xyz", xyz)
+    assert result.exit_code == 0, result.stderr
+    traj = read_trajectory(reference)
+    lines = xyz.read_text().splitlines()
+    per_frame = traj.bodies + 2
+    assert len(lines) == traj.frames * per_frame
+    for f in (0, traj.frames - 1):
+        header = lines[f * per_frame + 1]
+        assert "aspherical_shape:R:3" in header and "orientation:R:4" in header
+        assert "deform:R:9" in header
+        rows = np.array([[float(v) for v in line.split()[1:]]
+                         for line in lines[f * per_frame + 2:(f + 1) * per_frame]])
+        quat, semi = rows[:, 6:10], rows[:, 3:6]
+        np.testing.assert_allclose(np.linalg.norm(quat, axis=-1), 1.0, rtol=1e-14)
+        rotation = rotation_from_quaternion(quat)
+        left = rotation[:, :2, :2]  # L of phi = L D R^T, a rotation about z
+        np.testing.assert_allclose(np.linalg.det(left), 1.0, rtol=1e-13)
+        b = 0.3**2 * traj.phi[f] @ np.swapaxes(traj.phi[f], -1, -2)
+        np.testing.assert_allclose(np.einsum("kij,kj,klj->kil", left, semi[:, :2] ** 2, left),
+                                   b, rtol=1e-12, atol=1e-13)
+        assert np.all(semi[:, 2] < semi[:, :2].min(axis=1))  # a thin third axis
+
+
+def test_validate_accepts_good_and_refuses_bad_configs(folder):
+    ok = invoke("validate", folder / "tiny.toml")
+    assert ok.exit_code == 0 and "ok" in ok.output
+    (folder / "bad.toml").write_text(TINY.replace("mass = 1.0", "mass = 1.0\nmas = 2.0"))
+    bad = invoke("validate", folder / "bad.toml")
+    assert bad.exit_code == 1
+    assert bad.stderr.strip() == "config error: body.mas: unknown key (check the spelling; see " \
+                                 "the README for the fields)"
+    missing = invoke("validate", folder / "nothere.toml")
+    assert missing.exit_code == 1 and "nothere.toml" in missing.stderr
+    assert "\n" not in missing.stderr.strip()
+
+
+def test_truncated_output_is_refused_by_plot_and_export(folder, reference):
+    data = reference.read_bytes()
+    cut = folder / "cut.h5"
+    cut.write_bytes(data[: len(data) // 2])
+    for args in (("plot", cut), ("export", cut, "--xyz", folder / "cut.xyz")):
+        result = invoke(*args)
+        assert result.exit_code == 1
+        line = result.stderr.strip()
+        assert "\n" not in line and "Traceback" not in line and "cut.h5" in line

@@ -1,0 +1,246 @@
+"""Config files: the README example builds, generators and Legendre maps are right, and every
+bad field is refused with one line naming it (and an expression can never run code)."""
+
+import math
+import textwrap
+
+import numpy as np
+import pytest
+
+from affinebody.config import ConfigError, build, check_config, parse_config
+
+EXAMPLE = textwrap.dedent('''
+    [system]
+    n = 2
+    group = "GL+"          # GL, GL+, SL, UL, SO, O, R+SO, R+O
+    bodies = 2
+    [body]                 # identical elements; [[bodies]] gives each its own
+    mass = 1.0
+    inertia = [[1.0, 0.0], [0.0, 1.0]]    # J of eq. (8)
+    [kinetic]
+    translational = "dalembert"
+    internal = "af-is"
+    I = 1.0
+    A = 0.2
+    B = 0.1
+    [[potential]]
+    kind = "pair"
+    expr = "exp(-D**2) * (M1 - 2)**2"
+    [[potential]]
+    kind = "dilatation"
+    expr = "10*(det - 1)**2"
+    [initial]              # x, phi, and either velocity/phi_velocity or momentum/phi_momentum
+    x = [[0.0, 0.0], [1.0, 0.0]]
+    phi = [[[1.0, 0.0], [0.0, 1.0]], [[1.1, 0.0], [0.0, 0.9]]]
+    momentum = [[0.0, 0.0], [0.0, 0.0]]
+    phi_momentum = [[[0.0, 0.1], [0.0, 0.0]], [[0.0, 0.0], [0.0, 0.0]]]
+    [run]
+    dt = 0.01
+    steps = 1000
+    integrator = "strang"
+    every = 10             # frames written every k steps
+''')
+
+
+def load(text):
+    return check_config(parse_config(text))
+
+
+def test_readme_example_builds_the_stated_system():
+    built = build(load(EXAMPLE))
+    s = built.state
+    np.testing.assert_array_equal(s.phi[1], [[1.1, 0.0], [0.0, 0.9]])
+    np.testing.assert_array_equal(s.pi[0], [[0.0, 0.1], [0.0, 0.0]])
+    assert type(built.system.kinetic.internal).__name__ == "AffineIsotropic"
+    # V = exp(-D^2)(M1 - 2)^2 + sum_K 10 (det phi_K - 1)^2, evaluated independently:
+    phi_k, phi_l = np.eye(2), np.diag([1.1, 0.9])
+    u = np.array([-1.0, 0.0])
+    mean_c = 0.5 * (np.eye(2) + np.linalg.inv(phi_l @ phi_l.T))
+    d2 = u @ mean_c @ u
+    m1_kl = np.trace(np.linalg.inv(phi_k) @ phi_l)
+    m1_lk = np.trace(np.linalg.inv(phi_l) @ phi_k)
+    pair = 0.5 * np.exp(-d2) * ((m1_kl - 2) ** 2 + (m1_lk - 2) ** 2)
+    dil = 10 * (np.linalg.det(phi_l) - 1) ** 2
+    assert float(built.system.potential_energy(s)) == pytest.approx(pair + dil, rel=1e-12)
+
+
+def test_velocities_go_through_the_legendre_map():
+    text = EXAMPLE.replace("momentum = [[0.0, 0.0], [0.0, 0.0]]",
+                           "velocity = [[0.5, 0.0], [0.0, -0.25]]")
+    text = text.replace("phi_momentum = [[[0.0, 0.1], [0.0, 0.0]], [[0.0, 0.0], [0.0, 0.0]]]",
+                        "phi_velocity = [[[0.0, 0.3], [-0.1, 0.0]], [[0.2, 0.0], [0.0, 0.1]]]")
+    built = build(load(text))
+    # d'Alembert translation: p = M v
+    np.testing.assert_allclose(built.state.p, [[0.5, 0.0], [0.0, -0.25]])
+    # af-is (74): T(xi) = 1/2 Tr(pi xi) for a quadratic form (Euler), and inverse Legendre
+    # recovers xi
+    xi = np.array([[[0.0, 0.3], [-0.1, 0.0]], [[0.2, 0.0], [0.0, 0.1]]])
+    internal = built.system.kinetic.internal
+    back = internal.inverse_legendre(built.state.phi, built.state.pi)
+    np.testing.assert_allclose(back, xi, atol=1e-13)
+    t = internal.lagrangian(built.state.phi, xi)
+    np.testing.assert_allclose(t, 0.5 * np.trace(built.state.pi @ xi, axis1=-2, axis2=-1),
+                               rtol=1e-12)
+
+
+def test_lattice_generator_places_bodies_and_removes_drift():
+    text = textwrap.dedent('''
+        [system]
+        n = 2
+        bodies = 5
+        [initial]
+        generator = "lattice"
+        spacing = 1.5
+        shape = [3, 2]
+        momentum_scale = 0.7
+        seed = 3
+        [run]
+        dt = 0.1
+        steps = 1
+    ''')
+    state = build(load(text)).state
+    np.testing.assert_allclose(state.x, 1.5 * np.array([[0, 0], [0, 1], [1, 0], [1, 1], [2, 0]]))
+    np.testing.assert_allclose(np.sum(state.p, axis=0), 0.0, atol=1e-14)
+    assert float(np.std(state.p)) > 0.1
+    again = build(load(text)).state
+    np.testing.assert_array_equal(state.p, again.p)  # a seed reproduces the draw
+
+
+def test_random_phi_noise_stays_in_the_group():
+    text = textwrap.dedent('''
+        [system]
+        n = 3
+        group = "SL"
+        bodies = 4
+        [kinetic]
+        internal = "af-is"
+        I = 1.0
+        A = 0.1
+        [initial]
+        generator = "random"
+        extent = 5.0
+        phi_noise = 0.4
+        [run]
+        dt = 0.1
+        steps = 1
+        seed = 11
+    ''')
+    state = build(load(text)).state
+    np.testing.assert_allclose(np.linalg.det(state.phi), 1.0, rtol=1e-12)
+    assert np.all((state.x >= 0) & (state.x <= 5.0))
+    assert float(np.max(np.abs(state.phi - np.eye(3)))) > 0.05
+
+
+def test_constituents_give_the_second_moment_of_eq_8():
+    text = textwrap.dedent('''
+        [system]
+        n = 2
+        bodies = 1
+        [body.constituents]
+        masses = [1.0, 1.0, 2.0, 2.0]
+        positions = [[1.0, 0.0], [-1.0, 0.0], [0.0, 0.5], [0.0, -0.5]]
+        [initial]
+        x = [[0.0, 0.0]]
+        [run]
+        dt = 0.1
+        steps = 1
+    ''')
+    inertia = build(load(text)).inertia
+    assert inertia.mass[0] == 6.0
+    # J^kl = sum mu a^k a^l: diag(1 + 1, 2*0.25 + 2*0.25)
+    np.testing.assert_allclose(inertia.J[0], np.diag([2.0, 1.0]))
+
+
+def test_hash_ignores_steps_only():
+    base = parse_config(EXAMPLE)
+    assert parse_config(EXAMPLE.replace("steps = 1000", "steps = 5")).hash() == base.hash()
+    assert parse_config(EXAMPLE.replace("dt = 0.01", "dt = 0.02")).hash() != base.hash()
+
+
+def swap(old, new):
+    assert old in EXAMPLE, old
+    return EXAMPLE.replace(old, new, 1)
+
+
+BAD = [
+    (swap("n = 2", "n = 0"), "system.n"),
+    (swap("n = 2", 'n = "two"'), "system.n"),
+    (swap('group = "GL+"', 'group = "GL3"'), "system.group"),
+    (swap("bodies = 2", "bodies = 3"), "number of bodies"),
+    (swap("mass = 1.0", "mass = -1.0"), "body.mass"),
+    (swap("inertia = [[1.0, 0.0], [0.0, 1.0]]", "inertia = [[1.0, 2.0], [2.0, 1.0]]"),
+     "body.inertia"),
+    (swap("inertia = [[1.0, 0.0], [0.0, 1.0]]", "inertia = [[1.0, 0.0], [0.5, 1.0]]"),
+     "body.inertia"),
+    (swap("mass = 1.0", "mass = 1.0\ncolour = 'red'"), "body.colour"),
+    (swap('internal = "af-is"', 'internal = "af-xx"'), "kinetic.internal"),
+    (swap('translational = "dalembert"', 'translational = "af-af"'), "kinetic.translational"),
+    (swap("I = 1.0", "I = 0.2").replace("A = 0.2", "A = 0.5"), "kinetic.I must be > |kinetic.A|"),
+    (swap("B = 0.1", "B = -1.0"), "kinetic.B"),
+    (swap("I = 1.0\n", ""), "kinetic.I"),
+    (swap("B = 0.1", "B = 0.1\nH = 1.0"), "kinetic.H"),
+    (swap('kind = "pair"', 'kind = "pairs"'), "potential.0.kind"),
+    (swap('expr = "exp(-D**2) * (M1 - 2)**2"', 'expr = "__import__(\'os\').system(\'x\')"'),
+     "potential.0.expr"),
+    (swap('expr = "exp(-D**2) * (M1 - 2)**2"', 'expr = "exp(-D**2).real"'), "potential.0.expr"),
+    (swap('expr = "exp(-D**2) * (M1 - 2)**2"', 'expr = "(M7 - 2)**2"'), "potential.0.expr"),
+    (swap('expr = "10*(det - 1)**2"', 'expr = "10*(det - 1)**2 + r"'), "potential.1.expr"),
+    (swap("x = [[0.0, 0.0], [1.0, 0.0]]", "x = [[0.0, 0.0], [1.0]]"), "initial.x"),
+    (swap("phi = [[[1.0, 0.0], [0.0, 1.0]], [[1.1, 0.0], [0.0, 0.9]]]",
+          "phi = [[[1.0, 0.0], [0.0, 1.0]], [[1.0, 2.0], [0.5, 1.0]]]"), "initial.phi.1"),
+    (swap("momentum = [[0.0, 0.0], [0.0, 0.0]]",
+          "momentum = [[0.0, 0.0], [0.0, 0.0]]\nvelocity = [[0.0, 0.0], [0.0, 0.0]]"),
+     "velocity or momentum"),
+    (swap("dt = 0.01", "dt = -0.01"), "run.dt"),
+    (swap("steps = 1000", "steps = 0"), "run.steps"),
+    (swap('integrator = "strang"', 'integrator = "euler"'), "run.integrator"),
+    (swap("every = 10", "every = 10\ncheckpoint = 15"), "run.checkpoint"),
+    (swap("[run]", "[runs]"), "runs"),
+    (swap("dt = 0.01", "dt = true"), "run.dt"),
+    (swap('group = "GL+"', 'group = "SL"'), "initial"),
+    (swap("n = 2", "n = 2\nbox = [1.0, -2.0]"), "system.box"),
+    ("[system\nn = 2", "not valid TOML"),
+]
+
+
+@pytest.mark.parametrize(("text", "field"), BAD, ids=[f"bad{i}" for i in range(len(BAD))])
+def test_bad_config_is_refused_with_one_line_naming_the_field(text, field):
+    with pytest.raises(ConfigError) as info:
+        build(load(text))
+    message = str(info.value)
+    assert message.startswith("config error")
+    assert "\n" not in message
+    assert field in message
+
+
+def test_expressions_never_run_code(tmp_path, monkeypatch):
+    marker = tmp_path / "pwned"
+    monkeypatch.chdir(tmp_path)
+    for expr in (f"__import__('os').system('touch {marker}')",
+                 "().__class__.__bases__[0].__subclasses__()",
+                 "open('pwned', 'w')", "lambda: 1", "[x for x in (1,)]"):
+        text = swap('expr = "exp(-D**2) * (M1 - 2)**2"', f"expr = {expr!r}".replace("'", '"', 0))
+        text = text.replace(f"expr = {expr!r}", "expr = '''" + expr + "'''")
+        with pytest.raises(ConfigError):
+            load(text)
+    assert not marker.exists() and not (tmp_path / "pwned").exists()
+
+
+def test_no_section_means_defaults_that_are_physical():
+    text = textwrap.dedent('''
+        [system]
+        n = 2
+        bodies = 1
+        [body]
+        mass = 2.0
+        radius = 0.5
+        [initial]
+        x = [[0.0, 0.0]]
+        [run]
+        dt = 0.1
+        steps = 1
+    ''')
+    built = build(load(text))
+    # default J: a uniform disc of the drawing radius, M r^2 / 4 Id
+    np.testing.assert_allclose(built.inertia.J[0], 2.0 * 0.25 / 4 * np.eye(2))
+    assert math.isclose(float(built.system.hamiltonian(built.state)), 0.0)

@@ -1,0 +1,115 @@
+"""Extended-XYZ export: quaternions are unit and reproduce L of phi = L D R^T, semi-axes are the
+singular values times the radius, and the file parses as OVITO expects."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from affinebody.export import (
+    PROPERTIES,
+    ellipsoids,
+    quaternion_from_rotation,
+    rotation_from_quaternion,
+    write_xyz,
+)
+from affinebody.h5md import Trajectory
+
+
+def random_rotation(rng, n=3):
+    q, r = np.linalg.qr(rng.normal(size=(n, n)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_quaternion_round_trip(seed):
+    rng = np.random.default_rng(seed)
+    rotation = random_rotation(rng)
+    q = quaternion_from_rotation(rotation)
+    assert abs(np.linalg.norm(q) - 1) < 1e-14 and q[3] >= 0
+    np.testing.assert_allclose(rotation_from_quaternion(q), rotation, atol=1e-13)
+
+
+def test_half_turns_and_identity():
+    for rotation in (np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]),
+                     np.diag([-1.0, -1.0, 1.0])):
+        q = quaternion_from_rotation(rotation)
+        np.testing.assert_allclose(rotation_from_quaternion(q), rotation, atol=1e-15)
+    # a quarter turn about z: q = (0, 0, sin(pi/4), cos(pi/4))
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(quaternion_from_rotation(quarter),
+                               [0, 0, np.sqrt(0.5), np.sqrt(0.5)], atol=1e-15)
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_ellipsoid_is_the_image_of_the_ball(n):
+    """The ellipsoid {x: x^T B^-1 x <= r^2}, B = phi phi^T, has axes L and semi-axes r sigma:
+    R(q) diag(a)^2 R(q)^T = r^2 phi phi^T (independent of the decomposition)."""
+    rng = np.random.default_rng(n)
+    phi = rng.normal(size=(4, n, n)) + 2 * np.eye(n)
+    phi[1] = -phi[1]  # include det phi < 0 for n odd
+    radius = np.array([0.5, 1.0, 2.0, 0.25])
+    axes, quat, deform = ellipsoids(phi, radius, thickness=0.1)
+    rotation = rotation_from_quaternion(quat)
+    left = np.einsum("kij,kj,klj->kil", rotation, axes**2, rotation)
+    b = radius[:, None, None] ** 2 * phi @ np.swapaxes(phi, -1, -2)
+    np.testing.assert_allclose(left[:, :n, :n], b, rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(np.sort(axes[:, :n], axis=-1),
+                               np.sort(np.linalg.svd(phi, compute_uv=False), -1) * radius[:, None],
+                               rtol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(quat, axis=-1), 1.0, rtol=1e-14)
+    np.testing.assert_array_equal(deform[:, :n, :n], phi)
+    if n == 2:
+        np.testing.assert_allclose(axes[:, 2], 0.1 * radius)
+        np.testing.assert_allclose(rotation[:, 2, 2], 1.0, atol=1e-14)  # rotations about z
+
+
+def parse_xyz(path):
+    """A minimal extended-XYZ reader (independent of the writer)."""
+    lines = path.read_text().splitlines()
+    frames, k = [], 0
+    while k < len(lines):
+        count = int(lines[k])
+        header = lines[k + 1]
+        rows = [line.split() for line in lines[k + 2: k + 2 + count]]
+        frames.append((header, rows))
+        k += 2 + count
+    return frames
+
+
+def test_written_file_parses_with_the_declared_columns(tmp_path):
+    rng = np.random.default_rng(1)
+    frames, bodies = 3, 2
+    phi = rng.normal(size=(frames, bodies, 2, 2)) + 2 * np.eye(2)
+    traj = Trajectory(
+        step=np.array([0, 10, 20]), time=np.array([0.0, 0.1, 0.2]),
+        x=rng.normal(size=(frames, bodies, 2)), phi=phi,
+        p=np.zeros((frames, bodies, 2)), pi=np.zeros((frames, bodies, 2, 2)),
+        mass=np.ones(bodies), radius=np.array([0.5, 0.7]), box=np.array([4.0, 5.0]))
+    path = tmp_path / "t.xyz"
+    assert write_xyz(traj, path) == 3
+    parsed = parse_xyz(path)
+    assert len(parsed) == 3
+    columns = PROPERTIES.split(":")
+    widths = [int(w) for w in columns[2::3]]
+    assert sum(widths) == 1 + 3 + 3 + 4 + 9
+    for f, (header, rows) in enumerate(parsed):
+        assert f"Properties={PROPERTIES}" in header
+        assert 'Lattice="4 0 0 0 5 0 0 0 1"' in header and 'pbc="T T F"' in header
+        assert f"Step={traj.step[f]}" in header
+        values = np.array([[float(v) for v in row[1:]] for row in rows])
+        np.testing.assert_allclose(values[:, :2], traj.x[f], rtol=1e-15)
+        np.testing.assert_array_equal(values[:, 2], 0.0)
+        quat = values[:, 6:10]
+        np.testing.assert_allclose(np.linalg.norm(quat, axis=-1), 1.0, rtol=1e-14)
+        rotation = rotation_from_quaternion(quat)[:, :2, :2]
+        semi = values[:, 3:5]
+        b = traj.radius[:, None, None] ** 2 * traj.phi[f] @ np.swapaxes(traj.phi[f], -1, -2)
+        np.testing.assert_allclose(np.einsum("kij,kj,klj->kil", rotation, semi**2, rotation), b,
+                                   rtol=1e-12, atol=1e-13)
+        deform = values[:, 10:].reshape(bodies, 3, 3)
+        np.testing.assert_array_equal(deform[:, :2, :2], traj.phi[f])
