@@ -28,15 +28,13 @@ def kinematics_demo() -> None:
     print_worked_example()
 
 
-# Until the simulator's demo lands, `affinebody demo` is the worked kinematics example.
-main.add_command(kinematics_demo, "demo")
 
-
-def _register_quantum() -> None:
+def _register_commands() -> None:
     from affinebody.quantum.cli import density, spectrum
+    from affinebody.runner import COMMANDS  # run, demo, plot, export, validate
 
-    main.add_command(spectrum)
-    main.add_command(density)
+    for command in (*COMMANDS, spectrum, density):
+        main.add_command(command)
 
 
-_register_quantum()
+_register_commands()

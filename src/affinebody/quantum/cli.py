@@ -1,0 +1,109 @@
+"""``affinebody spectrum`` and ``affinebody density``: click commands for the main group.
+
+``affinebody spectrum CONFIG.toml [--levels K] [--json]``: the lowest K states; with --json one
+JSON object with ``energies`` (ascending, each repeated by its multiplicity) and ``states``
+(``energy``, ``multiplicity``, ``spin``, ``vorticity``, ``parity``, all ``sectors``, ``error``),
+plus ``unconverged`` (candidates whose estimate exceeds the tolerance: pseudo-levels of a
+continuous spectrum or an insufficient basis; never listed as levels), ``sectors`` ("all" for
+n = 2; "scalar", "spin1" or "scalar+spin1" for n = 3), ``bounded_below`` (false for af-af, whose
+sector sum is unbounded below) and ``warnings`` (af-af; n = 3 spectra that hold only some
+sectors; a sector search stopped by max_spin), also printed under the table.
+``affinebody density CONFIG.toml --state k -o DIR``: densities of the
+invariants and orientations for the k-th state (0-based), as npz, json and png.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import click
+
+
+def _enable_x64() -> None:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def _solve(config_path: str, levels: int | None):
+    from affinebody.quantum import config as qconfig
+    from affinebody.quantum.spectra import solve
+
+    cfg = qconfig.load(config_path)
+    kwargs = qconfig.solver_arguments(cfg)
+    if levels is not None:
+        if levels < 1:
+            raise click.UsageError(f"--levels must be >= 1 (got {levels})")
+        kwargs["levels"] = levels
+    return solve(**kwargs), kwargs["levels"]
+
+
+def _run(fn):
+    try:
+        return fn()
+    except ValueError as err:
+        click.echo(str(err).splitlines()[0] if str(err) else repr(err), err=True)
+        sys.exit(2)
+
+
+@click.command("spectrum")
+@click.argument("config", type=click.Path(exists=True, dir_okay=False))
+@click.option("--levels", "levels", type=int, default=None, help="number of states K")
+@click.option("--json", "as_json", is_flag=True, help="print one JSON object")
+def spectrum(config: str, levels: int | None, as_json: bool) -> None:
+    """Lowest energy levels of the quantum affine body described by CONFIG."""
+    _enable_x64()
+    result, count = _run(lambda: _solve(config, levels))
+    energies = result.energies(count)
+    if as_json:
+        payload = {
+            "energies": energies,
+            "states": [lv.as_dict() for lv in result.levels],
+            "unconverged": [lv.as_dict() for lv in result.unconverged],
+            "sectors": result.sectors,
+            "bounded_below": result.bounded_below,
+            "warnings": result.warnings,
+            "model": result.model,
+            "n": result.n,
+            "settings": result.settings,
+        }
+        click.echo(json.dumps(payload))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    title = f"{result.model}, n = {result.n}, sectors: {result.sectors}"
+    table = Table(title=title)
+    for col in ("#", "energy", "mult.", "spin", "vorticity", "parity", "error"):
+        table.add_column(col, justify="right")
+    for i, lv in enumerate(result.levels):
+        d = lv.as_dict()
+        table.add_row(str(i), f"{lv.energy:.12g}", str(lv.multiplicity), str(d["spin"]),
+                      str(d["vorticity"]), str(d["parity"]), f"{lv.error:.1e}")
+    console = Console()
+    console.print(table)
+    if len(energies) < count:
+        console.print(f"only {len(energies)} of {count} states converged")
+    for text in result.warnings:
+        console.print(f"[bold red]warning:[/] {text}")
+    if result.unconverged:
+        console.print(f"{len(result.unconverged)} unconverged candidates (continuous spectrum or"
+                      f" too small a basis), lowest {result.unconverged[0].energy:.6g}: "
+                      "not listed as levels")
+
+
+@click.command("density")
+@click.argument("config", type=click.Path(exists=True, dir_okay=False))
+@click.option("--state", "state", type=int, required=True, help="state index (0-based)")
+@click.option("-o", "--output", "output", type=click.Path(file_okay=False), required=True)
+def density(config: str, state: int, output: str) -> None:
+    """Probability densities of q (or Q), det phi, Tr G and orientations for one state."""
+    _enable_x64()
+    from affinebody.quantum.densities import write_densities
+
+    if state < 0:
+        raise click.UsageError(f"--state must be >= 0 (got {state})")
+    result, _ = _run(lambda: _solve(config, state + 1))
+    summary = _run(lambda: write_densities(result, state, output))
+    click.echo(json.dumps(summary))

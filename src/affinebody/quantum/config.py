@@ -1,0 +1,211 @@
+"""Quantum spectrum configs (TOML): ``[system] n`` and ``[quantum]``, validated by pydantic.
+
+Example (the names are part of the public contract)::
+
+    [system]
+    n = 2
+    [quantum]
+    hbar = 1.0
+    kinetic = "dalembert"      # or "af-is" (74), "is-af" (73), "af-af" (72), "af-J" with J = I Id
+    inertia = 1.0              # d'Alembert: J = inertia * Id
+    potential = "0.5*trG + 0.1*(det - 1)**2"
+
+The affine models take ``I``, ``A``, ``B`` as in the classical ``[kinetic]`` table (af-af: ``A``,
+``B``). The potential is an expression (restricted grammar of :mod:`affinebody.expressions`) in
+the deformation invariants q1..qn (q_a = ln |Q_a|), Q1..Qn (signed singular values, Q_n carries
+the sign of det phi), trG = Tr G, K1..Kn (K_a = Tr G^a, eq. (17)) and det = det phi.
+
+Discretisation settings, all optional: ``levels`` (default 10), ``sectors`` ("auto", "all" for
+n = 2; "scalar", "spin1", "scalar+spin1" for n = 3, where "auto" is "scalar+spin1"),
+``basis_size``, ``scale``, ``scale_sigma``, ``centre``, ``tolerance``, ``max_spin``.
+Every error is one line naming the field, e.g.
+``config error: quantum.hbar must be > 0 (got -1.0)``.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from affinebody.config import ConfigError, _one_line
+from affinebody.quantum.spectra import Settings
+
+KINETIC_NAMES = ("dalembert", "af-is", "is-af", "af-af", "af-J")
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class QuantumSystem(_Section):
+    n: int = Field(description="spatial dimension (2, or 3 for the sectors (0,0) and (1,1))")
+
+
+class QuantumSection(_Section):
+    hbar: float = 1.0
+    kinetic: str = "dalembert"
+    inertia: float | None = None
+    I: float | None = None  # noqa: E741
+    A: float | None = None
+    B: float | None = None
+    potential: str
+    levels: int = 10
+    sectors: Literal["auto", "all", "scalar", "spin1", "scalar+spin1"] = "auto"
+    basis_size: int | None = None
+    scale: float | None = None
+    scale_sigma: float | None = None
+    centre: float | None = None
+    tolerance: float = 1e-7
+    max_spin: int = 40
+
+
+class QuantumConfig(_Section):
+    system: QuantumSystem
+    quantum: QuantumSection
+
+
+VARIABLES_DOC = "q1..qn, Q1..Qn, trG, K1..Kn, det"
+
+
+def invariant_names(n: int) -> tuple[str, ...]:
+    return (tuple(f"q{a}" for a in range(1, n + 1)) + tuple(f"Q{a}" for a in range(1, n + 1))
+            + ("trG",) + tuple(f"K{a}" for a in range(1, n + 1)) + ("det",))
+
+
+def _positive(value: float | None, name: str) -> None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"quantum.{name} must be > 0 (got {value})")
+
+
+def check(config: QuantumConfig) -> QuantumConfig:
+    """Meaning checks beyond types; raises :class:`ConfigError` (one line)."""
+    n, qc = config.system.n, config.quantum
+    if n not in (2, 3):
+        raise ConfigError(f"system.n must be 2 or 3 for quantum spectra (got {n})")
+    _positive(qc.hbar, "hbar")
+    for name in ("scale", "scale_sigma", "tolerance"):
+        _positive(getattr(qc, name), name)
+    if qc.kinetic not in KINETIC_NAMES:
+        raise ConfigError(f"quantum.kinetic must be one of {', '.join(KINETIC_NAMES)} "
+                          f"(got {qc.kinetic!r})")
+    if qc.levels < 1:
+        raise ConfigError(f"quantum.levels must be >= 1 (got {qc.levels})")
+    low, high = (8, 80) if n == 2 else (4, 16)  # n = 3: the polynomial degree
+    if qc.basis_size is not None and not low <= qc.basis_size <= high:
+        raise ConfigError(f"quantum.basis_size must be between {low} and {high} for n = {n} "
+                          f"(got {qc.basis_size})")
+    if qc.max_spin < 0:
+        raise ConfigError(f"quantum.max_spin must be >= 0 (got {qc.max_spin})")
+    if qc.kinetic == "dalembert":
+        _positive(qc.inertia, "inertia")
+        for name in ("I", "A", "B"):
+            if getattr(qc, name) is not None:
+                raise ConfigError(f"quantum.{name} is not a parameter of kinetic 'dalembert' "
+                                  f"(it uses inertia)")
+    else:
+        if qc.inertia is not None and qc.kinetic != "af-J":
+            raise ConfigError(f"quantum.inertia is not a parameter of kinetic {qc.kinetic!r} "
+                              f"(it uses I, A, B)")
+        I, A, B = _affine_constants(qc)
+        if qc.kinetic in ("af-is", "is-af", "af-J"):
+            if not I > abs(A):
+                raise ConfigError(f"quantum.I must be > |quantum.A| for {qc.kinetic} to be "
+                                  f"positive definite (got I={I}, A={A})")
+        elif A <= 0:
+            raise ConfigError(f"quantum.A must be > 0 for af-af (got A={A})")
+        if not I + A + n * B > 0:
+            raise ConfigError(f"quantum.B must be > -(I + A)/n for {qc.kinetic} (got I={I}, "
+                              f"A={A}, B={B}, n={n})")
+    if n == 3 and qc.sectors == "all":
+        raise ConfigError("quantum.sectors = 'all' is not available for n = 3: use 'scalar', "
+                          "'spin1' or 'scalar+spin1' (the sectors (0,0) and (1,1))")
+    if n == 2 and qc.sectors not in ("auto", "all"):
+        raise ConfigError(f"quantum.sectors must be 'auto' or 'all' for n = 2 (got "
+                          f"{qc.sectors!r})")
+    compile_potential(qc.potential, n)
+    return config
+
+
+def _affine_constants(qc: QuantumSection) -> tuple[float, float, float]:
+    if qc.kinetic == "af-J":  # af-J with J = I Id is af-is with A = B = 0, eq. (66)
+        I = qc.I if qc.I is not None else qc.inertia
+        if I is None:
+            raise ConfigError("quantum.I (or inertia) is required by kinetic 'af-J'")
+        return float(I), 0.0, 0.0
+    if qc.kinetic != "af-af" and qc.I is None:
+        raise ConfigError(f"quantum.I is required by kinetic {qc.kinetic!r}")
+    if qc.A is None:
+        if qc.kinetic == "af-af":
+            raise ConfigError("quantum.A is required by kinetic 'af-af'")
+    return (float(qc.I or 0.0) if qc.kinetic != "af-af" else 0.0, float(qc.A or 0.0),
+            float(qc.B or 0.0))
+
+
+def compile_potential(text: str, n: int):
+    """The potential text as a function V(Q [..., n]) -> [...] (numpy in, numpy out)."""
+    from affinebody.expressions import compile_expression
+
+    try:
+        expr = compile_expression(text, invariant_names(n), field="quantum.potential")
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+
+    def potential(Q: np.ndarray) -> np.ndarray:
+        Q = np.asarray(Q, float)
+        G2 = Q * Q
+        values = {}
+        with np.errstate(divide="ignore"):
+            for a in range(n):
+                values[f"q{a + 1}"] = np.log(np.abs(Q[..., a]))
+                values[f"Q{a + 1}"] = Q[..., a]
+                values[f"K{a + 1}"] = np.sum(G2 ** (a + 1), axis=-1)
+        values["trG"] = np.sum(G2, axis=-1)
+        values["det"] = np.prod(Q, axis=-1)
+        out = np.asarray(expr(**{k: values[k] for k in expr.used}), float)
+        return np.broadcast_to(out, Q.shape[:-1])
+
+    return potential
+
+
+def parse(text: str, source: str = "config") -> QuantumConfig:
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{source} is not valid TOML: {err}") from None
+    try:
+        config = QuantumConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_one_line(err)) from None
+    return check(config)
+
+
+def load(path: str | Path) -> QuantumConfig:
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"cannot read {path}: {err}") from None
+    return parse(text, str(path))
+
+
+def solver_arguments(config: QuantumConfig) -> dict:
+    """Keyword arguments of :func:`affinebody.quantum.spectra.solve` for this config."""
+    n, qc = config.system.n, config.quantum
+    model = "af-is" if qc.kinetic == "af-J" else qc.kinetic
+    kwargs = dict(model=model, n=n, potential=compile_potential(qc.potential, n),
+                  hbar=qc.hbar, levels=qc.levels, sectors=qc.sectors)
+    if model == "dalembert":
+        kwargs["inertia"] = 1.0 if qc.inertia is None else qc.inertia
+    else:
+        kwargs["I"], kwargs["A"], kwargs["B"] = _affine_constants(qc)
+    default_size = 24 if n == 2 else (10 if model == "dalembert" else 8)
+    kwargs["settings"] = Settings(
+        basis_size=qc.basis_size or default_size, scale=qc.scale, scale_sigma=qc.scale_sigma,
+        centre=qc.centre, tolerance=qc.tolerance, max_spin=qc.max_spin,
+        check_shrink=4 if n == 2 else 2)
+    return kwargs

@@ -1,0 +1,129 @@
+"""The public CLI contract of `affinebody spectrum` / `affinebody density` (quantum/cli.py)."""
+
+import json
+from math import comb
+
+import numpy as np
+from click.testing import CliRunner
+
+from affinebody.quantum.cli import density, spectrum
+
+OSCILLATOR = """
+[system]
+n = 2
+[quantum]
+hbar = 1.0
+kinetic = "dalembert"
+inertia = 2.0
+potential = "0.5*8.0*trG"
+basis_size = 12
+"""
+
+
+def test_spectrum_json_reproduces_oscillator(tmp_path):
+    path = tmp_path / "osc.toml"
+    path.write_text(OSCILLATOR)
+    result = CliRunner().invoke(spectrum, [str(path), "--levels", "15", "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.output)
+    omega = np.sqrt(8.0 / 2.0)
+    expected = [omega * (N + 2) for N in range(4) for _ in range(comb(N + 3, 3))][:15]
+    assert np.allclose(data["energies"], expected, atol=1e-9, rtol=0)
+    assert data["energies"] == sorted(data["energies"])
+    mults = [s["multiplicity"] for s in data["states"]]
+    assert mults[:3] == [1, 4, 10]
+    for key in ("energy", "multiplicity", "spin", "vorticity", "parity", "error"):
+        assert key in data["states"][0]
+
+
+def test_spectrum_table_and_config_error(tmp_path):
+    path = tmp_path / "osc.toml"
+    path.write_text(OSCILLATOR)
+    result = CliRunner().invoke(spectrum, [str(path), "--levels", "3"])
+    assert result.exit_code == 0 and "energy" in result.output
+    bad = tmp_path / "bad.toml"
+    bad.write_text(OSCILLATOR.replace("hbar = 1.0", "hbar = -1.0"))
+    result = CliRunner().invoke(spectrum, [str(bad)])
+    assert result.exit_code == 2
+    assert "quantum.hbar must be > 0" in result.output
+
+
+def test_density_command_writes_normalised_densities(tmp_path):
+    path = tmp_path / "osc.toml"
+    path.write_text(OSCILLATOR)
+    out = tmp_path / "dens"
+    result = CliRunner().invoke(density, [str(path), "--state", "2", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "densities.json").read_text())
+    assert abs(summary["normalisation"] - 1) < 1e-8
+    assert all(abs(v - 1) < 1e-9 for v in summary["integrals"].values())
+    for name in ("Q1", "Q2", "det", "trG", "orientation"):
+        assert (out / f"density_{name}.png").stat().st_size > 1000
+    arrays = np.load(out / "densities.npz")
+    x, p = arrays["trG_x"], arrays["trG_density"]
+    # virial theorem for the oscillator: <V> = E/2, so <Tr G> = E / k = 3 omega / k (N = 1 level)
+    mean = np.sum(x * p) * (x[1] - x[0])
+    assert abs(mean - 3 * np.sqrt(8.0 / 2.0) / 8.0) < 2e-3
+
+
+N3_SPIN1 = """
+[system]
+n = 3
+[quantum]
+hbar = 0.9
+kinetic = "dalembert"
+inertia = 0.7
+potential = "0.5*1.3*trG"
+sectors = "scalar+spin1"
+basis_size = 6
+scale = {scale}
+"""
+
+
+def test_spectrum_n3_spin1_json_and_density(tmp_path):
+    """n = 3 oscillator through the CLI: levels 1 (scalar) + 9 (spin 1) + 10 (9 + 1) at
+    hbar w (N + 9/2); the JSON says which sectors are computed; a spin-1 state's densities are
+    normalised."""
+    omega, hbar = np.sqrt(1.3 / 0.7), 0.9
+    path = tmp_path / "n3.toml"
+    path.write_text(N3_SPIN1.format(scale=(hbar**2 / (0.7 * 1.3)) ** 0.25))
+    result = CliRunner().invoke(spectrum, [str(path), "--levels", "20", "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.output)
+    expected = [hbar * omega * (N + 4.5) for N, m in ((0, 1), (1, 9), (2, 10)) for _ in range(m)]
+    assert np.allclose(data["energies"], expected, atol=1e-9, rtol=0)
+    assert [s["multiplicity"] for s in data["states"]] == [1, 9, 10]
+    assert data["states"][1]["sectors"][0]["dimension"] == 9
+    assert data["sectors"] == "scalar+spin1" and data["bounded_below"] is True
+    assert any("(0, 0) and (1, 1)" in w for w in data["warnings"])
+    out = tmp_path / "dens"
+    result = CliRunner().invoke(density, [str(path), "--state", "3", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "densities.json").read_text())
+    assert abs(summary["normalisation"] - 1) < 1e-8
+    assert summary["sector"]["spin"] == 1
+
+
+AF_AF = """
+[system]
+n = 2
+[quantum]
+kinetic = "af-af"
+A = 1.0
+B = 0.2
+potential = "q1**2 + q2**2"
+basis_size = 12
+max_spin = 4
+"""
+
+
+def test_af_af_spectrum_says_unbounded_below(tmp_path):
+    path = tmp_path / "afaf.toml"
+    path.write_text(AF_AF)
+    result = CliRunner().invoke(spectrum, [str(path), "--levels", "3", "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.output)
+    assert data["bounded_below"] is False
+    assert any("unbounded below" in w for w in data["warnings"])
+    table = CliRunner().invoke(spectrum, [str(path), "--levels", "3"])
+    assert table.exit_code == 0 and "unbounded below" in table.output
