@@ -11,6 +11,10 @@ import os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+from affinebody._xla import single_threaded_eigen  # noqa: E402  (imports no JAX)
+
+single_threaded_eigen()
+
 import jax  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
 

@@ -244,3 +244,42 @@ def test_no_section_means_defaults_that_are_physical():
     # default J: a uniform disc of the drawing radius, M r^2 / 4 Id
     np.testing.assert_allclose(built.inertia.J[0], 2.0 * 0.25 / 4 * np.eye(2))
     assert math.isclose(float(built.system.hamiltonian(built.state)), 0.0)
+
+
+def _rotationless(kind: str, group: str = "GL+", integrator: str = "nonholonomic-rattle"):
+    return load(EXAMPLE.replace('group = "GL+"', f'group = "{group}"').replace(
+        'integrator = "strang"', f'integrator = "{integrator}"')
+        + f'\n[constraints]\nrotationless = "{kind}"\n')
+
+
+@pytest.mark.parametrize("kind", ["spatial", "material"])
+def test_rotationless_constraint_switch_builds_a_constrained_system(kind):
+    """[constraints] rotationless builds a system whose initial momentum is admissible: the
+    velocity it implies satisfies (40) (Omega symmetric) or (41) (Omega_hat symmetric)."""
+    from affinebody.velocities import comoving_affine_velocity, spatial_affine_velocity
+
+    built = build(_rotationless(kind))
+    assert built.system.rotationless == kind
+    xi = built.system.kinetic.inverse_legendre(built.state).xi
+    omega = (spatial_affine_velocity if kind == "spatial" else comoving_affine_velocity)(
+        built.state.phi, xi)
+    assert np.max(np.abs(omega - np.swapaxes(omega, -1, -2))) < 1e-12
+    assert np.max(np.abs(omega)) > 1e-3  # the projection left a non-trivial motion
+
+
+@pytest.mark.parametrize(
+    ("config", "fragment"),
+    [
+        (lambda: _rotationless("spatial", integrator="strang"), "nonholonomic-rattle"),
+        (lambda: load(EXAMPLE.replace('integrator = "strang"',
+                                      'integrator = "nonholonomic-rattle"')),
+         "constraints.rotationless"),
+        (lambda: _rotationless("material", group="SO"), "SO"),
+        (lambda: _rotationless("sideways"), "constraints.rotationless"),
+    ],
+)
+def test_bad_constraint_combinations_are_refused_in_one_line(config, fragment):
+    with pytest.raises(ConfigError) as err:
+        build(config())
+    message = str(err.value)
+    assert fragment in message and "\n" not in message

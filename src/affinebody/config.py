@@ -1,7 +1,8 @@
 """Simulation configuration files (TOML), validated field by field with pydantic.
 
 A config has the sections ``[system]``, ``[body]`` or ``[[bodies]]``, ``[kinetic]``,
-``[[potential]]``, ``[initial]`` and ``[run]`` (README, "Config file", documents every field).
+``[[potential]]``, ``[initial]`` and ``[run]`` (README, "Config file", documents every field),
+and optionally ``[sweep]`` (an ensemble of runs, read by :mod:`affinebody.sweep` only).
 Loading goes in two passes:
 
 1. :func:`parse_config` checks types and refuses unknown keys (pydantic, ``extra="forbid"``);
@@ -49,7 +50,9 @@ INTERNAL_MODELS: dict[str, tuple[str, ...]] = {
 #: Translational kinetic models: d'Alembert (63) (alias is-af) and af-is (64), (78a).
 TRANSLATIONAL_MODELS = ("dalembert", "is-af", "af-is")
 #: Integrator names accepted by run.integrator.
-INTEGRATOR_NAMES = ("strang", "yoshida4", "suzuki4", "yoshida6", "implicit-midpoint")
+INTEGRATOR_NAMES = (
+    "strang", "yoshida4", "suzuki4", "yoshida6", "implicit-midpoint", "nonholonomic-rattle"
+)
 #: Configuration groups accepted by system.group (the paper's list plus all matrices "L").
 CONFIG_GROUPS = ("L",) + GROUPS
 MAX_DIMENSION = 6
@@ -160,6 +163,40 @@ class RunSection(_Section):
     seed: int = 0
 
 
+class ScanRange(_Section):
+    """A range of values for one scanned field: ``num`` values from ``start`` to ``stop``
+    (both included), evenly spaced, or geometrically spaced with ``log = true``."""
+
+    start: float
+    stop: float
+    num: int = Field(ge=1, le=10_000)
+    log: bool = False
+
+
+class SweepSection(_Section):
+    """``[sweep]``: an ensemble of runs of this config (``affinebody sweep``,
+    :mod:`affinebody.sweep` documents every field)."""
+
+    samples: int = Field(1, ge=1, description="samples per parameter point")
+    seed: int = Field(0, ge=0, description="sample k draws from the key fold_in(key(seed), k)")
+    initial_velocity: Literal["none", "normal"] = Field(
+        "none", description="draw Omega_hat ~ N(0, 1) projected onto the group's Lie algebra")
+    velocity_scale: float = Field(1.0, ge=0)
+    x_velocity: Literal["none", "normal"] = Field("none", description="draw dx/dt ~ N(0, 1)")
+    x_velocity_scale: float = Field(1.0, ge=0)
+    bound: float = Field(1000.0, gt=1, description="bounded: sigma_max(phi^+-1) < bound")
+    batch: int = Field(64, ge=1, le=100_000, description="samples per task (vmapped)")
+    scan: dict[str, list[float | str] | ScanRange] = Field(
+        default_factory=dict, description="dotted config field -> values or a range")
+
+
+class ConstraintsSection(_Section):
+    """``[constraints]``: non-holonomic rotationless motion (paper §1)."""
+
+    rotationless: Literal["spatial", "material"] | None = Field(
+        None, description="'spatial': Omega symmetric (40); 'material': Omega_hat symmetric (41)")
+
+
 class Config(_Section):
     """A whole configuration file."""
 
@@ -170,6 +207,8 @@ class Config(_Section):
     potential: list[PotentialSection] = []
     initial: InitialSection = InitialSection()
     run: RunSection
+    constraints: ConstraintsSection = ConstraintsSection()
+    sweep: SweepSection | None = None
     # the text the config was read from (not a TOML key)
     source_text: str = Field("", exclude=True, repr=False)
 
@@ -189,8 +228,9 @@ class Config(_Section):
         return self.run.every * 10
 
     def hash(self) -> str:
-        """SHA-256 of the config's meaning, ignoring run.steps (so a run can be extended)."""
-        data = self.model_dump(exclude={"source_text": True, "run": {"steps"}})
+        """SHA-256 of the config's meaning, ignoring run.steps (so a run can be extended) and
+        the [sweep] table (which does not change a single run)."""
+        data = self.model_dump(exclude={"source_text": True, "sweep": True, "run": {"steps"}})
         canonical = json.dumps(data, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()
 
@@ -452,6 +492,13 @@ def check_run(config: Config) -> None:
     if r.integrator not in INTEGRATOR_NAMES:
         raise ConfigError(f"run.integrator must be one of {', '.join(INTEGRATOR_NAMES)} "
                           f"(got {r.integrator!r})")
+    rotationless = config.constraints.rotationless
+    if rotationless is not None and r.integrator != "nonholonomic-rattle":
+        raise ConfigError(f"run.integrator must be 'nonholonomic-rattle' when "
+                          f"constraints.rotationless is set (got {r.integrator!r})")
+    if rotationless is None and r.integrator == "nonholonomic-rattle":
+        raise ConfigError("run.integrator 'nonholonomic-rattle' needs constraints.rotationless "
+                          "= 'spatial' or 'material'")
     if r.checkpoint is not None and r.checkpoint % r.every:
         raise ConfigError(f"run.checkpoint must be a multiple of run.every (got checkpoint="
                           f"{r.checkpoint}, every={r.every})")
@@ -716,7 +763,8 @@ def build(config: Config) -> Built:
         raise ConfigError(f"system.group {group!r} is not supported by the integrators "
                           f"(choose one of {', '.join(SYSTEM_GROUPS)})")
     try:
-        system = HamiltonianSystem(kinetic, potential, group)
+        system = HamiltonianSystem(kinetic, potential, group,
+                                   rotationless=config.constraints.rotationless)
     except ValueError as err:
         raise ConfigError(str(err)) from None
     state = initial_state(config, kinetic)

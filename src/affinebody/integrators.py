@@ -22,6 +22,13 @@ fixed-point iteration (a ``lax.while_loop``, jit-compatible) to a relative toler
 bounded number of iterations; for kinetic models without an exact splitting. It is symplectic
 and symmetric, order 2, and defined on GL+, GL and L (not on the constrained groups). A step
 that does not converge returns NaN, which the run driver reports.
+
+On the subgroups SL, UL, SO, O, R+SO, R+O the splittings compose the projected kicks with the
+constrained drifts of ``affinebody.constraints`` (exact flows, Lie-group splittings, RATTLE), all
+symplectic and symmetric on T*G, so the compositions keep their orders there as well.
+
+``nonholonomic-rattle`` (``affinebody.nonholonomic``): the discrete Lagrange-d'Alembert step
+with velocity projection, the only integrator for rotationless (non-holonomic) systems (40), (41).
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from affinebody.nonholonomic import NONHOLONOMIC_RATTLE, NonholonomicRattle
 from affinebody.state import State
 from affinebody.system import HamiltonianSystem
 
@@ -65,6 +73,7 @@ class Splitting:
         The stages run in a ``lax.scan``, so compiling a 7-stage scheme costs about as much as
         compiling Strang.
         """
+        _refuse_nonholonomic(system, self.name)
         kicks = self.kicks
         state = system.kick(state, kicks[0] * h)
         if len(self.drifts) == 1:
@@ -102,6 +111,7 @@ class ImplicitMidpoint:
 
     def step(self, system: HamiltonianSystem, state: State, h) -> State:
         """z' solving z' = z + h f((z + z')/2); NaN where not converged in ``max_iter``."""
+        _refuse_nonholonomic(system, self.name)
         if system.constrained:
             raise ValueError(
                 f"integrator 'implicit-midpoint' works on GL+, GL and L, not on {system.group}: "
@@ -136,13 +146,22 @@ class ImplicitMidpoint:
 
 IMPLICIT_MIDPOINT = ImplicitMidpoint()
 
+
+def _refuse_nonholonomic(system, name: str) -> None:
+    if getattr(system, "rotationless", None) is not None:
+        raise ValueError(
+            f"integrator {name!r} ignores the rotationless constraint "
+            f"{system.rotationless!r}: use integrator = 'nonholonomic-rattle'"
+        )
+
 #: Integrators by name (the names configs use).
 INTEGRATORS = {
-    s.name: s for s in (STRANG, YOSHIDA4, SUZUKI4, YOSHIDA6, IMPLICIT_MIDPOINT)
+    s.name: s for s in (STRANG, YOSHIDA4, SUZUKI4, YOSHIDA6, IMPLICIT_MIDPOINT,
+                        NONHOLONOMIC_RATTLE)
 }
 
 
-def get_integrator(integrator) -> Splitting | ImplicitMidpoint:
+def get_integrator(integrator) -> Splitting | ImplicitMidpoint | NonholonomicRattle:
     """An integrator object from a name in INTEGRATORS (or the object itself)."""
     if isinstance(integrator, str):
         if integrator not in INTEGRATORS:
@@ -158,6 +177,10 @@ def get_integrator(integrator) -> Splitting | ImplicitMidpoint:
 def step_function(system: HamiltonianSystem, integrator="strang") -> Step:
     """``step(state, h) -> state`` for ``system`` with the chosen integrator (not jitted)."""
     method = get_integrator(integrator)
-    if isinstance(method, ImplicitMidpoint) and system.constrained:
+    if isinstance(method, ImplicitMidpoint) and (system.constrained or system.nonholonomic):
+        method.step(system, None, 0.0)  # raises the clear ValueError
+    if isinstance(method, Splitting):
+        _refuse_nonholonomic(system, method.name)
+    if isinstance(method, NonholonomicRattle) and not system.nonholonomic:
         method.step(system, None, 0.0)  # raises the clear ValueError
     return lambda state, h: method.step(system, state, h)

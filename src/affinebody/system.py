@@ -7,7 +7,8 @@ and the configuration space of every phi_K (``affinebody.groups``):
 - ``"GL+"`` (default) and ``"GL"``: the open group; a motion that reaches det phi = 0 has left it
   (the run driver stops there, see ``simulate.run``);
 - ``"L"``: all of L(n, R), which the paper allows for d'Alembert motion (section 1);
-- ``"SL"``, ``"SO"``, ``"R+SO"``: constrained (incompressible, rigid, rigid + dilatation) bodies.
+- ``"SL"``, ``"UL"`` (incompressible), ``"SO"``, ``"O"`` (rigid), ``"R+SO"``, ``"R+O"``
+  (shape-preserving): constrained bodies, see ``affinebody.constraints``.
 
 Hamilton's equations in the project's placement pi[a, i] = pi^a_i (NOTES.md):
 ``dx/dt = dH/dp, dp/dt = -dH/dx, dphi/dt = (dH/dpi)^T, dpi/dt = -(dH/dphi)^T`` (53), (87).
@@ -15,16 +16,21 @@ Hamilton's equations in the project's placement pi[a, i] = pi^a_i (NOTES.md):
 Constrained groups. For a subgroup G with Lie algebra g, the momentum of the constrained system is
 a covector on T_phi G, i.e. pi modulo the annihilator {pi : Tr(pi phi X) = 0 for all X in g}. We
 represent it by the unique pi whose co-moving affine spin Sigma_hat = pi phi lies in g itself
-(traceless for SL, skew for SO, R Id + skew for R+SO):
+(traceless for SL/UL, skew for SO/O, R Id + skew for R+SO/R+O):
 
     pi  ->  P_g(pi phi) phi^-1,     P_g the Frobenius projection onto g (groups.project_algebra).
 
 A kick then projects its momentum increment, ``pi -= h P_g((dV/dphi)^T phi) phi^-1``, which is the
-exact flow of V restricted to G (phi is fixed during a kick). A kinetic drift is admissible on G
-when the model maps this representative into g, so that its exact flow phi -> phi exp(h Omega_hat)
-runs along a one-parameter subgroup of G and keeps Sigma_hat in g: the dynamics stays on the
-group by construction (isotropic af-af, af-is, is-af models, ...). Models whose drift leaves the
-group (d'Alembert: straight lines in L(n, R); anisotropic af-J, ...) are refused with a ValueError.
+exact flow of V restricted to G (phi is fixed during a kick). Each kinetic term drifts on G in the
+way ``constraints.drift_mode`` picks: its own exact flow where that stays on G (isotropic af-is,
+is-af, af-af; translational terms), a Lie-group splitting in g for the other left/right-invariant
+models (af-J, H-af, l-af, r-af), RATTLE for d'Alembert. The kinetic energy on G is the restricted
+one, H evaluated at the metric lift of pi (``constraints.metric_lift``).
+
+Non-holonomic constraints. ``rotationless="spatial"`` imposes (40), Omega = Omega^T;
+``rotationless="material"`` imposes (41), Omega_hat = Omega_hat^T (``affinebody.nonholonomic``).
+Then pi is the momentum of an admissible velocity (``constrain`` projects onto them) and the
+system is integrated by ``integrators.NONHOLONOMIC_RATTLE`` only.
 """
 
 from __future__ import annotations
@@ -38,18 +44,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from affinebody import constraints, nonholonomic
 from affinebody._checks import as_matrix, as_vector, is_concrete, transpose
+from affinebody.constraints import CONSTRAINED_GROUPS
 from affinebody.groups import is_member, project_algebra
 from affinebody.state import State
 
 #: Configuration spaces a HamiltonianSystem accepts.
-SYSTEM_GROUPS = ("GL+", "GL", "L", "SL", "SO", "R+SO")
-#: Groups with a constraint on phi (and hence a projection of the momentum).
-CONSTRAINED_GROUPS = ("SL", "SO", "R+SO")
+SYSTEM_GROUPS = ("GL+", "GL", "L", "SL", "UL", "SO", "O", "R+SO", "R+O")
 #: Groups whose boundary det phi = 0 the run driver watches.
 OPEN_GROUPS = ("GL+", "GL")
-
-_CONSTRAINED_HINT = "needs the constrained integrator of issue 7"
 
 
 def kinetic_terms(kinetic) -> tuple[Any, ...]:
@@ -90,30 +94,34 @@ class HamiltonianSystem:
     kinetic: Any
     potential: Any = None
     group: str = "GL+"
+    rotationless: str | None = None
 
     def __post_init__(self):
         if self.group not in SYSTEM_GROUPS:
             raise ValueError(
                 f"system.group must be one of {', '.join(SYSTEM_GROUPS)} (got {self.group!r})"
             )
+        nonholonomic.check_rotationless(self.rotationless, self.group)
         if not hasattr(self.kinetic, "hamiltonian"):
             return  # a placeholder leaf while JAX maps over the pytree, not a user's system
         if not kinetic_terms(self.kinetic):
             raise ValueError("system.kinetic has no kinetic terms: give a translational or "
                              "internal kinetic energy")
-        if self.group in CONSTRAINED_GROUPS:
-            for term in kinetic_terms(self.kinetic):
-                if type(term).__name__ == "DAlembert":
-                    raise ValueError(
-                        f"d'Alembert internal motion on {self.group}(n) {_CONSTRAINED_HINT}: its "
-                        f"drift is a straight line phi + t xi that leaves {self.group}(n); use "
-                        f"group = 'GL+' (or 'L') or an affinely invariant kinetic model"
-                    )
 
     @property
     def constrained(self) -> bool:
-        """True on SL, SO, R+SO."""
+        """True on the subgroups SL, UL, SO, O, R+SO, R+O (holonomic constraints on phi)."""
         return self.group in CONSTRAINED_GROUPS
+
+    @property
+    def nonholonomic(self) -> bool:
+        """True with a rotationless constraint (40) or (41)."""
+        return self.rotationless is not None
+
+    @property
+    def _needs_metric_lift(self) -> bool:
+        return self.constrained and any(
+            constraints.drift_mode(t) != "exact" for t in kinetic_terms(self.kinetic))
 
     # ----------------------------------------------------------------- energies
     def potential_energy(self, state: State) -> jax.Array:
@@ -123,8 +131,13 @@ class HamiltonianSystem:
         return self.potential.energy(state.x, state.phi)
 
     def kinetic_energy(self, state: State) -> jax.Array:
-        """T(x, phi, p, pi) summed over bodies (76a)-(85)."""
-        return self.kinetic.hamiltonian(self.constrain(state))
+        """T(x, phi, p, pi) summed over bodies (76a)-(85); on a subgroup the restricted T."""
+        if self.nonholonomic:
+            return self.kinetic.hamiltonian(state)
+        state = self.constrain(state)
+        if self._needs_metric_lift:
+            state = constraints.metric_lift(self.kinetic.hamiltonian, state, self.group)
+        return self.kinetic.hamiltonian(state)
 
     def hamiltonian(self, state: State) -> jax.Array:
         """H = T + V (75a)."""
@@ -136,16 +149,24 @@ class HamiltonianSystem:
 
         Defined on GL+, GL and L, where phase space is an open subset of a vector space.
         """
-        if self.constrained:
+        if self.constrained or self.nonholonomic:
             raise ValueError(
-                f"vector_field is defined on GL+, GL and L; on {self.group} use the splitting "
-                f"integrators, whose sub-flows stay on the group"
+                f"vector_field is defined on GL+, GL and L without constraints; on "
+                f"{self.group} use the splitting integrators, whose sub-flows stay on the group, "
+                f"and with a rotationless constraint nonholonomic.lagrange_dalembert_field"
             )
         grad = jax.grad(lambda s: jnp.sum(self.hamiltonian(s)))(state)
         return State(x=grad.p, phi=transpose(grad.pi), p=-grad.x, pi=-transpose(grad.phi))
 
     def constrain(self, state: State) -> State:
-        """``state`` with pi replaced by the constrained-momentum representative (no-op on GL)."""
+        """``state`` with pi replaced by the constrained-momentum representative (no-op on GL).
+
+        With a rotationless constraint: the momentum of the admissible velocity nearest in the
+        kinetic metric (the velocity projection of non-holonomic RATTLE).
+        """
+        if self.nonholonomic:
+            return nonholonomic.admissible_momentum(self.kinetic, state, self.rotationless,
+                                                    self.group)
         if not self.constrained:
             return state
         return state._replace(pi=project_momentum(state.phi, state.pi, self.group))
@@ -176,9 +197,11 @@ class HamiltonianSystem:
         return state
 
     def _term_flow(self, term, state: State, h) -> State:
-        state = term.flow(state, h)
-        # exact for terms that keep phi fixed (their momentum increment is constant), a
-        # round-off clean-up for internal terms that already keep Sigma_hat in g
+        if not self.constrained:
+            return term.flow(state, h)
+        state = constraints.constrained_flow(term, state, h, self.group)
+        # exact for terms that keep phi fixed (their momentum increment is constant); for
+        # RATTLE the same covector as its velocity projection; a round-off clean-up otherwise
         return self.constrain(state)
 
     # ----------------------------------------------------------------- validation
@@ -211,7 +234,7 @@ class HamiltonianSystem:
         return self.constrain(state)
 
     def _check_drifts_preserve_group(self, n: int) -> None:
-        """Refuse kinetic terms whose exact drift leaves the constrained group (a numeric probe)."""
+        """Refuse kinetic terms with no constrained drift (unknown types: a numeric probe)."""
         rng = np.random.default_rng(12345)
         g = self.group
         a = 0.3 * rng.standard_normal((1, n, n))
@@ -221,6 +244,8 @@ class HamiltonianSystem:
         probe = State(jnp.asarray(rng.standard_normal((1, n))), phi,
                       jnp.asarray(rng.standard_normal((1, n))), pi)
         for term in kinetic_terms(self.kinetic):
+            if constraints.drift_mode(term) is not None:
+                continue
             out = term.flow(probe, 0.37)
             sh = out.pi @ out.phi
             stays = bool(np.all(np.asarray(is_member(out.phi, g, tol=1e-9))))
@@ -229,8 +254,8 @@ class HamiltonianSystem:
             if not stays or not (in_algebra or fixed_phi):
                 raise ValueError(
                     f"kinetic term {type(term).__name__} does not keep phi in {g}(n): its exact "
-                    f"drift leaves the group, so this combination {_CONSTRAINED_HINT}; use "
-                    f"group = 'GL+' or a model whose inertia maps the algebra of {g} into itself"
+                    f"drift leaves the group and it is neither d'Alembert nor left/right "
+                    f"affinely invariant (no constrained drift); use group = 'GL+'"
                 )
 
     def replace(self, **changes) -> HamiltonianSystem:
@@ -241,5 +266,5 @@ class HamiltonianSystem:
 # kinetic parameters are array leaves (traced under jit); potentials are hashable frozen
 # dataclasses and enter compiled functions as static data.
 jax.tree_util.register_dataclass(
-    HamiltonianSystem, data_fields=["kinetic"], meta_fields=["potential", "group"]
+    HamiltonianSystem, data_fields=["kinetic"], meta_fields=["potential", "group", "rotationless"]
 )
