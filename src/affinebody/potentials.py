@@ -64,9 +64,15 @@ has ``sum_K [x_K (dV/dx_K)^T + phi_K (dV/dphi_K)^T] = 0``, a materially affine o
 
 Cut-off: a pair potential may carry a :class:`Cutoff` on ``r`` or ``D``: the pair energy is
 multiplied by the C^2 quintic switch ``S`` (1 below ``r_on``, 0 from ``r_cut`` on) and is exactly
-zero, with exactly zero gradient, at and beyond ``r_cut``. A periodic orthorhombic ``box`` uses the
-minimum image and requires a cut-off on ``r`` of at most half the shortest box edge (so the
-minimum image is the only image in range); a box breaks the spatial rotations.
+zero, with exactly zero gradient, at and beyond ``r_cut``. A periodic ``box`` (n edges of an
+orthorhombic box, an n x n cell matrix of a triclinic one, or an :class:`affinebody.space.Space`)
+uses the minimum image and requires a cut-off on ``r`` of at most half the smallest perpendicular
+width (the shortest edge if orthorhombic), so that the minimum image is the only image in range;
+a box breaks the spatial rotations.
+
+Large N: ``energy(x, phi, neighbors)`` sums over the pairs of a neighbour list
+(:mod:`affinebody.neighbors`) with the closed-form force kernel of :mod:`affinebody.pair_kernels`;
+without a list the sum runs over all N(N-1)/2 pairs.
 
 NaN-free gradients: ``r`` and ``D`` use the double-``where`` square root (gradient 0 at 0), pairs
 beyond the cut-off are evaluated at a harmless reference point (identity configurations at the
@@ -100,6 +106,7 @@ from affinebody.mutual import (
     mutual_trace_invariants,
     relative_volume,
 )
+from affinebody.space import Space, as_space
 
 SYMMETRIES = (
     "translation",
@@ -382,15 +389,22 @@ class PairTerm:
 
     variables: tuple[str, ...]
     cutoff: Cutoff | None
-    box: tuple[float, ...] | None
+    box: tuple[float, ...] | Space | None
 
     def term(self, values: Mapping[str, jax.Array]) -> jax.Array:
         raise NotImplementedError
 
     def check_dimension(self, n: int) -> None:
         """ValueError if the parameters do not fit dimension n (overridden where needed)."""
-        if self.box is not None and len(self.box) != n:
-            raise ValueError(f"box has {len(self.box)} edges but the dimension is n = {n}")
+        if self.box is not None and self.space.dimension != n:
+            raise ValueError(
+                f"box has {self.space.dimension} edges but the dimension is n = {n}"
+            )
+
+    @property
+    def space(self) -> Space:
+        """The space of the centres: free, or the periodic box ``box`` (module docstring)."""
+        return as_space(self.box)
 
     def _check_geometry(self) -> None:
         owner = type(self).__name__
@@ -398,16 +412,21 @@ class PairTerm:
             raise ValueError(f"{owner}.cutoff must be a Cutoff (got {self.cutoff!r})")
         if self.box is None:
             return
-        box = tuple(_positive(b, f"{owner}.box[{i}]") for i, b in enumerate(self.box))
+        box = self.box
+        if isinstance(box, Sequence) and all(not isinstance(b, Sequence) for b in box):
+            box = tuple(_positive(b, f"{owner}.box[{i}]") for i, b in enumerate(box))
+        else:  # a Space or an n x n cell matrix (triclinic)
+            box = as_space(box)
         object.__setattr__(self, "box", box)
         if self.cutoff is None or self.cutoff.variable != "r":
             raise ValueError(
                 f"{owner}: a periodic box needs a cut-off on r (set r_cut <= half the box)"
             )
-        if self.cutoff.r_cut > 0.5 * min(box):
+        limit = self.space.max_cutoff
+        if self.cutoff.r_cut > limit * (1 + 1e-12):
             raise ValueError(
                 f"{owner}: r_cut = {self.cutoff.r_cut} exceeds half the shortest box edge "
-                f"{0.5 * min(box)}: the minimum image would miss images in range"
+                f"(perpendicular width) {limit}: the minimum image would miss images in range"
             )
 
     @property
@@ -419,25 +438,43 @@ class PairTerm:
     def _asymmetric(self) -> bool:
         return "det" in self.variables or _indexed(self.variables, "M")
 
-    def pair_energies(self, x, phi) -> jax.Array:
-        """Energies of the unordered pairs K < L (order of ``numpy.triu_indices``), [..., P]."""
-        x, phi = _coordinates(x, phi)
-        n, bodies = phi.shape[-1], phi.shape[-3]
-        _check_indices(self.variables, n, type(self).__name__)
-        self.check_dimension(n)
-        k, l = np.triu_indices(bodies, 1)
-        u = x[..., k, :] - x[..., l, :]
-        if self.box is not None:
-            box = jnp.asarray(self.box)
-            u = u - box * jnp.round(u / box)
-        phi_k, phi_l = phi[..., k, :, :], phi[..., l, :, :]
-        values = pair_variables(self._needed, u, phi_k, phi_l)
+    def scalar_requirements(self, n: int) -> tuple[frozenset[str], int, int]:
+        """What :meth:`energy_from_scalars` needs in dimension n: the plain scalars among
+        r, D, det, and the highest powers k, m of K_a (28) and M_a (30) used (0: none)."""
+        names = self._needed
+        plain = frozenset(names & {"r", "D", "det"})
+        powers = []
+        for letter in "KM":
+            used = [int(name[1:]) for name in names if _indexed([name], letter) and name != letter]
+            powers.append(n if letter in names else max(used, default=0))
+        return plain, powers[0], powers[1]
+
+    def energy_from_scalars(self, base: Mapping[str, jax.Array], n: int) -> jax.Array:
+        """Pair energies [..., P] from the scalar pair variables: ``base`` holds r, D, det
+        [..., P] and K, M, Ms [..., P, k or m] (K_a[phi_K, phi_L], M_a[phi_K, phi_L] and
+        M_a[phi_L, phi_K], a = 1..k or m) as :meth:`scalar_requirements` asks.
+
+        Applies the average over both orders of an asymmetric pair (eq. (59) with one f; the
+        swapped det Gamma is 1/det), the cut-off mask and the switch. Elementwise over pairs,
+        so its gradient with respect to ``base`` is the per-pair partial derivatives
+        (``pair_kernels`` uses exactly this)."""
+        values = {name: base[name] for name in ("r", "D", "det") if name in base}
+        for letter in "KM":
+            if letter in base:
+                array = base[letter]
+                values[letter] = array
+                for a in range(array.shape[-1]):
+                    values[f"{letter}{a + 1}"] = array[..., a]
         orders = [values]
         if self._asymmetric:  # average f over (K, L) and (L, K): eq. (59) with a single f
-            swapped = pair_variables(
-                self._needed & {"det", "M"} | _m_names(self._needed), u, phi_l, phi_k
-            )
-            orders.append({**values, **swapped})
+            swapped = dict(values)
+            if "det" in values:
+                swapped["det"] = 1.0 / values["det"]
+            if "Ms" in base:
+                swapped["M"] = base["Ms"]
+                for a in range(base["Ms"].shape[-1]):
+                    swapped[f"M{a + 1}"] = base["Ms"][..., a]
+            orders.append(swapped)
         if self.cutoff is None:
             energies = [self.term(v) for v in orders]
             return sum(energies) / len(energies)
@@ -455,8 +492,39 @@ class PairTerm:
             total = total + jnp.where(inside, self.term(safe) * switch, 0.0)
         return total / len(orders)
 
-    def energy(self, x, phi) -> jax.Array:
-        """Total pair energy sum_{K<L} V_KL, shape [...] (0 for a single body)."""
+    def pair_energies(self, x, phi) -> jax.Array:
+        """Energies of the unordered pairs K < L (order of ``numpy.triu_indices``), [..., P]."""
+        x, phi = _coordinates(x, phi)
+        n, bodies = phi.shape[-1], phi.shape[-3]
+        _check_indices(self.variables, n, type(self).__name__)
+        self.check_dimension(n)
+        k, l = np.triu_indices(bodies, 1)
+        u = self.space.displacement(x[..., k, :], x[..., l, :])
+        phi_k, phi_l = phi[..., k, :, :], phi[..., l, :, :]
+        plain, k_powers, m_powers = self.scalar_requirements(n)
+        values = pair_variables(plain | {"K", "M"} if k_powers or m_powers else plain,
+                                u, phi_k, phi_l)
+        base = {name: values[name] for name in plain}
+        if k_powers:
+            base["K"] = values["K"][..., :k_powers]
+        if m_powers:
+            base["M"] = values["M"][..., :m_powers]
+            if self._asymmetric:
+                base["Ms"] = affine_invariants(phi_l, phi_k)[..., :m_powers]
+        return self.energy_from_scalars(base, n)
+
+    def energy(self, x, phi, neighbors=None) -> jax.Array:
+        """Total pair energy sum_{K<L} V_KL, shape [...] (0 for a single body).
+
+        With a ``neighbors`` list (:mod:`affinebody.neighbors`) the sum runs over its pairs
+        only, through the closed-form kernel of :mod:`affinebody.pair_kernels` (its gradient
+        is that kernel's, not autodiff through the geometry); the list must cover every pair
+        within the cut-off (``neighbors.check``)."""
+        if neighbors is not None:
+            from affinebody.pair_kernels import neighbor_energy
+
+            x, phi = _coordinates(x, phi)
+            return neighbor_energy(self, x, phi, neighbors)
         return jnp.sum(self.pair_energies(x, phi), axis=-1)
 
     @property
@@ -515,7 +583,7 @@ class PairPotential(PairTerm):
     function: Callable[..., jax.Array]
     variables: tuple[str, ...]
     cutoff: Cutoff | None = None
-    box: tuple[float, ...] | None = None
+    box: tuple[float, ...] | Space | None = None
 
     def __post_init__(self):
         if not callable(self.function):
@@ -536,12 +604,14 @@ class PairPotential(PairTerm):
         n: int,
         *,
         cutoff: Cutoff | None = None,
-        box: Sequence[float] | None = None,
+        box: Sequence[float] | Space | None = None,
         field: str = "expr",
     ) -> PairPotential:
         """Pair potential from a config expression in :func:`pair_variable_names`."""
         expression = compile_expression(text, pair_variable_names(n), field=field)
-        return cls(expression, expression.used, cutoff, None if box is None else tuple(box))
+        if box is not None and not isinstance(box, Space):
+            box = tuple(tuple(row) if isinstance(row, Sequence) else row for row in box)
+        return cls(expression, expression.used, cutoff, box)
 
 
 # --------------------------------------------------------------------------------------------
@@ -655,7 +725,7 @@ class LennardJones(PairTerm):
     sigma: float
     argument: str = "r"
     cutoff: Cutoff | None = None
-    box: tuple[float, ...] | None = None
+    box: tuple[float, ...] | Space | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "epsilon", _positive(self.epsilon, "lennard-jones.epsilon"))
@@ -681,7 +751,7 @@ class Morse(PairTerm):
     r0: float
     argument: str = "r"
     cutoff: Cutoff | None = None
-    box: tuple[float, ...] | None = None
+    box: tuple[float, ...] | Space | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "depth", _positive(self.depth, "morse.depth"))
@@ -707,7 +777,7 @@ class Gaussian(PairTerm):
     width: float
     argument: str = "r"
     cutoff: Cutoff | None = None
-    box: tuple[float, ...] | None = None
+    box: tuple[float, ...] | Space | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "amplitude", _real(self.amplitude, "gaussian.amplitude"))
@@ -735,7 +805,7 @@ class HarmonicInvariants(PairTerm):
     invariants: str = "M"
     reference: tuple[float, ...] | None = None
     cutoff: Cutoff | None = None
-    box: tuple[float, ...] | None = None
+    box: tuple[float, ...] | Space | None = None
 
     def __post_init__(self):
         object.__setattr__(
@@ -776,11 +846,16 @@ class TotalPotential:
 
     terms: tuple[Any, ...]
 
-    def energy(self, x, phi) -> jax.Array:
+    def energy(self, x, phi, neighbors=None) -> jax.Array:
+        """Sum of the terms' energies; ``neighbors`` goes to the pair terms (see
+        :meth:`PairTerm.energy`)."""
         x, phi = _coordinates(x, phi)
         total = jnp.zeros(phi.shape[:-3])
         for term in self.terms:
-            total = total + term.energy(x, phi)
+            if neighbors is not None and isinstance(term, PairTerm):
+                total = total + term.energy(x, phi, neighbors)
+            else:
+                total = total + term.energy(x, phi)
         return total
 
     @property

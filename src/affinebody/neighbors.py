@@ -1,0 +1,364 @@
+"""Cell list and half neighbour list of body centres, with a skin, for pair potentials with a
+cut-off on the distance r or on the affine distance D of eq. (75).
+
+Reach of a body. A cut-off on r reaches r_cut. A cut-off on D reaches farther when bodies
+stretch: with a_K = phi_K^-1 u, D^2 = (|a_K|^2 + |a_L|^2)/2 >= |u|^2 / max(s_K, s_L)^2, where s_K
+is the largest singular value of phi_K, so D < D_cut implies |u| < D_cut max(s_K, s_L). The
+spatial reach is therefore
+
+    rho = r_cut (cut-off on r),    rho = D_cut max_K s_max(phi_K) (cut-off on D),
+
+and the list holds every pair K < L with |x_K - x_L| < rho + skin at the time of the build
+(minimum image in a periodic box, :mod:`affinebody.space`). It stays complete while
+
+    2 max_K |x_K(t) - x_K(build)| + rho(t) - rho(build) <= skin,
+
+which :func:`needs_rebuild` tests; :func:`update` rebuilds inside compiled code when it fails.
+
+Fixed shapes. A list is a pytree of arrays of fixed capacity (:class:`NeighborList`), so
+building and using it compiles once. Capacities are chosen by :func:`allocate` from the actual
+configuration with some room to spare; a build that does not fit sets ``overflow`` (bit 1: pair
+capacity, bit 2: a cell's capacity, bit 4: the reach outgrew the cells or half the box) and the
+list must then not be used: :func:`check` raises, and :func:`allocate` again (on the current
+configuration) gives a bigger list. Memory is linear in N: cells [N_cells, cell_capacity] and
+pairs [capacity], plus a chunk of candidates at a time during the build.
+
+Build (one jitted function, also on a GPU): cell index of every centre (fractional coordinates
+in a box), bodies sorted by cell into a table [N_cells, cell_capacity], then chunks of bodies
+scan the 3^n neighbouring cells, keep partners L > K within rho + skin and write them, in order
+of K, into the pair arrays (``i < j``). Cells are at least rho + skin wide in every lattice
+direction, so a pair in range is always in neighbouring cells; in free space the grid covers the
+bounding box at allocation and centres outside it are clamped into the edge cells, which keeps
+that property (clamping moves cell indices by no more than the positions differ).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from affinebody.space import Space, as_space
+
+PAIR_OVERFLOW, CELL_OVERFLOW, REACH_OVERFLOW = 1, 2, 4
+_CANDIDATES_PER_CHUNK = 1 << 22
+
+
+class NeighborList(NamedTuple):
+    """Half list of pairs i < j (a pytree). Entries ``count:`` are padding (``i = j = N``)."""
+
+    i: jax.Array  # [capacity] int32
+    j: jax.Array  # [capacity] int32
+    count: jax.Array  # [] int32: pairs found (may exceed capacity: then overflow)
+    overflow: jax.Array  # [] int32: bit flags PAIR/CELL/REACH_OVERFLOW
+    reference_x: jax.Array  # [N, n] centres at the build
+    reach: jax.Array  # [] spatial reach rho at the build
+
+
+@dataclass(frozen=True)
+class NeighborSpec:
+    """Static description of a list (hashable; a static argument of compiled functions)."""
+
+    space: Space
+    cutoff: float
+    variable: str
+    skin: float
+    bodies: int
+    capacity: int
+    cell_capacity: int
+    grid: tuple[int, ...]
+    max_radius: float
+    origin: tuple[float, ...] | None = None  # free space: lower corner of the grid
+    cell_size: tuple[float, ...] | None = None  # free space: cell edges
+
+    @property
+    def n(self) -> int:
+        return len(self.grid)
+
+
+# --------------------------------------------------------------------------------------------
+# reach
+
+
+def largest_singular_values(phi: jax.Array) -> jax.Array:
+    """s_max(phi_K) = sqrt(largest eigenvalue of G = phi^T phi), shape [..., N].
+
+    Closed form for n <= 3 (the trigonometric solution of the characteristic cubic), slightly
+    enlarged (relative 1e-12) so that it bounds s_max from above; eigvalsh for n > 3."""
+    g = jnp.swapaxes(phi, -1, -2) @ phi
+    n = phi.shape[-1]
+    if n == 1:
+        lam = g[..., 0, 0]
+    elif n == 2:
+        mean = 0.5 * (g[..., 0, 0] + g[..., 1, 1])
+        half = 0.5 * (g[..., 0, 0] - g[..., 1, 1])
+        lam = mean + jnp.sqrt(half * half + g[..., 0, 1] ** 2)
+    elif n == 3:
+        q = (g[..., 0, 0] + g[..., 1, 1] + g[..., 2, 2]) / 3.0
+        off = g[..., 0, 1] ** 2 + g[..., 0, 2] ** 2 + g[..., 1, 2] ** 2
+        dev = (g[..., 0, 0] - q) ** 2 + (g[..., 1, 1] - q) ** 2 + (g[..., 2, 2] - q) ** 2
+        p = jnp.sqrt((dev + 2.0 * off) / 6.0)
+        safe_p = jnp.where(p > 0, p, 1.0)
+        b = (g - q[..., None, None] * jnp.eye(3)) / safe_p[..., None, None]
+        half_det = 0.5 * jnp.linalg.det(b)
+        angle = jnp.arccos(jnp.clip(half_det, -1.0, 1.0)) / 3.0
+        lam = jnp.where(p > 0, q + 2.0 * p * jnp.cos(angle), q)
+    else:
+        lam = jnp.linalg.eigvalsh(g)[..., -1]
+    scale = jnp.max(jnp.abs(g), axis=(-2, -1))
+    return jnp.sqrt(jnp.maximum(lam, 0.0) + 1e-12 * scale)
+
+
+def spatial_reach(cutoff: float, variable: str, phi: jax.Array) -> jax.Array:
+    """rho = r_cut, or D_cut max_K s_max(phi_K) for a cut-off on D (module docstring)."""
+    if variable == "r":
+        return jnp.asarray(cutoff, dtype=phi.dtype)
+    return cutoff * jnp.max(largest_singular_values(phi))
+
+
+# --------------------------------------------------------------------------------------------
+# cells
+
+
+def _cell_coordinates(spec: NeighborSpec, x: jax.Array) -> jax.Array:
+    grid = jnp.asarray(spec.grid)
+    if spec.space.periodic:
+        s = spec.space.fractional(x)
+        s = s - jnp.floor(s)
+        c = jnp.floor(s * grid).astype(jnp.int32)
+    else:
+        c = jnp.floor((x - jnp.asarray(spec.origin)) / jnp.asarray(spec.cell_size))
+        c = c.astype(jnp.int32)
+    return jnp.clip(c, 0, grid - 1)
+
+
+def _strides(grid: tuple[int, ...]) -> np.ndarray:
+    return np.cumprod((1,) + grid[:-1]).astype(np.int32)
+
+
+def _stencil(spec: NeighborSpec) -> np.ndarray:
+    """Offsets [S, n] of the neighbouring cells (distinct modulo the grid in a box)."""
+    per_axis = []
+    for g in spec.grid:
+        if spec.space.periodic:
+            per_axis.append(sorted({o % g for o in (-1, 0, 1)}))
+        else:
+            per_axis.append([-1, 0, 1])
+    mesh = np.meshgrid(*per_axis, indexing="ij")
+    return np.stack([m.ravel() for m in mesh], axis=-1).astype(np.int32)
+
+
+def cell_table(spec: NeighborSpec, x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(cell coordinates [N, n], table [N_cells, cell_capacity] of body indices padded with N,
+    largest occupancy)."""
+    bodies = x.shape[0]
+    coords = _cell_coordinates(spec, x)
+    flat = coords @ jnp.asarray(_strides(spec.grid))
+    order = jnp.argsort(flat).astype(jnp.int32)
+    ordered = flat[order]
+    cells = jnp.arange(int(np.prod(spec.grid)), dtype=flat.dtype)
+    start = jnp.searchsorted(ordered, cells, side="left")
+    occupancy = jnp.searchsorted(ordered, cells, side="right") - start
+    slot = jnp.arange(spec.cell_capacity)
+    index = jnp.minimum(start[:, None] + slot[None, :], bodies - 1)
+    table = jnp.where(slot[None, :] < occupancy[:, None], order[index], bodies)
+    return coords, table.astype(jnp.int32), jnp.max(occupancy)
+
+
+# --------------------------------------------------------------------------------------------
+# build, update, check
+
+
+def build(spec: NeighborSpec, x: jax.Array, phi: jax.Array) -> NeighborList:
+    """The half list of ``spec`` for centres x [N, n] and configurations phi [N, n, n]
+    (jit-compatible; ``spec`` is static). Check ``overflow`` before using it."""
+    bodies, n = x.shape
+    reach = spatial_reach(spec.cutoff, spec.variable, phi)
+    radius = reach + spec.skin
+    coords, table, occupancy = cell_table(spec, x)
+    stencil = jnp.asarray(_stencil(spec))
+    strides = jnp.asarray(_strides(spec.grid))
+    grid = jnp.asarray(spec.grid)
+    width = stencil.shape[0] * spec.cell_capacity
+    chunk = max(1, min(bodies, _CANDIDATES_PER_CHUNK // width))
+    chunks = -(-bodies // chunk)
+    ids = jnp.arange(chunks * chunk, dtype=jnp.int32).reshape(chunks, chunk)
+    x_pad = jnp.concatenate([x, x[:1]])
+    coords_pad = jnp.concatenate([coords, coords[:1]])
+    capacity = spec.capacity
+
+    def scan_chunk(carry, body):
+        pairs_i, pairs_j, total = carry
+        body = jnp.minimum(body, bodies)  # the padding body N has no partners
+        neighbour = coords_pad[body][:, None, :] + stencil[None]
+        if spec.space.periodic:
+            inside = jnp.ones(neighbour.shape[:2], dtype=bool)
+            neighbour = neighbour % grid
+        else:
+            inside = jnp.all((neighbour >= 0) & (neighbour < grid), axis=-1)
+            neighbour = jnp.clip(neighbour, 0, grid - 1)
+        candidate = table[neighbour @ strides]  # [chunk, S, cap]
+        candidate = jnp.where(inside[..., None], candidate, bodies).reshape(body.shape[0], -1)
+        u = spec.space.displacement(x_pad[body][:, None, :], x_pad[candidate])
+        keep = (
+            (candidate < bodies)
+            & (candidate > body[:, None])
+            & (body[:, None] < bodies)
+            & (jnp.sum(u * u, axis=-1) < radius * radius)
+        )
+        counts = jnp.sum(keep, axis=1, dtype=jnp.int32)
+        first = total + jnp.cumsum(counts) - counts
+        position = first[:, None] + jnp.cumsum(keep, axis=1, dtype=jnp.int32) - 1
+        position = jnp.where(keep, position, capacity)  # out of range: dropped
+        pairs_i = pairs_i.at[position].set(
+            jnp.broadcast_to(body[:, None], position.shape), mode="drop"
+        )
+        pairs_j = pairs_j.at[position].set(candidate, mode="drop")
+        return (pairs_i, pairs_j, total + jnp.sum(counts, dtype=jnp.int32)), None
+
+    empty = jnp.full((capacity,), bodies, dtype=jnp.int32)
+    (pairs_i, pairs_j, total), _ = lax.scan(scan_chunk, (empty, empty, jnp.int32(0)), ids)
+    overflow = (
+        jnp.where(total > capacity, PAIR_OVERFLOW, 0)
+        | jnp.where(occupancy > spec.cell_capacity, CELL_OVERFLOW, 0)
+        | jnp.where(radius > spec.max_radius, REACH_OVERFLOW, 0)
+    ).astype(jnp.int32)
+    return NeighborList(pairs_i, pairs_j, total, overflow, x, reach)
+
+
+build_jit = jax.jit(build, static_argnums=0)
+
+
+def needs_rebuild(spec: NeighborSpec, neighbors: NeighborList, x, phi) -> jax.Array:
+    """True when 2 max_K |x_K - x_K(build)| + rho - rho(build) exceeds the skin (the list
+    might miss a pair in range), or the list overflowed."""
+    moved = spec.space.displacement(x, neighbors.reference_x)
+    largest = jnp.sqrt(jnp.max(jnp.sum(moved * moved, axis=-1)))
+    growth = spatial_reach(spec.cutoff, spec.variable, phi) - neighbors.reach
+    return (2.0 * largest + growth > spec.skin) | (neighbors.overflow != 0)
+
+
+def update(spec: NeighborSpec, neighbors: NeighborList, x, phi) -> NeighborList:
+    """``neighbors`` if still complete, else a fresh build (jit-compatible, one lax.cond)."""
+    return lax.cond(
+        needs_rebuild(spec, neighbors, x, phi),
+        lambda: build(spec, x, phi),
+        lambda: neighbors,
+    )
+
+
+class NeighborListOverflow(ValueError):
+    """A list's capacity was exceeded: reallocate (``neighbors.allocate``) and rebuild."""
+
+
+def check(neighbors: NeighborList) -> NeighborList:
+    """Raise :class:`NeighborListOverflow` (saying which capacity) if the list overflowed."""
+    flags = int(neighbors.overflow)
+    if flags == 0:
+        return neighbors
+    reasons = []
+    if flags & PAIR_OVERFLOW:
+        reasons.append(f"{int(neighbors.count)} pairs exceed the pair capacity "
+                       f"{neighbors.i.shape[0]}")
+    if flags & CELL_OVERFLOW:
+        reasons.append("a cell holds more bodies than the cell capacity")
+    if flags & REACH_OVERFLOW:
+        reasons.append(f"the reach {float(neighbors.reach):.6g} + skin outgrew the cells or half "
+                       f"the box (bodies stretched)")
+    raise NeighborListOverflow(
+        "neighbour list overflow: " + "; ".join(reasons)
+        + ": call neighbors.allocate(...) on the current configuration to reallocate"
+    )
+
+
+def allocate(
+    space,
+    x,
+    phi,
+    cutoff: float,
+    variable: str = "r",
+    skin: float = 0.3,
+    *,
+    capacity_factor: float = 1.25,
+    cell_factor: float = 1.5,
+    reach_headroom: float | None = None,
+    capacity: int | None = None,
+    cell_capacity: int | None = None,
+) -> tuple[NeighborSpec, NeighborList]:
+    """Choose capacities for the configuration (x, phi) and build the list (eager).
+
+    space: a :class:`~affinebody.space.Space` or anything :func:`~affinebody.space.as_space`
+    takes (None: free space). cutoff, variable: the potential's cut-off (``"r"`` or ``"D"``).
+    capacity_factor, cell_factor: room for fluctuations of the pair count and cell occupancy.
+    reach_headroom: relative growth of the list radius the cells allow before a reallocation
+    (default 0 for r, 0.25 for D, where stretching bodies reach farther).
+    capacity, cell_capacity: fixed capacities instead of measured ones (the same capacities
+    give the same spec, hence no recompilation, for different configurations).
+    """
+    space = as_space(space)
+    x = jnp.asarray(x, dtype=jnp.float64)
+    phi = jnp.asarray(phi, dtype=jnp.float64)
+    if x.ndim != 2 or phi.shape != (*x.shape, x.shape[1]):
+        raise ValueError(f"neighbors.allocate needs x [N, n] and phi [N, n, n] "
+                         f"(got {x.shape} and {phi.shape})")
+    bodies, n = x.shape
+    space.check_dimension(n, "neighbors.allocate")
+    if variable not in ("r", "D"):
+        raise ValueError(f"neighbors.variable must be 'r' or 'D' (got {variable!r})")
+    if not (cutoff > 0 and skin >= 0):
+        raise ValueError(f"neighbors needs cutoff > 0 and skin >= 0 (got {cutoff}, {skin})")
+    if reach_headroom is None:
+        reach_headroom = 0.0 if variable == "r" else 0.25
+    radius = float(spatial_reach(cutoff, variable, phi)) + skin
+    space.check_cutoff(radius, "neighbour-list radius (reach + skin)")
+    max_radius = min(radius * (1.0 + reach_headroom), space.max_cutoff)
+    x_np = np.asarray(x)
+    if space.periodic:
+        grid = tuple(int(max(1, math.floor(w / max_radius))) for w in space.widths)
+        origin = size = None
+        s = x_np @ space.inverse.T
+        coords = np.clip(np.floor((s - np.floor(s)) * grid).astype(int), 0, np.array(grid) - 1)
+    else:
+        lo, hi = x_np.min(axis=0), x_np.max(axis=0)
+        cell = max_radius
+        while True:  # at most ~2 cells per body (memory linear in N)
+            extent = hi - lo
+            grid = tuple(int(max(1, math.ceil(e / cell + 1e-9))) for e in extent)
+            if np.prod(grid) <= max(8, 2 * bodies):
+                break
+            cell *= 1.26
+        origin, size = tuple(map(float, lo)), (float(cell),) * n
+        coords = np.clip(np.floor((x_np - lo) / cell).astype(int), 0, np.array(grid) - 1)
+    flat = coords @ _strides(grid)
+    occupancy = int(np.bincount(flat, minlength=int(np.prod(grid))).max())
+    if cell_capacity is None:
+        cell_capacity = int(math.ceil(occupancy * cell_factor)) + 1
+    if capacity is None:
+        probe = NeighborSpec(space, float(cutoff), variable, float(skin), bodies, 1,
+                             cell_capacity, grid, max_radius, origin, size)
+        count = int(build_jit(probe, x, phi).count)
+        capacity = max(64, int(math.ceil(count * capacity_factor)))
+    spec = NeighborSpec(space, float(cutoff), variable, float(skin), bodies, capacity,
+                        cell_capacity, grid, max_radius, origin, size)
+    return spec, check(build_jit(spec, x, phi))
+
+
+def brute_force_pairs(space, x, radius: float) -> np.ndarray:
+    """All pairs i < j with |x_i - x_j| < radius (minimum image), [P, 2] in NumPy; O(N^2), for
+    tests."""
+    space = as_space(space)
+    k, l = np.triu_indices(x.shape[0], 1)
+    u = np.asarray(space.displacement(jnp.asarray(x)[k], jnp.asarray(x)[l]))
+    keep = np.sum(u * u, axis=-1) < radius * radius
+    return np.stack([k[keep], l[keep]], axis=-1)
+
+
+def pairs_of(neighbors: NeighborList) -> np.ndarray:
+    """The valid pairs of a list, [count, 2] in NumPy (for tests and inspection)."""
+    count = min(int(neighbors.count), neighbors.i.shape[0])
+    return np.stack([np.asarray(neighbors.i[:count]), np.asarray(neighbors.j[:count])], axis=-1)

@@ -1,0 +1,587 @@
+"""Fast pair energy and generalised forces over a list of pairs: the binary potentials
+(59)-(62), (75)-(78) of :mod:`affinebody.potentials` with the chain rule split in two.
+
+A pair term is ``V_KL = f(r, D, det, K_a, M_a)`` (cut-off, switch and the average over both
+orders of (59) included, :meth:`PairTerm.energy_from_scalars`). Its gradient is
+
+    dV/dz = sum over the scalars q of (df/dq) (dq/dz),   z = x_K, phi_K, x_L, phi_L,
+
+where **autodiff touches only the scalar function f** (elementwise over pairs, so one reverse
+pass gives df/dq for every pair), and the geometric derivatives dq/dz are written once, in
+closed form, in terms of per-body quantities computed once per evaluation, not per pair:
+B_K = phi_K^-1 and det phi_K. With u = x_K - x_L (minimum image), a_K = B_K u,
+Gamma = B_K phi_L (21), Gamma' = B_L phi_K, G = phi_K^T phi_L (20):
+
+==========================  ====================================================================
+r = |u|                     dr/du = u / r
+D^2 = (|a_K|^2+|a_L|^2)/2   dD/du = (B_K^T a_K + B_L^T a_L)/(2D), dD/dB_K = a_K u^T/(2D)   (75)
+det = det phi_L/det phi_K   d/d(det phi_L) = 1/det phi_K, d/d(det phi_K) = -det/det phi_K   (79)
+M_a = Tr(Gamma^a)           with W = sum_a a (df/dM_a) Gamma^(a-1):
+                            df/dB_K = (phi_L W)^T, df/dphi_L = (W B_K)^T                    (30)
+M'_a = Tr(Gamma'^a)         the same with K and L exchanged (the swapped order of (59))
+K_a = Tr(G^a)               with W = sum_a a (df/dK_a) G^(a-1):
+                            df/dphi_K = phi_L W, df/dphi_L = phi_K W^T                      (28)
+==========================  ====================================================================
+
+Contributions are summed per body (dV/dx, dV/dphi direct, dV/dB, dV/d det), and the per-body
+chain rule through B = phi^-1 and det phi finishes once per body:
+
+    dV/dphi = (dV/dphi)_direct - B^T (dV/dB) B^T + (dV/d det) det(phi) B^T.
+
+Two implementations of the same formulas, same interface
+``energy_and_gradients(pot, space, x, phi, i, j, count) -> (E, dV/dx, dV/dphi)``:
+
+- :func:`energy_and_gradients` in JAX (jit, CPU or GPU; chunks of pairs in a ``lax.scan`` so
+  memory stays linear in N); :func:`neighbor_energy` wraps it as a ``jax.custom_vjp`` energy,
+  so ``jax.grad`` of a potential evaluated with a neighbour list uses these closed forms;
+- :func:`energy_and_gradients_numba`, a compiled CPU kernel (Numba) for the geometry and the
+  scatter, with f and its derivatives still from JAX (one fused elementwise XLA call per chunk
+  of pairs). It is the fast path on a CPU; the JAX path is the one for GPUs and for autodiff.
+"""
+
+from __future__ import annotations
+
+import functools
+import types
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from affinebody.space import Space
+
+PAIR_CHUNK = 1 << 16
+NUMBA_CHUNK = 1 << 14  # pairs per pass: the scalars of a chunk stay in a 1 MiB L2 cache
+
+
+# --------------------------------------------------------------------------------------------
+# shared pieces
+
+
+def _requirements(pot, n: int):
+    plain, k_powers, m_powers = pot.scalar_requirements(n)
+    return plain, k_powers, m_powers, bool(pot._asymmetric) and m_powers > 0
+
+
+def _padding_base(pot, n: int, size: int, plain, k_powers, m_powers, swapped, xp=jnp):
+    """Scalars of a harmless padding pair: beyond the cut-off, identity configurations."""
+    far = 4.0 * pot.cutoff.r_cut
+    base = {name: xp.full((size,), far if name in ("r", "D") else 1.0) for name in plain}
+    if k_powers:
+        base["K"] = xp.full((size, k_powers), float(n))
+    if m_powers:
+        base["M"] = xp.full((size, m_powers), float(n))
+        if swapped:
+            base["Ms"] = xp.full((size, m_powers), float(n))
+    return base
+
+
+def _require_cutoff(pot) -> None:
+    if getattr(pot, "cutoff", None) is None:
+        raise ValueError(
+            f"{type(pot).__name__}: a neighbour list needs a cut-off (set cutoff=Cutoff(r_cut))"
+        )
+
+
+def _scalar_values_and_partials(pot, n: int):
+    """base -> (pair energies [P], df/dbase), one forward and one reverse elementwise pass."""
+
+    def run(base):
+        energies, pullback = jax.vjp(lambda b: pot.energy_from_scalars(b, n), base)
+        (partials,) = pullback(jnp.ones_like(energies))
+        return energies, partials
+
+    return run
+
+
+def _summed_scalar_values_and_partials(pot, n: int):
+    """base -> (sum of the pair energies, df/dbase)."""
+    single = _scalar_values_and_partials(pot, n)
+
+    def run(base):
+        energies, partials = single(base)
+        return jnp.sum(energies), partials
+
+    return run
+
+
+def _matrix_power_traces(m: jax.Array, powers: int) -> tuple:
+    """Tr(m^a) for a = 1..powers and the list of matrix powers m^0..m^(powers-1)."""
+    eye = jnp.broadcast_to(jnp.eye(m.shape[-1]), m.shape)
+    mats = [eye]
+    for _ in range(1, powers):
+        mats.append(mats[-1] @ m)
+    traces = [jnp.einsum("...ij,...ji->...", mats[a], m) for a in range(powers)]
+    return jnp.stack(traces, axis=-1), mats
+
+
+def _weighted(mats, partials) -> jax.Array:
+    """W = sum_a a (df/dq_a) m^(a-1)."""
+    return sum((a + 1) * partials[..., a, None, None] * mats[a] for a in range(len(mats)))
+
+
+def _finish(phi, binv, det, g_phi, g_binv, g_det):
+    binv_t = jnp.swapaxes(binv, -1, -2)
+    return g_phi - binv_t @ g_binv @ binv_t + (g_det * det)[:, None, None] * binv_t
+
+
+# --------------------------------------------------------------------------------------------
+# JAX kernel
+
+
+def _chunk_contributions(pot, space: Space, n, x, phi, binv, det, i, j, valid):
+    """Energy and per-pair gradient pieces for one chunk of pairs."""
+    plain, k_powers, m_powers, swapped = _requirements(pot, n)
+    u = space.displacement(x[i], x[j])
+    phi_k, phi_l, b_k, b_l = phi[i], phi[j], binv[i], binv[j]
+    base = {}
+    r2 = jnp.sum(u * u, axis=-1)
+    if "r" in plain:
+        base["r"] = jnp.sqrt(jnp.where(r2 > 0, r2, 1.0)) * (r2 > 0)
+    if "D" in plain:
+        a_k = jnp.einsum("pij,pj->pi", b_k, u)
+        a_l = jnp.einsum("pij,pj->pi", b_l, u)
+        d2 = 0.5 * (jnp.sum(a_k * a_k, -1) + jnp.sum(a_l * a_l, -1))
+        base["D"] = jnp.sqrt(jnp.where(d2 > 0, d2, 1.0)) * (d2 > 0)
+    if "det" in plain:
+        base["det"] = det[j] / det[i]
+    if k_powers:
+        g_mat = jnp.swapaxes(phi_k, -1, -2) @ phi_l
+        base["K"], k_mats = _matrix_power_traces(g_mat, k_powers)
+    if m_powers:
+        gamma = b_k @ phi_l
+        base["M"], m_mats = _matrix_power_traces(gamma, m_powers)
+        if swapped:
+            gamma_s = b_l @ phi_k
+            base["Ms"], ms_mats = _matrix_power_traces(gamma_s, m_powers)
+    pad = _padding_base(pot, n, u.shape[0], plain, k_powers, m_powers, swapped)
+    base = {key: jnp.where(valid.reshape(valid.shape + (1,) * (v.ndim - 1)), v, pad[key])
+            for key, v in base.items()}
+    energies, partials = _scalar_values_and_partials(pot, n)(base)
+    zeros_m = jnp.zeros_like(phi_k)
+    g_u = jnp.zeros_like(u)
+    g_bk, g_bl, g_phik, g_phil = zeros_m, zeros_m, zeros_m, zeros_m
+    g_detk = g_detl = jnp.zeros_like(r2)
+    if "r" in plain:
+        r = base["r"]
+        g_u = g_u + (partials["r"] / jnp.where(r > 0, r, 1.0) * (r > 0))[:, None] * u
+    if "D" in plain:
+        dist = base["D"]
+        c = partials["D"] / jnp.where(dist > 0, 2.0 * dist, 1.0) * (dist > 0)
+        g_u = g_u + c[:, None] * (jnp.einsum("pji,pj->pi", b_k, a_k)
+                                  + jnp.einsum("pji,pj->pi", b_l, a_l))
+        g_bk = g_bk + c[:, None, None] * a_k[:, :, None] * u[:, None, :]
+        g_bl = g_bl + c[:, None, None] * a_l[:, :, None] * u[:, None, :]
+    if "det" in plain:
+        g_detl = partials["det"] / det[i]
+        g_detk = -partials["det"] * base["det"] / det[i]
+    if k_powers:
+        w = _weighted(k_mats, partials["K"])
+        g_phik = g_phik + phi_l @ w
+        g_phil = g_phil + phi_k @ jnp.swapaxes(w, -1, -2)
+    if m_powers:
+        w = _weighted(m_mats, partials["M"])
+        g_bk = g_bk + jnp.swapaxes(phi_l @ w, -1, -2)
+        g_phil = g_phil + jnp.swapaxes(w @ b_k, -1, -2)
+        if swapped:
+            w = _weighted(ms_mats, partials["Ms"])
+            g_bl = g_bl + jnp.swapaxes(phi_k @ w, -1, -2)
+            g_phik = g_phik + jnp.swapaxes(w @ b_l, -1, -2)
+    return jnp.sum(energies), (g_u, g_phik, g_phil, g_bk, g_bl, g_detk, g_detl)
+
+
+def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int = PAIR_CHUNK):
+    """(E, dV/dx [N, n], dV/dphi [N, n, n]) of ``pot`` summed over the pairs (i[p], j[p]),
+    p < count (JAX; jit with ``pot``, ``space``, ``chunk`` static). Pairs beyond ``count`` are
+    padding. Memory: one chunk of pairs at a time."""
+    _require_cutoff(pot)
+    bodies, n = x.shape
+    binv = jnp.linalg.inv(phi)
+    det = jnp.linalg.det(phi)
+    capacity = i.shape[0]
+    chunk = max(1, min(chunk, capacity))
+    chunks = -(-capacity // chunk)
+    fill = chunks * chunk - capacity
+    index = jnp.arange(chunks * chunk).reshape(chunks, chunk)
+    i_all = jnp.concatenate([i, jnp.zeros(fill, i.dtype)]).reshape(chunks, chunk)
+    j_all = jnp.concatenate([j, jnp.zeros(fill, j.dtype)]).reshape(chunks, chunk)
+
+    def step(carry, block):
+        energy, g_x, g_phi, g_b, g_det = carry
+        ii, jj, idx = block
+        valid = idx < count
+        ii = jnp.where(valid, ii, 0)
+        jj = jnp.where(valid, jj, jnp.minimum(1, bodies - 1))
+        e, (g_u, g_phik, g_phil, g_bk, g_bl, g_detk, g_detl) = _chunk_contributions(
+            pot, space, n, x, phi, binv, det, ii, jj, valid)
+        g_x = g_x.at[ii].add(g_u).at[jj].add(-g_u)
+        g_phi = g_phi.at[ii].add(g_phik).at[jj].add(g_phil)
+        g_b = g_b.at[ii].add(g_bk).at[jj].add(g_bl)
+        g_det = g_det.at[ii].add(g_detk).at[jj].add(g_detl)
+        return (energy + e, g_x, g_phi, g_b, g_det), None
+
+    init = (jnp.zeros(()), jnp.zeros_like(x), jnp.zeros_like(phi), jnp.zeros_like(phi),
+            jnp.zeros(bodies))
+    (energy, g_x, g_phi, g_b, g_det), _ = lax.scan(step, init, (i_all, j_all, index))
+    return energy, g_x, _finish(phi, binv, det, g_phi, g_b, g_det)
+
+
+energy_and_gradients_jit = jax.jit(energy_and_gradients, static_argnums=(0, 1, 7))
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(0, 1))
+def _energy_over_pairs(pot, space, x, phi, i, j, count):
+    return energy_and_gradients(pot, space, x, phi, i, j, count)[0]
+
+
+def _energy_over_pairs_fwd(pot, space, x, phi, i, j, count):
+    energy, g_x, g_phi = energy_and_gradients(pot, space, x, phi, i, j, count)
+    return energy, (g_x, g_phi, i, j, count)
+
+
+def _energy_over_pairs_bwd(pot, space, residuals, cotangent):
+    g_x, g_phi, i, j, count = residuals
+    zero_int = np.zeros((), dtype=jax.dtypes.float0)
+    return (cotangent * g_x, cotangent * g_phi,
+            np.zeros(i.shape, dtype=jax.dtypes.float0),
+            np.zeros(j.shape, dtype=jax.dtypes.float0), zero_int)
+
+
+_energy_over_pairs.defvjp(_energy_over_pairs_fwd, _energy_over_pairs_bwd)
+
+
+def neighbor_energy(pot, x, phi, neighbors) -> jax.Array:
+    """sum over the list's pairs of V_KL for x [N, n], phi [N, n, n]; differentiable
+    (``jax.grad``) with the closed-form gradients of this module."""
+    if x.ndim != 2:
+        raise ValueError(f"a neighbour list serves one system: x must be [N, n] (got {x.shape})")
+    _require_cutoff(pot)
+    return _energy_over_pairs(pot, pot.space, x, phi, neighbors.i, neighbors.j,
+                              jnp.minimum(neighbors.count, neighbors.i.shape[0]))
+
+
+# --------------------------------------------------------------------------------------------
+# Numba kernel (CPU)
+
+try:  # optional dependency: the JAX path above works without it
+    import numba
+except ImportError:  # pragma: no cover - exercised only where numba is missing
+    numba = None
+
+
+def numba_available() -> bool:
+    """True when the compiled CPU kernel can be used."""
+    return numba is not None
+
+
+@functools.cache
+def _numba_kernels(n: int):
+    """The compiled kernels for dimension n: n is a compile-time constant of the closures, so
+    the small loops over components unroll (about 5x faster than a run-time n)."""
+    _jit = numba.njit(fastmath=False, boundscheck=False)
+    # a call of a jitted helper with array arguments cost ~50 ns per pair here (measured; more
+    # than the arithmetic), so the per-pair code is written out inside the two loops
+    _inline = numba.njit(fastmath=False, boundscheck=False, inline="always")
+
+    @_inline
+    def _power_traces(m, powers, mats, traces_out, p):
+        """mats[a] = m^a for a < powers; traces_out[p, a] = Tr(m^(a+1))."""
+        for r in range(n):
+            for c in range(n):
+                mats[0, r, c] = 1.0 if r == c else 0.0
+        for a in range(1, powers):
+            for r in range(n):
+                for c in range(n):
+                    acc = 0.0
+                    for k in range(n):
+                        acc += mats[a - 1, r, k] * m[k, c]
+                    mats[a, r, c] = acc
+        for a in range(powers):
+            acc = 0.0
+            for r in range(n):
+                for k in range(n):
+                    acc += mats[a, r, k] * m[k, r]
+            traces_out[p, a] = acc
+
+    @_jit
+    def _geometry(start, stop, i, j, x, phi, binv, det, mode, h, h_inv, edges,
+                  need_r, need_d, need_det, k_powers, m_powers, swapped,
+                  u_out, r_out, d_out, det_out, k_out, m_out, ms_out):
+        """Scalar pair variables of pairs start..stop-1 into rows 0..stop-start-1."""
+        u = np.empty(n)
+        s = np.empty(n)
+        m = np.empty((n, n))
+        mats = np.empty((max(1, max(k_powers, m_powers)), n, n))
+        for p in range(start, stop):
+            q = p - start
+            a, b = i[p], j[p]
+            for d in range(n):  # u = x_K - x_L, minimum image (space.Space.displacement)
+                u[d] = x[a, d] - x[b, d]
+            if mode == 1:
+                for d in range(n):
+                    u[d] -= edges[d] * np.round(u[d] / edges[d])
+            elif mode == 2:
+                for d in range(n):
+                    acc = 0.0
+                    for e in range(n):
+                        acc += h_inv[d, e] * u[e]
+                    s[d] = acc - np.round(acc)
+                for d in range(n):
+                    acc = 0.0
+                    for e in range(n):
+                        acc += h[d, e] * s[e]
+                    u[d] = acc
+            for d in range(n):
+                u_out[q, d] = u[d]
+            if need_r:
+                r2 = 0.0
+                for d in range(n):
+                    r2 += u[d] * u[d]
+                r_out[q] = np.sqrt(r2)
+            if need_d:
+                d2 = 0.0
+                for r in range(n):
+                    ak = 0.0
+                    al = 0.0
+                    for c in range(n):
+                        ak += binv[a, r, c] * u[c]
+                        al += binv[b, r, c] * u[c]
+                    d2 += ak * ak + al * al
+                d_out[q] = np.sqrt(0.5 * d2)
+            if need_det:
+                det_out[q] = det[b] / det[a]
+            if k_powers > 0:
+                for r in range(n):
+                    for c in range(n):
+                        acc = 0.0
+                        for k in range(n):
+                            acc += phi[a, k, r] * phi[b, k, c]
+                        m[r, c] = acc
+                _power_traces(m, k_powers, mats, k_out, q)
+            if m_powers > 0:
+                if m_powers == 1:  # Tr(B_K phi_L) without forming Gamma
+                    acc = 0.0
+                    acc_s = 0.0
+                    for r in range(n):
+                        for k in range(n):
+                            acc += binv[a, r, k] * phi[b, k, r]
+                            acc_s += binv[b, r, k] * phi[a, k, r]
+                    m_out[q, 0] = acc
+                    if swapped:
+                        ms_out[q, 0] = acc_s
+                else:
+                    for r in range(n):
+                        for c in range(n):
+                            acc = 0.0
+                            for k in range(n):
+                                acc += binv[a, r, k] * phi[b, k, c]
+                            m[r, c] = acc
+                    _power_traces(m, m_powers, mats, m_out, q)
+                    if swapped:
+                        for r in range(n):
+                            for c in range(n):
+                                acc = 0.0
+                                for k in range(n):
+                                    acc += binv[b, r, k] * phi[a, k, c]
+                                m[r, c] = acc
+                        _power_traces(m, m_powers, mats, ms_out, q)
+
+    @_inline
+    def _weight(m, powers, partial_row, mats, w):
+        """mats[a] = m^a; w = sum_a (a+1) partial_row[a] m^a."""
+        for r in range(n):
+            for c in range(n):
+                mats[0, r, c] = 1.0 if r == c else 0.0
+                w[r, c] = partial_row[0] if r == c else 0.0
+        for a in range(1, powers):
+            for r in range(n):
+                for c in range(n):
+                    acc = 0.0
+                    for k in range(n):
+                        acc += mats[a - 1, r, k] * m[k, c]
+                    mats[a, r, c] = acc
+                    w[r, c] += (a + 1) * partial_row[a] * acc
+
+    @_jit
+    def _scatter(start, stop, i, j, phi, binv, det, u_in, r_in, d_in, det_in,
+                 g_r, g_d, g_det, g_k, g_m, g_ms, need_r, need_d, need_det,
+                 k_powers, m_powers, swapped, gx, gphi, gb, gdet):
+        """Closed-form geometric derivatives of pairs start..stop-1, summed per body."""
+        m = np.empty((n, n))
+        w = np.empty((n, n))
+        mats = np.empty((max(1, max(k_powers, m_powers)), n, n))
+        ak = np.empty(n)
+        al = np.empty(n)
+        for p in range(start, stop):
+            q = p - start
+            a, b = i[p], j[p]
+            if need_r:
+                r = r_in[q]
+                if r > 0 and g_r[q] != 0.0:
+                    c = g_r[q] / r
+                    for d in range(n):
+                        gx[a, d] += c * u_in[q, d]
+                        gx[b, d] -= c * u_in[q, d]
+            if need_d:
+                dist = d_in[q]
+                if dist > 0 and g_d[q] != 0.0:
+                    c = g_d[q] / (2.0 * dist)
+                    for r in range(n):
+                        sk = 0.0
+                        sl = 0.0
+                        for k in range(n):
+                            sk += binv[a, r, k] * u_in[q, k]
+                            sl += binv[b, r, k] * u_in[q, k]
+                        ak[r] = sk
+                        al[r] = sl
+                    for k in range(n):
+                        gu = 0.0
+                        for r in range(n):
+                            gu += binv[a, r, k] * ak[r] + binv[b, r, k] * al[r]
+                        gx[a, k] += c * gu
+                        gx[b, k] -= c * gu
+                    for r in range(n):
+                        for k in range(n):
+                            gb[a, r, k] += c * ak[r] * u_in[q, k]
+                            gb[b, r, k] += c * al[r] * u_in[q, k]
+            if need_det and g_det[q] != 0.0:
+                gdet[b] += g_det[q] / det[a]
+                gdet[a] -= g_det[q] * det_in[q] / det[a]
+            if k_powers > 0:
+                for r in range(n):
+                    for c in range(n):
+                        acc = 0.0
+                        for k in range(n):
+                            acc += phi[a, k, r] * phi[b, k, c]
+                        m[r, c] = acc
+                _weight(m, k_powers, g_k[q], mats, w)
+                for r in range(n):  # phi_K += phi_L W, phi_L += phi_K W^T
+                    for c in range(n):
+                        acc_k = 0.0
+                        acc_l = 0.0
+                        for k in range(n):
+                            acc_k += phi[b, r, k] * w[k, c]
+                            acc_l += phi[a, r, k] * w[c, k]
+                        gphi[a, r, c] += acc_k
+                        gphi[b, r, c] += acc_l
+            if m_powers > 0:
+                for side in range(2 if swapped else 1):
+                    k_body, l_body = (a, b) if side == 0 else (b, a)
+                    row = g_m[q] if side == 0 else g_ms[q]
+                    if m_powers == 1:
+                        c = row[0]
+                        for r in range(n):  # B_K += c phi_L^T, phi_L += c B_K^T
+                            for k in range(n):
+                                gb[k_body, r, k] += c * phi[l_body, k, r]
+                                gphi[l_body, r, k] += c * binv[k_body, k, r]
+                        continue
+                    for r in range(n):
+                        for c in range(n):
+                            acc = 0.0
+                            for k in range(n):
+                                acc += binv[k_body, r, k] * phi[l_body, k, c]
+                            m[r, c] = acc
+                    _weight(m, m_powers, row, mats, w)
+                    for r in range(n):  # B_K += (phi_L W)^T, phi_L += (W B_K)^T
+                        for c in range(n):
+                            acc_b = 0.0
+                            acc_p = 0.0
+                            for k in range(n):
+                                acc_b += phi[l_body, c, k] * w[k, r]
+                                acc_p += w[c, k] * binv[k_body, k, r]
+                            gb[k_body, r, c] += acc_b
+                            gphi[l_body, r, c] += acc_p
+
+    @_jit
+    def _finish_numba(binv, det, gphi, gb, gdet, out):
+        bodies = det.shape[0]
+        tmp = np.empty((n, n))
+        for body in range(bodies):
+            for r in range(n):  # tmp = B^T gB
+                for c in range(n):
+                    acc = 0.0
+                    for k in range(n):
+                        acc += binv[body, k, r] * gb[body, k, c]
+                    tmp[r, c] = acc
+            for r in range(n):  # out = gphi - tmp B^T + gdet det B^T
+                for c in range(n):
+                    acc = 0.0
+                    for k in range(n):
+                        acc += tmp[r, k] * binv[body, c, k]
+                    out[body, r, c] = (gphi[body, r, c] - acc
+                                       + gdet[body] * det[body] * binv[body, c, r])
+
+    return types.SimpleNamespace(geometry=_geometry, scatter=_scatter, finish=_finish_numba)
+
+
+_SCALAR_JIT: dict = {}
+
+
+def _scalar_partials_jit(pot, n: int):
+    key = (pot, n)
+    if key not in _SCALAR_JIT:
+        _SCALAR_JIT[key] = jax.jit(_summed_scalar_values_and_partials(pot, n))
+    return _SCALAR_JIT[key]
+
+
+def energy_and_gradients_numba(pot, space: Space, x, phi, i, j, count, chunk: int = NUMBA_CHUNK):
+    """The compiled-CPU twin of :func:`energy_and_gradients` (NumPy arrays in and out)."""
+    if numba is None:
+        raise ValueError("pair_kernels: the compiled CPU kernel needs numba (pip install numba)")
+    _require_cutoff(pot)
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    phi = np.ascontiguousarray(phi, dtype=np.float64)
+    i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)  # int32 lists are used as they are
+    if i.dtype != np.int32 or j.dtype != np.int32:
+        i, j = i.astype(np.int64), j.astype(np.int64)
+    bodies, n = x.shape
+    count = int(min(int(count), i.shape[0]))
+    plain, k_powers, m_powers, swapped = _requirements(pot, n)
+    need_r, need_d, need_det = "r" in plain, "D" in plain, "det" in plain
+    uses_phi = need_d or need_det or k_powers > 0 or m_powers > 0
+    # per-body B = phi^-1 and det phi only when a variable needs them (not for f(r) alone)
+    binv = np.linalg.inv(phi) if uses_phi else phi
+    det = np.linalg.det(phi) if need_det else np.ones(bodies)
+    if space.periodic:
+        mode = 1 if space.orthorhombic else 2
+        h, h_inv, edges = space.matrix, space.inverse, space.edges
+    else:
+        mode, h, h_inv, edges = 0, np.eye(n), np.eye(n), np.ones(n)
+    partials_of = _scalar_partials_jit(pot, n)
+    kernels = _numba_kernels(n)
+    chunk = max(1, min(chunk, max(count, 1)))
+    pad = _padding_base(pot, n, chunk, plain, k_powers, m_powers, swapped, xp=np)
+    buffers = {key: v.copy() for key, v in pad.items()}
+    u_buf = np.zeros((chunk, n))
+    empty1, empty2 = np.zeros(1), np.zeros((1, 1))
+    gx = np.zeros((bodies, n))
+    gphi = np.zeros((bodies, n, n))
+    gb = np.zeros((bodies, n, n))
+    gdet = np.zeros(bodies)
+    energy = 0.0
+    for start in range(0, count, chunk):
+        stop = min(start + chunk, count)
+        size = stop - start
+        if size < chunk:  # the last, partial chunk: reset the tail to padding
+            for key, v in buffers.items():
+                v[size:] = pad[key][size:]
+        kernels.geometry(start, stop, i, j, x, phi, binv, det, mode, h, h_inv, edges,
+                         need_r, need_d, need_det, k_powers, m_powers, swapped, u_buf,
+                         buffers.get("r", empty1), buffers.get("D", empty1),
+                         buffers.get("det", empty1), buffers.get("K", empty2),
+                         buffers.get("M", empty2), buffers.get("Ms", empty2))
+        chunk_energy, partials = partials_of(buffers)
+        energy += float(chunk_energy)
+        g = {key: np.asarray(v) for key, v in partials.items()}
+        kernels.scatter(start, stop, i, j, phi, binv, det, u_buf, buffers.get("r", empty1),
+                        buffers.get("D", empty1), buffers.get("det", empty1),
+                        g.get("r", empty1), g.get("D", empty1), g.get("det", empty1),
+                        g.get("K", empty2), g.get("M", empty2), g.get("Ms", empty2),
+                        need_r, need_d, need_det, k_powers, m_powers, swapped, gx, gphi, gb,
+                        gdet)
+    out = np.zeros_like(phi)
+    if uses_phi:
+        kernels.finish(binv, det, gphi, gb, gdet, out)
+    return energy, gx, out

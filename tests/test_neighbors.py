@@ -1,0 +1,147 @@
+"""Cell and neighbour lists: the list is exactly the brute-force set of pairs in range (free,
+orthorhombic, triclinic), its reach follows the largest singular value of the phi's, the
+rebuild criterion keeps it complete, and overflows are reported and fixed by reallocation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from affinebody import neighbors as nb
+from affinebody.mutual import affine_distance
+from affinebody.space import free_space, orthorhombic, triclinic
+
+BODIES = 40
+BOXES = {
+    "free": free_space(),
+    "orthorhombic": orthorhombic((4.6, 5.0, 4.8)),
+    "triclinic": triclinic([[4.8, 1.0, 0.6], [0.0, 4.9, -0.7], [0.0, 0.0, 5.0]]),
+}
+
+
+def system(rng, space, stretch: float = 0.15):
+    if space.periodic:  # spread over several periodic copies: wrapping is tested too
+        s = rng.uniform(-1.0, 2.0, size=(BODIES, 3))
+        x = s @ space.matrix.T
+    else:  # two bodies at fixed corners: the same grid (and compiled build) for every draw
+        x = rng.uniform(-2.5, 2.5, size=(BODIES, 3))
+        x[:2] = [[-2.5, -2.5, -2.5], [2.5, 2.5, 2.5]]
+    phi = np.eye(3) + stretch * rng.normal(size=(BODIES, 3, 3))
+    phi[np.linalg.det(phi) < 0, 0] *= -1
+    return jnp.asarray(x), jnp.asarray(phi)
+
+
+def pair_set(array) -> set:
+    return set(map(tuple, np.asarray(array).tolist()))
+
+
+@settings(max_examples=4, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+@pytest.mark.parametrize("kind", list(BOXES))
+def test_list_is_exactly_the_pairs_within_reach_plus_skin(kind, seed):
+    rng = np.random.default_rng(seed)
+    space = BOXES[kind]
+    x, phi = system(rng, space)
+    # fixed capacities: one compiled build per kind of space for all draws
+    spec, nbrs = nb.allocate(space, x, phi, 1.7, "r", 0.3, capacity=BODIES * (BODIES - 1) // 2,
+                             cell_capacity=BODIES)
+    assert nbrs.i.shape[0] >= int(nbrs.count) > 0
+    listed = nb.pairs_of(nbrs)
+    assert np.all(listed[:, 0] < listed[:, 1])
+    assert pair_set(listed) == pair_set(nb.brute_force_pairs(space, x, 2.0))
+    assert len(listed) == len(pair_set(listed))  # no pair twice
+    # padding after count
+    assert np.all(np.asarray(nbrs.i[int(nbrs.count):]) == BODIES)
+
+
+def test_largest_singular_values_closed_form_matches_svd():
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 3, 4):
+        phi = rng.normal(size=(200, n, n)) * np.exp(rng.uniform(-2, 2, size=(200, 1, 1)))
+        phi[:3] = np.eye(n) * 1.7  # degenerate spectrum
+        s = np.asarray(nb.largest_singular_values(jnp.asarray(phi)))
+        expected = np.linalg.svd(phi, compute_uv=False)[:, 0]
+        assert np.all(s >= expected)
+        np.testing.assert_allclose(s, expected, rtol=1e-9)
+
+
+def test_reach_of_an_affine_cutoff_covers_every_pair_with_small_affine_distance():
+    # D < D_cut implies |u| < D_cut max(s_K, s_L): strongly stretched bodies reach farther
+    rng = np.random.default_rng(1)
+    space = orthorhombic((14.0, 14.0, 14.0))
+    x = jnp.asarray(rng.uniform(0, 14, size=(BODIES, 3)))
+    stretch = np.diag([3.0, 1.0, 0.5])
+    phi = jnp.asarray(np.eye(3) + 0.1 * rng.normal(size=(BODIES, 3, 3))) @ stretch
+    d_cut = 1.5
+    spec, nbrs = nb.allocate(space, x, phi, d_cut, "D", 0.2, capacity=BODIES * (BODIES - 1) // 2)
+    assert float(nbrs.reach) > 2.9 * d_cut
+    k, l = np.triu_indices(BODIES, 1)
+    u = space.displacement(x[k], x[l])
+    d = np.asarray(affine_distance(u, phi[k], jnp.zeros_like(u), phi[l]))
+    close = {(a, b) for a, b, dist in zip(k, l, d, strict=True) if dist < d_cut}
+    assert close and close <= pair_set(nb.pairs_of(nbrs))
+
+
+def test_rebuild_criterion_for_motion_and_for_stretching():
+    rng = np.random.default_rng(2)
+    space = BOXES["triclinic"]
+    x, phi = system(rng, space)
+    spec, nbrs = nb.allocate(space, x, phi, 1.2, "D", 0.4, capacity=BODIES * (BODIES - 1) // 2)
+    needs = jax.jit(nb.needs_rebuild, static_argnums=0)
+    assert not bool(needs(spec, nbrs, x, phi))
+    assert not bool(needs(spec, nbrs, x.at[3, 0].add(0.19), phi))
+    assert bool(needs(spec, nbrs, x.at[3, 0].add(0.21), phi))
+    # stretching the most stretched body by 1.4 grows the reach by more than the skin
+    widest = int(jnp.argmax(nb.largest_singular_values(phi)))
+    stretched = phi.at[widest].multiply(1.4)
+    assert bool(needs(spec, nbrs, x, stretched))
+    updated = jax.jit(nb.update, static_argnums=0)(spec, nbrs, x, stretched)
+    assert float(updated.reach) > float(nbrs.reach)
+    if int(updated.overflow) == 0:
+        radius = float(updated.reach) + spec.skin
+        assert pair_set(nb.pairs_of(updated)) == pair_set(
+            nb.brute_force_pairs(space, x, radius))
+    # a list that has not moved is kept as it is by update
+    kept = jax.jit(nb.update, static_argnums=0)(spec, nbrs, x, phi)
+    np.testing.assert_array_equal(kept.i, nbrs.i)
+
+
+def test_pair_overflow_is_flagged_and_reallocation_fixes_it():
+    rng = np.random.default_rng(3)
+    space = BOXES["orthorhombic"]
+    x, phi = system(rng, space)
+    spec, nbrs = nb.allocate(space, x, phi, 1.5, "r", 0.2, cell_capacity=BODIES)
+    # all bodies into 60% of the cell: denser, more pairs in range than the capacity holds
+    squeezed = 0.6 * space.wrap(x)
+    crowded = nb.build_jit(spec, squeezed, phi)
+    assert int(crowded.overflow) & nb.PAIR_OVERFLOW
+    assert int(crowded.count) > spec.capacity
+    with pytest.raises(nb.NeighborListOverflow, match="pair capacity"):
+        nb.check(crowded)
+    spec2, fixed = nb.allocate(space, squeezed, phi, 1.5, "r", 0.2, cell_capacity=BODIES)
+    assert spec2.capacity > spec.capacity and int(fixed.overflow) == 0
+    assert pair_set(nb.pairs_of(fixed)) == pair_set(nb.brute_force_pairs(space, squeezed, 1.7))
+    assert int(fixed.count) > spec.capacity
+
+
+def test_cell_and_reach_overflows_are_flagged():
+    rng = np.random.default_rng(4)
+    space = BOXES["orthorhombic"]
+    x, phi = system(rng, space)
+    spec, _ = nb.allocate(space, x, phi, 1.0, "D", 0.2, capacity=BODIES * (BODIES - 1) // 2)
+    clumped = x.at[:20].set(x[0] + 0.01 * jnp.arange(20)[:, None])  # 20 bodies in one cell
+    assert int(nb.build_jit(spec, clumped, phi).overflow) & nb.CELL_OVERFLOW
+    grown = nb.build_jit(spec, x, phi * 2.0)  # the reach doubles: wider than the cells
+    assert int(grown.overflow) & nb.REACH_OVERFLOW
+    with pytest.raises(nb.NeighborListOverflow, match="outgrew"):
+        nb.check(grown)
+
+
+def test_allocate_refuses_a_radius_beyond_half_the_box():
+    x = jnp.zeros((2, 3)).at[1, 0].set(1.0)
+    with pytest.raises(ValueError, match="exceeds half the smallest perpendicular width"):
+        nb.allocate(orthorhombic((4.0, 4.0, 4.0)), x, jnp.stack([jnp.eye(3)] * 2), 1.9, "r", 0.3)
+    with pytest.raises(ValueError, match="variable must be"):
+        nb.allocate(None, x, jnp.stack([jnp.eye(3)] * 2), 1.0, "q")

@@ -1,0 +1,198 @@
+"""Pair kernels over a neighbour list: energies and generalised forces equal the all-pairs
+autodiff of affinebody.potentials (to 1e-12) on random periodic systems, for every pair
+variable r, D, det, K_a, M_a; also after strong deformation, after a capacity overflow, through
+jax.grad, and along a trajectory (energy conservation unchanged)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax import lax
+
+from affinebody import kinetic as kin
+from affinebody import neighbors as nb
+from affinebody import pair_kernels as pk
+from affinebody.potentials import (
+    Cutoff,
+    Dilatation,
+    LennardJones,
+    PairPotential,
+    StVenantKirchhoff,
+    generalized_forces,
+    total_potential,
+)
+from affinebody.space import free_space, orthorhombic, triclinic
+from affinebody.state import State
+from affinebody.system import HamiltonianSystem
+
+BODIES = 40
+BOX3 = triclinic([[5.0, 0.8, -0.5], [0.0, 5.2, 0.6], [0.0, 0.0, 5.1]])
+BOX2 = orthorhombic((5.0, 5.4))
+DEMO = "(1 - exp(-3*(r - 1)))**2 - 1 + 0.5*exp(-D**2/4)*(M1 - 3)**2"
+EVERYTHING3 = "exp(-D**2)*(M2 - 2)**2 + 0.3*det + 0.01*M3 + 0.02*K2 + K1*exp(-r) + 0.001*K3"
+
+CASES = {
+    "demo-3d": (PairPotential.from_expression(DEMO, 3, cutoff=Cutoff(1.5), box=BOX3), 3),
+    "all-variables-3d": (
+        PairPotential.from_expression(EVERYTHING3, 3, cutoff=Cutoff(1.5, 1.2), box=BOX3), 3),
+    "material-affine-arrays-3d": (PairPotential(
+        lambda M, det: 0.01 * jnp.sum(M**2, axis=-1) + jnp.exp(-0.1 * M[..., 1]) * det,
+        ("M", "det"), cutoff=Cutoff(1.5), box=BOX3), 3),
+    "lennard-jones-in-D-free-3d": (
+        LennardJones(0.3, 0.45, argument="D", cutoff=Cutoff(1.2, variable="D")), 3),
+    "all-variables-2d": (PairPotential.from_expression(
+        "exp(-D**2)*(M1 - 1.5)**2 + det + 0.1*K2 + 0.2*M2 + r", 2, cutoff=Cutoff(1.5),
+        box=BOX2), 2),
+}
+
+
+def configuration(rng, n: int, space, stretch: float = 0.25):
+    if space.periodic:
+        x = rng.uniform(-0.5, 1.5, size=(BODIES, n)) @ space.matrix.T
+    else:
+        x = rng.uniform(-2.0, 2.0, size=(BODIES, n))
+    phi = np.eye(n) + stretch * rng.normal(size=(BODIES, n, n))
+    phi[np.linalg.det(phi) < 0, 0] *= -1
+    return jnp.asarray(x), jnp.asarray(phi)
+
+
+@jax.jit(static_argnums=0)
+def _all_pairs(potential, x, phi):
+    return potential.energy(x, phi), generalized_forces(potential, x, phi)
+
+
+def all_pairs(potential, x, phi):
+    """The reference: sum over all N(N-1)/2 pairs, gradients by autodiff (potentials.py)."""
+    energy, (fx, fphi) = _all_pairs(potential, x, phi)
+    return float(energy), -np.asarray(fx), -np.asarray(fphi)
+
+
+def assert_same(result, reference, rtol=1e-12):
+    e, gx, gphi = (np.asarray(a) for a in result)
+    e_ref, gx_ref, gphi_ref = reference
+    scale = max(np.max(np.abs(gx_ref)), np.max(np.abs(gphi_ref)))
+    assert scale > 1e-3  # the forces are not trivially zero
+    assert abs(float(e) - e_ref) <= rtol * max(1.0, abs(e_ref)) * 10
+    np.testing.assert_allclose(gx, gx_ref, rtol=0, atol=rtol * scale)
+    np.testing.assert_allclose(gphi, gphi_ref, rtol=0, atol=rtol * scale)
+
+
+def list_for(potential, x, phi, skin=0.3):
+    """A list with fixed capacities, so that equal cut-offs share one compiled build."""
+    return nb.allocate(potential.space, x, phi, potential.cutoff.r_cut,
+                       potential.cutoff.variable, skin, capacity=BODIES * (BODIES - 1) // 2,
+                       cell_capacity=BODIES)
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_list_forces_equal_all_pairs_forces_jax_and_numba(case):
+    potential, n = CASES[case]
+    rng = np.random.default_rng(sum(map(ord, case)))
+    x, phi = configuration(rng, n, potential.space)
+    spec, nbrs = list_for(potential, x, phi)
+    reference = all_pairs(potential, x, phi)
+    assert np.sum(np.abs(reference[1]) > 0) > BODIES  # many bodies interact
+    jax_result = pk.energy_and_gradients_jit(
+        potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count, 64)  # several chunks
+    assert_same(jax_result, reference)
+    if n == 2:  # the compiled kernel is the same code with n = 2; one compilation (n = 3) here
+        return
+    numba_result = pk.energy_and_gradients_numba(
+        potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count, 50)
+    assert_same(numba_result, reference)
+    # translation invariance: the pair forces on the centres sum to zero
+    np.testing.assert_allclose(np.sum(numba_result[1], axis=0), 0.0,
+                               atol=1e-12 * np.max(np.abs(reference[1])))
+    if "material-affine" in potential.symmetry:  # Noether (31): sum_K phi_K^T dV/dphi_K = 0
+        charge = np.einsum("kia,kib->ab", np.asarray(phi), numba_result[2])
+        assert np.max(np.abs(charge)) < 1e-11 * np.max(np.abs(reference[2]))
+
+
+def test_forces_after_strong_deformation_and_after_a_capacity_overflow():
+    # affine cut-off in free space: stretching by up to 2.2 widens every body's reach
+    potential, n = CASES["lennard-jones-in-D-free-3d"]
+    rng = np.random.default_rng(11)
+    x, phi = configuration(rng, n, free_space(), stretch=0.1)
+    spec, nbrs = nb.allocate(free_space(), x, phi, 1.2, "D", 0.2)  # capacities measured here
+    rotations = np.linalg.qr(rng.normal(size=(BODIES, 3, 3)))[0]
+    deformed = jnp.asarray(rotations * np.array([2.2, 1.0, 0.45])) @ phi
+    assert bool(nb.needs_rebuild(spec, nbrs, x, deformed))
+    rebuilt = nb.build_jit(spec, x, deformed)
+    # the reach outgrew the cells and the pairs the capacity
+    assert int(rebuilt.overflow) & nb.REACH_OVERFLOW and int(rebuilt.overflow) & nb.PAIR_OVERFLOW
+    with pytest.raises(nb.NeighborListOverflow):
+        nb.check(rebuilt)
+    spec, nbrs = list_for(potential, x, deformed, skin=0.2)
+    reference = all_pairs(potential, x, deformed)
+    assert_same(pk.energy_and_gradients_numba(potential, free_space(), x, deformed, nbrs.i,
+                                              nbrs.j, nbrs.count), reference)
+    assert_same(pk.energy_and_gradients_jit(potential, free_space(), x, deformed, nbrs.i,
+                                            nbrs.j, nbrs.count, 64), reference)
+
+
+def test_jax_grad_of_the_list_energy_is_the_closed_form_gradient():
+    potential, n = CASES["all-variables-3d"]
+    x, phi = configuration(np.random.default_rng(5), n, BOX3)
+    _, nbrs = list_for(potential, x, phi)
+    energy = jax.jit(lambda a, b, l: potential.energy(a, b, l))
+    grad = jax.jit(jax.grad(lambda a, b, l: potential.energy(a, b, l), argnums=(0, 1)))
+    gx, gphi = grad(x, phi, nbrs)
+    assert_same((energy(x, phi, nbrs), gx, gphi), all_pairs(potential, x, phi))
+    total = total_potential([potential, Dilatation(2.0)])
+    assert float(total.energy(x, phi, nbrs)) == pytest.approx(
+        float(total.energy(x, phi)), rel=1e-12)
+
+
+def test_energy_conservation_is_unchanged_with_the_list():
+    # 27 bodies on a lattice in a periodic box; d'Alembert kinetic energy (a cheap exact drift),
+    # the demo pair potential plus one-body confinement of phi; 120 Strang steps with the list
+    # (updated every step inside the compiled loop) and with all pairs
+    side, spacing = 3, 1.3
+    box = orthorhombic((side * spacing,) * 3)
+    pair = PairPotential.from_expression(DEMO, 3, cutoff=Cutoff(1.6), box=box)
+    potential = total_potential([pair, Dilatation(5.0), StVenantKirchhoff(0.5, 1.0)])
+    kinetic = kin.KineticEnergy(kin.DAlembertTranslational(1.0), kin.DAlembert(0.3 * jnp.eye(3)))
+    system = HamiltonianSystem(kinetic, potential)
+    rng = np.random.default_rng(9)
+    grid = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    x = jnp.asarray(spacing * grid + 0.05 * rng.normal(size=grid.shape))
+    phi = jnp.asarray(np.eye(3) + 0.05 * rng.normal(size=(len(grid), 3, 3)))
+    state = State(x, phi, jnp.asarray(0.4 * rng.normal(size=x.shape)),
+                  jnp.asarray(0.05 * rng.normal(size=phi.shape)))
+    spec, nbrs = nb.allocate(box, x, phi, 1.6, "r", 0.25)
+    dt, steps = 0.01, 120
+
+    def kick(s, h, neighbors):
+        gx, gphi = jax.grad(lambda a, b: potential.energy(a, b, neighbors), argnums=(0, 1))(
+            s.x, s.phi)
+        return s._replace(p=s.p - h * gx, pi=s.pi - h * jnp.swapaxes(gphi, -1, -2))
+
+    def step(carry, _):
+        s, lst, rebuilds = carry
+        s = system.drift(kick(s, 0.5 * dt, lst), dt)
+        if lst is not None:
+            new = nb.update(spec, lst, s.x, s.phi)
+            rebuilds = rebuilds + jnp.any(new.reference_x != lst.reference_x)
+            lst = new
+        s = kick(s, 0.5 * dt, lst)
+        return (s, lst, rebuilds), system.hamiltonian(s)
+
+    run = jax.jit(lambda s, lst: lax.scan(step, (s, lst, 0), None, length=steps))
+    (final, last, rebuilds), energies = run(state, nbrs)
+    (final_ref, _, _), energies_ref = run(state, None)
+    assert int(last.overflow) == 0 and int(rebuilds) >= 1  # the list was rebuilt en route
+    e0 = float(system.hamiltonian(state))
+    drift = np.max(np.abs(np.asarray(energies) - e0)) / abs(e0)
+    drift_ref = np.max(np.abs(np.asarray(energies_ref) - e0)) / abs(e0)
+    assert drift < 1e-3  # Strang at dt = 0.01 keeps the energy bounded
+    assert drift == pytest.approx(drift_ref, rel=1e-6)
+    for a, b in zip(final, final_ref, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-10)
+
+
+def test_a_neighbour_list_needs_a_cut_off():
+    potential = PairPotential.from_expression("exp(-r)", 3)
+    x, phi = configuration(np.random.default_rng(0), 3, free_space())
+    with pytest.raises(ValueError, match="needs a cut-off"):
+        pk.energy_and_gradients_numba(potential, free_space(), x, phi, np.zeros(1, int),
+                                      np.ones(1, int), 1)
