@@ -34,8 +34,9 @@ def kinematics_demo() -> None:
 def _register_commands() -> None:
     from affinebody.quantum.cli import density, spectrum
     from affinebody.runner import COMMANDS  # run, demo, plot, export, validate
+    from affinebody.sweep import sweep
 
-    for command in (*COMMANDS, spectrum, density):
+    for command in (*COMMANDS, spectrum, density, sweep):
         main.add_command(command)
 
 

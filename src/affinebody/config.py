@@ -178,7 +178,8 @@ class SweepSection(_Section):
     :mod:`affinebody.sweep` documents every field)."""
 
     samples: int = Field(1, ge=1, description="samples per parameter point")
-    seed: int = Field(0, ge=0, description="sample k draws from the key fold_in(key(seed), k)")
+    seed: int = Field(0, ge=0, lt=2**32,
+                      description="sample k draws from the key fold_in(key(seed), k)")
     initial_velocity: Literal["none", "normal"] = Field(
         "none", description="draw Omega_hat ~ N(0, 1) projected onto the group's Lie algebra")
     velocity_scale: float = Field(1.0, ge=0)

@@ -1,0 +1,934 @@
+"""Ensembles and parameter sweeps on Dask: ``affinebody sweep CONFIG.toml``.
+
+A sweep runs one config many times: over the points of a parameter scan, and at each point over
+``samples`` random initial data. The ``[sweep]`` table of the config says what varies::
+
+    [sweep]
+    samples = 2000
+    seed = 0
+    initial_velocity = "normal"   # internal affine velocity Omega_hat; "none" keeps [initial]
+    velocity_scale = 1.0
+    x_velocity = "none"           # "normal": dx/dt ~ N(0, 1) per body and component
+    x_velocity_scale = 1.0
+    bound = 1000.0
+    batch = 64                    # samples per task (vmapped)
+    scan = { "kinetic.A" = [0.5, 1.0, 2.0], "run.dt" = { start = 0.01, stop = 0.1, num = 4 } }
+
+Initial data. ``initial_velocity = "normal"`` draws the co-moving affine velocity
+Omega_hat = phi^-1 dphi/dt (34) of every body with i.i.d. standard normal entries, projects it
+orthogonally onto the Lie algebra of ``system.group`` (sl(n): minus Tr/n times Id; so(n): the
+skew part; gl(n): unchanged; :func:`affinebody.groups.project_algebra`) and multiplies it by
+``velocity_scale``; the momentum is then pi = legendre(phi, xi) with xi = phi Omega_hat, through
+the internal kinetic model's Legendre map (50), and the constrained-momentum representative on a
+subgroup. ``x_velocity = "normal"`` does the same for dx/dt (p = legendre(phi, v), (6), (64)).
+Sample k of a sweep with seed s draws from the key ``fold_in(key(s), k)`` only (sub-keys 0 for
+Omega_hat, 1 for dx/dt), so a sample's initial data, and its whole result, do not depend on the
+number of workers, on the batching into tasks, or on the order in which tasks finish; every
+parameter point sees the same initial velocities (common random numbers).
+
+Scan. ``scan`` maps a dotted config field (``"kinetic.A"``, ``"potential.0.expr"``,
+``"initial.phi.0.1.1"``, ``"run.dt"``) to a list of values or a range
+``{start, stop, num, log}`` (both ends included; geometric with ``log = true``); the points are
+the Cartesian product, in the order the fields are given. A point whose config is refused
+(e.g. af-is with I <= |A|) is recorded with the reason, and the others still run.
+
+Classification (over the horizon run.steps * run.dt, checked after every step): a sample is
+``bounded`` when max_t max_K max(sigma_max(phi_K), sigma_max(phi_K^-1)) < ``bound``, and
+``unbounded`` otherwise (its ``exit_time`` is the first time the bound was reached). A sample is
+followed until the horizon, or until that spread reaches bound^2 (certainly unbounded: stopping
+keeps the numbers finite), or until it fails: ``failed`` with the reason "non-finite state",
+"left the group" (det phi crossed 0 on GL+/GL) or "non-finite initial energy"; a point whose
+build fails and a task that raises are recorded as failed samples too. Never fatal. Also
+reported per sample: the final relative energy error |E - E0| / |E0|, the largest relative
+volume det Gamma[phi_K, phi_L] (79) and the smallest and largest det phi_K (over bodies and the
+followed time), and the drawn Omega_hat and dx/dt.
+
+Execution. Samples are split into tasks of ``batch`` samples (the last one padded to the same
+size, so every task of a point has one shape and compiles once per worker); a task integrates
+its samples with ``jax.vmap`` over one ``lax.while_loop`` per sample (the driver of
+:mod:`affinebody.simulate`, less the frames). Without a scheduler address a local Dask cluster
+is started (``LocalCluster``: processes started with ``spawn``, one thread each, single-threaded
+XLA/BLAS through :data:`WORKER_ENV`), and closed at the end; with ``--scheduler tcp://host:port``
+the running cluster is used as it is (its workers need ``affinebody`` installed). Every task
+switches JAX to float64 in its worker before it computes (and checks it did). ``workers = 0``
+runs the tasks in this process without Dask (a debugging aid).
+
+Output (``-o OUT_DIR``): ``tasks/point-PPPP-batch-BBBBB.json``, one file per task, written as
+the task completes (its samples, their results, and the worker's float64 and thread settings);
+then ``samples.csv`` (one row per sample) and ``summary.json``: ``fraction_bounded`` (bounded /
+classified samples, failed ones excluded) with its binomial standard error and 95% Wilson
+interval, counts, energy errors, volumes, failure reasons, per parameter point and pooled.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import functools
+import io
+import itertools
+import json
+import logging
+import math
+import os
+import sys
+import time
+import uuid
+from collections import Counter
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+from affinebody.config import Config, ConfigError, ScanRange, check_config
+from affinebody.runner import enable_x64, one_line_errors
+
+#: Environment of local Dask workers: one thread for XLA and BLAS, float64 JAX.
+WORKER_ENV = {
+    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "JAX_ENABLE_X64": "True",
+}
+
+_BOUNDED, _UNBOUNDED, _NON_FINITE, _LEFT_GROUP, _BAD_INITIAL, _ERROR = range(6)
+#: Status codes of a sample -> (status, failure reason).
+STATUS_CODES = {
+    _BOUNDED: ("bounded", ""),
+    _UNBOUNDED: ("unbounded", ""),
+    _NON_FINITE: ("failed", "non-finite state"),
+    _LEFT_GROUP: ("failed", "left the group (det phi crossed 0)"),
+    _BAD_INITIAL: ("failed", "non-finite initial energy"),
+    _ERROR: ("failed", "error"),
+}
+#: Per-sample scalar results (besides status and failure), in samples.csv column order.
+SCALARS = ("exit_time", "followed_time", "max_spread", "energy_error", "initial_energy",
+           "final_energy", "max_relative_volume", "min_det", "max_det")
+
+
+# --------------------------------------------------------------------------- specification
+@dataclass(frozen=True)
+class SweepSpec:
+    """The ``[sweep]`` table with the command-line overrides applied."""
+
+    samples: int = 1
+    seed: int = 0
+    initial_velocity: str = "none"
+    velocity_scale: float = 1.0
+    x_velocity: str = "none"
+    x_velocity_scale: float = 1.0
+    bound: float = 1000.0
+    batch: int = 64
+
+    @classmethod
+    def from_config(cls, config: Config, samples: int | None = None,
+                    seed: int | None = None) -> SweepSpec:
+        s = config.sweep
+        spec = cls() if s is None else cls(
+            s.samples, s.seed, s.initial_velocity, s.velocity_scale, s.x_velocity,
+            s.x_velocity_scale, s.bound, s.batch)
+        if samples is not None:
+            if samples < 1:
+                raise ConfigError(f"--samples must be >= 1 (got {samples})")
+            spec = dataclasses.replace(spec, samples=int(samples))
+        if seed is not None:
+            if not 0 <= seed < 2**32:
+                raise ConfigError(f"--seed must be in 0 .. 2**32 - 1 (got {seed})")
+            spec = dataclasses.replace(spec, seed=int(seed))
+        return spec
+
+    @property
+    def batch_size(self) -> int:
+        """Samples per task: ``batch``, or all samples when there are fewer."""
+        return min(self.batch, self.samples)
+
+
+@dataclass(frozen=True)
+class ScanPoint:
+    """One parameter point: its index, the scanned values, and its config (or why not)."""
+
+    index: int
+    parameters: tuple[tuple[str, Any], ...]
+    config_json: str | None
+    error: str | None = None
+
+    @property
+    def parameter_dict(self) -> dict[str, Any]:
+        return dict(self.parameters)
+
+
+def scan_values(path: str, values) -> list:
+    """The values of one scan entry: a list as given, or a range expanded (both ends in)."""
+    if isinstance(values, ScanRange):
+        if values.log:
+            if not (values.start > 0 and values.stop > 0):
+                raise ConfigError(f"sweep.scan.{path}: a log range needs start > 0 and stop > 0 "
+                                  f"(got start={values.start}, stop={values.stop})")
+            grid = np.geomspace(values.start, values.stop, values.num)
+        else:
+            grid = np.linspace(values.start, values.stop, values.num)
+        return [float(v) for v in grid]
+    if not values:
+        raise ConfigError(f"sweep.scan.{path}: give at least one value")
+    return list(values)
+
+
+def _config_data(config: Config) -> dict:
+    return config.model_dump(exclude={"source_text": True, "sweep": True})
+
+
+def _set_field(data: dict, path: str, value) -> None:
+    """Set the dotted ``path`` of the config data to ``value``; ConfigError if no such field."""
+    parts = path.split(".")
+    if parts[0] == "sweep":
+        raise ConfigError(f"sweep.scan: cannot scan the [sweep] table itself ({path!r})")
+    node: Any = data
+    where = "config"
+    for depth, part in enumerate(parts):
+        last = depth == len(parts) - 1
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise ConfigError(f"sweep.scan.{path}: {where} has {len(node)} entries "
+                                  f"(index {part!r} is not one of them)")
+            key: Any = int(part)
+        elif isinstance(node, dict):
+            # potential entries take any parameter of their kind; other tables have fixed keys
+            if part not in node and not (where.startswith("potential.") and last):
+                raise ConfigError(f"sweep.scan.{path}: {part!r} is not a field of {where} (scan "
+                                  f"a config field, e.g. 'kinetic.A' or 'potential.0.expr')")
+            key = part
+        else:
+            raise ConfigError(f"sweep.scan.{path}: {where} is a value, not a table or array")
+        if last:
+            old = node[key] if (isinstance(node, list) or key in node) else None
+            if isinstance(old, int) and not isinstance(old, bool) and isinstance(value, float) \
+                    and abs(value - round(value)) <= 1e-9 * max(1.0, abs(value)):
+                value = int(round(value))
+            node[key] = value
+            return
+        if node[key] is None:
+            raise ConfigError(f"sweep.scan.{path}: {where}.{part} is not set in the config "
+                              f"(give it a value to scan inside it)")
+        node = node[key]
+        where = part if where == "config" else f"{where}.{part}"
+
+
+def scan_points(config: Config) -> list[ScanPoint]:
+    """The parameter points of ``config``'s scan (a single point without one), each checked.
+
+    A malformed scan (unknown field, empty list) raises ConfigError; a point whose config is
+    refused is returned with ``error`` set, to be recorded as failed samples.
+    """
+    from pydantic import ValidationError
+
+    from affinebody.config import Config as ConfigModel
+    from affinebody.config import _one_line
+
+    scan = {} if config.sweep is None else dict(config.sweep.scan)
+    base = _config_data(config)
+    paths = list(scan)
+    grids = [scan_values(p, scan[p]) for p in paths]
+    for path in paths:  # structural check once, on a copy
+        _set_field(copy.deepcopy(base), path, grids[paths.index(path)][0])
+    points = []
+    for index, combination in enumerate(itertools.product(*grids)):
+        data = copy.deepcopy(base)
+        for path, value in zip(paths, combination, strict=True):
+            _set_field(data, path, value)
+        parameters = tuple(zip(paths, combination, strict=True))
+        try:
+            checked = check_config(ConfigModel.model_validate(data))
+        except ValidationError as err:
+            points.append(ScanPoint(index, parameters, None, f"config error: {_one_line(err)}"))
+            continue
+        except ConfigError as err:
+            points.append(ScanPoint(index, parameters, None, str(err)))
+            continue
+        text = json.dumps(_config_data(checked), sort_keys=True)
+        points.append(ScanPoint(index, parameters, text))
+    return points
+
+
+@dataclass(frozen=True)
+class Task:
+    """One unit of work: samples ``start .. start + count - 1`` of one point, padded to ``size``
+    with copies of the last sample (discarded) so that all tasks of a point share one shape."""
+
+    point: int
+    batch: int
+    config_json: str
+    start: int
+    count: int
+    size: int
+    spec: SweepSpec
+
+    @property
+    def indices(self) -> np.ndarray:
+        idx = np.arange(self.start, self.start + self.size, dtype=np.int64)
+        return np.minimum(idx, self.start + self.count - 1)
+
+    @property
+    def name(self) -> str:
+        return f"point-{self.point:04d}-batch-{self.batch:05d}"
+
+
+def make_tasks(points: Sequence[ScanPoint], spec: SweepSpec) -> list[Task]:
+    """Tasks for every runnable point (points with a config error get none)."""
+    size = spec.batch_size
+    tasks = []
+    for point in points:
+        if point.config_json is None:
+            continue
+        for batch, start in enumerate(range(0, spec.samples, size)):
+            count = min(size, spec.samples - start)
+            tasks.append(Task(point.index, batch, point.config_json, start, count, size, spec))
+    return tasks
+
+
+# --------------------------------------------------------------------------- worker side
+def prepare_worker() -> dict[str, Any]:
+    """Make this process compute in float64 with single-threaded XLA/BLAS (where not yet set).
+
+    Run at the start of every task: a remote cluster's workers are used unchanged otherwise.
+    The thread settings only take effect in a process whose XLA backend has not started yet
+    (always true for the workers of the local cluster, which get :data:`WORKER_ENV`).
+    """
+    for key, value in WORKER_ENV.items():
+        os.environ.setdefault(key, value)
+    import jax
+    import jax.numpy as jnp
+
+    jax.config.update("jax_enable_x64", True)
+    dtype = str(jnp.zeros(()).dtype)
+    if dtype != "float64":
+        raise RuntimeError(f"worker {os.getpid()} could not switch JAX to float64 (got {dtype})")
+    return {"pid": os.getpid(), "x64": bool(jax.config.jax_enable_x64), "dtype": dtype,
+            "xla_flags": os.environ.get("XLA_FLAGS", ""),
+            "omp_threads": os.environ.get("OMP_NUM_THREADS", "")}
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    system: Any
+    state: Any
+    method: Any
+    dt: float
+    steps: int
+
+
+@functools.lru_cache(maxsize=32)
+def _prepare(config_json: str) -> _Prepared:
+    from pydantic import ValidationError
+
+    from affinebody.config import _one_line, build
+    from affinebody.integrators import get_integrator
+
+    try:
+        config = Config.model_validate(json.loads(config_json))
+    except ValidationError as err:
+        raise ConfigError(_one_line(err)) from None
+    built = build(check_config(config))
+    return _Prepared(built.system, built.state, get_integrator(config.run.integrator),
+                     float(config.run.dt), int(config.run.steps))
+
+
+def draw_initial_state(system, state, key, *, internal: str, internal_scale, translational: str,
+                       translational_scale):
+    """Initial state of one sample: ``state`` with velocities drawn from ``key`` (see module).
+
+    Returns (State, Omega_hat [N, n, n], dx/dt [N, n]). Without draws the velocities are those
+    of ``state`` (through the inverse Legendre maps).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from affinebody.groups import project_algebra
+    from affinebody.state import State
+
+    kinetic = system.kinetic
+    phi = state.phi
+    if internal == "normal":
+        z = jax.random.normal(jax.random.fold_in(key, 0), phi.shape, dtype=phi.dtype)
+        omega_hat = internal_scale * project_algebra(z, system.group)
+        pi = kinetic.internal.legendre(phi, phi @ omega_hat)
+    else:
+        pi = state.pi
+        omega_hat = jnp.linalg.solve(phi, kinetic.internal.inverse_legendre(phi, pi))
+    if translational == "normal":
+        v = translational_scale * jax.random.normal(jax.random.fold_in(key, 1), state.x.shape,
+                                                    dtype=state.x.dtype)
+        p = kinetic.translational.legendre(phi, v)
+    else:
+        p = state.p
+        v = kinetic.translational.inverse_legendre(phi, p)
+    return system.constrain(State(state.x, phi, p, pi)), omega_hat, v
+
+
+def _measures(phi):
+    """(max_K max(sigma_max(phi_K), 1/sigma_min(phi_K)), min det, max det, max |det ratio|)."""
+    import jax.numpy as jnp
+
+    sigma = jnp.linalg.svd(phi, compute_uv=False)
+    spread = jnp.max(jnp.maximum(sigma[..., 0], 1.0 / sigma[..., -1]))
+    det = jnp.linalg.det(phi)
+    volume = jnp.abs(det)
+    return spread, jnp.min(det), jnp.max(det), jnp.max(volume) / jnp.min(volume)
+
+
+def _finite(state) -> Any:
+    import jax
+    import jax.numpy as jnp
+
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(state)]))
+
+
+def follow(system, state, dt, bound, *, steps: int, method, watch_det: bool):
+    """Integrate one sample and classify it (module docstring); a ``lax.while_loop``.
+
+    Returns a dict of scalars: code (status code), steps_done, exit_step (-1: never reached the
+    bound), max_spread, min_det, max_det, max_relative_volume, initial_energy, final_energy.
+    """
+    import jax
+    import jax.numpy as jnp
+    from jax import lax
+
+    energy0 = system.hamiltonian(state)
+    sign0 = jnp.sign(jnp.linalg.det(state.phi))
+    runaway = bound * bound
+    spread, dmin, dmax, rel = _measures(state.phi)
+    ok0 = jnp.isfinite(energy0) & _finite(state)
+    code0 = jnp.where(ok0, _BOUNDED, _BAD_INITIAL)
+    exit0 = jnp.where(spread >= bound, 0, -1)
+    init = (state, code0, jnp.asarray(0), exit0, spread, dmin, dmax, rel)
+
+    def running(carry):
+        _, code, k, _, spread, *_ = carry
+        return (k < steps) & (code == _BOUNDED) & (spread < runaway)
+
+    def step(carry):
+        state, code, k, exit_step, spread, dmin, dmax, rel = carry
+        new = method.step(system, state, dt)
+        finite = _finite(new)
+        phi = jnp.where(finite, new.phi, state.phi)
+        s, lo, hi, r = _measures(phi)
+        crossed = watch_det & jnp.any(jnp.sign(jnp.linalg.det(phi)) != sign0)
+        good = finite & ~crossed
+        code = jnp.where(finite, jnp.where(crossed, _LEFT_GROUP, code), _NON_FINITE)
+        state = jax.tree.map(lambda a, b: jnp.where(good, a, b), new, state)
+        exit_step = jnp.where(good & (exit_step < 0) & (s >= bound), k + 1, exit_step)
+        spread = jnp.where(good, jnp.maximum(spread, s), spread)
+        dmin = jnp.where(good, jnp.minimum(dmin, lo), dmin)
+        dmax = jnp.where(good, jnp.maximum(dmax, hi), dmax)
+        rel = jnp.where(good, jnp.maximum(rel, r), rel)
+        return state, code, jnp.where(good, k + 1, k), exit_step, spread, dmin, dmax, rel
+
+    state, code, k, exit_step, spread, dmin, dmax, rel = lax.while_loop(running, step, init)
+    code = jnp.where((code == _BOUNDED) & (exit_step >= 0), _UNBOUNDED, code)
+    return {"code": code, "steps_done": k, "exit_step": exit_step, "max_spread": spread,
+            "min_det": dmin, "max_det": dmax, "max_relative_volume": rel,
+            "initial_energy": energy0, "final_energy": system.hamiltonian(state)}
+
+
+def _batch(system, state, seed, indices, dt, bound, internal_scale, translational_scale, *,
+           steps, method, watch_det, internal, translational):
+    import jax
+
+    def one(index):
+        key = jax.random.fold_in(jax.random.key(seed), index)
+        start, omega_hat, v = draw_initial_state(
+            system, state, key, internal=internal, internal_scale=internal_scale,
+            translational=translational, translational_scale=translational_scale)
+        out = follow(system, start, dt, bound, steps=steps, method=method, watch_det=watch_det)
+        return {**out, "omega_hat": omega_hat, "velocity": v}
+
+    return jax.vmap(one)(indices)
+
+
+@functools.cache
+def _compiled_batch():
+    import jax
+
+    return jax.jit(_batch, static_argnames=("steps", "method", "watch_det", "internal",
+                                             "translational"))
+
+
+def run_task(task: Task, in_worker: bool = True) -> dict[str, Any]:
+    """Compute one task: per-sample arrays of its ``count`` samples + worker info.
+
+    In a worker (default) it first calls :func:`prepare_worker`; in the calling process
+    (``in_worker=False``, the ``workers = 0`` mode) it changes no global setting and requires
+    float64 to be on already. A config that does not build (e.g. a non-finite initial energy)
+    gives failed samples with the reason; other exceptions propagate (and are recorded by the
+    caller as failed samples).
+    """
+    if in_worker:
+        info = prepare_worker()
+    else:
+        from affinebody._checks import require_x64
+
+        require_x64()
+        info = {"pid": os.getpid(), "x64": True, "dtype": "float64", "in_process": True}
+    clock = time.perf_counter()
+    try:
+        prepared = _prepare(task.config_json)
+    except ValueError as err:
+        return _failure_result(task, str(err).splitlines()[0], info)
+    import jax.numpy as jnp
+
+    from affinebody.system import OPEN_GROUPS
+
+    spec = task.spec
+    system = prepared.system
+    out = _compiled_batch()(
+        system, prepared.state, jnp.asarray(spec.seed, dtype=jnp.uint32),
+        jnp.asarray(task.indices), jnp.asarray(prepared.dt), jnp.asarray(spec.bound),
+        jnp.asarray(spec.velocity_scale), jnp.asarray(spec.x_velocity_scale),
+        steps=prepared.steps, method=prepared.method, watch_det=system.group in OPEN_GROUPS,
+        internal=spec.initial_velocity, translational=spec.x_velocity)
+    out = {k: np.asarray(v)[: task.count] for k, v in out.items()}
+    dt = prepared.dt
+    code = out["code"].astype(np.int64)
+    exit_step = out["exit_step"]
+    e0, e1 = out["initial_energy"], out["final_energy"]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        energy_error = np.abs(e1 - e0) / np.maximum(np.abs(e0), np.finfo(float).tiny)
+    result = {
+        "code": code,
+        "message": [STATUS_CODES[int(c)][1] for c in code],
+        "exit_time": np.where(exit_step >= 0, exit_step * dt, np.nan),
+        "followed_time": out["steps_done"] * dt,
+        "max_spread": out["max_spread"],
+        "energy_error": energy_error,
+        "initial_energy": e0,
+        "final_energy": e1,
+        "max_relative_volume": out["max_relative_volume"],
+        "min_det": out["min_det"],
+        "max_det": out["max_det"],
+        "omega_hat": out["omega_hat"],
+        "velocity": out["velocity"],
+        "horizon": dt * prepared.steps,
+        "worker": {**info, "seconds": time.perf_counter() - clock},
+    }
+    return result
+
+
+def _failure_result(task: Task, message: str, info: dict | None = None) -> dict[str, Any]:
+    nan = np.full(task.count, np.nan)
+    result = {"code": np.full(task.count, _ERROR, dtype=np.int64),
+              "message": [message] * task.count, "horizon": math.nan,
+              "omega_hat": None, "velocity": None, "worker": info or {}}
+    result.update({name: nan.copy() for name in SCALARS})
+    return result
+
+
+# --------------------------------------------------------------------------- client side
+@dataclass
+class SweepResult:
+    """Everything a sweep produced. ``samples[name]`` has shape [points, samples] (omega_hat
+    [points, samples, N, n, n], velocity [points, samples, N, n]; NaN where not computed),
+    ``status`` and ``failure`` are string arrays of the same leading shape."""
+
+    spec: SweepSpec
+    points: list[ScanPoint]
+    samples: dict[str, np.ndarray]
+    status: np.ndarray
+    failure: np.ndarray
+    summary: dict[str, Any]
+    output: Path | None
+    workers: list[dict[str, Any]] = field(default_factory=list)
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: str | None = None, workers: int | None = None) -> Iterator[Any]:
+    """A Dask client: on the cluster at ``scheduler`` (used unchanged), or on a new local
+    cluster of ``workers`` processes (default: all cores; spawn, one thread each), closed after.
+    """
+    import dask
+    from distributed import Client, LocalCluster
+
+    if scheduler is not None:
+        if workers is not None:
+            raise ConfigError("--workers applies to the local cluster only; the cluster at "
+                              "--scheduler keeps its own workers")
+        try:
+            client = Client(scheduler, timeout="20s")
+        except (OSError, TimeoutError, ValueError) as err:
+            raise ValueError(f"error: cannot connect to the Dask scheduler at {scheduler}: "
+                             f"{err}") from None
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    count = (os.cpu_count() or 1) if workers is None else int(workers)
+    if count < 1:
+        raise ConfigError(f"--workers must be >= 1 (got {count})")
+    with dask.config.set({"distributed.worker.multiprocessing-method": "spawn"}):
+        cluster = LocalCluster(n_workers=count, threads_per_worker=1, processes=True,
+                               dashboard_address=":0", silence_logs=logging.ERROR,
+                               env=dict(WORKER_ENV))
+    try:
+        client = Client(cluster)
+        try:
+            yield client
+        finally:
+            client.close()
+    finally:
+        cluster.close()
+
+
+def _execute(tasks: list[Task], client, on_done: Callable[[Task, dict], None]) -> None:
+    """Run the tasks (on the client's cluster, or here when client is None), calling
+    ``on_done(task, result)`` as each completes; a raising task gives failed samples."""
+    if client is None:
+        for task in tasks:
+            try:
+                result = run_task(task, in_worker=False)
+            except Exception as err:  # noqa: BLE001 - recorded, not fatal
+                result = _failure_result(task, f"task error: {type(err).__name__}: {err}")
+            on_done(task, result)
+        return
+    from distributed import as_completed
+
+    token = uuid.uuid4().hex[:8]
+    futures = {client.submit(run_task, task, key=f"affinebody-sweep-{token}-{task.name}",
+                             pure=False): task for task in tasks}
+    for future in as_completed(futures):
+        task = futures[future]
+        if future.status == "finished":
+            result = future.result()
+        else:
+            err = future.exception()
+            result = _failure_result(task, f"task error: {type(err).__name__}: {err}")
+        future.release()
+        on_done(task, result)
+
+
+def _json_safe(value):
+    """Plain JSON data (NaN and infinities become null, numpy scalars and arrays lists)."""
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _json_safe(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _write_task_file(folder: Path, task: Task, point: ScanPoint, result: dict) -> None:
+    rows = []
+    for j in range(task.count):
+        code = int(result["code"][j])
+        row = {"sample": task.start + j, "status": STATUS_CODES[code][0],
+               "failure": result["message"][j]}
+        row.update({name: float(result[name][j]) for name in SCALARS})
+        for name in ("omega_hat", "velocity"):
+            if result.get(name) is not None:
+                row[name] = result[name][j]
+        rows.append(row)
+    data = {"point": task.point, "batch": task.batch, "parameters": point.parameter_dict,
+            "samples": [task.start, task.start + task.count], "horizon": result["horizon"],
+            "worker": result["worker"], "rows": rows}
+    path = folder / f"{task.name}.json"
+    temporary = path.with_suffix(".json.tmp")
+    temporary.write_text(json.dumps(_json_safe(data)), encoding="utf-8")
+    temporary.replace(path)
+
+
+def binomial_summary(successes: int, trials: int) -> dict[str, Any]:
+    """Fraction, its standard error sqrt(p(1-p)/m) and the 95% Wilson score interval."""
+    if trials == 0:
+        return {"fraction": math.nan, "error": math.nan, "interval": [math.nan, math.nan]}
+    p = successes / trials
+    z = 1.959963984540054
+    centre = (p + z * z / (2 * trials)) / (1 + z * z / trials)
+    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / (
+        1 + z * z / trials)
+    return {"fraction": p, "error": math.sqrt(p * (1 - p) / trials),
+            "interval": [max(0.0, centre - half), min(1.0, centre + half)]}
+
+
+def _stat(values: np.ndarray, how) -> float:
+    finite = values[np.isfinite(values)]
+    return float(how(finite)) if finite.size else math.nan
+
+
+def summarize_point(point: ScanPoint, status: np.ndarray, failure: np.ndarray,
+                    samples: dict[str, np.ndarray], bound: float, horizon: float) -> dict:
+    """The summary of one parameter point (see the module docstring)."""
+    counts = Counter(status.tolist())
+    bounded, unbounded = counts.get("bounded", 0), counts.get("unbounded", 0)
+    failed = counts.get("failed", 0)
+    stats = binomial_summary(bounded, bounded + unbounded)
+    classified = status != "failed"
+    volume_ok = (samples["max_det"] < bound) & (samples["min_det"] > 1.0 / bound)
+    relative_ok = samples["max_relative_volume"] < bound
+    followed = samples["followed_time"] >= horizon * (1 - 1e-12)
+    volume = binomial_summary(int(np.sum(volume_ok & classified & followed)),
+                              int(np.sum(classified & (followed | ~volume_ok))))
+    relative = binomial_summary(int(np.sum(relative_ok & classified & followed)),
+                                int(np.sum(classified & (followed | ~relative_ok))))
+    return {
+        "index": point.index,
+        "parameters": point.parameter_dict,
+        "samples": int(status.size),
+        "bounded": bounded,
+        "unbounded": unbounded,
+        "failed": failed,
+        "fraction_bounded": stats["fraction"],
+        "fraction_bounded_error": stats["error"],
+        "fraction_bounded_interval": stats["interval"],
+        "fraction_volume_bounded": volume["fraction"],
+        "fraction_relative_volume_bounded": relative["fraction"],
+        "energy_error_median": _stat(samples["energy_error"][classified], np.median),
+        "energy_error_max": _stat(samples["energy_error"][classified], np.max),
+        "max_relative_volume": _stat(samples["max_relative_volume"], np.max),
+        "min_det": _stat(samples["min_det"], np.min),
+        "max_det": _stat(samples["max_det"], np.max),
+        "horizon": horizon,
+        "failures": dict(Counter(f for f in failure.tolist() if f)),
+        "config_error": point.error,
+    }
+
+
+def run_sweep(
+    config: Config,
+    *,
+    samples: int | None = None,
+    seed: int | None = None,
+    client=None,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    output: str | Path | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> SweepResult:
+    """Run the sweep of ``config`` (its ``[sweep]`` table, with ``samples``/``seed`` overrides).
+
+    Executes on ``client`` if given, else on the cluster at ``scheduler``, else on a new local
+    cluster of ``workers`` processes (default all cores; 0: in this process, no Dask).
+    ``output``: folder for the task files, ``samples.csv`` and ``summary.json``.
+    ``progress(done_samples, total_samples)`` is called as tasks complete.
+    """
+    clock = time.perf_counter()
+    spec = SweepSpec.from_config(config, samples, seed)
+    points = scan_points(config)
+    tasks = make_tasks(points, spec)
+    horizon = float(config.run.dt * config.run.steps)
+    P, S = len(points), spec.samples
+    n, N = config.n, config.bodies_count
+    data = {name: np.full((P, S), np.nan) for name in SCALARS}
+    data["omega_hat"] = np.full((P, S, N, n, n), np.nan)
+    data["velocity"] = np.full((P, S, N, n), np.nan)
+    status = np.full((P, S), "failed", dtype=object)
+    failure = np.full((P, S), "", dtype=object)
+    horizons = np.full(P, horizon)
+    for point in points:
+        if point.error is not None:
+            failure[point.index] = point.error
+    folder = None
+    if output is not None:
+        folder = Path(output)
+        (folder / "tasks").mkdir(parents=True, exist_ok=True)
+        for stale in (folder / "tasks").glob("point-*.json"):
+            stale.unlink()
+    done = 0
+    total = sum(t.count for t in tasks)
+    worker_info: dict[int, dict] = {}
+
+    def on_done(task: Task, result: dict) -> None:
+        nonlocal done
+        rows = slice(task.start, task.start + task.count)
+        p = task.point
+        for name in SCALARS:
+            data[name][p, rows] = result[name]
+        for name in ("omega_hat", "velocity"):
+            if result.get(name) is not None:
+                data[name][p, rows] = result[name]
+        codes = result["code"]
+        status[p, rows] = [STATUS_CODES[int(c)][0] for c in codes]
+        failure[p, rows] = result["message"]
+        if math.isfinite(result["horizon"]):
+            horizons[p] = result["horizon"]
+        if result["worker"].get("pid") is not None:
+            worker_info[result["worker"]["pid"]] = {
+                k: v for k, v in result["worker"].items() if k != "seconds"}
+        if folder is not None:
+            _write_task_file(folder / "tasks", task, points[p], result)
+        done += task.count
+        if progress is not None:
+            progress(done, total)
+
+    used_client = client
+    if workers == 0 and client is None and scheduler is None:
+        from affinebody._checks import require_x64
+
+        require_x64()  # this process computes: it must already be in float64
+        _execute(tasks, None, on_done)
+    elif client is not None:
+        _execute(tasks, client, on_done)
+    else:
+        with dask_client(scheduler, workers) as own:
+            used_client = own
+            _execute(tasks, own, on_done)
+
+    summaries = []
+    for point in points:
+        p = point.index
+        summaries.append(summarize_point(point, status[p], failure[p],
+                                         {k: v[p] for k, v in data.items()}, spec.bound,
+                                         float(horizons[p])))
+    pooled = binomial_summary(int(np.sum(status == "bounded")),
+                              int(np.sum(status != "failed")))
+    summary = {
+        "fraction_bounded": pooled["fraction"],
+        "fraction_bounded_error": pooled["error"],
+        "fraction_bounded_interval": pooled["interval"],
+        "samples": S,
+        "points": summaries,
+        "total_samples": P * S,
+        "failed": int(np.sum(status == "failed")),
+        "bound": spec.bound,
+        "horizon": horizon,
+        "seed": spec.seed,
+        "initial_velocity": spec.initial_velocity,
+        "velocity_scale": spec.velocity_scale,
+        "scheduler": ("in-process" if used_client is None else
+                      getattr(getattr(used_client, "scheduler", None), "address", None)),
+        "workers": len(worker_info),
+        "wall_seconds": time.perf_counter() - clock,
+    }
+    if folder is not None:
+        (folder / "summary.json").write_text(json.dumps(_json_safe(summary), indent=1),
+                                             encoding="utf-8")
+        _write_samples_csv(folder / "samples.csv", points, status, failure, data)
+    return SweepResult(spec, points, data, status, failure, summary, folder,
+                       list(worker_info.values()))
+
+
+def _write_samples_csv(path: Path, points, status, failure, data) -> None:
+    import csv
+
+    names = [p for p, _ in points[0].parameters] if points else []
+    with path.open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["point", "sample", *names, "status", "failure", *SCALARS])
+        for point in points:
+            values = [v for _, v in point.parameters]
+            for k in range(status.shape[1]):
+                writer.writerow([point.index, k, *values, status[point.index, k],
+                                 failure[point.index, k],
+                                 *(repr(float(data[s][point.index, k])) for s in SCALARS)])
+
+
+# --------------------------------------------------------------------------- CLI
+def _format(value: float, digits: int = 3) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
+
+
+def summary_lines(summary: dict) -> list[str]:
+    """A plain-text table of the per-point summaries (used when rich is not a terminal)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"sweep: {summary['samples']} samples per point, horizon "
+                        f"{summary['horizon']:.6g}, bound {summary['bound']:.6g}")
+    names = list(summary["points"][0]["parameters"]) if summary["points"] else []
+    for name in [*names, "bounded", "unbounded", "failed", "fraction bounded",
+                 "|dE/E| median", "max rel. volume", "det phi range"]:
+        table.add_column(name, justify="right")
+    for point in summary["points"]:
+        fraction = (f"{_format(point['fraction_bounded'], 4)} ± "
+                    f"{_format(point['fraction_bounded_error'], 2)}")
+        table.add_row(
+            *(str(point["parameters"][k]) for k in names),
+            str(point["bounded"]), str(point["unbounded"]), str(point["failed"]), fraction,
+            _format(point["energy_error_median"], 2), _format(point["max_relative_volume"]),
+            f"{_format(point['min_det'])} .. {_format(point['max_det'])}")
+    console = Console(width=160, record=True, file=io.StringIO())
+    console.print(table)
+    lines = console.export_text().rstrip("\n").splitlines()
+    lines.append(f"fraction bounded (all points): {_format(summary['fraction_bounded'], 4)} ± "
+                 f"{_format(summary['fraction_bounded_error'], 2)} over "
+                 f"{summary['total_samples'] - summary['failed']} classified samples "
+                 f"({summary['failed']} failed), {summary['wall_seconds']:.1f} s on "
+                 f"{summary['workers']} worker(s)")
+    for point in summary["points"]:
+        for reason, count in point["failures"].items():
+            lines.append(f"point {point['index']}: {count} failed: {reason}")
+    return lines
+
+
+def _progress_bar(enabled: bool):
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    if not enabled or not console.is_terminal:
+        return contextlib.nullcontext(), None
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    bar = Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(),
+                   TextColumn("samples"), TimeElapsedColumn(), console=console)
+    task = {}
+
+    def update(done: int, total: int) -> None:
+        if "id" not in task:
+            task["id"] = bar.add_task("sweep", total=total)
+        bar.update(task["id"], completed=done)
+
+    return bar, update
+
+
+@click.command("sweep")
+@click.argument("config_file", metavar="CONFIG.toml", type=click.Path(dir_okay=False))
+@click.option("--samples", type=int, default=None, help="Samples per point (overrides "
+              "sweep.samples).")
+@click.option("--seed", type=int, default=None, help="Random seed (overrides sweep.seed).")
+@click.option("--scheduler", metavar="ADDRESS", default=None,
+              help="Dask scheduler to use, e.g. tcp://host:8786 (default: a local cluster).")
+@click.option("--workers", type=int, default=None,
+              help="Processes of the local cluster (default: all cores; 0: no Dask).")
+@click.option("-o", "--output-dir", "output_dir", type=click.Path(file_okay=False), default=None,
+              help="Folder for task files, samples.csv, summary.json (default: CONFIG_sweep).")
+@click.option("--json", "as_json", is_flag=True,
+              help="Print the summary as one JSON object on stdout.")
+@one_line_errors
+def sweep(config_file, samples, seed, scheduler, workers, output_dir, as_json):
+    """Run an ensemble / parameter sweep of CONFIG.toml ([sweep] table) on Dask."""
+    from affinebody.config import load_config
+
+    enable_x64()
+    config = load_config(config_file)
+    folder = Path(output_dir) if output_dir else Path(config_file).with_name(
+        Path(config_file).stem + "_sweep")
+    bar, update = _progress_bar(True)
+    try:
+        with bar:
+            result = run_sweep(config, samples=samples, seed=seed, scheduler=scheduler,
+                               workers=workers, output=folder, progress=update)
+    except KeyboardInterrupt:
+        click.echo(f"interrupted: the task files written so far are kept in {folder / 'tasks'}",
+                   err=True)
+        sys.exit(130)
+    if as_json:
+        click.echo(json.dumps(_json_safe(result.summary)))
+    else:
+        for line in summary_lines(result.summary):
+            click.echo(line)
+        click.echo(f"results: {folder}")
+
+
+__all__ = ("SweepResult", "SweepSpec", "ScanPoint", "Task", "WORKER_ENV", "binomial_summary",
+           "dask_client", "draw_initial_state", "follow", "make_tasks", "prepare_worker",
+           "run_sweep", "run_task", "scan_points", "sweep")
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(sweep())

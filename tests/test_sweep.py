@@ -1,0 +1,308 @@
+"""Sweeps on Dask: classification against closed forms, failures recorded, determinism across
+worker counts (2-worker cluster, 1-worker cluster started by the CLI, no Dask), float64 workers.
+
+One local cluster of 2 workers serves the module. The sweep config is geodesic af-af motion on
+GL(2) (72), whose solution phi(t) = exp(t Omega_hat) is known exactly (DERIVATIONS.md), plus the
+potential 0 * sqrt(det phi - 0.9): zero force while det phi > 0.9, NaN below, so exactly the
+samples with T Tr(Omega_hat) < ln 0.9 (det phi(t) = exp(t Tr Omega_hat)) blow up.
+"""
+
+import json
+import math
+import textwrap
+
+import click
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scipy.linalg import expm
+from scipy.stats import binomtest
+
+from affinebody.config import ConfigError, build, check_config, parse_config
+from affinebody.sweep import (
+    STATUS_CODES,
+    SweepSpec,
+    Task,
+    _execute,
+    binomial_summary,
+    dask_client,
+    draw_initial_state,
+    run_sweep,
+    scan_points,
+    sweep,
+)
+
+DT, STEPS, SAMPLES, BATCH = 0.1, 20, 20, 8
+MIXED = textwrap.dedent(f'''
+    [system]
+    n = 2
+    group = "GL+"
+    bodies = 1
+    [body]
+    mass = 1.0
+    [kinetic]
+    internal = "af-af"
+    A = 1.0
+    B = 0.5
+    [[potential]]
+    kind = "dilatation"
+    expr = "0*sqrt(det - 0.9)"
+    [initial]
+    x = [[0.0, 0.0]]
+    [run]
+    dt = {DT}
+    steps = {STEPS}
+    [sweep]
+    samples = {SAMPLES}
+    seed = 7
+    initial_velocity = "normal"
+    velocity_scale = 1.2
+    bound = 50.0
+    batch = {BATCH}
+    scan = {{ "kinetic.A" = [1.0, 2.0, 0.0] }}
+''')
+CLI = click.Group("affinebody", commands={"sweep": sweep})
+
+
+def load(text):
+    return check_config(parse_config(text))
+
+
+@pytest.fixture(scope="module")
+def client():
+    with dask_client(workers=2) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def two_workers(client, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("sweep2")
+    return run_sweep(load(MIXED), client=client, output=folder)
+
+
+def expected(omega, bound):
+    """The driver's loop on the closed form phi(t_k) = expm(t_k Omega), det = exp(t_k Tr Omega):
+    (failing step or None, exit step or -1, spreads and ln det at the followed steps)."""
+    trace = np.trace(omega)
+    fail_step, exit_step, spreads, log_det = None, -1, [1.0], [0.0]
+    for k in range(1, STEPS + 1):
+        t = k * DT
+        if t * trace < math.log(0.9):
+            fail_step = k
+            break
+        sigma = np.linalg.svd(expm(t * omega), compute_uv=False)
+        spreads.append(max(sigma[0], 1 / sigma[-1]))
+        log_det.append(t * trace)
+        if spreads[-1] >= bound and exit_step < 0:
+            exit_step = k
+        if spreads[-1] >= bound**2:  # followed no further
+            break
+    return fail_step, exit_step, np.array(spreads), np.array(log_det)
+
+
+def test_classification_failures_and_volumes_match_the_closed_form(two_workers):
+    result = two_workers
+    assert [p.error is None for p in result.points] == [True, True, False]
+    assert all("kinetic.A must be nonzero" in f for f in result.failure[2])
+    assert list(result.status[2]) == ["failed"] * SAMPLES
+    kinds = set()
+    for k in range(SAMPLES):
+        omega = result.samples["omega_hat"][0, k, 0]
+        fail_step, exit_step, spreads, log_det = expected(omega, 50.0)
+        status, failure = result.status[0, k], result.failure[0, k]
+        followed = result.samples["followed_time"][0, k]
+        if fail_step is not None:
+            assert (status, failure) == ("failed", "non-finite state")
+            assert followed == pytest.approx((fail_step - 1) * DT, abs=1e-12)
+        elif exit_step < 0:
+            assert status == "bounded"
+            assert followed == pytest.approx(STEPS * DT, abs=1e-12)
+        else:
+            assert status == "unbounded"
+            assert result.samples["exit_time"][0, k] == pytest.approx(exit_step * DT, abs=1e-12)
+        kinds.add(status)
+        if status != "failed":
+            # exact geodesic flow: energy kept to round-off (impossible in float32)
+            assert result.samples["energy_error"][0, k] < 1e-12
+            assert result.samples["max_spread"][0, k] == pytest.approx(spreads.max(), rel=1e-9)
+            np.testing.assert_allclose(np.log([result.samples["min_det"][0, k],
+                                               result.samples["max_det"][0, k]]),
+                                       [log_det.min(), log_det.max()], atol=1e-11)
+            assert result.samples["max_relative_volume"][0, k] == 1.0  # one body
+    assert kinds == {"bounded", "unbounded", "failed"}
+    # af-af geodesics do not depend on A (phi0 exp(t Omega_hat)): points 0 and 1 agree
+    np.testing.assert_array_equal(result.status[0], result.status[1])
+    np.testing.assert_array_equal(result.samples["exit_time"][0], result.samples["exit_time"][1])
+    summary = result.summary["points"][0]
+    bounded = int(np.sum(result.status[0] == "bounded"))
+    classified = int(np.sum(result.status[0] != "failed"))
+    assert summary["fraction_bounded"] == bounded / classified
+    assert summary["failures"] == {"non-finite state": SAMPLES - classified}
+
+
+def test_one_worker_and_two_workers_give_identical_results(two_workers, tmp_path):
+    out = tmp_path / "one"
+    config = tmp_path / "mixed.toml"
+    config.write_text(MIXED)
+    result = CliRunner().invoke(CLI, ["sweep", str(config), "--workers", "1", "-o", str(out),
+                                      "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)  # stdout is exactly one JSON object
+    assert summary["workers"] == 1 and two_workers.summary["workers"] == 2
+    for name in ("fraction_bounded", "samples", "total_samples", "failed"):
+        assert summary[name] == two_workers.summary[name]
+    rows = {}
+    for path in (out / "tasks").glob("point-*.json"):
+        data = json.loads(path.read_text())
+        for row in data["rows"]:
+            rows[data["point"], row["sample"]] = row
+    assert len(rows) == 2 * SAMPLES  # point 2 has no tasks (config error)
+    for (p, k), row in rows.items():
+        assert row["status"] == two_workers.status[p, k]
+        for name in ("exit_time", "followed_time", "max_spread", "energy_error", "final_energy",
+                     "min_det", "max_det"):
+            a, b = row[name], two_workers.samples[name][p, k]
+            a = math.nan if a is None else a
+            assert np.array_equal(a, b, equal_nan=True), (name, p, k, a, b)  # bit for bit
+        np.testing.assert_array_equal(row["omega_hat"], two_workers.samples["omega_hat"][p, k])
+
+
+def test_workers_compute_in_float64_with_one_thread(client, two_workers):
+    tasks = sorted((two_workers.output / "tasks").glob("*.json"))
+    assert len(tasks) == 2 * math.ceil(SAMPLES / BATCH)  # one file per task
+    for path in tasks:
+        worker = json.loads(path.read_text())["worker"]
+        assert worker["x64"] is True and worker["dtype"] == "float64"
+        assert "--xla_cpu_multi_thread_eigen=false" in worker["xla_flags"]
+        assert worker["omp_threads"] == "1"
+
+    def probe():
+        return str(jnp.asarray(1.0).dtype), jax.config.jax_enable_x64
+
+    assert set(client.run(probe).values()) == {("float64", True)}
+    assert two_workers.samples["final_energy"].dtype == np.float64
+
+
+def test_a_raising_task_is_recorded_not_fatal(client, two_workers):
+    spec = SweepSpec.from_config(load(MIXED))
+    good = scan_points(load(MIXED))[0].config_json
+    # the good task has the shape of the module's tasks (BATCH): no new compilation
+    tasks = [Task(0, 0, None, 0, 2, 2, spec), Task(1, 0, "{}", 0, 2, 2, spec),
+             Task(2, 0, good, 0, 2, BATCH, spec)]
+    seen = {}
+    _execute(tasks, client, lambda task, result: seen.setdefault(task.point, result))
+    assert seen[0]["message"][0].startswith("task error: TypeError")
+    assert "system" in seen[1]["message"][0] and seen[1]["message"][0].startswith("config error")
+    statuses = [STATUS_CODES[int(c)][0] for c in seen[2]["code"]]
+    assert statuses == list(two_workers.status[0, :2])
+
+
+def test_cli_on_a_running_cluster_prints_one_json_object(client, two_workers, tmp_path):
+    config = tmp_path / "mixed.toml"
+    config.write_text(MIXED)
+    address = client.scheduler.address
+    result = CliRunner().invoke(CLI, ["sweep", str(config), "--scheduler", address, "--json",
+                                      "--samples", str(SAMPLES), "-o", str(tmp_path / "o")])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)
+    assert summary["fraction_bounded"] == two_workers.summary["fraction_bounded"]
+    assert [p["parameters"] for p in summary["points"]] == [
+        {"kinetic.A": 1.0}, {"kinetic.A": 2.0}, {"kinetic.A": 0.0}]
+    assert summary["points"][2]["config_error"].startswith("config error: kinetic.A")
+    text = CliRunner().invoke(CLI, ["sweep", str(config), "--scheduler", address,
+                                    "--samples", str(BATCH), "-o", str(tmp_path / "t")])
+    assert text.exit_code == 0 and "fraction bounded" in text.output
+    bad = CliRunner().invoke(CLI, ["sweep", str(config), "--scheduler", address,
+                                   "--workers", "2"])
+    assert bad.exit_code != 0 and "--workers" in bad.output + bad.stderr
+
+
+# --------------------------------------------------------------------------- no cluster
+def test_scan_points_expand_ranges_in_order_and_check_each_point():
+    text = MIXED.replace('scan = { "kinetic.A" = [1.0, 2.0, 0.0] }',
+                         'scan = { "kinetic.B" = { start = 0.5, stop = 2.0, num = 3 }, '
+                         '"run.steps" = { start = 10, stop = 1000, num = 3, log = true } }')
+    points = scan_points(load(text))
+    assert [p.parameters for p in points] == [
+        (("kinetic.B", b), ("run.steps", pytest.approx(s, rel=1e-12))) for b in (0.5, 1.25, 2.0)
+        for s in (10.0, 100.0, 1000.0)]
+    data = json.loads(points[4].config_json)
+    assert data["kinetic"]["B"] == 1.25 and data["run"]["steps"] == 100
+    assert isinstance(data["run"]["steps"], int)
+    for scan, field in (('{ "kinetic.Q" = [1.0] }', "sweep.scan.kinetic.Q"),
+                        ('{ "potential.3.expr" = ["det"] }', "sweep.scan.potential.3.expr"),
+                        ('{ "kinetic.A" = [] }', "sweep.scan.kinetic.A"),
+                        ('{ "run.dt" = { start = 0.0, stop = 1.0, num = 2, log = true } }',
+                         "sweep.scan.run.dt")):
+        with pytest.raises(ConfigError) as info:
+            scan_points(load(MIXED.replace('{ "kinetic.A" = [1.0, 2.0, 0.0] }', scan)))
+        assert field in str(info.value) and "\n" not in str(info.value)
+    bad = scan_points(load(MIXED.replace("[1.0, 2.0, 0.0]", '["x"]')))[0].error
+    assert bad.startswith("config error: kinetic.A")
+
+
+@pytest.mark.parametrize(("old", "new", "field"), [
+    ("samples = 20", "samples = 0", "sweep.samples"),
+    ('initial_velocity = "normal"', 'initial_velocity = "uniform"', "sweep.initial_velocity"),
+    ("bound = 50.0", "bound = 1.0", "sweep.bound"),
+    ("seed = 7", "sed = 7", "sweep.sed"),
+])
+def test_bad_sweep_tables_are_refused_with_one_line(old, new, field):
+    with pytest.raises(ConfigError) as info:
+        load(MIXED.replace(old, new))
+    assert field in str(info.value) and "\n" not in str(info.value)
+
+
+def test_the_sweep_table_does_not_change_the_run_hash():
+    plain = load(MIXED.split("[sweep]")[0])
+    assert plain.sweep is None and load(MIXED).hash() == plain.hash()
+    assert SweepSpec.from_config(plain) == SweepSpec()
+
+
+def test_draws_are_seeded_projected_standard_normal_and_go_through_the_legendre_map(
+        two_workers):
+    """Drawn here on SL(2) with af-is (I = 2, A = 0.5), same seed and scale as the sweep on GL+:
+    sample k's Omega_hat is the sl(2) projection of the sweep's gl(2) draw for sample k."""
+    text = MIXED.replace('group = "GL+"', 'group = "SL"').replace(
+        'internal = "af-af"\nA = 1.0', 'internal = "af-is"\nI = 2.0\nA = 0.5')
+    text = text.split("[[potential]]")[0] + "[initial]" + text.split("[initial]")[1]
+    built = build(load(text))
+    system, state = built.system, built.state
+
+    @jax.jit
+    def draws(indices):
+        def one(k):
+            key = jax.random.fold_in(jax.random.key(7), k)
+            return draw_initial_state(system, state, key, internal="normal", internal_scale=1.2,
+                                      translational="normal", translational_scale=0.5)
+        return jax.vmap(one)(indices)
+
+    start, omega, v = draws(jnp.arange(4000))
+    omega, v = np.asarray(omega)[:, 0], np.asarray(v)[:, 0]
+    gl = two_workers.samples["omega_hat"][0, :, 0]
+    projected = gl - np.trace(gl, axis1=1, axis2=2)[:, None, None] / 2 * np.eye(2)
+    np.testing.assert_allclose(omega[:SAMPLES], projected, rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(np.trace(omega, axis1=1, axis2=2), 0.0, atol=1e-13)
+    # through af-is's Legendre map and back: xi = phi Omega_hat
+    xi = system.kinetic.internal.inverse_legendre(start.phi, start.pi)
+    np.testing.assert_allclose(xi[:, 0], np.asarray(start.phi)[:, 0] @ omega, atol=1e-14)
+    # sl(2) projection of 1.2 Z: off-diagonals ~ N(0, 1.44), diagonal (z11 - z22) 0.6 ~ N(0, 0.72)
+    s = 5 / math.sqrt(4000)
+    assert abs(np.var(omega[:, 0, 1]) / 1.44 - 1) < s * math.sqrt(2)
+    assert abs(np.var(omega[:, 0, 0]) / 0.72 - 1) < s * math.sqrt(2)
+    assert abs(np.var(v) / 0.25 - 1) < s
+    assert abs(np.corrcoef(omega[:, 0, 1], omega[:, 1, 0])[0, 1]) < s
+    np.testing.assert_allclose(start.p, 1.0 * v[:, None], atol=1e-15)  # p = M v, M = 1
+    # the same sample drawn alone or in a batch of 4000
+    alone = draws(jnp.asarray([1234]))[1]
+    np.testing.assert_allclose(np.asarray(alone)[0, 0], omega[1234], rtol=1e-15)
+
+
+def test_binomial_summary_matches_scipy_wilson_interval():
+    for k, m in ((0, 10), (3, 10), (293, 1000), (50, 50)):
+        summary = binomial_summary(k, m)
+        ci = binomtest(k, m).proportion_ci(confidence_level=0.95, method="wilson")
+        np.testing.assert_allclose(summary["interval"], [ci.low, ci.high], atol=1e-9)
+        assert summary["error"] == pytest.approx(math.sqrt(k / m * (1 - k / m) / m))
