@@ -11,9 +11,11 @@ import os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-from affinebody._xla import single_threaded_eigen  # noqa: E402  (imports no JAX)
+from affinebody._xla import pin_to_one_cpu  # noqa: E402  (imports no JAX)
 
-single_threaded_eigen()
+# One core per xdist worker (gw0 -> first CPU, gw1 -> second, ...): see pin_to_one_cpu for the
+# jaxlib LAPACK thread-pool deadlock this avoids.
+pin_to_one_cpu(int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0))
 
 import jax  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402

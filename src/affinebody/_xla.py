@@ -1,21 +1,22 @@
-"""XLA CPU settings that must be in place before JAX creates its CPU backend."""
+"""Process settings that must be in place before JAX creates its CPU backend."""
 
 from __future__ import annotations
 
 import os
 
-EIGEN_FLAG = "--xla_cpu_multi_thread_eigen=false"
 
+def pin_to_one_cpu(index: int = 0) -> None:
+    """Restrict this process to one CPU (the ``index``-th allowed one) before JAX starts.
 
-def single_threaded_eigen() -> None:
-    """Turn off XLA CPU's multi-threaded Eigen pool for this process (unless XLA_FLAGS sets it).
-
-    That pool intermittently wedges when materialising large vmap results: the main thread
-    waits in ``Array._value`` with the CPU idle, for ever (seen here in the test suite after
-    ~10 minutes; reported upstream by other projects, where this flag took hangs from 14/16
-    runs to 0/12). The cost is intra-op parallelism inside one XLA kernel, which affinebody's
-    small per-body matrices barely use. Must run before the first JAX computation.
+    XLA sizes its CPU intra-op thread pool from the affinity mask. jaxlib's batched LAPACK
+    kernels (linalg.solve/inv/det/svd on large vmapped batches) fan out over that same pool
+    with ``ParallelBatchMap`` and block on a counter; when XLA runs two such kernels at once on
+    a pool of two threads, both threads wait for sub-tasks that no free thread can run: a
+    deadlock with the CPU idle (seen here with gdb: two ``tf_XLAEigen`` threads in
+    ``TriMatrixEquationSolverKernel`` -> ``ParallelBatchMap`` -> ``BlockingCounter::Wait``).
+    With one CPU the pool has one thread and ``ParallelBatchMap`` runs the batch inline.
+    Used by the test suite (one core per pytest-xdist worker). Processes spawned later
+    inherit the mask.
     """
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_multi_thread_eigen" not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {EIGEN_FLAG}".strip()
+    allowed = sorted(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, {allowed[index % len(allowed)]})

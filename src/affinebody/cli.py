@@ -5,14 +5,12 @@ from __future__ import annotations
 import click
 
 from affinebody import __version__
-from affinebody._xla import single_threaded_eigen
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="affinebody")
 def main() -> None:
     """Classical and quantum mechanics of affinely-rigid bodies (Slawianowski's affine models)."""
-    single_threaded_eigen()
 
 
 def _enable_x64() -> None:
