@@ -20,9 +20,10 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/affinebody demo
 
-# One BLAS thread per worker (small matrices: threading only adds contention); xdist uses the cores.
+# One BLAS thread per worker (small matrices: threading only adds contention); xdist uses the
+# cores, one test file per worker at a time so jit caches and module fixtures are not duplicated.
 test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS)
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks
