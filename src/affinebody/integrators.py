@@ -27,6 +27,11 @@ On the subgroups SL, UL, SO, O, R+SO, R+O the splittings compose the projected k
 constrained drifts of ``affinebody.constraints`` (exact flows, Lie-group splittings, RATTLE), all
 symplectic and symmetric on T*G, so the compositions keep their orders there as well.
 
+Neighbour lists. ``Splitting.step_with_neighbors`` sums the pair forces over a neighbour list
+(``affinebody.neighbors``) and updates the list after every drift, before the next kick (the only
+sub-flow that moves the configuration is the drift), inside compiled code; ``simulate.run``
+carries the list through its scan. The other integrators sum over all pairs.
+
 ``nonholonomic-rattle`` (``affinebody.nonholonomic``): the discrete Lagrange-d'Alembert step
 with velocity projection, the only integrator for rotationless (non-holonomic) systems (40), (41).
 """
@@ -35,11 +40,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
+from affinebody import neighbors as nb
 from affinebody.nonholonomic import NONHOLONOMIC_RATTLE, NonholonomicRattle
 from affinebody.state import State
 from affinebody.system import HamiltonianSystem
@@ -86,6 +93,60 @@ class Splitting:
         coefficients = (jnp.asarray(self.drifts), jnp.asarray(kicks[1:]))
         state, _ = lax.scan(stage, state, coefficients)
         return state
+
+
+    def step_with_neighbors(self, system: HamiltonianSystem, state: State, h, spec,
+                            neighbors) -> tuple[State, NeighborStep]:
+        """The same step with the pair forces summed over a neighbour list.
+
+        ``neighbors`` (a ``neighbors.NeighborList`` of the static ``spec``) must be valid for
+        ``state``. It is updated (rebuilt where ``neighbors.needs_rebuild``) after every drift,
+        before the kick that follows, so every kick sees a list that covers its configuration.
+        Returns the new state and a :class:`NeighborStep`: the list, valid for the new state
+        unless ``overflow`` is non-zero (then the step's forces may be wrong and the step must
+        be discarded), and the number of rebuilds.
+        """
+        _refuse_nonholonomic(system, self.name)
+        kicks = self.kicks
+        state = system.kick(state, kicks[0] * h, neighbors)
+        zero = jnp.zeros((), dtype=jnp.int32)
+
+        def stage(carry, coefficients):
+            s, tracked = carry
+            d, c = coefficients
+            s = system.drift(s, d * h)
+            tracked = _update_neighbors(spec, tracked, s)
+            return (system.kick(s, c * h, tracked.neighbors), tracked), None
+
+        tracked = NeighborStep(neighbors, zero, zero, neighbors.count, neighbors.reach)
+        if len(self.drifts) == 1:
+            return stage((state, tracked), (self.drifts[0], kicks[1]))[0]
+        coefficients = (jnp.asarray(self.drifts), jnp.asarray(kicks[1:]))
+        (state, tracked), _ = lax.scan(stage, (state, tracked), coefficients)
+        return state, tracked
+
+
+class NeighborStep(NamedTuple):
+    """A neighbour list after a step, with what the step's updates saw: rebuilds (count),
+    overflow (OR of their ``NeighborList.overflow`` bits, see ``affinebody.neighbors``), and the
+    largest pair count and reach of their lists (what a reallocation must hold)."""
+
+    neighbors: nb.NeighborList
+    rebuilds: jax.Array
+    overflow: jax.Array
+    most_pairs: jax.Array
+    largest_reach: jax.Array
+
+
+def _update_neighbors(spec, tracked: NeighborStep, state: State) -> NeighborStep:
+    """``neighbors.update`` that also counts rebuilds and keeps every overflow flag."""
+    stale = nb.needs_rebuild(spec, tracked.neighbors, state.x, state.phi)
+    fresh = lax.cond(stale, lambda: nb.build(spec, state.x, state.phi),
+                     lambda: tracked.neighbors)
+    return NeighborStep(fresh, tracked.rebuilds + stale.astype(jnp.int32),
+                        tracked.overflow | fresh.overflow,
+                        jnp.maximum(tracked.most_pairs, fresh.count),
+                        jnp.maximum(tracked.largest_reach, fresh.reach))
 
 
 _Y4 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))

@@ -27,27 +27,31 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from affinebody import neighbors as nb
 from affinebody import observables as obs
 from affinebody.integrators import get_integrator
 from affinebody.state import State
 from affinebody.system import OPEN_GROUPS, HamiltonianSystem
 
-#: Observables available by name in ``run(..., observers=...)``; each maps (system, state).
-NAMED_OBSERVABLES: Mapping[str, Callable[[HamiltonianSystem, State], jax.Array]] = {
-    "energy": lambda system, s: system.hamiltonian(s),
-    "kinetic_energy": lambda system, s: system.kinetic_energy(s),
-    "potential_energy": lambda system, s: system.potential_energy(s),
-    "linear_momentum": lambda system, s: obs.linear_momentum(s),
-    "affine_spin": lambda system, s: obs.affine_spin(s),
-    "comoving_affine_spin": lambda system, s: obs.comoving_affine_spin(s),
-    "affine_momentum": lambda system, s: obs.affine_momentum(s),
-    "angular_momentum": lambda system, s: obs.angular_momentum(s),
-    "vorticity": lambda system, s: obs.vorticity(s),
-    "volumes": lambda system, s: obs.volumes(s),
-    "relative_volumes": lambda system, s: obs.relative_volumes(s),
+#: Observables available by name in ``run(..., observers=...)``; each maps (system, state) or,
+#: in a run with a neighbour list, (system, state, list) (the list is valid for the state).
+NAMED_OBSERVABLES: Mapping[str, Callable[..., jax.Array]] = {
+    "energy": lambda system, s, neighbors=None: system.hamiltonian(s, neighbors),
+    "kinetic_energy": lambda system, s, neighbors=None: system.kinetic_energy(s),
+    "potential_energy": lambda system, s, neighbors=None: system.potential_energy(s, neighbors),
+    "linear_momentum": lambda system, s, neighbors=None: obs.linear_momentum(s),
+    "affine_spin": lambda system, s, neighbors=None: obs.affine_spin(s),
+    "comoving_affine_spin": lambda system, s, neighbors=None: obs.comoving_affine_spin(s),
+    "affine_momentum": lambda system, s, neighbors=None: obs.affine_momentum(s),
+    "angular_momentum": lambda system, s, neighbors=None: obs.angular_momentum(s),
+    "vorticity": lambda system, s, neighbors=None: obs.vorticity(s),
+    "volumes": lambda system, s, neighbors=None: obs.volumes(s),
+    "relative_volumes": lambda system, s, neighbors=None: obs.relative_volumes(s),
 }
 
-_OK, _LEFT_GROUP, _NON_FINITE = 0, 1, 2
+_OK, _LEFT_GROUP, _NON_FINITE, _OVERFLOW = 0, 1, 2, 3
+#: Reallocations of the neighbour list in a row at the same frame before ``run`` gives up.
+MAX_REALLOCATIONS_IN_A_ROW = 8
 
 
 @dataclass(frozen=True)
@@ -69,6 +73,12 @@ class Trajectory:
     states: State
     observables: dict[str, np.ndarray]
     stop: StopReport | None = None
+    #: (spec, list) of the run's neighbour list, valid for the last state (None: all pairs)
+    neighbors: tuple[nb.NeighborSpec, nb.NeighborList] | None = None
+    #: rebuilds of the list inside the compiled loop (kept steps only)
+    neighbor_rebuilds: int = 0
+    #: reallocations after an overflow of the list's capacities (the run went on transparently)
+    neighbor_reallocations: int = 0
 
     @property
     def final_state(self) -> State:
@@ -105,8 +115,13 @@ def _observer_items(observers) -> tuple[tuple[str, object], ...]:
     return tuple(out)
 
 
-def _evaluate(system, state, items):
-    return {name: (NAMED_OBSERVABLES[spec](system, state) if isinstance(spec, str) else spec(state))
+def _evaluate(system, state, items, neighbors=None):
+    def named(spec):
+        if neighbors is None:
+            return NAMED_OBSERVABLES[spec](system, state)
+        return NAMED_OBSERVABLES[spec](system, state, neighbors)
+
+    return {name: (named(spec) if isinstance(spec, str) else spec(state))
             for name, spec in items}
 
 
@@ -116,43 +131,60 @@ def _per_body_finite(state: State) -> jax.Array:
             & jnp.all(jnp.isfinite(state.pi), axis=(-2, -1)))
 
 
-def _simulate(system, state, dt, *, n_chunks, every, method, observers):
+def _simulate(system, state, dt, neighbors, *, n_chunks, every, method, observers, spec):
+    """The compiled run. With a neighbour list (``spec`` not None) the carry holds the list,
+    valid for the carried state; a step whose list overflowed is discarded like a non-finite
+    one (status _OVERFLOW), recording what the reallocation must hold in ``lost``."""
     watch_det = system.group in OPEN_GROUPS
     sign0 = jnp.sign(jnp.linalg.det(state.phi))
+    zero = jnp.asarray(0)
 
     def one_step(carry, _):
-        state, status, bad_step, bad_body, k = carry
-        new = method.step(system, state, dt)
+        state, nbrs, status, bad_step, bad_body, k, rebuilds, lost = carry
+        if spec is None:
+            new, new_list, overflow = method.step(system, state, dt), nbrs, False
+        else:
+            new, tracked = method.step_with_neighbors(system, state, dt, spec, nbrs)
+            new_list, overflow = tracked.neighbors, tracked.overflow != 0
         finite = _per_body_finite(new)
         crossed = (jnp.sign(jnp.linalg.det(new.phi)) != sign0) & finite & watch_det
         bad_bodies = ~finite | crossed
-        first = (status == _OK) & jnp.any(bad_bodies)
-        code = jnp.where(jnp.any(~finite), _NON_FINITE, _LEFT_GROUP)
+        first = (status == _OK) & (jnp.any(bad_bodies) | overflow)
+        code = jnp.where(overflow, _OVERFLOW,
+                         jnp.where(jnp.any(~finite), _NON_FINITE, _LEFT_GROUP))
         status = jnp.where(first, code, status)
         bad_step = jnp.where(first, k + 1, bad_step)
         bad_body = jnp.where(first, jnp.argmax(bad_bodies), bad_body)
         keep_old = status != _OK
         state = jax.tree.map(lambda old, nw: jnp.where(keep_old, old, nw), state, new)
-        return (state, status, bad_step, bad_body, k + 1), None
+        nbrs = jax.tree.map(lambda old, nw: jnp.where(keep_old, old, nw), nbrs, new_list)
+        if spec is not None:
+            rebuilds = rebuilds + jnp.where(keep_old, 0, tracked.rebuilds)
+            seen = (tracked.overflow, tracked.most_pairs, tracked.largest_reach)
+            lost = jax.tree.map(lambda old, nw: jnp.where(first, nw, old), lost, seen)
+        return (state, nbrs, status, bad_step, bad_body, k + 1, rebuilds, lost), None
 
     def chunk(carry, _):
         carry, _ = lax.scan(one_step, carry, None, length=every)
-        state, status, bad_step, _, k = carry
+        state, nbrs, status, bad_step = carry[:4]
+        k = carry[5]
         done = jnp.where(status == _OK, k, bad_step - 1)
-        return carry, (state, _evaluate(system, state, observers), done)
+        return carry, (state, _evaluate(system, state, observers, nbrs), done)
 
-    zero = jnp.asarray(0)
-    init = (state, zero, zero, zero, zero)
+    flags_and_count = jnp.zeros((), dtype=jnp.int32)
+    lost = (flags_and_count, flags_and_count, jnp.zeros((), dtype=state.x.dtype))
+    init = (state, neighbors, zero, zero, zero, zero, zero, lost)
     carry, (frames, values, done) = lax.scan(chunk, init, None, length=n_chunks)
-    _, status, bad_step, bad_body, _ = carry
-    first_values = _evaluate(system, state, observers)
+    _, last_list, status, bad_step, bad_body, _, rebuilds, lost = carry
+    first_values = _evaluate(system, state, observers, neighbors)
     frames = jax.tree.map(lambda a, f: jnp.concatenate([a[None], f]), state, frames)
     values = jax.tree.map(lambda a, f: jnp.concatenate([a[None], f]), first_values, values)
     done = jnp.concatenate([zero[None], done])
-    return frames, values, done, status, bad_step, bad_body
+    return frames, values, done, status, bad_step, bad_body, last_list, rebuilds, lost
 
 
-_simulate_jit = jax.jit(_simulate, static_argnames=("n_chunks", "every", "method", "observers"))
+_simulate_jit = jax.jit(
+    _simulate, static_argnames=("n_chunks", "every", "method", "observers", "spec"))
 
 
 def _is_array_pytree(obj) -> bool:
@@ -164,29 +196,116 @@ def _is_array_pytree(obj) -> bool:
                for leaf in jax.tree.leaves(obj))
 
 
-def _compiled_call(system, state, dt, **static):
+def _compiled_call(system, state, dt, neighbors, **static):
     if _is_array_pytree(system):
-        return _simulate_jit(system, state, dt, **static)
+        return _simulate_jit(system, state, dt, neighbors, **static)
     # models that are not pytrees: close over them (compiles per call)
-    return jax.jit(partial(_simulate, system, **static))(state, dt)
+    return jax.jit(partial(_simulate, system, **static))(state, dt, neighbors)
 
 
-def _diagnose_non_finite(system, method, initial, state, dt) -> str:
+# --------------------------------------------------------------------------------------------
+# neighbour lists
+
+
+def _initial_neighbors(system, method, state, neighbors, neighbor_skin):
+    """(spec, list) valid for ``state``, or (None, None) for all pairs (see ``run``)."""
+    if neighbors is None and neighbor_skin is None:
+        return None, None
+    if neighbors is not None and neighbor_skin is not None:
+        raise ValueError("give run(...) either neighbors=(spec, list) or neighbor_skin, not both")
+    if not hasattr(method, "step_with_neighbors"):
+        raise ValueError(
+            f"integrator {getattr(method, 'name', method)!r} sums over all pairs: neighbour lists "
+            f"work with the splitting integrators (strang, yoshida4, suzuki4, yoshida6); run "
+            f"without neighbors or neighbor_skin"
+        )
+    space, cutoff, variable = system.neighbor_range()
+    if neighbors is None:
+        skin = float(neighbor_skin)
+        if not (np.isfinite(skin) and skin >= 0):
+            raise ValueError(f"neighbor_skin must be a finite number >= 0 (got {neighbor_skin})")
+        return nb.allocate(space, state.x, state.phi, cutoff, variable, skin)
+    try:
+        spec, lst = neighbors
+    except (TypeError, ValueError):
+        raise ValueError("neighbors must be the (spec, list) pair of neighbors.allocate "
+                         f"(got {type(neighbors).__name__})") from None
+    if not isinstance(spec, nb.NeighborSpec) or not isinstance(lst, nb.NeighborList):
+        raise ValueError("neighbors must be the (spec, list) pair of neighbors.allocate")
+    if (spec.space != space or spec.variable != variable or spec.cutoff < cutoff
+            or spec.bodies != state.x.shape[0]):
+        raise ValueError(
+            f"the neighbour list does not fit the system: it covers a cut-off {spec.cutoff} on "
+            f"{spec.variable} for {spec.bodies} bodies in {spec.space}, the potential needs "
+            f"{cutoff} on {variable} for {state.x.shape[0]} bodies in {space}: allocate it with "
+            f"neighbors.allocate(space, x, phi, {cutoff}, {variable!r}, skin)"
+        )
+    if bool(nb.needs_rebuild(spec, lst, state.x, state.phi)):
+        lst = nb.build_jit(spec, state.x, state.phi)
+    if int(lst.overflow):
+        return nb.allocate(space, state.x, state.phi, cutoff, variable, spec.skin)
+    return spec, lst
+
+
+def _reallocate(system, spec, state, lost):
+    """A new (spec, list) at ``state`` with room for what overflowed ``spec`` (``lost`` =
+    overflow flags, largest pair count, largest reach seen in the failed step). Capacities
+    never shrink, so reallocations at the same frame make progress."""
+    space, cutoff, variable = system.neighbor_range()
+    flags, most_pairs, largest_reach = int(lost[0]), int(lost[1]), float(lost[2])
+    x, phi = jnp.asarray(state.x), jnp.asarray(state.phi)
+    capacity, cell_capacity, headroom = spec.capacity, spec.cell_capacity, None
+    if flags & nb.PAIR_OVERFLOW:
+        capacity = max(capacity, int(np.ceil(1.5 * most_pairs)))
+    if flags & nb.CELL_OVERFLOW:
+        cell_capacity = 2 * cell_capacity
+    if flags & nb.REACH_OVERFLOW:
+        radius = float(nb.spatial_reach(cutoff, variable, phi)) + spec.skin
+        headroom = max(0.25, 1.25 * (largest_reach + spec.skin) / radius - 1.0)
+    try:  # one build at the fixed capacities
+        return nb.allocate(space, x, phi, cutoff, variable, spec.skin, capacity=capacity,
+                           cell_capacity=cell_capacity, reach_headroom=headroom)
+    except nb.NeighborListOverflow:  # other cells (a new grid): measure them
+        measured, _ = nb.allocate(space, x, phi, cutoff, variable, spec.skin,
+                                  reach_headroom=headroom)
+        return nb.allocate(space, x, phi, cutoff, variable, spec.skin,
+                           capacity=max(capacity, measured.capacity),
+                           cell_capacity=max(cell_capacity, measured.cell_capacity),
+                           reach_headroom=headroom)
+
+
+def _diagnose_non_finite(system, method, initial, state, dt, spec=None) -> str:
     """Reason for a blow-up, judged from the last finite state (a heuristic).
 
     A symplectic step that is stable keeps the energy near its initial value: if the energy
     had already run away, or if ten steps of dt/10 from the last finite state stay finite, the
     step was too large for the stiffness met; otherwise the potential is singular there.
+    With a neighbour list (``spec``) energies and steps use lists built for the states.
     """
-    energy = jax.jit(system.hamiltonian)
+    if spec is None:
+        energy = jax.jit(system.hamiltonian)
+        finer = jax.jit(lambda s: jax.lax.fori_loop(
+            0, 10, lambda _, z: method.step(system, z, dt / 10), s))
+    else:
+        def energy(s):
+            _, lst = _initial_neighbors(system, method, s, None, spec.skin)
+            return jax.jit(system.hamiltonian)(s, lst)
+
+        def finer(s):
+            fresh, lst = _initial_neighbors(system, method, s, None, spec.skin)
+
+            def tenth(_, carry):
+                z, tracked = method.step_with_neighbors(system, carry[0], dt / 10, fresh,
+                                                        carry[1])
+                return z, tracked.neighbors
+
+            return jax.jit(lambda z, l0: jax.lax.fori_loop(0, 10, tenth, (z, l0))[0])(s, lst)
     e0, e1 = float(energy(initial)), float(energy(state))
     error = abs(e1 - e0) / max(abs(e0), 1e-300)
     if not np.isfinite(error) or error > 0.5:
         return (f"time step too large: the relative energy error had grown to {error:.3g} "
                 f"before the blow-up (unstable for the stiffness of the potential); reduce dt")
-    finer = jax.jit(lambda s: jax.lax.fori_loop(
-        0, 10, lambda _, z: method.step(system, z, dt / 10), s))(state)
-    if bool(jnp.all(_per_body_finite(finer))):
+    if bool(jnp.all(_per_body_finite(finer(state)))):
         return ("time step too large: the same interval in ten steps of dt/10 stays finite; "
                 "reduce dt")
     return ("potential too stiff or singular: the motion stays non-finite with dt/10 "
@@ -194,12 +313,24 @@ def _diagnose_non_finite(system, method, initial, state, dt) -> str:
 
 
 def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrator="strang",
-        every: int = 1, observers=("energy",), on_stop: str = "raise") -> Trajectory:
+        every: int = 1, observers=("energy",), on_stop: str = "raise", neighbors=None,
+        neighbor_skin: float | None = None) -> Trajectory:
     """Integrate ``steps`` steps of size ``dt``, recording a frame every ``every`` steps.
 
     observers: names from NAMED_OBSERVABLES, or a mapping name -> (name or function(state)).
     integrator: a name from ``integrators.INTEGRATORS`` or an integrator object.
     on_stop: "raise" (IntegrationStopped) or "return" (trajectory with ``.stop``).
+    neighbors: None (pair terms sum over all pairs) or the (spec, list) pair of
+    ``neighbors.allocate`` for the pair cut-off (``system.neighbor_range()``); e.g. the
+    ``trajectory.neighbors`` of a previous run, which then compiles nothing new.
+    neighbor_skin: instead of ``neighbors``, allocate a list with this skin for ``state``.
+
+    With a list (splitting integrators only) the pair forces are summed over it, and it is
+    updated after every drift inside the compiled loop (rebuilt when the bodies moved or
+    stretched more than the skin allows). A step whose list overflowed its capacities is
+    discarded; the run reallocates the list at the last recorded frame and goes on from there,
+    so the frames are those of an all-pairs run (to round-off). ``trajectory`` reports
+    ``neighbor_rebuilds`` and ``neighbor_reallocations``.
     """
     dt = float(dt)
     if not np.isfinite(dt) or dt == 0.0:
@@ -218,15 +349,52 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
         raise ValueError(f"run integrates one system: state.phi must be [N, n, n] "
                          f"(got {tuple(state.phi.shape)}); vmap for ensembles")
     items = _observer_items(observers)
-    frames, values, done, status, bad_step, bad_body = _compiled_call(
-        system, state, jnp.asarray(dt), n_chunks=int(steps) // int(every), every=int(every),
-        method=method, observers=items)
-    done = np.asarray(done)
-    status = int(status)
+    spec, nbrs = _initial_neighbors(system, method, state, neighbors, neighbor_skin)
+    every, n_chunks = int(every), int(steps) // int(every)
+    segments = []  # (frames, values, done) of each compiled call, numpy
+    start, start_state = 0, state  # start: the chunk the segment starts at
+    reallocations = rebuilds = in_a_row = 0
+    failed_reallocation = None
+    while True:
+        frames, values, done, status, bad_step, bad_body, last_list, more, lost = _compiled_call(
+            system, start_state, jnp.asarray(dt), nbrs, n_chunks=n_chunks - start, every=every,
+            method=method, observers=items, spec=spec)
+        frames = jax.tree.map(np.asarray, frames)
+        values = {k: np.asarray(v) for k, v in values.items()}
+        done = np.asarray(done) + start * every
+        status, bad_step, bad_body = int(status), int(bad_step) + start * every, int(bad_body)
+        rebuilds += int(more)
+        first = 0 if not segments else 1  # a restart's frame 0 is the previous segment's last
+        if status != _OVERFLOW:
+            segments.append((frames, values, done, first, len(done)))
+            break
+        nominal = (start + np.arange(len(done))) * every
+        aligned = int(np.argmin(done == nominal)) - 1  # the last frame before the stop
+        segments.append((frames, values, done, first, aligned + 1))
+        in_a_row = in_a_row + 1 if aligned == 0 else 1
+        restart_state = jax.tree.map(lambda a, j=aligned: a[j], frames)
+        try:
+            if in_a_row > MAX_REALLOCATIONS_IN_A_ROW:
+                raise nb.NeighborListOverflow(
+                    f"{in_a_row - 1} reallocations at step {(start + aligned) * every} did not "
+                    f"get past step {bad_step}")
+            spec, nbrs = _reallocate(system, spec, restart_state, lost)
+        except ValueError as error:  # NeighborListOverflow, or a reach beyond half the box
+            failed_reallocation = str(error)
+            segments[-1] = (frames, values, done, first, len(done))
+            break
+        reallocations += 1
+        start, start_state = start + aligned, restart_state
+    frames = jax.tree.map(lambda *parts: np.concatenate(
+        [p[f:u] for p, (_, _, _, f, u) in zip(parts, segments, strict=True)]),
+        *[seg[0] for seg in segments])
+    values = {k: np.concatenate([seg[1][k][seg[3]:seg[4]] for seg in segments])
+              for k in segments[0][1]}
+    done = np.concatenate([seg[2][seg[3]:seg[4]] for seg in segments])
     keep = slice(None)
     report = None
     if status != _OK:
-        step, body = int(bad_step), int(bad_body)
+        step, body = bad_step, bad_body
         # frames up to and including the first one that holds the last good state
         last = int(np.argmax(done == step - 1)) if np.any(done == step - 1) else len(done) - 1
         keep = slice(0, last + 1)
@@ -238,18 +406,26 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
                 f"(t between {t0:.6g} and {t1:.6g}); use group = \"L\" to allow singular "
                 f"configurations or reduce dt"
             )
+        elif status == _OVERFLOW:
+            reason = "neighbour list overflow"
+            message = (f"the neighbour list overflowed at step {step} (t between {t0:.6g} and "
+                       f"{t1:.6g}) and could not be reallocated: {failed_reallocation}; run "
+                       f"without a neighbour list or with a larger box")
         else:
             # the state freezes at the last good one, so frame `last` holds it exactly
             good = jax.tree.map(lambda a: a[last], frames)
-            reason = _diagnose_non_finite(system, method, state, good, dt)
+            reason = _diagnose_non_finite(system, method, state, good, dt, spec)
             message = (f"non-finite state of body {body} at step {step} "
                        f"(t between {t0:.6g} and {t1:.6g}): {reason}")
         report = StopReport(step=step, time=t1, body=body, reason=reason, message=message)
     trajectory = Trajectory(
         times=done[keep] * dt,
-        states=jax.tree.map(lambda a: np.asarray(a)[keep], frames),
-        observables={k: np.asarray(v)[keep] for k, v in values.items()},
+        states=jax.tree.map(lambda a: a[keep], frames),
+        observables={k: v[keep] for k, v in values.items()},
         stop=report,
+        neighbors=None if spec is None else (spec, last_list),
+        neighbor_rebuilds=rebuilds,
+        neighbor_reallocations=reallocations,
     )
     if report is not None and on_stop == "raise":
         raise IntegrationStopped(report, trajectory)

@@ -124,11 +124,20 @@ class HamiltonianSystem:
             constraints.drift_mode(t) != "exact" for t in kinetic_terms(self.kinetic))
 
     # ----------------------------------------------------------------- energies
-    def potential_energy(self, state: State) -> jax.Array:
-        """V(x, phi), a scalar per batch element (0 without a potential)."""
+    def potential_energy(self, state: State, neighbors=None) -> jax.Array:
+        """V(x, phi), a scalar per batch element (0 without a potential).
+
+        neighbors: None (pair terms sum over all pairs) or a ``neighbors.NeighborList`` valid
+        for ``state``, which the pair terms sum over instead (``potentials.PairTerm.energy``).
+        """
         if self.potential is None:
             return jnp.zeros(state.phi.shape[:-3], dtype=state.phi.dtype)
-        return self.potential.energy(state.x, state.phi)
+        return self._potential_energy(state.x, state.phi, neighbors)
+
+    def _potential_energy(self, x, phi, neighbors):
+        if neighbors is None:  # potentials written as energy(x, phi) keep working
+            return self.potential.energy(x, phi)
+        return self.potential.energy(x, phi, neighbors)
 
     def kinetic_energy(self, state: State) -> jax.Array:
         """T(x, phi, p, pi) summed over bodies (76a)-(85); on a subgroup the restricted T."""
@@ -139,9 +148,9 @@ class HamiltonianSystem:
             state = constraints.metric_lift(self.kinetic.hamiltonian, state, self.group)
         return self.kinetic.hamiltonian(state)
 
-    def hamiltonian(self, state: State) -> jax.Array:
-        """H = T + V (75a)."""
-        return self.kinetic_energy(state) + self.potential_energy(state)
+    def hamiltonian(self, state: State, neighbors=None) -> jax.Array:
+        """H = T + V (75a); ``neighbors`` as in :meth:`potential_energy`."""
+        return self.kinetic_energy(state) + self.potential_energy(state, neighbors)
 
     # ----------------------------------------------------------------- dynamics
     def vector_field(self, state: State) -> State:
@@ -171,11 +180,15 @@ class HamiltonianSystem:
             return state
         return state._replace(pi=project_momentum(state.phi, state.pi, self.group))
 
-    def kick(self, state: State, h) -> State:
-        """Exact flow of V for time h: p -= h dV/dx, pi -= h (dV/dphi)^T (projected on G)."""
+    def kick(self, state: State, h, neighbors=None) -> State:
+        """Exact flow of V for time h: p -= h dV/dx, pi -= h (dV/dphi)^T (projected on G).
+
+        neighbors: None (all pairs) or a ``neighbors.NeighborList`` valid for ``state`` (the
+        pair forces then come from the closed-form kernels of ``affinebody.pair_kernels``).
+        """
         if self.potential is None:
             return state
-        gx, gphi = jax.grad(lambda x, phi: jnp.sum(self.potential.energy(x, phi)),
+        gx, gphi = jax.grad(lambda x, phi: jnp.sum(self._potential_energy(x, phi, neighbors)),
                             argnums=(0, 1))(state.x, state.phi)
         dpi = project_momentum(state.phi, -h * transpose(gphi), self.group)
         return state._replace(p=state.p - h * gx, pi=state.pi + dpi)
@@ -203,6 +216,39 @@ class HamiltonianSystem:
         # exact for terms that keep phi fixed (their momentum increment is constant); for
         # RATTLE the same covector as its velocity projection; a round-off clean-up otherwise
         return self.constrain(state)
+
+    # ----------------------------------------------------------------- neighbour lists
+    def neighbor_range(self):
+        """(space, cutoff, variable) that one neighbour list must cover for this potential.
+
+        The pair terms (``potentials.PairTerm``, alone or in a ``TotalPotential``) must all have
+        a cut-off on the same variable ("r", or "D" of eq. (75)) and the same space (free or
+        one periodic box); the list covers the largest cut-off. ValueError otherwise, saying why
+        (the run then has to sum over all pairs).
+        """
+        from affinebody.potentials import PairTerm, TotalPotential
+
+        if isinstance(self.potential, TotalPotential):
+            terms = self.potential.terms
+        else:
+            terms = (self.potential,) if isinstance(self.potential, PairTerm) else ()
+        pairs = [t for t in terms if isinstance(t, PairTerm)]
+        if not pairs:
+            raise ValueError("a neighbour list needs pair potentials of affinebody.potentials "
+                             "(PairTerm, alone or in a TotalPotential); this system has none: "
+                             "run without neighbors")
+        if any(t.cutoff is None for t in pairs):
+            names = ", ".join(type(t).__name__ for t in pairs if t.cutoff is None)
+            raise ValueError(f"a neighbour list needs a cut-off on every pair term ({names} has "
+                             f"none): give it cutoff=potentials.Cutoff(r_cut) or run without "
+                             f"neighbors")
+        variables = {t.cutoff.variable for t in pairs}
+        spaces = {t.space for t in pairs}
+        if len(variables) > 1 or len(spaces) > 1:
+            raise ValueError("one neighbour list serves pair terms with cut-offs on the same "
+                             "variable (r or D) in the same space; these differ: run without "
+                             "neighbors")
+        return spaces.pop(), max(float(t.cutoff.r_cut) for t in pairs), variables.pop()
 
     # ----------------------------------------------------------------- validation
     def check(self, state: State) -> State:

@@ -1,0 +1,160 @@
+"""Runs with a neighbour list (simulate.run(..., neighbors=...)): the list is carried through
+the compiled loop, updated after every drift, reallocated after an overflow, and the motion is
+the all-pairs motion to round-off: periodic 3D systems with the demo's affine pair potential
+(cut-off on r), bodies that stretch under a cut-off on the affine distance D of eq. (75)
+(the reach grows), a capacity too small for the run (reallocation), runs chained through
+``trajectory.neighbors``, and energy conservation unchanged."""
+
+import functools
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from affinebody import kinetic as kin
+from affinebody import neighbors as nb
+from affinebody.potentials import (
+    Cutoff,
+    Dilatation,
+    PairPotential,
+    StVenantKirchhoff,
+    total_potential,
+)
+from affinebody.simulate import energy_error, run
+from affinebody.space import free_space, orthorhombic
+from affinebody.state import State
+from affinebody.system import HamiltonianSystem
+
+DEMO = "(1 - exp(-3*(r - 1)))**2 - 1 + 0.5*exp(-D**2/4)*(M1 - 3)**2"
+SIDE, SPACING, R_CUT, SKIN = 4, 1.3, 1.6, 0.2
+BOX = orthorhombic((SIDE * SPACING,) * 3)
+DT, STEPS, EVERY = 0.01, 200, 10
+KINETIC = kin.KineticEnergy(kin.DAlembertTranslational(1.0), kin.DAlembert(0.3 * jnp.eye(3)))
+
+
+def periodic_system() -> tuple[HamiltonianSystem, State]:
+    """64 bodies on a simple cubic lattice in a periodic box, thermal momenta; the demo pair
+    potential plus one-body confinement of phi (the demo's model, with a d'Alembert drift).
+    Rest distance 1.3: the 6 nearest neighbours are within r_cut + skin = 1.8, the 12 next
+    ones (1.84) just outside, so the pair count grows as soon as the lattice melts a little."""
+    pair = PairPotential.from_expression(DEMO, 3, cutoff=Cutoff(R_CUT), box=BOX)
+    potential = total_potential([pair, Dilatation(5.0), StVenantKirchhoff(0.5, 1.0)])
+    rng = np.random.default_rng(7)
+    grid = np.stack(np.meshgrid(*[np.arange(SIDE)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    x = SPACING * grid + 0.01 * rng.normal(size=grid.shape)
+    phi = np.eye(3) + 0.05 * rng.normal(size=(len(grid), 3, 3))
+    p = 0.6 * rng.normal(size=x.shape)
+    p -= p.mean(axis=0)
+    state = State(jnp.asarray(x), jnp.asarray(phi), jnp.asarray(p),
+                  jnp.asarray(0.05 * rng.normal(size=phi.shape)))
+    return HamiltonianSystem(KINETIC, potential), state
+
+
+@functools.cache
+def all_pairs_run():
+    system, state = periodic_system()
+    return run(system, state, DT, STEPS, every=EVERY, observers=("energy", "potential_energy"))
+
+
+def assert_same_motion(trajectory, reference, atol=1e-10):
+    np.testing.assert_allclose(trajectory.times, reference.times, rtol=0, atol=1e-12)
+    for a, b in zip(trajectory.states, reference.states, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=atol)
+    for key, value in reference.observables.items():
+        np.testing.assert_allclose(trajectory.observables[key], value, rtol=0,
+                                   atol=atol * max(1.0, np.max(np.abs(value))))
+
+
+def test_run_with_the_list_is_the_all_pairs_run_and_conserves_energy_as_well():
+    system, state = periodic_system()
+    reference = all_pairs_run()
+    assert reference.neighbors is None and reference.neighbor_rebuilds == 0
+    # two chained runs of 100 steps: the second continues with the first one's list
+    # room for the pair count to grow as the lattice melts (no reallocation here)
+    roomy = nb.allocate(BOX, state.x, state.phi, R_CUT, "r", SKIN, capacity_factor=3.0)
+    first = run(system, state, DT, STEPS // 2, every=EVERY,
+                observers=("energy", "potential_energy"), neighbors=roomy)
+    spec, _ = first.neighbors
+    second = run(system, first.final_state, DT, STEPS // 2, every=EVERY,
+                 observers=("energy", "potential_energy"), neighbors=first.neighbors)
+    assert second.neighbors[0] == spec  # the same compiled loop, no reallocation
+    assert first.neighbor_reallocations == second.neighbor_reallocations == 0
+    assert first.neighbor_rebuilds >= 1 and second.neighbor_rebuilds >= 1
+    # the list is a real saving: far fewer pairs than N(N-1)/2
+    bodies = state.x.shape[0]
+    assert int(second.neighbors[1].count) < bodies * (bodies - 1) // 8
+    chained = type(first)(
+        times=np.concatenate([first.times, second.times[1:] + first.times[-1]]),
+        states=State(*(np.concatenate([a, b[1:]]) for a, b in
+                       zip(first.states, second.states, strict=True))),
+        observables={k: np.concatenate([first.observables[k], second.observables[k][1:]])
+                     for k in first.observables},
+    )
+    assert_same_motion(chained, reference)
+    # energy conservation: bounded Strang error, the same with and without the list
+    error, error_ref = energy_error(chained), energy_error(reference)
+    assert np.max(error) < 2e-3
+    assert np.max(error) == pytest.approx(np.max(error_ref), rel=1e-6)
+    assert np.max(np.abs(np.diff(reference.observables["potential_energy"]))) > 0.1  # real motion
+
+
+def test_a_capacity_too_small_for_the_run_is_reallocated_transparently():
+    system, state = periodic_system()
+    probe_spec, probe = nb.allocate(BOX, state.x, state.phi, R_CUT, "r", SKIN)
+    assert int(probe.count) == 3 * state.x.shape[0]  # nearest neighbours only, at the start
+    # exactly the pairs of the start: the list overflows once the lattice melts
+    tight = nb.allocate(BOX, state.x, state.phi, R_CUT, "r", SKIN, capacity=int(probe.count),
+                        cell_capacity=probe_spec.cell_capacity)
+    trajectory = run(system, state, DT, STEPS, every=EVERY,
+                     observers=("energy", "potential_energy"), neighbors=tight)
+    assert trajectory.stop is None
+    assert trajectory.neighbor_reallocations >= 1
+    spec, last = trajectory.neighbors
+    assert spec.capacity > int(probe.count) and int(last.overflow) == 0
+    assert int(last.count) > int(probe.count)  # more pairs in range than at the start
+    assert_same_motion(trajectory, all_pairs_run())
+
+
+def test_stretching_bodies_with_an_affine_cut_off_rebuild_and_match_all_pairs():
+    # free space, cut-off on D: the reach D_cut max_K s_max(phi_K) grows as the bodies stretch
+    # (d'Alembert internal motion, phi(t) ~ phi_0 + t xi, xi = stretching along random axes)
+    # (a soft affine pair term in M1 and D, weak enough for the stretching to stay moderate)
+    d_cut, skin, steps = 1.5, 0.3, 150
+    potential = PairPotential.from_expression(
+        "0.05*exp(-D**2/4)*(M1 - 3)**2 + 0.2*exp(-2*r**2)", 3, cutoff=Cutoff(d_cut, variable="D"))
+    system = HamiltonianSystem(KINETIC, potential)
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(*[np.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    x = 1.1 * grid + 0.02 * rng.normal(size=grid.shape)
+    axes = np.linalg.qr(rng.normal(size=(len(grid), 3, 3)))[0]
+    xi = axes @ np.diag([0.4, 0.1, -0.2]) @ np.swapaxes(axes, -1, -2)
+    phi = np.eye(3) + 0.02 * rng.normal(size=(len(grid), 3, 3))
+    pi = np.swapaxes(0.3 * xi, -1, -2)  # pi = J xi^T
+    state = State(jnp.asarray(x), jnp.asarray(phi), jnp.zeros_like(jnp.asarray(x)),
+                  jnp.asarray(pi))
+    reference = run(system, state, DT, steps, every=EVERY)
+    # room for the reach to grow without outgrowing the cells: rebuilds only
+    roomy = nb.allocate(free_space(), state.x, state.phi, d_cut, "D", skin, reach_headroom=1.5,
+                        capacity_factor=4.0)
+    stretched = run(system, state, DT, steps, every=EVERY, neighbors=roomy)
+    reach0 = float(roomy[1].reach)
+    reach1 = float(nb.spatial_reach(d_cut, "D", jnp.asarray(stretched.final_state.phi)))
+    # a list stays valid for a reach growth of at most the skin: >= 2 rebuilds were needed
+    assert reach1 - reach0 > 2 * skin
+    assert stretched.neighbor_reallocations == 0 and stretched.neighbor_rebuilds >= 2
+    assert_same_motion(stretched, reference)
+
+
+def test_neighbour_lists_refuse_what_they_cannot_serve():
+    system, state = periodic_system()
+    with pytest.raises(ValueError, match="splitting integrators"):
+        run(system, state, DT, 10, integrator="implicit-midpoint", neighbor_skin=SKIN)
+    no_cut = HamiltonianSystem(KINETIC, PairPotential.from_expression("exp(-r**2)", 3))
+    with pytest.raises(ValueError, match="needs a cut-off"):
+        run(no_cut, state, DT, 10, neighbor_skin=SKIN)
+    with pytest.raises(ValueError, match="not both"):
+        run(system, state, DT, 10, neighbor_skin=SKIN,
+            neighbors=nb.allocate(BOX, state.x, state.phi, R_CUT, "r", SKIN))
+    other = nb.allocate(BOX, state.x, state.phi, 1.0, "r", SKIN)  # a cut-off too short
+    with pytest.raises(ValueError, match="does not fit"):
+        run(system, state, DT, 10, neighbors=other)
