@@ -15,7 +15,9 @@ from affinebody._xla import pin_to_one_cpu  # noqa: E402  (imports no JAX)
 
 # One core per xdist worker (gw0 -> first CPU, gw1 -> second, ...): see pin_to_one_cpu for the
 # jaxlib LAPACK thread-pool deadlock this avoids.
-pin_to_one_cpu(int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0))
+# Only inside workers: the xdist controller imports this file too, and workers inherit its mask.
+if "PYTEST_XDIST_WORKER" in os.environ:
+    pin_to_one_cpu(int(os.environ["PYTEST_XDIST_WORKER"].removeprefix("gw") or 0))
 
 import jax  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
