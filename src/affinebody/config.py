@@ -53,6 +53,10 @@ TRANSLATIONAL_MODELS = ("dalembert", "is-af", "af-is")
 INTEGRATOR_NAMES = (
     "strang", "yoshida4", "suzuki4", "yoshida6", "implicit-midpoint", "nonholonomic-rattle"
 )
+#: Integrators that can sum pair forces over a neighbour list (the splitting methods).
+SPLITTING_INTEGRATORS = ("strang", "yoshida4", "suzuki4", "yoshida6")
+#: run.neighbor_list = "auto" uses a list from this many bodies on (if the system allows one).
+AUTO_NEIGHBOR_LIST_BODIES = 500
 #: Configuration groups accepted by system.group (the paper's list plus all matrices "L").
 CONFIG_GROUPS = ("L",) + GROUPS
 MAX_DIMENSION = 6
@@ -153,7 +157,8 @@ class InitialSection(_Section):
 
 
 class RunSection(_Section):
-    """``[run]``: time step, length, integrator, output and checkpoint intervals, seed."""
+    """``[run]``: time step, length, integrator, output and checkpoint intervals, seed, and
+    whether pair forces are summed over a cell/neighbour list (:func:`uses_neighbor_list`)."""
 
     dt: float
     steps: int = Field(ge=1)
@@ -161,6 +166,10 @@ class RunSection(_Section):
     every: int = Field(1, ge=1, description="write a frame every k steps")
     checkpoint: int | None = Field(None, ge=1, description="checkpoint every m steps")
     seed: int = 0
+    neighbor_list: Literal["auto", "on", "off"] = Field(
+        "auto", description="sum pair forces over a neighbour list: on, off (all pairs), or "
+                            f"auto (on for >= {AUTO_NEIGHBOR_LIST_BODIES} bodies if possible)")
+    neighbor_skin: float = Field(0.3, description="skin of the neighbour list (> 0)")
 
 
 class ScanRange(_Section):
@@ -232,6 +241,9 @@ class Config(_Section):
         """SHA-256 of the config's meaning, ignoring run.steps (so a run can be extended) and
         the [sweep] table (which does not change a single run)."""
         data = self.model_dump(exclude={"source_text": True, "sweep": True, "run": {"steps"}})
+        for key, default in (("neighbor_list", "auto"), ("neighbor_skin", 0.3)):
+            if data["run"][key] == default:  # hashes of configs written before these keys
+                del data["run"][key]
         canonical = json.dumps(data, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()
 
@@ -264,7 +276,7 @@ def _location(loc: tuple) -> str:
     return ".".join(parts) or "config"
 
 
-def _one_line(err: ValidationError) -> str:
+def one_line_error(err: ValidationError) -> str:
     """The most useful single error of a pydantic ValidationError, as one line."""
     errors = err.errors(include_url=False)
     unknown = [e for e in errors if e["type"] == "extra_forbidden"]
@@ -308,7 +320,7 @@ def parse_config(text: str, source: str = "config") -> Config:
         config = Config.model_validate({**data, "source_text": text} if "source_text" not in data
                                        else data)
     except ValidationError as err:
-        raise ConfigError(_one_line(err)) from None
+        raise ConfigError(one_line_error(err)) from None
     return config
 
 
@@ -503,6 +515,59 @@ def check_run(config: Config) -> None:
     if r.checkpoint is not None and r.checkpoint % r.every:
         raise ConfigError(f"run.checkpoint must be a multiple of run.every (got checkpoint="
                           f"{r.checkpoint}, every={r.every})")
+    if not (math.isfinite(r.neighbor_skin) and r.neighbor_skin > 0):
+        raise ConfigError(f"run.neighbor_skin must be a finite number > 0 (got "
+                          f"{r.neighbor_skin})")
+
+
+def _neighbor_list_obstacle(config: Config, terms) -> str | None:
+    """What keeps this config from summing its pair forces over a neighbour list, as
+    "needs <what> (got <what>)", or None: a periodic box, pair terms that all have a cut-off
+    on r with r_cut + run.neighbor_skin <= half the shortest box edge, a splitting integrator.
+    ``terms``: the built [[potential]] entries."""
+    from affinebody.potentials import PairTerm
+    from affinebody.space import as_space
+
+    r = config.run
+    if r.integrator not in SPLITTING_INTEGRATORS:
+        return (f"a splitting integrator, run.integrator = one of "
+                f"{', '.join(SPLITTING_INTEGRATORS)} (got {r.integrator!r})")
+    if config.system.box is None:
+        return "a periodic box: set system.box (got no box)"
+    pairs = [(k, t) for k, t in enumerate(terms) if isinstance(t, PairTerm)]
+    if not pairs:
+        return "pair potentials with a cut-off (got no pair term in [[potential]])"
+    for k, term in pairs:
+        if term.cutoff is None or term.cutoff.variable != "r":
+            return (f"a cut-off on r in every pair term: set potential.{k}.r_cut (got "
+                    f"{'none' if term.cutoff is None else 'a cut-off on D'})")
+    r_cut = max(float(t.cutoff.r_cut) for _, t in pairs)
+    half = as_space(tuple(config.system.box)).max_cutoff
+    if r_cut + r.neighbor_skin > half * (1 + 1e-12):
+        return (f"r_cut + run.neighbor_skin <= half the shortest box edge: reduce "
+                f"run.neighbor_skin or enlarge system.box (got {r_cut} + {r.neighbor_skin} > "
+                f"{half})")
+    return None
+
+
+def uses_neighbor_list(config: Config, terms=None) -> bool:
+    """Whether a run of ``config`` sums its pair forces over a neighbour list.
+
+    run.neighbor_list = "off": never (all pairs); "on": always, ConfigError when the system
+    does not allow a list (:func:`_neighbor_list_obstacle` names the missing piece); "auto":
+    when the system allows one and has at least AUTO_NEIGHBOR_LIST_BODIES bodies.
+    ``terms``: the built [[potential]] entries (built here when None).
+    """
+    mode = config.run.neighbor_list
+    if mode == "off" or (mode == "auto" and config.bodies_count < AUTO_NEIGHBOR_LIST_BODIES):
+        return False
+    if terms is None:
+        terms = [build_potential_entry(e, k, config) for k, e in enumerate(config.potential)]
+    obstacle = _neighbor_list_obstacle(config, terms)
+    if obstacle is not None and mode == "on":
+        raise ConfigError(f'run.neighbor_list = "on" needs {obstacle}; or set '
+                          f'run.neighbor_list = "off"')
+    return obstacle is None
 
 
 def check_system(config: Config) -> None:
@@ -595,9 +660,10 @@ def build_potential_entry(entry: PotentialSection, index: int, config: Config):
 
 
 def check_potentials(config: Config) -> None:
-    """Every [[potential]] entry builds (kind known, parameters valid, expression allowed)."""
-    for k, entry in enumerate(config.potential):
-        build_potential_entry(entry, k, config)
+    """Every [[potential]] entry builds (kind known, parameters valid, expression allowed),
+    and run.neighbor_list = "on" finds what a neighbour list needs."""
+    terms = [build_potential_entry(entry, k, config) for k, entry in enumerate(config.potential)]
+    uses_neighbor_list(config, terms)
 
 
 def check_config(config: Config) -> Config:
@@ -620,34 +686,7 @@ class Built:
     system: Any  # affinebody.system.HamiltonianSystem
     state: Any  # affinebody.state.State, the initial state
     inertia: Inertia
-
-
-@dataclass(frozen=True)
-class StaticPotential:
-    """A potential held as static (hashable) pytree metadata.
-
-    The potentials of :mod:`affinebody.potentials` are frozen dataclasses with only Python
-    numbers and compiled expressions inside; declaring them static lets every chunk of a run
-    reuse one compiled function instead of tracing the potential again.
-    """
-
-    potential: Any
-
-    def energy(self, x, phi):
-        return self.potential.energy(x, phi)
-
-    @property
-    def symmetry(self) -> frozenset[str]:
-        return self.potential.symmetry
-
-
-def _register_static() -> None:
-    import jax
-
-    jax.tree_util.register_dataclass(StaticPotential, data_fields=[], meta_fields=["potential"])
-
-
-_register_static()
+    neighbor_list: bool = False  # sum the pair forces over a neighbour list (uses_neighbor_list)
 
 
 def build_kinetic(config: Config, inertia: Inertia):
@@ -758,7 +797,7 @@ def build(config: Config) -> Built:
     inertia = body_inertia(config)
     kinetic = build_kinetic(config, inertia)
     terms = [build_potential_entry(e, k, config) for k, e in enumerate(config.potential)]
-    potential = StaticPotential(total_potential(terms)) if terms else None
+    potential = total_potential(terms) if terms else None
     group = config.system.group
     if group not in SYSTEM_GROUPS:
         raise ConfigError(f"system.group {group!r} is not supported by the integrators "
@@ -777,4 +816,4 @@ def build(config: Config) -> Built:
     if not math.isfinite(energy):
         raise ConfigError(f"initial: the energy of the initial state is {energy} (bodies on top "
                           f"of each other in a singular potential, or det phi = 0?)")
-    return Built(system, state, inertia)
+    return Built(system, state, inertia, uses_neighbor_list(config, terms))

@@ -53,7 +53,7 @@ from jax import lax
 from affinebody import kinetic as kin
 from affinebody._checks import transpose
 from affinebody.groups import lie_algebra, project_algebra
-from affinebody.kinetic import _rank_one_splitting
+from affinebody.kinetic import rank_one_splitting
 from affinebody.state import State
 
 #: Groups on which the momentum is a covector of a proper subgroup.
@@ -227,7 +227,7 @@ def restricted_directions(term, group: str, n: int) -> tuple[jax.Array, jax.Arra
 def lie_group_drift(term, state: State, h, group: str) -> State:
     """Second-order explicit symplectic drift of a left/right-invariant term restricted to G."""
     directions, rates = restricted_directions(term, group, state.phi.shape[-1])
-    return _rank_one_splitting(state, directions, rates, h, invariance_side(term))
+    return rank_one_splitting(state, directions, rates, h, invariance_side(term))
 
 
 def rattle_drift(term, state: State, h, group: str) -> State:

@@ -268,7 +268,7 @@ class _RightInvariantModel:
         return self._velocity_of_spin(phi @ pi) @ phi
 
 
-def _rank_one_splitting(state: State, directions, rates, h, side: str) -> State:
+def rank_one_splitting(state: State, directions, rates, h, side: str) -> State:
     """Palindromic composition of the exact flows of h_k = rates_k/2 * Tr(W_k S)^2.
 
     ``directions`` [..., m, n, n] are the W_k, ``rates`` [..., m] the lam_k; S = Sigma_hat
@@ -400,7 +400,7 @@ class AffineJ(_LeftInvariantModel):
 
     def flow(self, state: State, h) -> State:
         w, rates = _principal_directions(self._j())
-        return _rank_one_splitting(state, w, rates, h, "left")
+        return rank_one_splitting(state, w, rates, h, "left")
 
     def check(self, n: int | None = None) -> None:
         check_symmetric_positive_definite(self._j(), "kinetic.J")
@@ -443,7 +443,7 @@ class HAffine(_RightInvariantModel):
 
     def flow(self, state: State, h) -> State:
         w, rates = _principal_directions(self._h())
-        return _rank_one_splitting(state, w, rates, h, "right")
+        return rank_one_splitting(state, w, rates, h, "right")
 
     def check(self, n: int | None = None) -> None:
         check_symmetric_positive_definite(self._h(), "kinetic.H")
@@ -520,7 +520,7 @@ class LeftInvariant(_BiTensorModel, _LeftInvariantModel):
 
     def flow(self, state: State, h) -> State:
         w, rates = self._directions()
-        return _rank_one_splitting(state, w, rates, h, "left")
+        return rank_one_splitting(state, w, rates, h, "left")
 
 
 @_register
@@ -539,7 +539,7 @@ class RightInvariant(_BiTensorModel, _RightInvariantModel):
 
     def flow(self, state: State, h) -> State:
         w, rates = self._directions()
-        return _rank_one_splitting(state, w, rates, h, "right")
+        return rank_one_splitting(state, w, rates, h, "right")
 
 
 class _IsotropicAffineFamily:

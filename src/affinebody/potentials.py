@@ -81,6 +81,7 @@ cut-off distance) before masking, and the diagonal K = L is never formed (pairs 
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import math
 import re
@@ -354,17 +355,19 @@ def _coordinates(x, phi) -> tuple[jax.Array, jax.Array]:
     return x, phi
 
 
-class OneBodyTerm:
+class OneBodyTerm(abc.ABC):
     """Mixin: ``energy = sum_K f(variables of body K)``, eq. (57). Subclasses define
     ``variables`` (names) and ``term(values) -> [..., N]``."""
 
     variables: tuple[str, ...]
 
+    @abc.abstractmethod
     def term(self, values: Mapping[str, jax.Array]) -> jax.Array:
-        raise NotImplementedError
+        """f of each body from its named variables (arrays [..., N])."""
 
     def check_dimension(self, n: int) -> None:
         """ValueError if the parameters do not fit dimension n (overridden where needed)."""
+        return None  # a hook: most one-body families fit every n
 
     def body_energies(self, x, phi) -> jax.Array:
         """Energy of each body, shape [..., N]."""
@@ -383,7 +386,7 @@ class OneBodyTerm:
         return one_body_symmetry(self.variables)
 
 
-class PairTerm:
+class PairTerm(abc.ABC):
     """Mixin: ``energy = sum_{K<L} V_KL``, eq. (59), with optional cut-off and periodic box.
     Subclasses define ``variables``, ``cutoff``, ``box`` and ``term(values) -> [..., P]``."""
 
@@ -391,8 +394,9 @@ class PairTerm:
     cutoff: Cutoff | None
     box: tuple[float, ...] | Space | None
 
+    @abc.abstractmethod
     def term(self, values: Mapping[str, jax.Array]) -> jax.Array:
-        raise NotImplementedError
+        """V_KL of each pair from its named variables (arrays [..., P])."""
 
     def check_dimension(self, n: int) -> None:
         """ValueError if the parameters do not fit dimension n (overridden where needed)."""

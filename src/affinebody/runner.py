@@ -8,6 +8,13 @@ chunk the new frames are appended to the H5MD file and flushed; at checkpoint st
 saved atomically. A non-finite or singular state stops the run: the frames up to the last good
 one stay in the file, and :class:`SimulationStopped` names the step, time, body and likely cause.
 
+Neighbour lists (run.neighbor_list, :func:`affinebody.config.uses_neighbor_list`). The list is
+carried from chunk to chunk (``Trajectory.neighbors``) and rebuilt from the state alone at the
+start of the run and at every checkpoint step, with capacities grown from those allocated for
+the config's initial state by a fixed rule (:func:`neighbors_at`). A resumed run rebuilds it
+the same way at its checkpoint, so it too reproduces the uninterrupted run bit for bit. The
+mode used is stored in the file's /parameters (neighbor_list "on" or "off", neighbor_skin).
+
 The click commands ``run``, ``demo``, ``plot``, ``export`` and ``validate`` are registered on
 the ``affinebody`` group in :mod:`affinebody.cli`. Errors reach the terminal as one line on
 stderr with a non-zero exit status, never as a traceback.
@@ -28,7 +35,15 @@ import click
 import numpy as np
 
 from affinebody.checkpoint import Checkpoint, checkpoint_path, load_checkpoint, save_checkpoint
-from affinebody.config import Config, ConfigError, build, check_config, load_config, parse_config
+from affinebody.config import (
+    Config,
+    ConfigError,
+    build,
+    check_config,
+    load_config,
+    parse_config,
+    uses_neighbor_list,
+)
 from affinebody.h5md import OBSERVABLES, H5MDWriter, copy_frames, read_trajectory
 from affinebody.state import State
 
@@ -98,6 +113,41 @@ def chunk_steps(config: Config) -> int:
     return best * every
 
 
+def neighbors_at(system, base, state):
+    """The (spec, list) of a run's neighbour list at ``state``, a function of ``base`` (the
+    spec allocated for the initial state) and ``state`` only, so that a resumed run rebuilds
+    exactly the list of the uninterrupted one.
+
+    The list is built with ``base``'s capacities; while it overflows them, the pair capacity
+    grows by factors 3/2 until it holds 5/4 of the pairs in range and the cell capacity
+    doubles. (A list that cannot be built so is allocated afresh, also from ``state`` alone.)
+    """
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from affinebody import neighbors as nb
+
+    x, phi = jnp.asarray(state.x), jnp.asarray(state.phi)
+    spec = base
+    for _ in range(64):
+        built = nb.build_jit(spec, x, phi)
+        flags = int(built.overflow)
+        if not flags:
+            return spec, built
+        if flags & nb.REACH_OVERFLOW:
+            break
+        capacity, cells = spec.capacity, spec.cell_capacity
+        if flags & nb.PAIR_OVERFLOW:
+            while capacity < 1.25 * int(built.count):
+                capacity = math.ceil(1.5 * capacity)
+        if flags & nb.CELL_OVERFLOW:
+            cells *= 2
+        spec = dataclasses.replace(spec, capacity=capacity, cell_capacity=cells)
+    space, cutoff, variable = system.neighbor_range()
+    return nb.allocate(space, x, phi, cutoff, variable, base.skin)
+
+
 def _relative_error(energy: np.ndarray, reference: float) -> np.ndarray:
     return np.abs(energy - reference) / max(abs(reference), np.finfo(float).tiny)
 
@@ -137,7 +187,16 @@ def run_simulation(
         "every": every,
         "integrator": config.run.integrator,
         "config_hash": config_hash,
+        "neighbor_list": "on" if built.neighbor_list else "off",
     }
+    base_spec = None
+    if built.neighbor_list:
+        from affinebody import neighbors as nb
+
+        parameters["neighbor_skin"] = config.run.neighbor_skin
+        space, cutoff, variable = built.system.neighbor_range()
+        base_spec, _ = nb.allocate(space, built.state.x, built.state.phi, cutoff, variable,
+                                   config.run.neighbor_skin)
     writer_args = dict(mass=built.inertia.mass, radius=built.inertia.radius, n=config.n,
                        box=config.system.box, parameters=parameters)
     if resume:
@@ -176,8 +235,11 @@ def run_simulation(
     interval = config.checkpoint_every
     clock = time.perf_counter()
     step = start
+    lists = None  # (spec, list) valid for `state`, or None: all pairs
     with writer:
         while step < total:
+            if base_spec is not None and (step == start or step % interval == 0):
+                lists = neighbors_at(built.system, base_spec, state)
             end = min((step // chunk + 1) * chunk, total)
             pieces = [(end - step - (end - step) % every, every)] if end - step >= every else []
             if (end - step) % every:
@@ -185,7 +247,7 @@ def run_simulation(
             for length, stride in pieces:
                 try:
                     trajectory = integrate(built.system, state, dt, length, config.run.integrator,
-                                           every=stride, observers=_OBSERVERS)
+                                           every=stride, observers=_OBSERVERS, neighbors=lists)
                     stop = None
                 except IntegrationStopped as stopped:
                     trajectory, stop = stopped.trajectory, stopped.report
@@ -206,6 +268,7 @@ def run_simulation(
                     raise SimulationStopped(_stop_message(stop, step, dt, built.inertia.labels,
                                                           writer.frames, output))
                 state = State(*(np.asarray(a)[-1] for a in trajectory.states))
+                lists = trajectory.neighbors
                 step += length
             if step % interval == 0 or step == total:
                 save_checkpoint(ckpt_file, Checkpoint(step, state, writer.frames, config_hash))
@@ -414,7 +477,8 @@ def validate(config_file):
         f"{config_file}: ok (n = {config.n}, {config.bodies_count} bodies, group "
         f"{config.system.group}, kinetic {k.translational} + {k.internal}, "
         f"{len(config.potential)} potential terms, {config.run.steps} steps of dt = "
-        f"{config.run.dt} with {config.run.integrator})"
+        f"{config.run.dt} with {config.run.integrator}, neighbour list "
+        f"{'on' if uses_neighbor_list(config) else 'off'})"
     )
 
 

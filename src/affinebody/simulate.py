@@ -29,7 +29,7 @@ from jax import lax
 
 from affinebody import neighbors as nb
 from affinebody import observables as obs
-from affinebody.integrators import get_integrator
+from affinebody.integrators import ImplicitMidpoint, get_integrator
 from affinebody.state import State
 from affinebody.system import OPEN_GROUPS, HamiltonianSystem
 
@@ -342,8 +342,8 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
     if on_stop not in ("raise", "return"):
         raise ValueError(f"on_stop must be 'raise' or 'return' (got {on_stop!r})")
     method = get_integrator(integrator)
-    if system.constrained and not hasattr(method, "weights"):
-        method.step(system, state, dt)  # raises the integrator's own ValueError
+    if system.constrained and isinstance(method, ImplicitMidpoint):
+        method.step(system, state, dt)  # raises its own ValueError before any work
     state = system.check(state)
     if state.phi.ndim != 3:
         raise ValueError(f"run integrates one system: state.phi must be [N, n, n] "

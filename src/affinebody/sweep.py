@@ -227,7 +227,7 @@ def scan_points(config: Config) -> list[ScanPoint]:
     from pydantic import ValidationError
 
     from affinebody.config import Config as ConfigModel
-    from affinebody.config import _one_line
+    from affinebody.config import one_line_error
 
     scan = {} if config.sweep is None else dict(config.sweep.scan)
     base = _config_data(config)
@@ -244,7 +244,8 @@ def scan_points(config: Config) -> list[ScanPoint]:
         try:
             checked = check_config(ConfigModel.model_validate(data))
         except ValidationError as err:
-            points.append(ScanPoint(index, parameters, None, f"config error: {_one_line(err)}"))
+            points.append(ScanPoint(index, parameters, None,
+                                    f"config error: {one_line_error(err)}"))
             continue
         except ConfigError as err:
             points.append(ScanPoint(index, parameters, None, str(err)))
@@ -325,13 +326,13 @@ class _Prepared:
 def _prepare(config_json: str) -> _Prepared:
     from pydantic import ValidationError
 
-    from affinebody.config import _one_line, build
+    from affinebody.config import build, one_line_error
     from affinebody.integrators import get_integrator
 
     try:
         config = Config.model_validate(json.loads(config_json))
     except ValidationError as err:
-        raise ConfigError(_one_line(err)) from None
+        raise ConfigError(one_line_error(err)) from None
     built = build(check_config(config))
     return _Prepared(built.system, built.state, get_integrator(config.run.integrator),
                      float(config.run.dt), int(config.run.steps))
