@@ -159,7 +159,8 @@ def test_potential_invariants_consistent():
      "quantum.I must be > |quantum.A|"),
     ("[system]\nn = 2\n[quantum]\npotential = 'trG'\nfoo = 1\n", "quantum.foo"),
     ("[system]\nn = 2\n[quantum]\npotential = 'trG + x'\n", "quantum.potential"),
-    ("[system]\nn = 3\n[quantum]\npotential = 'trG'\nsectors = 'all'\n", "quantum.sectors"),
+    ("[system]\nn = 2\n[quantum]\npotential = 'trG'\nsectors = 'spin1'\n", "quantum.sectors"),
+    ("[system]\nn = 3\n[quantum]\npotential = 'trG'\nmax_spin = 9\n", "quantum.max_spin"),
 ])
 def test_config_errors_are_one_line(text, fragment):
     with pytest.raises(ConfigError) as err:

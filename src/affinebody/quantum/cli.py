@@ -4,8 +4,8 @@
 JSON object with ``energies`` (ascending, each repeated by its multiplicity) and ``states``
 (``energy``, ``multiplicity``, ``spin``, ``vorticity``, ``parity``, all ``sectors``, ``error``),
 plus ``unconverged`` (candidates whose estimate exceeds the tolerance: pseudo-levels of a
-continuous spectrum or an insufficient basis; never listed as levels), ``sectors`` ("all" for
-n = 2; "scalar", "spin1" or "scalar+spin1" for n = 3), ``bounded_below`` (false for af-af, whose
+continuous spectrum or an insufficient basis; never listed as levels), ``sectors`` ("all";
+for n = 3 also "scalar", "spin1", "scalar+spin1"), ``bounded_below`` (false for af-af, whose
 sector sum is unbounded below) and ``warnings`` (af-af; n = 3 spectra that hold only some
 sectors; a sector search stopped by max_spin), also printed under the table.
 ``affinebody density CONFIG.toml --state k -o DIR``: densities of the

@@ -16,7 +16,7 @@ the deformation invariants q1..qn (q_a = ln |Q_a|), Q1..Qn (signed singular valu
 the sign of det phi), trG = Tr G, K1..Kn (K_a = Tr G^a, eq. (17)) and det = det phi.
 
 Discretisation settings, all optional: ``levels`` (default 10), ``sectors`` ("auto", "all" for
-n = 2; "scalar", "spin1", "scalar+spin1" for n = 3, where "auto" is "scalar+spin1"),
+n = 2 and 3; for n = 3 also "scalar", "spin1", "scalar+spin1"; "auto" is "all"),
 ``basis_size``, ``scale``, ``scale_sigma``, ``centre``, ``tolerance``, ``max_spin``.
 Every error is one line naming the field, e.g.
 ``config error: quantum.hbar must be > 0 (got -1.0)``.
@@ -32,7 +32,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from affinebody.config import ConfigError, _one_line
+from affinebody.config import ConfigError, one_line_error
 from affinebody.quantum.spectra import Settings
 
 KINETIC_NAMES = ("dalembert", "af-is", "is-af", "af-af", "af-J")
@@ -43,7 +43,7 @@ class _Section(BaseModel):
 
 
 class QuantumSystem(_Section):
-    n: int = Field(description="spatial dimension (2, or 3 for the sectors (0,0) and (1,1))")
+    n: int = Field(description="spatial dimension (2 or 3)")
 
 
 class QuantumSection(_Section):
@@ -121,9 +121,9 @@ def check(config: QuantumConfig) -> QuantumConfig:
         if not I + A + n * B > 0:
             raise ConfigError(f"quantum.B must be > -(I + A)/n for {qc.kinetic} (got I={I}, "
                               f"A={A}, B={B}, n={n})")
-    if n == 3 and qc.sectors == "all":
-        raise ConfigError("quantum.sectors = 'all' is not available for n = 3: use 'scalar', "
-                          "'spin1' or 'scalar+spin1' (the sectors (0,0) and (1,1))")
+    if n == 3 and qc.max_spin > 6 and "max_spin" in qc.model_fields_set:
+        raise ConfigError(f"quantum.max_spin must be <= 6 for n = 3 (got {qc.max_spin}): "
+                          f"sectors up to (6, 6) are supported")
     if n == 2 and qc.sectors not in ("auto", "all"):
         raise ConfigError(f"quantum.sectors must be 'auto' or 'all' for n = 2 (got "
                           f"{qc.sectors!r})")
@@ -180,7 +180,7 @@ def parse(text: str, source: str = "config") -> QuantumConfig:
     try:
         config = QuantumConfig.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(_one_line(err)) from None
+        raise ConfigError(one_line_error(err)) from None
     return check(config)
 
 

@@ -58,7 +58,7 @@ from scipy import linalg, optimize, special
 Potential = Callable[[np.ndarray], np.ndarray]
 
 MODELS = ("dalembert", "af-is", "is-af", "af-af")
-SECTORS3 = ("scalar", "spin1", "scalar+spin1")
+SECTORS3 = ("all", "scalar", "spin1", "scalar+spin1")
 _N3_PARTIAL = ("n = 3: only the (spin, vorticity) sectors {sectors} are computed; states of the "
                "other SO(3) x SO(3) sectors (j, j') are not in this list")
 
@@ -133,7 +133,7 @@ class Spectrum:
     blocks: dict[tuple, Block]
     model: str
     n: int
-    sectors: str  # "all" (n = 2), or for n = 3 "scalar", "spin1", "scalar+spin1"
+    sectors: str  # "all", or for n = 3 "scalar", "spin1", "scalar+spin1"
     settings: dict = field(default_factory=dict)
     #: False where the sector sum is unbounded below (af-af): the levels are then only those of
     #: the sectors explored (|s|, |k| <= max_spin) and not the lowest of the body
@@ -574,11 +574,16 @@ def _solve_block(build: Callable[[int, float], tuple[np.ndarray, Basis]], size: 
                  count: int, settings: Settings
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Basis]:
     H, basis = build(size, scale)
+    if H.size == 0:  # no basis function (an n = 3 sector starting above this degree)
+        return np.zeros(0), np.zeros((0, 0)), np.zeros(0), basis
     E, vec = _dense_lowest(H, count)
     Hs, _ = build(size - settings.check_shrink, scale)
-    Es = linalg.eigvalsh(Hs)[: len(E)]
-    Hw, _ = build(size, scale * settings.check_widen)
-    Ew = linalg.eigvalsh(Hw)[: len(E)]
+    Es = linalg.eigvalsh(Hs)[: len(E)] if Hs.size else np.zeros(0)
+    if settings.check_widen == 1.0:
+        Ew = E
+    else:
+        Hw, _ = build(size, scale * settings.check_widen)
+        Ew = linalg.eigvalsh(Hw)[: len(E)]
     err = np.full(len(E), np.inf)
     k = min(len(Es), len(Ew))
     err[:k] = np.maximum(np.abs(E[:k] - Es[:k]), np.abs(E[:k] - Ew[:k]))
@@ -628,10 +633,11 @@ def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: flo
     """The lowest ``levels`` states (counted with multiplicity) of the reduced problem.
 
     ``model`` in :data:`MODELS`; d'Alembert uses J = inertia * Id, the affine models (I, A, B).
-    ``sectors``: "all" (n = 2: every (s, k)); for n = 3 "scalar" (spin = vorticity = 0),
-    "spin1" (spin = vorticity = 1, 9 states per level) or "scalar+spin1"; "auto" = "all" for
-    n = 2, "scalar+spin1" for n = 3. For n = 3 the other SO(3) x SO(3) sectors (j, j') are not
-    computed: the result says so in ``warnings``.
+    ``sectors``: "all" (every sector: n = 2 the characters (s, k), n = 3 the SO(3) x SO(3)
+    sectors (j, j') by :mod:`affinebody.quantum.n3`), "auto" = "all"; for n = 3 also "scalar"
+    (spin = vorticity = 0), "spin1" (spin = vorticity = 1, 9 states per level) or
+    "scalar+spin1" (the dedicated bases of those sectors; the result warns that the other
+    sectors are left out).
     """
     settings = settings or Settings()
     if model not in MODELS:
@@ -639,12 +645,16 @@ def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: flo
     if n not in (2, 3):
         raise ValueError(f"system.n must be 2 or 3 for quantum spectra (got {n})")
     if sectors == "auto":
-        sectors = "all" if n == 2 else "scalar+spin1"
+        sectors = "all"
     if n == 2 and sectors != "all":
         raise ValueError(f"quantum.sectors must be 'all' or 'auto' for n = 2 (got {sectors!r})")
     if n == 3 and sectors not in SECTORS3:
         raise ValueError(f"quantum.sectors must be one of {', '.join(SECTORS3)} for n = 3 (got "
-                         f"{sectors!r}): the other (spin, vorticity) sectors are not implemented")
+                         f"{sectors!r})")
+    if n == 3 and sectors == "all":
+        from affinebody.quantum.n3 import solve_all_sectors
+        return solve_all_sectors(model, potential, hbar, inertia, AffineInertia(model, I, A, B),
+                                 levels, settings)
     if n == 3 and (model != "dalembert" or sectors != "scalar"):
         return _solve_n3(model, potential, hbar, inertia, AffineInertia(model, I, A, B), levels,
                          settings, sectors)

@@ -1,0 +1,457 @@
+"""Every SO(3) x SO(3) sector (spin j, vorticity j') of the n = 3 two-polar reduction as a
+Galerkin eigenproblem (paper, last section; reduction.py for the operator; covariants3.py for
+the angular part).
+
+A state of the sector is psi_c(phi) = <c, Psi(phi)>, Psi a covariant, f(x) = Psi(diag x) its
+values on the Weyl chamber, in the M-fixed subspace of V_j (x) V_j' (coordinates f_r, r =
+covariants3.fixed_dimension(j, j')). The weak form of H on the sector is
+
+    int [ (hbar^2/2) sum_ab G^ab d_a f . d_b f + V |f|^2
+          + hbar^2 sum_{a<b} ( c_+ |(K_a b (x) 1 + 1 (x) K_ab) f|^2
+                             + c_- |(K_ab (x) 1 - 1 (x) K_ab) f|^2 )
+          + hbar^2 (c_rho j(j+1) + c_tau j'(j'+1)) |f|^2 ] J dx,
+
+the quadratic form of U_sector of reduction.py with rho_ab = (hbar/i) K_ab (x) 1,
+tau_ab = (hbar/i) 1 (x) K_ab (covariants3.rotation_generators; -K^2 summed is the Casimir).
+Coefficients as in reduction.py: d'Alembert (x = Q, J = prod |Q_a^2 - Q_b^2|, G = Id/I,
+c_+- = 1/(4 I (Q_a -+ Q_b)^2)); affine models (x = q, J = prod sinh(q_a - q_b),
+G = Id/M - B/(M(M + 3B)), c_+ = 1/(16 M sinh^2((q_a - q_b)/2)),
+c_- = -1/(16 M cosh^2((q_a - q_b)/2)), af-is c_tau = 1/(2 I~), is-af c_rho = 1/(2 I~)).
+The combination that multiplies the singular c_+ vanishes on the wall x_a = x_b for every
+restricted covariant (the joint rotation fixes diag x there), so each integrand is bounded.
+
+Bases (complete: covariants3 proves the module free over the invariants):
+* d'Alembert: g_i(Q/b) e^{-|Q|^2/2b^2} p2^a e3^b p4^c (Q/b), g_i the module generators,
+  total degree <= ``degree``: exact for the R^9 oscillator up to that degree.
+* affine: g_i(e^y) (y the traceless part of q: e^y has positive distinct entries off the
+  walls, so no spurious wall conditions) times the scalar front of spectra.py (prod
+  sqrt((q_a - q_b)/sinh(q_a - q_b)), Gaussians in y and sigma) and S3 invariants of (y, sigma)
+  of degree <= ``degree``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+from scipy import linalg
+
+from affinebody.quantum import covariants3 as cov
+
+PAIRS = ((0, 1), (0, 2), (1, 2))
+
+
+@dataclass(frozen=True)
+class SectorAlgebra:
+    """The fixed angular data of a sector: M-fixed coordinates E [m, r] of V_j (x) V_j' and the
+    r x r forms N_plus[g], N_minus[g] = E^T A^T A E of A = K_g (x) 1 +- 1 (x) K_g."""
+
+    j: int
+    jp: int
+    E: np.ndarray
+    N_plus: np.ndarray
+    N_minus: np.ndarray
+    generators: tuple  # ((degree, coefficients [monomials, m]), ...)
+
+    @property
+    def rank(self) -> int:
+        return self.E.shape[1]
+
+
+@cache
+def sector_algebra(j: int, jp: int) -> SectorAlgebra:
+    Kj, Kjp = cov.rotation_generators(j), cov.rotation_generators(jp)
+    Ij, Ijp = np.eye(2 * j + 1), np.eye(2 * jp + 1)
+    E = cov.fixed_subspace(j, jp)
+    plus, minus = [], []
+    for g in range(3):
+        for sign, out in ((1.0, plus), (-1.0, minus)):
+            A = (np.kron(Kj[g], Ijp) + sign * np.kron(Ij, Kjp[g])) @ E
+            out.append(A.T @ A)
+    gens = cov.module_generators(j, jp) if E.shape[1] else ()
+    return SectorAlgebra(j, jp, E, np.array(plus), np.array(minus), gens)
+
+
+def generator_values(algebra: SectorAlgebra, x: np.ndarray, max_degree: int | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The module generators (those of degree <= max_degree) at points x [P, 3]: values
+    [P, r, G], gradients d/dx [P, r, 3, G] (M-fixed coordinates) and their degrees [G]."""
+    P = x.shape[0]
+    gens = [(d, c) for d, c in algebra.generators if max_degree is None or d <= max_degree]
+    if not gens:
+        return np.zeros((P, algebra.rank, 0)), np.zeros((P, algebra.rank, 3, 0)), np.zeros(0, int)
+    top = max(d for d, _ in gens)
+    powers = np.ones((top + 1,) + x.shape)
+    for k in range(1, top + 1):
+        powers[k] = powers[k - 1] * x
+    vals, grads = [], []
+    cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for degree, coeffs in gens:
+        if degree not in cache:
+            exps = np.array(cov.monomials(degree))  # [nm, 3]
+            factors = [powers[exps[:, a], :, a].T for a in range(3)]  # [P, nm] each
+            mono = factors[0] * factors[1] * factors[2]
+            dmono = np.zeros((P, len(exps), 3))
+            for a in range(3):
+                lowered = powers[np.maximum(exps[:, a] - 1, 0), :, a].T * exps[:, a]
+                others = [factors[b] for b in range(3) if b != a]
+                dmono[:, :, a] = lowered * others[0] * others[1]
+            cache[degree] = (mono, dmono)
+        mono, dmono = cache[degree]
+        vals.append(mono @ coeffs)  # coefficients already in the M-fixed coordinates
+        grads.append(np.einsum("pna,nr->pra", dmono, coeffs, optimize=True))
+    return np.stack(vals, -1), np.stack(grads, -1), np.array([d for d, _ in gens])
+
+
+@dataclass(frozen=True)
+class Coefficients:
+    """The reduced Hamiltonian's coefficients at the nodes (see the module docstring)."""
+
+    G: np.ndarray  # [3, 3]
+    c_plus: np.ndarray  # [P, 3] times J (pairs), i.e. the weight of |A_+ f|^2
+    c_minus: np.ndarray  # [P, 3]
+    casimir: float  # hbar^2 (c_rho j(j+1) + c_tau j'(j'+1))
+
+
+def sector_coefficients(kind: str, x: np.ndarray, weights: np.ndarray, hbar: float, inertia,
+                        j: int, jp: int) -> Coefficients:
+    """Weights of the centrifugal forms (already multiplied by hbar^2 and the measure weights)."""
+    cp = np.zeros((x.shape[0], 3))
+    cm = np.zeros((x.shape[0], 3))
+    if kind == "lebesgue3":
+        I_ = float(inertia)
+        G = np.eye(3) / I_
+        for g, (a, b) in enumerate(PAIRS):
+            cp[:, g] = hbar**2 * weights / (4 * I_ * (x[:, a] - x[:, b]) ** 2)
+            cm[:, g] = hbar**2 * weights / (4 * I_ * (x[:, a] + x[:, b]) ** 2)
+        casimir = 0.0
+    else:
+        M = inertia.M
+        G = np.eye(3) / M - inertia.B / (M * (M + 3 * inertia.B)) * np.ones((3, 3))
+        for g, (a, b) in enumerate(PAIRS):
+            h = 0.5 * (x[:, a] - x[:, b])
+            cp[:, g] = hbar**2 * weights / (16 * M * np.sinh(h) ** 2)
+            cm[:, g] = -hbar**2 * weights / (16 * M * np.cosh(h) ** 2)
+        c = 0.5 * inertia.inv_I_tilde
+        casimir = hbar**2 * c * {"af-is": jp * (jp + 1), "is-af": j * (j + 1)}.get(
+            inertia.model, 0)
+    return Coefficients(G, cp, cm, casimir)
+
+
+def sector_forms(kind: str, algebra: SectorAlgebra, potential_values: np.ndarray, hbar: float,
+                 inertia, x: np.ndarray, weights: np.ndarray, vals: np.ndarray,
+                 grads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H, S) of the weak form for functions with values [P, r, K] and gradients [P, r, 3, K]
+    at nodes x [P, 3] with quadrature weights (measure J included)."""
+    co = sector_coefficients(kind, x, weights, hbar, inertia, algebra.j, algebra.jp)
+    P, r, K = vals.shape
+    flat = vals.reshape(P * r, K)
+    S = flat.T @ (np.repeat(weights, r)[:, None] * flat)
+    H = flat.T @ (np.repeat(weights * potential_values, r)[:, None] * flat)
+    H += co.casimir * S
+    Gg = np.matmul(co.G, grads) * weights[:, None, None, None]  # G acts on the gradient index
+    H += (hbar**2 / 2) * Gg.reshape(-1, K).T @ grads.reshape(-1, K)
+    for g in range(3):
+        for N, c in ((algebra.N_plus[g], co.c_plus[:, g]), (algebra.N_minus[g], co.c_minus[:, g])):
+            Nf = np.matmul(N, vals) * c[:, None, None]
+            H += Nf.reshape(P * r, K).T @ flat
+    return 0.5 * (H + H.T), 0.5 * (S + S.T)
+
+
+def invariant_monomials(kind: str, degree: int) -> list[tuple[int, ...]]:
+    """Exponents of the scalar factors: d'Alembert (p2, e3, p4) with weights (2, 3, 4);
+    affine (t, p2, p3) with weights (1, 2, 3); total weight <= degree, ascending."""
+    weights = (2, 3, 4) if kind == "lebesgue3" else (1, 2, 3)
+    r = range(degree + 1)
+    out = [(a, b, c) for a in r for b in r for c in r
+           if weights[0] * a + weights[1] * b + weights[2] * c <= degree]
+    return sorted(out, key=lambda e: (sum(w * k for w, k in zip(weights, e, strict=True)), e))
+
+
+def scalar_factors(kind: str, x: np.ndarray, scale: float, scale_sigma: float, centre: float
+                   ) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """(front value [P], front gradient [P, 3], [(invariant value, gradient)] x 3) at x."""
+    if kind == "lebesgue3":
+        y = x / scale
+        front = np.exp(-0.5 * np.sum(y * y, -1))
+        dfront = -x / scale**2 * front[:, None]
+        p2 = np.sum(y * y, -1)
+        e3 = np.prod(y, -1)
+        p4 = np.sum(y**4, -1)
+        de3 = np.stack([y[:, 1] * y[:, 2], y[:, 0] * y[:, 2], y[:, 0] * y[:, 1]], -1)
+        invs = [(p2, 2 * y / scale), (e3, de3 / scale), (p4, 4 * y**3 / scale)]
+        return front, dfront, invs
+    from affinebody.quantum.spectra import _sqrt_x_over_sinh_derivative_ratio, sqrt_x_over_sinh
+    P = x.shape[0]
+    centred = np.eye(3) - 1 / 3  # dy/dq
+    y = (x - x.mean(-1, keepdims=True)) / scale
+    t = (x.sum(-1) - centre) / scale_sigma
+    dt = np.ones((P, 3)) / scale_sigma
+    p2 = np.sum(y * y, -1)
+    dp2 = 2 * y @ centred / scale
+    p3 = np.sum(y**3, -1)
+    dp3 = 3 * y**2 @ centred / scale
+    front = np.exp(-0.5 * (p2 + t * t))
+    dfront = front[:, None] * (-0.5 * dp2 - t[:, None] * dt)
+    for a, b in PAIRS:
+        d = x[:, a] - x[:, b]
+        g = sqrt_x_over_sinh(d)
+        dlog = _sqrt_x_over_sinh_derivative_ratio(d)
+        grad = np.zeros((P, 3))
+        grad[:, a], grad[:, b] = dlog, -dlog
+        dfront = dfront * g[:, None] + front[:, None] * g[:, None] * grad
+        front = front * g
+    return front, dfront, [(t, dt), (p2, dp2), (p3, dp3)]
+
+
+def sector_candidates(kind: str, algebra: SectorAlgebra, x: np.ndarray, degree: int,
+                      scale: float, scale_sigma: float = 1.0, centre: float = 0.0
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidate basis functions at x: values [P, r, K], gradients [P, r, 3, K], parity under
+    phi -> -phi [K] ((-1)^degree; d'Alembert only, +1 otherwise) and the level [K] of each (the
+    degree it enters the basis at): the candidates of ``degree - k`` are those of level <=
+    degree - k, so smaller bases are nested in larger ones."""
+    if kind == "lebesgue3":
+        gv, gg, gdeg = generator_values(algebra, x / scale, degree)
+        gg = gg / scale
+    else:
+        y = x - x.mean(-1, keepdims=True)
+        ex = np.exp(y)
+        gv, gg, gdeg = generator_values(algebra, ex)
+        # d/dq_a g(e^y) = sum_c dg/dx_c e^{y_c} (delta_ca - 1/3)
+        gg = np.einsum("prck,pc,ca->prak", gg, ex, np.eye(3) - 1 / 3)
+    front, dfront, invs = scalar_factors(kind, x, scale, scale_sigma, centre)
+    weights = (2, 3, 4) if kind == "lebesgue3" else (1, 2, 3)
+    vals, grads, parity, level = [], [], [], []
+    for i, gd in enumerate(gdeg):
+        # d'Alembert: all covariant polynomials of degree <= degree (oscillator-exact);
+        # affine: generators above the sector's lowest one get correspondingly fewer factors
+        budget = degree - gd if kind == "lebesgue3" else degree - (gd - gdeg.min())
+        if budget < 0:
+            continue
+        for e in invariant_monomials(kind, budget):
+            s, ds = front.copy(), dfront.copy()
+            for (v, dv), k in zip(invs, e, strict=True):
+                if k:
+                    ds = ds * v[:, None] ** k + s[:, None] * k * v[:, None] ** (k - 1) * dv
+                    s = s * v**k
+            vals.append(gv[:, :, i] * s[:, None])
+            grads.append(gg[:, :, :, i] * s[:, None, None] + gv[:, :, i, None] * ds[:, None, :])
+            total = gd + sum(w * k for w, k in zip(weights, e, strict=True))
+            parity.append((-1) ** total if kind == "lebesgue3" else 1)
+            level.append(total if kind == "lebesgue3" else degree - budget + total - gd)
+    if not vals:
+        P = x.shape[0]
+        return (np.zeros((P, algebra.rank, 0)), np.zeros((P, algebra.rank, 3, 0)), np.zeros(0),
+                np.zeros(0, int))
+    return np.stack(vals, -1), np.stack(grads, -1), np.array(parity), np.array(level)
+
+
+@dataclass(frozen=True)
+class SectorBasis:
+    """Orthonormal basis functions of a sector on a grid (for densities and checks)."""
+
+    kind: str
+    j: int
+    jp: int
+    nodes: np.ndarray
+    weights: np.ndarray
+    values: np.ndarray  # [P, r, K], orthonormal under the weights
+    parity: np.ndarray
+    levels: np.ndarray  # [K] the level of each function, ascending (nested smaller bases)
+
+
+def sector_block(kind: str, potential, hbar: float, inertia, grid, j: int, jp: int,
+                 degree: int, scale: float, scale_sigma: float = 1.0, centre: float = 0.0,
+                 chunk: int = 4096) -> tuple[np.ndarray, SectorBasis]:
+    """Galerkin Hamiltonian of the sector (j, j') in an orthonormal basis: Householder QR of
+    the candidates' values under the measure in the order of their levels, so the leading
+    k x k block of H is the Hamiltonian of the nested basis of the first k functions (the
+    parities stay separate: even and odd functions are orthogonal under the measure when
+    phi -> -phi is a symmetry); then the forms accumulated over chunks of nodes (bounded
+    memory), and a Cholesky finish (lower-triangular, so the nesting is kept)."""
+    algebra = sector_algebra(j, jp)
+    x, w = grid.nodes, grid.weights
+    args = (kind, algebra)
+    kwargs = dict(degree=degree, scale=scale, scale_sigma=scale_sigma, centre=centre)
+
+    def candidates(sl):
+        vals, grads, parity, level = sector_candidates(*args, x[sl], **kwargs)
+        order = np.argsort(level, kind="stable")
+        return vals[..., order], grads[..., order], parity[order], level[order]
+    vals = np.concatenate([candidates(slice(i, i + chunk))[0] for i in range(0, len(x), chunk)])
+    _, _, parity, level = candidates(slice(0, 1))
+    P, r, K = vals.shape
+    if K == 0:
+        return np.zeros((0, 0)), SectorBasis(kind, j, jp, x, w, vals, parity, level)
+    R = np.linalg.qr((np.sqrt(w)[:, None, None] * vals).reshape(P * r, K), mode="r")
+    keep = np.abs(np.diag(R)) > 1e-10 * np.max(np.abs(np.diag(R)))
+    T = linalg.solve_triangular(R[np.ix_(keep, keep)], np.eye(int(keep.sum())))
+    Q = x if kind == "lebesgue3" else np.exp(x)
+    V = np.asarray(potential(Q), float)
+    H = np.zeros((len(T), len(T)))
+    S = np.zeros_like(H)
+    for i in range(0, P, chunk):
+        sl = slice(i, i + chunk)
+        cv, cg, *_ = candidates(sl)
+        h, s = sector_forms(kind, algebra, V[sl], hbar, inertia, x[sl], w[sl],
+                            cv[..., keep] @ T, cg[..., keep] @ T)
+        H += h
+        S += s
+    Linv = linalg.solve_triangular(np.linalg.cholesky(S), np.eye(len(S)), lower=True)
+    H = Linv @ H @ Linv.T
+    values = vals[..., keep] @ T @ Linv.T
+    return 0.5 * (H + H.T), SectorBasis(kind, j, jp, x, w, values, parity[keep], level[keep])
+
+
+def sector_dimension(j: int, jp: int) -> int:
+    """States per level of the sector: (2j + 1)(2j' + 1)."""
+    return (2 * j + 1) * (2 * jp + 1)
+
+
+def sectors_by_shell(max_spin: int) -> list[list[tuple[int, int]]]:
+    """Sectors (j, j') with a non-empty module, grouped by shell max(j, j')."""
+    return [[(j, jp) for j in range(L + 1) for jp in range(L + 1) if max(j, jp) == L
+             and cov.fixed_dimension(j, jp) > 0] for L in range(max_spin + 1)]
+
+
+def lowest_degree(j: int, jp: int) -> int:
+    """Lowest polynomial degree carrying the sector (R^9 oscillator: its lowest shell N)."""
+    return next(d for d in range(4 * (j + jp) + 1) if cov.polynomial_multiplicity(j, jp, d))
+
+
+__all__ = ["SectorAlgebra", "sector_algebra", "sector_block", "sector_forms",
+           "sector_candidates", "generator_values", "sector_dimension", "sectors_by_shell",
+           "lowest_degree"]
+
+
+# --------------------------------------------------------------------------- the solver
+#: shells max(j, j') explored by default for n = 3 (the generators of (6, 6) have degree 18)
+MAX_SHELL = 6
+
+
+def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float, inertia,
+                      levels: int, settings):
+    """The lowest ``levels`` states of the n = 3 body over every sector (j, j'), shell by shell
+    (shell = max(j, j')), stopping when a whole shell lies above the levels found.
+
+    d'Alembert and af-af are symmetric under phi -> phi^T, which swaps (j, j') and (j', j):
+    one block serves both (both sectors are listed on its levels). af-is and is-af are each
+    other's transpose and need every sector.
+    """
+    from dataclasses import replace
+
+    from affinebody.quantum import spectra as sp
+
+    kind = "lebesgue3" if model == "dalembert" else "haar3"
+    degree = settings.basis_size
+
+    def nested(compute):
+        """A block builder that computes the largest basis once per scale and answers the
+        nested check bases (smaller degree) with the leading block of its Hamiltonian."""
+        cache: dict = {}
+
+        def block(d, sc):
+            if sc not in cache or cache[sc][0] < d:
+                cache[sc] = (d,) + compute(d, sc)
+            _, grid, (H, basis) = cache[sc]
+            k = int(np.sum(basis.levels <= d))
+            return H[:k, :k], sp.Basis("grid3", (kind, grid, basis.values[..., :k],
+                                                 basis.parity[:k], None))
+        return block
+
+    info: dict = {"basis_size": degree}
+    if kind == "lebesgue3":
+        b = settings.scale or sp.auto_scale_scalar3(potential, hbar, inertia_scalar)
+        info["scale"] = b
+        quad = sp.ChamberQuadrature.build(b * (8.0 + 0.75 * np.sqrt(degree + 1)),
+                                          n_rho=40 + 2 * degree, n_angle=16 + degree)
+        grid = sp.Grid3(quad.nodes, quad.weights)
+        flip = quad.nodes * np.array([1.0, 1.0, -1.0])
+        symmetric_parity = np.allclose(potential(flip), potential(quad.nodes), rtol=1e-12,
+                                       atol=1e-12)
+
+        def build(j, jp):
+            return nested(lambda d, sc: (grid, sector_block(kind, potential, hbar, inertia_scalar,
+                                                            grid, j, jp, d, sc)))
+        check = replace(settings, check_widen=1.0)  # a Gaussian of another width: degree only
+    else:
+        if settings.scale is None or settings.scale_sigma is None or settings.centre is None:
+            b, bs, c0 = sp.auto_scale_haar3(potential, hbar, inertia)
+        b = settings.scale or b
+        bs = settings.scale_sigma or bs
+        c0 = c0 if settings.centre is None else settings.centre
+        info.update(scale=b, scale_sigma=bs, centre=c0)
+        symmetric_parity = False  # -phi is not in GL+(3)
+
+        def build(j, jp):
+            def block(d, sc):
+                grid = sp.haar3_grid(sc, bs * sc / b, c0, 20 + 2 * d, 10 + d, 6 + d)
+                return grid, sector_block(kind, potential, hbar, inertia, grid, j, jp, d, sc,
+                                          bs * sc / b, c0)
+            return nested(block)
+        check = replace(settings, check_widen=min(settings.check_widen, 1.1))
+    transpose_symmetric = model in ("dalembert", "af-af")
+    max_shell = min(settings.max_spin, MAX_SHELL)
+    blocks: dict = {}
+    entries: list = []
+    unconverged: list = []
+    shell_minima: list[float] = []
+    count = levels + 4
+    finished = False
+    for shell in sectors_by_shell(max_shell):
+        shell_min = np.inf
+        for j, jp in shell:
+            if transpose_symmetric and j > jp:
+                continue
+            if kind == "lebesgue3" and lowest_degree(j, jp) > degree:
+                continue  # no covariant polynomial of the basis degree: not resolved
+            E, vec, err, basis = sp._solve_block(build(j, jp), degree, info["scale"], count,
+                                                 check)
+            if len(E) == 0:
+                continue
+            parity = basis.factors[3]
+            twins = [(j, jp)] + ([(jp, j)] if transpose_symmetric and j != jp else [])
+            for i in range(len(E)):
+                even = float(np.sum(vec[parity == 1, i] ** 2))
+                p = 1 if even > 1 - 1e-8 else (-1 if even < 1e-8 else None)
+                sec = tuple(sp.Sector(a, c, p if symmetric_parity else None,
+                                      sector_dimension(a, c)) for a, c in twins)
+                key = ("sector", j, jp, i)
+                blocks[key] = sp.Block(key, sec, basis, E[i:i + 1], vec[:, i:i + 1],
+                                       err[i:i + 1])
+                if sp._converged(E[i], err[i], settings):
+                    entries.append((float(E[i]), float(err[i]), sec, key, 0))
+                else:
+                    unconverged.append(sp.Level(float(E[i]), sp._states(sec), sec,
+                                                float(err[i]), key, 0))
+            shell_min = min(shell_min, float(E[0]))
+        shell_minima.append(shell_min)
+        # a shell entirely above the lowest `levels` states found so far (converged or not:
+        # an unconverged level still bounds what a higher shell could add) ends the search
+        known = entries + [(lv.energy, lv.error, lv.sectors, lv.block, 0) for lv in unconverged]
+        total = sum(sp._states(e[2]) for e in known)
+        if model != "af-af" and total >= levels and shell_min > sp._kth(known, levels):
+            finished = True
+            break
+    warnings = []
+    bounded = True
+    if model == "af-af":
+        bounded = False
+        warnings.append("af-af: the kinetic energy (72) is indefinite; every sector is bounded "
+                        "below but their sum is not (the wells -hbar^2 (rho - tau)^2 / "
+                        "(16 A cosh^2) deepen with the spin); shells explored up to "
+                        f"max(j, j') = {max_shell}, lowest level per shell: "
+                        + ", ".join(f"{e:.4g}" for e in shell_minima if np.isfinite(e)))
+    elif not finished:
+        warnings.append(f"the sector search stopped at max(j, j') = {max_shell} before the "
+                        f"{levels} lowest states were certain: raise quantum.max_spin "
+                        f"(at most {MAX_SHELL} for n = 3)")
+    merged = sp._truncate(sp._merge(entries, settings), levels)
+    top = merged[-1].energy if merged and sum(lv.multiplicity for lv in merged) >= levels \
+        else np.inf
+    limit = top + settings.merge * max(1.0, abs(top))
+    unconverged = sorted((lv for lv in unconverged if lv.energy <= limit),
+                         key=lambda lv: lv.energy)
+    return sp.Spectrum(merged, unconverged, blocks, model, 3, "all", info, bounded, warnings)
