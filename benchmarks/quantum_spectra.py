@@ -18,6 +18,7 @@ import tracemalloc
 import numpy as np
 
 from affinebody.quantum import spectra as sp
+from affinebody.quantum import thermal as th
 
 COUNT = 30
 
@@ -78,9 +79,9 @@ def classical_limit() -> None:
           "   slope")
     previous = None
     for hbar, size in ((0.5, 40), (0.35, 40), (0.25, 50), (0.18, 60), (0.13, 80), (0.1, 100)):
-        zq, t, _ = measure(lambda h=hbar, n=size: sp.partition_function_affine2(
+        zq, t, _ = measure(lambda h=hbar, n=size: th.partition_function_affine2(
             "af-is", v_x, v_sigma, h, 1.0, I=1.0, A=0.2, B=0.1, size=n))
-        zc = sp.classical_partition_function_affine2("af-is", v_of_q, hbar, 1.0, I=1.0, A=0.2,
+        zc = th.classical_partition_function_affine2("af-is", v_of_q, hbar, 1.0, I=1.0, A=0.2,
                                                      B=0.1)
         rel = zq.value / zc - 1
         slope = "" if previous is None else (

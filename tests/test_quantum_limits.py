@@ -13,8 +13,10 @@ import pytest
 from scipy import integrate
 
 from affinebody.kinetic import AffineIsotropic, IsotropicAffine
+from affinebody.quantum import n3
 from affinebody.quantum import reduction as rd
 from affinebody.quantum import spectra as sp
+from affinebody.quantum import thermal as th
 
 I, A, B = 1.0, 0.2, 0.1  # noqa: E741  (positive-definite region: I > |A|, I + A + n B > 0)
 
@@ -44,18 +46,18 @@ def test_metric_determinant_against_kinetic_hessian(model, cls, n):
     for _ in range(3):
         phi = jnp.asarray(rng.normal(size=(n, n)) + 2 * np.eye(n))
         K = metric(jnp.zeros(n * n), phi)
-        expected = sp.affine_metric_determinant(model, n, I, A, B) * abs(
+        expected = th.affine_metric_determinant(model, n, I, A, B) * abs(
             np.linalg.det(phi)) ** (-2 * n)
         assert np.linalg.det(np.asarray(K)) == pytest.approx(expected, rel=1e-10)
     with pytest.raises(ValueError, match="indefinite"):
-        sp.affine_metric_determinant("af-af", n, 0.0, A, B)
+        th.affine_metric_determinant("af-af", n, 0.0, A, B)
 
 
 def test_classical_partition_function_quadrature_against_separated_integrals():
     """Z_cl by the 2D Gauss-Legendre quadrature of the library vs the product of 1D adaptive
     integrals: int_{x>0} sinh x e^{-beta V_x} dx int e^{-beta V_sigma} dsigma / 2."""
     hbar, beta = 0.3, 0.8
-    zc = sp.classical_partition_function_affine2("af-is", V_of_Q, hbar, beta, I=I, A=A, B=B)
+    zc = th.classical_partition_function_affine2("af-is", V_of_Q, hbar, beta, I=I, A=A, B=B)
     ix = integrate.quad(lambda x: 0.5 * (np.exp(x - beta * V_x(x)) - np.exp(-x - beta * V_x(x))),
                         0, np.inf, epsabs=0, epsrel=1e-12)[0]
     isg = integrate.quad(lambda s: np.exp(-beta * V_sigma(s)), -np.inf, np.inf, epsabs=0,
@@ -75,13 +77,13 @@ def test_partition_function_approaches_classical_limit_like_hbar_squared():
     beta = 1.0
     rel = []
     for hbar in hbars:
-        zq = sp.partition_function_affine2("af-is", V_x, V_sigma, hbar, beta, I=I, A=A, B=B,
+        zq = th.partition_function_affine2("af-is", V_x, V_sigma, hbar, beta, I=I, A=A, B=B,
                                            size=44)
-        zc = sp.classical_partition_function_affine2("af-is", V_of_Q, hbar, beta, I=I, A=A, B=B)
+        zc = th.classical_partition_function_affine2("af-is", V_of_Q, hbar, beta, I=I, A=A, B=B)
         rel.append(zq.value / zc - 1)
         assert zq.error < 0.02 * abs(zq.value - zc)
         assert zq.sectors > 100  # the sum really runs over many sectors
-        twin = sp.partition_function_affine2("is-af", V_x, V_sigma, hbar, beta, I=I, A=A, B=B,
+        twin = th.partition_function_affine2("is-af", V_x, V_sigma, hbar, beta, I=I, A=A, B=B,
                                              size=44, check=False)
         assert twin.value == pytest.approx(zq.value, rel=1e-8)
     rel = np.array(rel)
@@ -95,7 +97,7 @@ def test_partition_function_approaches_classical_limit_like_hbar_squared():
 
 def test_partition_function_rejects_af_af():
     with pytest.raises(ValueError, match="unbounded below"):
-        sp.partition_function_affine2("af-af", V_x, V_sigma, 0.3, 1.0, I=0.0, A=A, B=B)
+        th.partition_function_affine2("af-af", V_x, V_sigma, 0.3, 1.0, I=0.0, A=A, B=B)
 
 
 # ------------------------------------------------------- n = 3: spin = vorticity = 1 sector
@@ -168,8 +170,8 @@ def test_spin1_weak_form_matches_reduced_operator(model):
     if model == "dalembert":
         red = rd.TwoPolarReduction("dalembert", 3, 1.3, 0.0, 0.0, hbar)
         inertia = 1.3
-        quad = sp.ChamberQuadrature.build(7.0, 36, 16)
-        grid = sp.Grid3(quad.nodes, quad.weights)
+        quad = n3.ChamberQuadrature.build(7.0, 36, 16)
+        grid = n3.Grid3(quad.nodes, quad.weights)
         kind = "lebesgue3"
 
         def f(x):  # equivariant under permutations and even sign changes of Q
@@ -178,7 +180,7 @@ def test_spin1_weak_form_matches_reduced_operator(model):
     else:
         red = rd.TwoPolarReduction(model, 3, 1.3, 0.4, 0.25, hbar)
         inertia = sp.AffineInertia(model, 1.3, 0.4, 0.25)
-        grid = sp.haar3_grid(0.6, 0.6, 0.1, 30, 16, 12)
+        grid = n3.haar3_grid(0.6, 0.6, 0.1, 30, 16, 12)
         kind = "haar3"
 
         def f(x):  # equivariant under permutations of q
@@ -193,7 +195,7 @@ def test_spin1_weak_form_matches_reduced_operator(model):
     nodes = jnp.asarray(grid.nodes)
     vals = np.asarray(jax.vmap(f)(nodes))[..., None]
     grads = np.asarray(jax.vmap(jax.jacfwd(f))(nodes))[..., None]
-    H, S = sp.channel3_forms(kind, V, hbar, inertia, grid, vals, grads, spin1=True)
+    H, S = n3.channel3_forms(kind, V, hbar, inertia, grid, vals, grads, spin1=True)
     channel = rd.cartesian_channel(3, 1, 1)
     diag = jnp.array([0, 4, 8])
 

@@ -7,7 +7,12 @@
                        (114), (115).
 - :mod:`.reduction`    reduction of doubly isotropic Hamiltonians to the deformation invariants
                        in two-polar coordinates (radial operator, centrifugal/sector terms).
-- :mod:`.spectra`, :mod:`.densities`, :mod:`.config`, :mod:`.cli`: numerical spectra.
+- :mod:`.spectra`      numerical spectra: results, n = 2 sectors, the shared solver machinery.
+- :mod:`.n3`           n = 3: every SO(3) x SO(3) sector (j, j'), with the angular parts from
+                       :mod:`.covariants3` (covariants restricted to diagonal matrices).
+- :mod:`.thermal`      partition functions and the classical limit.
+- :mod:`.densities`, :mod:`.config`, :mod:`.cli`: probability densities, TOML configs, the
+                       ``spectrum`` / ``density`` commands.
 
 Submodules are imported explicitly (``from affinebody.quantum import operators``) so that the
 package import stays light.

@@ -171,6 +171,31 @@ def polynomial_multiplicity(j: int, jp: int, degree: int) -> int:
     return n(j, jp) - n(j + 1, jp) - n(j, jp + 1) + n(j + 1, jp + 1)
 
 
+@cache
+def _symmetric_matrix_weights(degree: int) -> dict[int, int]:
+    """Weight multiplicities of SO(2) in the polynomials of ``degree`` on Sym(3) = V_0 + V_2."""
+    table: dict[tuple[int, int], int] = {(0, 0): 1}  # (size, M) -> count
+    for wm in (0, -2, -1, 0, 1, 2):
+        new = dict(table)
+        for (size, M), c in table.items():
+            for k in range(1, degree - size + 1):
+                key = (size + k, M + k * wm)
+                new[key] = new.get(key, 0) + c
+        table = new
+    return {M: c for (size, M), c in table.items() if size == degree}
+
+
+def covariant_count(j: int, jp: int, degree: int, model: str = "matrix") -> int:
+    """Independent covariants of type V_j (x) V_j' of ``degree``: ``"matrix"``, SO(3) x SO(3)
+    on R^{3x3} (:func:`polynomial_multiplicity`); ``"symmetric"``, the diagonal SO(3) on
+    symmetric matrices S (V_j (x) V_j' = sum of V_J, |j - j'| <= J <= j + j', each counted by
+    its multiplicity in the polynomials)."""
+    if model == "matrix":
+        return polynomial_multiplicity(j, jp, degree)
+    w = _symmetric_matrix_weights(degree)
+    return sum(w.get(J, 0) - w.get(J + 1, 0) for J in range(abs(j - jp), j + jp + 1))
+
+
 # --------------------------------------------------- invariants of (phi, u, w) at phi = diag x
 # A polynomial in (x, u, w) as {(ex, eu, ew): coefficient}.
 Poly = dict
@@ -238,23 +263,36 @@ def _bidegree(p: Poly) -> tuple[int, int, int]:
     return sum(eu), sum(ew), sum(ex)
 
 
-@lru_cache(maxsize=1)
-def basic_invariants() -> tuple[tuple[Poly, ...], tuple[Poly, ...]]:
-    """(contractions, determinants) restricted to phi = diag x, each homogeneous in x, u and w;
-    the invariants of phi alone (bidegree (0, 0)) are left out: they are the module's ring."""
-    left = [("u", 0), ("u", 2), ("u", 4), ("w", 1), ("w", 3), ("w", 5), ("cofw", 0)]
-    right = [("w", 0), ("w", 2), ("w", 4), ("u", 1), ("u", 3), ("u", 5), ("cofu", 0)]
-    vec = {v: _vector(*v) for v in left + right}
-    contractions: list[Poly] = []
-    for k in (1, 2):
-        contractions.append(_dot(vec[("u", 0)], vec[("u", 2 * k)]))  # u^T B^k u
-        contractions.append(_dot(vec[("w", 0)], vec[("w", 2 * k)]))  # w^T C^k w
-    for k in (0, 1, 2):
-        contractions.append(_dot(vec[("u", 0)], vec[("w", 2 * k + 1)]))  # u^T B^k phi w
-    contractions.append(_dot(vec[("u", 0)], vec[("cofw", 0)]))  # u^T cof(phi) w
+@lru_cache(maxsize=2)
+def basic_invariants(model: str = "matrix") -> tuple[tuple[Poly, ...], tuple[Poly, ...]]:
+    """(contractions, determinants) restricted to diag x, each homogeneous in x, u and w; the
+    invariants of x alone (bidegree (0, 0)) are left out: they are the module's ring.
+
+    ``"matrix"``: phi under SO(3) x SO(3) (B = phi phi^T, C = phi^T phi). ``"symmetric"``: a
+    symmetric S under the diagonal SO(3) (u^T S^k u, w^T S^k w, u^T S^k w with k = 0 allowed,
+    determinants of S^k u, S^k w)."""
+    if model == "symmetric":
+        side = [("u", 0), ("u", 1), ("u", 2), ("w", 0), ("w", 1), ("w", 2)]
+        vec = {v: _vector(*v) for v in side}
+        contractions = [_dot(vec[("u", 0)], vec[("u", k)]) for k in (1, 2)]
+        contractions += [_dot(vec[("w", 0)], vec[("w", k)]) for k in (1, 2)]
+        contractions += [_dot(vec[("u", 0)], vec[("w", k)]) for k in (0, 1, 2)]
+        sides: list[list] = [side]
+    else:
+        left = [("u", 0), ("u", 2), ("u", 4), ("w", 1), ("w", 3), ("w", 5), ("cofw", 0)]
+        right = [("w", 0), ("w", 2), ("w", 4), ("u", 1), ("u", 3), ("u", 5), ("cofu", 0)]
+        vec = {v: _vector(*v) for v in left + right}
+        contractions = []
+        for k in (1, 2):
+            contractions.append(_dot(vec[("u", 0)], vec[("u", 2 * k)]))  # u^T B^k u
+            contractions.append(_dot(vec[("w", 0)], vec[("w", 2 * k)]))  # w^T C^k w
+        for k in (0, 1, 2):
+            contractions.append(_dot(vec[("u", 0)], vec[("w", 2 * k + 1)]))  # u^T B^k phi w
+        contractions.append(_dot(vec[("u", 0)], vec[("cofw", 0)]))  # u^T cof(phi) w
+        sides = [left, right]
     dets: list[Poly] = []
     seen = set()
-    for side in (left, right):
+    for side in sides:
         for triple in combinations(side, 3):
             p = _det(tuple(vec[v] for v in triple))
             key = frozenset((k, round(c, 12)) for k, c in p.items())
@@ -286,15 +324,23 @@ def _flatten(vp: dict[Exp, np.ndarray], degree: int, m: int) -> np.ndarray:
     return out.ravel()
 
 
-def _invariant_multiples(vec: np.ndarray, degree: int, m: int) -> list[tuple[int, np.ndarray]]:
-    """p2, e3, p4 times a covariant of ``degree`` given as flat coefficients [monos * m]."""
+def _power_sum(k: int) -> list[tuple[Exp, float]]:
+    return [(tuple(k * int(b == a) for b in range(3)), 1.0) for a in range(3)]
+
+
+#: basic invariants of x (restricted to diag x) by model, keyed by degree
+RING = {"matrix": {2: _power_sum(2), 3: [((1, 1, 1), 1.0)], 4: _power_sum(4)},
+        "symmetric": {1: _power_sum(1), 2: _power_sum(2), 3: _power_sum(3)}}
+
+
+def _invariant_multiples(vec: np.ndarray, degree: int, m: int, model: str
+                         ) -> list[tuple[int, np.ndarray]]:
+    """The basic invariants (:data:`RING`) times a covariant of ``degree`` given as flat
+    coefficients [monos * m]."""
     coeffs = vec.reshape(-1, m)
     mono = monomials(degree)
     out = []
-    invariants = {2: [((2, 0, 0), 1.0), ((0, 2, 0), 1.0), ((0, 0, 2), 1.0)],
-                  3: [((1, 1, 1), 1.0)],
-                  4: [((4, 0, 0), 1.0), ((0, 4, 0), 1.0), ((0, 0, 4), 1.0)]}
-    for dg, terms in invariants.items():
+    for dg, terms in RING[model].items():
         vp: dict[Exp, np.ndarray] = {}
         for e, row in zip(mono, coeffs, strict=True):
             for f, c in terms:
@@ -304,10 +350,10 @@ def _invariant_multiples(vec: np.ndarray, degree: int, m: int) -> list[tuple[int
     return out
 
 
-def _products(j: int, jp: int, degree: int) -> list[Poly]:
+def _products(j: int, jp: int, degree: int, model: str) -> list[Poly]:
     """Products of basic invariants with bidegree (j, j') and x-degree ``degree`` (at most one
     determinant factor: a product of two is a polynomial in contractions on one side)."""
-    contractions, dets = basic_invariants()
+    contractions, dets = basic_invariants(model)
     gens = [(g, _bidegree(g)) for g in contractions]
     out = []
     factors = [None] + list(dets)
@@ -343,14 +389,22 @@ def _row_space(rows: np.ndarray, tol: float = 1e-9) -> np.ndarray:
 
 
 @cache
-def module_generators(j: int, jp: int, max_degree: int = 24) -> tuple[tuple[int, np.ndarray], ...]:
+def module_generators(j: int, jp: int, model: str = "matrix", max_degree: int = 24
+                      ) -> tuple[tuple[int, np.ndarray], ...]:
     """Homogeneous generators of the free module of (j, j') covariants over the invariants:
     ((degree, coefficients [monomials(degree), r]), ...), exactly r = fixed_dimension(j, j') of
     them, with values in the coordinates :func:`fixed_subspace` of the M-fixed subspace.
 
+    ``model``: "matrix" (phi in R^{3x3} under SO(3) x SO(3), ring p2, e3, p4: d'Alembert) or
+    "symmetric" (S = log of the polar factor under the diagonal SO(3), ring p1, p2, p3: the
+    affine models on GL+(3), where phi -> (U, S) with U = polar rotation, and a covariant is
+    (D(U) (x) 1) chi(S) with chi a covariant of S; its walls are q_a = q_b only). Both are
+    isotropy representations of symmetric spaces (SO(3,3)/S(O(3) x O(3)), SL(3)/SO(3)), so
+    the module is free of rank dim (V_j (x) V_j')^M (Kostant-Rallis).
+
     Degree by degree, the restricted covariants are spanned (checked against
-    :func:`polynomial_multiplicity`) and the new generators complete the multiples of the
-    lower ones by p2, e3, p4. Raises RuntimeError if the spans fall short (the invariant list
+    :func:`covariant_count`) and the new generators complete the multiples of the lower ones
+    by the basic invariants. Raises RuntimeError if the spans fall short (the invariant list
     would be incomplete) or the rank is not reached by ``max_degree``.
     """
     E = fixed_subspace(j, jp)
@@ -358,19 +412,20 @@ def module_generators(j: int, jp: int, max_degree: int = 24) -> tuple[tuple[int,
     if j > jp:  # phi -> phi^T swaps u and w and fixes diag x: transpose the (j', j) ones
         Et = fixed_subspace(jp, j)
         return tuple((d, (c @ Et.T).reshape(-1, 2 * jp + 1, 2 * j + 1).transpose(0, 2, 1)
-                      .reshape(-1, m) @ E) for d, c in module_generators(jp, j, max_degree))
+                      .reshape(-1, m) @ E) for d, c in module_generators(jp, j, model,
+                                                                          max_degree))
     generators: list[tuple[int, np.ndarray]] = []
     spans: dict[int, np.ndarray] = {}  # degree -> orthonormal rows of the restricted covariants
     multiples: dict[int, list[np.ndarray]] = {}
     for degree in range(max_degree + 1):
         if len(generators) == rank:
             break
-        expected = polynomial_multiplicity(j, jp, degree)
+        expected = covariant_count(j, jp, degree, model)
         lower = multiples.pop(degree, [])
         if expected == 0:
             continue
         rows = [(_flatten(_project(p, j, jp), degree, m).reshape(-1, m) @ E).ravel()
-                for p in _products(j, jp, degree)]
+                for p in _products(j, jp, degree, model)]
         span = _row_space(np.array(rows + lower) if rows or lower else np.zeros((0, 1)))
         if len(span) != expected:
             raise RuntimeError(f"covariants ({j}, {jp}) of degree {degree}: spanned {len(span)} "
@@ -383,7 +438,7 @@ def module_generators(j: int, jp: int, max_degree: int = 24) -> tuple[tuple[int,
         for row in new:
             generators.append((degree, row.reshape(-1, rank)))
         for row in span:
-            for dg, vec in _invariant_multiples(row, degree, rank):
+            for dg, vec in _invariant_multiples(row, degree, rank, model):
                 multiples.setdefault(dg, []).append(vec)
     if len(generators) != rank:
         raise RuntimeError(f"covariants ({j}, {jp}): {len(generators)} generators up to degree "

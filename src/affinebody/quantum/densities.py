@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from affinebody.quantum.spectra import ChamberQuadrature, Level, Spectrum, sqrt_x_over_sinh
+from affinebody.quantum.n3 import ChamberQuadrature
+from affinebody.quantum.spectra import Level, Spectrum, sqrt_x_over_sinh
 
 
 def _hist(values: np.ndarray, weights: np.ndarray, bins: int = 120):
