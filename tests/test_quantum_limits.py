@@ -13,7 +13,7 @@ import pytest
 from scipy import integrate
 
 from affinebody.kinetic import AffineIsotropic, IsotropicAffine
-from affinebody.quantum import n3
+from affinebody.quantum import channels3 as ch3
 from affinebody.quantum import reduction as rd
 from affinebody.quantum import spectra as sp
 from affinebody.quantum import thermal as th
@@ -170,8 +170,8 @@ def test_spin1_weak_form_matches_reduced_operator(model):
     if model == "dalembert":
         red = rd.TwoPolarReduction("dalembert", 3, 1.3, 0.0, 0.0, hbar)
         inertia = 1.3
-        quad = n3.ChamberQuadrature.build(7.0, 36, 16)
-        grid = n3.Grid3(quad.nodes, quad.weights)
+        quad = ch3.ChamberQuadrature.build(7.0, 36, 16)
+        grid = ch3.Grid3(quad.nodes, quad.weights)
         kind = "lebesgue3"
 
         def f(x):  # equivariant under permutations and even sign changes of Q
@@ -180,7 +180,7 @@ def test_spin1_weak_form_matches_reduced_operator(model):
     else:
         red = rd.TwoPolarReduction(model, 3, 1.3, 0.4, 0.25, hbar)
         inertia = sp.AffineInertia(model, 1.3, 0.4, 0.25)
-        grid = n3.haar3_grid(0.6, 0.6, 0.1, 30, 16, 12)
+        grid = ch3.haar3_grid(0.6, 0.6, 0.1, 30, 16, 12)
         kind = "haar3"
 
         def f(x):  # equivariant under permutations of q
@@ -195,7 +195,7 @@ def test_spin1_weak_form_matches_reduced_operator(model):
     nodes = jnp.asarray(grid.nodes)
     vals = np.asarray(jax.vmap(f)(nodes))[..., None]
     grads = np.asarray(jax.vmap(jax.jacfwd(f))(nodes))[..., None]
-    H, S = n3.channel3_forms(kind, V, hbar, inertia, grid, vals, grads, spin1=True)
+    H, S = ch3.channel3_forms(kind, V, hbar, inertia, grid, vals, grads, spin1=True)
     channel = rd.cartesian_channel(3, 1, 1)
     diag = jnp.array([0, 4, 8])
 

@@ -12,6 +12,7 @@ import pytest
 from click.testing import CliRunner
 from scipy import linalg
 
+from affinebody.quantum import channels3 as ch3
 from affinebody.quantum import covariants3 as cov
 from affinebody.quantum import n3
 from affinebody.quantum import spectra as sp
@@ -105,8 +106,8 @@ def test_restricted_covariants_satisfy_the_wall_conditions(j, jp):
 
 @pytest.fixture(scope="module")
 def chamber_grid():
-    quad = n3.ChamberQuadrature.build(8.0 + 0.75 * np.sqrt(5), n_rho=48, n_angle=20)
-    return n3.Grid3(quad.nodes, quad.weights)
+    quad = ch3.ChamberQuadrature.build(8.0 + 0.75 * np.sqrt(5), n_rho=48, n_angle=20)
+    return ch3.Grid3(quad.nodes, quad.weights)
 
 
 def test_r9_oscillator_every_sector_exact_with_full_degeneracies(chamber_grid):
@@ -177,7 +178,7 @@ def test_affine_models_are_each_others_transpose_in_every_sector():
     def V(Q):
         q = np.log(Q)
         return 0.5 * np.sum(q**2, -1) + 0.3 * np.sum(q, -1) ** 2
-    grid = n3.haar3_grid(0.7, 0.7, 0.0, 24, 12, 8)
+    grid = ch3.haar3_grid(0.7, 0.7, 0.0, 24, 12, 8)
     spectra = {}
     for model in ("af-is", "is-af"):
         inertia = sp.AffineInertia(model, 1.0, 0.3, 0.2)
@@ -196,7 +197,7 @@ def test_general_sector_machinery_reproduces_the_dedicated_spin1_channel(chamber
     def V(Q):
         return 0.5 * np.sum(Q**2, -1) + 0.05 * np.prod(Q, -1) + 0.02 * np.sum(Q**4, -1)
     H_new, _ = n3.sector_block("lebesgue3", V, 1.0, 1.0, chamber_grid, 1, 1, 8, 0.9)
-    H_old, _ = n3.channel3_block("lebesgue3", V, 1.0, 1.0, chamber_grid, 8, 0.9, spin1=True)
+    H_old, _ = ch3.channel3_block("lebesgue3", V, 1.0, 1.0, chamber_grid, 8, 0.9, spin1=True)
     assert np.allclose(linalg.eigvalsh(H_new)[:6], linalg.eigvalsh(H_old)[:6], atol=1e-9)
 
 

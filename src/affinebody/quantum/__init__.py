@@ -9,7 +9,8 @@
                        in two-polar coordinates (radial operator, centrifugal/sector terms).
 - :mod:`.spectra`      numerical spectra: results, n = 2 sectors, the shared solver machinery.
 - :mod:`.n3`           n = 3: every SO(3) x SO(3) sector (j, j'), with the angular parts from
-                       :mod:`.covariants3` (covariants restricted to diagonal matrices).
+                       :mod:`.covariants3` (covariants restricted to diagonal matrices);
+                       :mod:`.channels3`: chamber quadratures, dedicated (0, 0), (1, 1) bases.
 - :mod:`.thermal`      partition functions and the classical limit.
 - :mod:`.densities`, :mod:`.config`, :mod:`.cli`: probability densities, TOML configs, the
                        ``spectrum`` / ``density`` commands.

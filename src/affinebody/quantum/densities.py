@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from affinebody.quantum.n3 import ChamberQuadrature
+from affinebody.quantum.channels3 import ChamberQuadrature
 from affinebody.quantum.spectra import Level, Spectrum, sqrt_x_over_sinh
 
 

@@ -1,26 +1,8 @@
 """The n = 3 quantum affine body: every SO(3) x SO(3) sector (spin j, vorticity j') of the
-two-polar reduction as a Galerkin eigenproblem (paper, last section; reduction.py for the
-operator; covariants3.py for the angular part; spectra.py for the result types and the n = 2
-solvers).
-
-Contents, in order: quadratures of the Weyl chamber (Q_1 > Q_2 > |Q_3| with prod |Q_a^2 -
-Q_b^2|, d'Alembert; q_1 > q_2 > q_3 with prod sinh(q_a - q_b), affine models) and the scalar
-basis; the dedicated bases of the scalar (0, 0) and spin = vorticity = 1 (1, 1) sectors
-(``quantum.sectors = "scalar"``, ``"spin1"``, ``"scalar+spin1"``); the general sectors (j, j')
-(``"all"``); the solvers behind :func:`affinebody.quantum.spectra.solve` for n = 3.
-
-Dedicated sectors:
-
-* d'Alembert, the scalar sector (spin = vorticity = 0): functions of Q invariant under the
-  Weyl group (permutations and even sign changes of Q). Basis: Gaussian times invariant
-  polynomials in p2 = sum Q^2, e3 = Q1 Q2 Q3, p4 = sum Q^4, orthonormalised under
-  prod (Q_a^2 - Q_b^2) dQ on the chamber Q_1 > Q_2 > |Q_3| by an Arnoldi process on a
-  quadrature grid (radial Gauss-Legendre x Duffy-mapped triangle). Contains every oscillator
-  eigenfunction of degree <= the basis degree, so the oscillator is exact.
-* scalar and spin = vorticity = 1, d'Alembert and the affine models (:func:`channel3_block`):
-  Weyl-invariant (resp. equivariant) polynomials times a Gaussian, orthonormalised by QR on
-  the chamber grid; for the affine models times g(q) = prod sqrt((q_a - q_b) /
-  sinh(q_a - q_b)).
+two-polar reduction as a Galerkin eigenproblem (``quantum.sectors = "all"``; paper, last
+section; reduction.py for the operator; covariants3.py for the angular part; channels3.py for
+the chamber quadratures and the dedicated bases of the sectors (0, 0) and (1, 1); spectra.py
+for the result types and the n = 2 solvers).
 
 General sectors. A state of the sector is psi_c(phi) = <c, Psi(phi)>, Psi a covariant, f(x) =
 Psi(diag x) its values on the Weyl chamber, in the M-fixed subspace of V_j (x) V_j'
@@ -58,24 +40,26 @@ tolerance are reported as unconverged.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import cache
-from itertools import product
 
 import numpy as np
-from scipy import linalg, special
+from scipy import linalg
 
 from affinebody.quantum import covariants3 as cov
+from affinebody.quantum.channels3 import (
+    ChamberQuadrature,
+    Grid3,
+    _sqrt_x_over_sinh_derivative_ratio,
+    auto_scale_haar3,
+    auto_scale_scalar3,
+    haar3_grid,
+)
 from affinebody.quantum.spectra import (
-    AffineInertia,
     Basis,
     Block,
     Level,
-    Potential,
     Sector,
-    Settings,
     Spectrum,
     is_converged,
     kth_energy,
@@ -84,422 +68,11 @@ from affinebody.quantum.spectra import (
     sqrt_x_over_sinh,
     state_count,
     truncate_levels,
-    variational_parameters,
 )
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 #: shells max(j, j') explored by default for n = 3 (the generators of (6, 6) have degree 18)
 MAX_SHELL = 6
-_N3_PARTIAL = ("n = 3: only the (spin, vorticity) sectors {sectors} are computed; states of the "
-               "other SO(3) x SO(3) sectors (j, j') are not in this list")
-
-
-# ------------------------------------------------------- quadratures and the scalar basis
-@dataclass(frozen=True)
-class ChamberQuadrature:
-    """Nodes Q [P, 3] and weights for int over Q_1 > Q_2 > |Q_3| of f(Q) prod(Q_a^2 - Q_b^2) dQ.
-
-    The chamber is the cone over the triangle with vertices e1, (1,1,1), (1,1,-1):
-    Q = rho y/|y|, y on the triangle (Duffy-mapped square), Gauss-Legendre in rho on
-    [0, rho_max]; the weight prod(Q_a^2 - Q_b^2) is included in the weights.
-    """
-
-    nodes: np.ndarray
-    weights: np.ndarray
-
-    @classmethod
-    def build(cls, rho_max: float, n_rho: int = 60, n_angle: int = 28) -> ChamberQuadrature:
-        xr, wr = special.roots_legendre(n_rho)
-        rho, w_rho = rho_max * (xr + 1) / 2, rho_max * wr / 2
-        xa, wa = special.roots_legendre(n_angle)
-        u, wu = (xa + 1) / 2, wa / 2
-        U, Vv = np.meshgrid(u, u, indexing="ij")
-        WU = np.outer(wu, wu) * (1 - U)  # Duffy: a = u, b = (1 - u) v
-        a, b = U.ravel(), ((1 - U) * Vv).ravel()
-        c = 1 - a - b
-        e1, v2, v3 = np.eye(3)[0], np.ones(3), np.array([1.0, 1.0, -1.0])
-        y = a[:, None] * e1 + b[:, None] * v2 + c[:, None] * v3
-        ny = np.linalg.norm(y, axis=1)
-        # dQ = 2 d(area coords) lambda^2 d lambda with Q = lambda y; lambda = rho / |y|
-        w_ang = 2 * WU.ravel() / ny**3
-        Q = (rho[:, None, None] * (y / ny[:, None])[None, :, :]).reshape(-1, 3)
-        w = (w_rho[:, None] * rho[:, None] ** 2 * w_ang[None, :]).ravel()
-        J = (Q[:, 0] ** 2 - Q[:, 1] ** 2) * (Q[:, 0] ** 2 - Q[:, 2] ** 2) * (
-            Q[:, 1] ** 2 - Q[:, 2] ** 2)
-        return cls(Q, w * J)
-
-
-@dataclass(frozen=True)
-class Grid3:
-    """Reduced-space quadrature for n = 3: nodes x [P, 3] (Q or q), weights [P] with the
-    measure J of the reduction (prod |Q_a^2 - Q_b^2| or prod sinh(q_a - q_b)) included."""
-
-    nodes: np.ndarray
-    weights: np.ndarray
-
-
-def haar3_grid(scale: float, scale_sigma: float, centre: float, n_r: int, n_angle: int,
-               n_sigma: int) -> Grid3:
-    """Quadrature on the chamber q1 > q2 > q3 with weight prod_{a<b} sinh(q_a - q_b) dq.
-
-    q = (sigma/3)(1, 1, 1) + r (cos t e_u + sin t e_v), e_u = (1, -1, 0)/sqrt2,
-    e_v = (1, 1, -2)/sqrt6, chamber t in (pi/6, pi/2), dq = r dr dt dsigma / sqrt3;
-    Gauss-Legendre in r on [0, 9 scale] and in t, Gauss-Hermite in sigma (centre, scale_sigma).
-    """
-    xr, wr = special.roots_legendre(n_r)
-    r_max = 9.0 * scale
-    r, w_r = r_max * (xr + 1) / 2, r_max * wr / 2
-    xt, wt = special.roots_legendre(n_angle)
-    t, w_t = np.pi / 6 + (np.pi / 3) * (xt + 1) / 2, (np.pi / 3) * wt / 2
-    z, w_z = special.roots_hermite(n_sigma)
-    sigma, w_s = centre + scale_sigma * z, scale_sigma * w_z * np.exp(z * z)
-    eu = np.array([1.0, -1.0, 0.0]) / math.sqrt(2)
-    ev = np.array([1.0, 1.0, -2.0]) / math.sqrt(6)
-    R, T, S = np.meshgrid(r, t, sigma, indexing="ij")
-    q = (S[..., None] / 3 + R[..., None] * (np.cos(T)[..., None] * eu
-                                            + np.sin(T)[..., None] * ev)).reshape(-1, 3)
-    w = (w_r[:, None, None] * r[:, None, None] * w_t[None, :, None] * w_s[None, None, :]
-         ).ravel() / math.sqrt(3)
-    J = np.sinh(q[:, 0] - q[:, 1]) * np.sinh(q[:, 0] - q[:, 2]) * np.sinh(q[:, 1] - q[:, 2])
-    return Grid3(q, w * J)
-
-
-@dataclass(frozen=True)
-class Jet:
-    """A function on a quadrature grid with its gradient: value [P], grad [P, 3]."""
-
-    value: np.ndarray
-    grad: np.ndarray
-
-    def __add__(self, other: Jet) -> Jet:
-        return Jet(self.value + other.value, self.grad + other.grad)
-
-    def __sub__(self, other: Jet) -> Jet:
-        return Jet(self.value - other.value, self.grad - other.grad)
-
-    def __mul__(self, other: Jet | float) -> Jet:
-        if isinstance(other, Jet):
-            return Jet(self.value * other.value,
-                       self.grad * other.value[:, None] + other.grad * self.value[:, None])
-        return Jet(self.value * other, self.grad * other)
-
-    def apply(self, f: Callable, df: Callable) -> Jet:
-        return Jet(f(self.value), df(self.value)[:, None] * self.grad)
-
-    @staticmethod
-    def coordinates(x: np.ndarray) -> list[Jet]:
-        eye = np.eye(3)
-        return [Jet(x[:, a], np.broadcast_to(eye[a], x.shape).copy()) for a in range(3)]
-
-    @staticmethod
-    def one(points: int) -> Jet:
-        return Jet(np.ones(points), np.zeros((points, 3)))
-
-
-@dataclass(frozen=True)
-class ScalarBasis3:
-    """Weyl-invariant polynomials of degree <= ``degree`` times e^{-|Q|^2/2b^2}, orthonormal
-    under prod (Q_a^2 - Q_b^2) dQ on the chamber (Arnoldi on a quadrature grid).
-
-    ``recipe[j] = (parent, generator, coefficients, norm)``: phi_j = (g phi_parent -
-    sum_i c_i phi_i) / norm, replayable at any points. ``parity`` of phi_j under Q_3 -> -Q_3
-    (phi -> -phi) is (-1)^(power of e3).
-    """
-
-    degree: int
-    scale: float
-    recipe: tuple
-    parity: np.ndarray
-    norm0: float
-
-    @staticmethod
-    def _generators(Q: np.ndarray, scale: float):
-        y = Q / scale
-        p2 = np.sum(y * y, axis=-1)
-        e3 = np.prod(y, axis=-1)
-        p4 = np.sum(y**4, axis=-1)
-        g2 = 2 * y
-        g3 = np.stack([y[..., 1] * y[..., 2], y[..., 0] * y[..., 2], y[..., 0] * y[..., 1]],
-                      axis=-1)
-        g4 = 4 * y**3
-        # gradients with respect to Q (chain rule 1/scale)
-        return [(p2, g2 / scale), (e3, g3 / scale), (p4, g4 / scale)]
-
-    def evaluate(self, Q: np.ndarray, with_gradient: bool = False):
-        Q = np.asarray(Q, float)
-        gens = self._generators(Q, self.scale)
-        r2 = np.sum(Q * Q, axis=-1) / self.scale**2
-        f0 = np.exp(-0.5 * r2) / self.norm0
-        vals = [f0]
-        grads = [(-Q / self.scale**2) * f0[..., None]]
-        for parent, gen, coeffs, norm in self.recipe:
-            g, dg = gens[gen]
-            v = g * vals[parent]
-            d = dg * vals[parent][..., None] + g[..., None] * grads[parent]
-            for i, c in coeffs:
-                v = v - c * vals[i]
-                d = d - c * grads[i]
-            vals.append(v / norm)
-            grads.append(d / norm)
-        values = np.stack(vals, axis=-1)
-        if with_gradient:
-            return values, np.stack(grads, axis=-1)
-        return values
-
-    @classmethod
-    def build(cls, degree: int, scale: float, quad: ChamberQuadrature) -> ScalarBasis3:
-        Q, w = quad.nodes, quad.weights
-        gens = cls._generators(Q, scale)
-        r2 = np.sum(Q * Q, axis=-1) / scale**2
-        f0 = np.exp(-0.5 * r2)
-        norm0 = math.sqrt(float(np.sum(w * f0 * f0)))
-        vals = [f0 / norm0]
-        exps = [(0, 0, 0)]
-        parity = [1]
-        recipe = []
-        monomials = sorted(
-            ((i, j, k) for i in range(degree // 2 + 1) for j in range(degree // 3 + 1)
-             for k in range(degree // 4 + 1) if 2 * i + 3 * j + 4 * k <= degree and (i, j, k)
-             != (0, 0, 0)),
-            key=lambda e: (2 * e[0] + 3 * e[1] + 4 * e[2], e[1], e[2]))
-        index = {(0, 0, 0): 0}
-        for mono in monomials:
-            gen = next(a for a in range(3) if mono[a] > 0)
-            parent_mono = tuple(e - (a == gen) for a, e in enumerate(mono))
-            parent = index[parent_mono]
-            v = gens[gen][0] * vals[parent]
-            coeffs: dict[int, float] = {}
-            for _ in range(2):  # classical Gram-Schmidt, twice
-                basis = np.stack(vals, axis=1)
-                c = basis.T @ (w * v)
-                v = v - basis @ c
-                for i, ci in enumerate(c):
-                    coeffs[i] = coeffs.get(i, 0.0) + float(ci)
-            norm = math.sqrt(float(np.sum(w * v * v)))
-            index[mono] = len(vals)
-            vals.append(v / norm)
-            exps.append(mono)
-            parity.append((-1) ** mono[1])
-            recipe.append((parent, gen, tuple(coeffs.items()), norm))
-        return cls(degree, scale, tuple(recipe), np.array(parity), norm0)
-
-
-def _sqrt_x_over_sinh_derivative_ratio(x: np.ndarray) -> np.ndarray:
-    """d/dx log sqrt(x / sinh x) = (1/x - coth x)/2, smooth (-> -x/6 at 0)."""
-    small = np.abs(x) < 1e-3
-    safe = np.where(small, 1.0, x)
-    return np.where(small, -x / 6, 0.5 * (1 / safe - 1 / np.tanh(safe)))
-
-
-# ----------------------------- dedicated channels: scalar (0, 0) and spin = vorticity = 1
-def scalar3_block(potential: Potential, hbar: float, inertia: float, degree: int, scale: float,
-                  quad: ChamberQuadrature | None = None) -> tuple[np.ndarray, Basis]:
-    """Galerkin Hamiltonian of the n = 3 d'Alembert scalar sector (spin = vorticity = 0):
-    H = -(hbar^2/2I)(1/J_L) sum_a d_a J_L d_a + V (DERIVATIONS.md), weak form
-    int [(hbar^2/2I) grad f . grad g + V f g] J_L dQ on the chamber (natural boundary)."""
-    quad = quad or ChamberQuadrature.build(scale * (8.0 + 0.75 * math.sqrt(degree + 1)),
-                                           n_rho=40 + 2 * degree, n_angle=16 + degree)
-    basis = ScalarBasis3.build(degree, scale, quad)
-    F, dF = basis.evaluate(quad.nodes, with_gradient=True)
-    w = quad.weights
-    V = np.asarray(potential(quad.nodes), float)
-    H = F.T @ ((w * V)[:, None] * F)
-    H += (hbar**2 / (2 * inertia)) * np.einsum("pai,p,paj->ij", dF, w, dF, optimize=True)
-    return 0.5 * (H + H.T), Basis("scalar3", (basis,))
-
-
-def _channel_candidates(kind: str, x: np.ndarray, degree: int, scale: float,
-                        scale_sigma: float, centre: float, spin1: bool
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Candidate basis functions on the grid: values [P, d, K], gradients [P, d, 3, K] and the
-    parity class [K] (d = 1 scalar, d = 3 for spin = vorticity = 1).
-
-    "lebesgue3" (d'Alembert, x = Q): Gaussian e^{-|Q|^2/2b^2} times invariant polynomials of
-    the Weyl group (permutations, even sign changes; generated by p2, e3 = Q1 Q2 Q3, p4) times,
-    for spin 1, the equivariant generators grad p2 ~ Q, grad e3 = (Q2 Q3, Q1 Q3, Q1 Q2),
-    grad p4 ~ Q^3 (the covariants of a reflection group are free over the invariants with the
-    gradients of the basic invariants as basis). Parity under phi -> -phi: (-1)^degree.
-    "haar3" (af-is, x = q): g(q) = prod sqrt((q_a - q_b)/sinh(q_a - q_b)) times the Gaussian
-    in the traceless part y (scale b) and in sigma = sum q (scale_sigma, centre) times S3
-    invariants (sigma, sum y^2, sum y^3) times, for spin 1, the generators 1, y, y^2.
-    """
-    jets = Jet.coordinates(x)
-    P = x.shape[0]
-    if kind == "lebesgue3":
-        y = [j * (1 / scale) for j in jets]
-        p2 = y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
-        gauss = p2.apply(lambda v: np.exp(-0.5 * v), lambda v: -0.5 * np.exp(-0.5 * v))
-        inv = {"p2": (p2, 2), "e3": (y[0] * y[1] * y[2], 3),
-               "p4": (y[0] * y[0] * y[0] * y[0] + y[1] * y[1] * y[1] * y[1]
-                      + y[2] * y[2] * y[2] * y[2], 4)}
-        vectors = [(y, 1), ([y[1] * y[2], y[0] * y[2], y[0] * y[1]], 2),
-                   ([v * v * v for v in y], 3)]
-        front = gauss
-    else:
-        mean = (jets[0] + jets[1] + jets[2]) * (1 / 3)
-        y = [(j - mean) * (1 / scale) for j in jets]
-        t = (jets[0] + jets[1] + jets[2] - Jet(np.full(P, centre), np.zeros((P, 3)))) * (
-            1 / scale_sigma)
-        p2 = y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
-        gexp = (p2 + t * t).apply(lambda v: np.exp(-0.5 * v), lambda v: -0.5 * np.exp(-0.5 * v))
-        g = Jet.one(P)
-        for a, b in ((0, 1), (0, 2), (1, 2)):
-            diff = jets[a] - jets[b]
-            g = g * diff.apply(sqrt_x_over_sinh, lambda v: sqrt_x_over_sinh(v)
-                               * _sqrt_x_over_sinh_derivative_ratio(v))
-        front = g * gexp
-        inv = {"t": (t, 1), "p2": (p2, 2),
-               "p3": (y[0] * y[0] * y[0] + y[1] * y[1] * y[1] + y[2] * y[2] * y[2], 3)}
-        one = Jet.one(P)
-        vectors = [([one, one, one], 0), (y, 1), ([v * v for v in y], 2)]
-    names = list(inv)
-    degrees = [inv[k][1] for k in names]
-    monomials = [e for e in product(*(range(degree // dg + 1) for dg in degrees))
-                 if sum(k * dg for k, dg in zip(e, degrees, strict=True)) <= degree]
-    monomials.sort(key=lambda e: sum(k * dg for k, dg in zip(e, degrees, strict=True)))
-    values, grads, parity = [], [], []
-    cache: dict[tuple, Jet] = {}
-
-    def monomial(e: tuple) -> Jet:
-        if e in cache:
-            return cache[e]
-        if not any(e):
-            out = front
-        else:
-            i = next(i for i, k in enumerate(e) if k)
-            lower = tuple(k - (j == i) for j, k in enumerate(e))
-            out = monomial(lower) * inv[names[i]][0]
-        cache[e] = out
-        return out
-
-    for e in monomials:
-        deg = sum(k * dg for k, dg in zip(e, degrees, strict=True))
-        base = monomial(e)
-        if not spin1:
-            values.append(base.value[:, None])
-            grads.append(base.grad[:, None, :])
-            parity.append((-1) ** deg)
-            continue
-        for vec, vdeg in vectors:
-            if deg + vdeg > degree:
-                continue
-            comps = [base * v for v in vec]
-            values.append(np.stack([c.value for c in comps], axis=1))
-            grads.append(np.stack([c.grad for c in comps], axis=1))
-            parity.append((-1) ** (deg + vdeg))
-    return np.stack(values, -1), np.stack(grads, -1), np.array(parity)
-
-
-def channel3_block(kind: str, potential: Potential, hbar: float, inertia: AffineInertia | float,
-                   grid: Grid3, degree: int, scale: float, scale_sigma: float = 1.0,
-                   centre: float = 0.0, spin1: bool = False) -> tuple[np.ndarray, Basis]:
-    """Galerkin Hamiltonian of an n = 3 sector, scalar (spin = vorticity = 0) or spin =
-    vorticity = 1 (reduction.py: Psi = sum_a f_a(x) (L^T u)_a (R^T w)_a, norm sum_a int f_a^2 J),
-    in the weak form
-
-        int [ (hbar^2/2) sum_a grad f_a . G grad f_a + V |f|^2
-              + sum_{a<b} 2 hbar^2 (c_+^{ab} (f_a - f_b)^2 + c_-^{ab} (f_a + f_b)^2)
-              + 2 hbar^2 (c_rho + c_tau) |f|^2 ] J dx,
-
-    the quadratic form of U_sector of reduction.py restricted to diagonal F (checked against
-    ``TwoPolarReduction.sector_potential`` in the tests). d'Alembert ("lebesgue3"): G = Id/I,
-    c_+ = 1/(4 I (Q_a - Q_b)^2), c_- = 1/(4 I (Q_a + Q_b)^2), no constant. Affine ("haar3"):
-    G = Id/M - B/(M (M + 3B)), c_+ = 1/(16 M sinh^2((q_a - q_b)/2)),
-    c_- = -1/(16 M cosh^2(...)), 2 (c_rho + c_tau) = 1/I~ (af-is, is-af) or 0 (af-af).
-    The candidates of :func:`_channel_candidates` are orthonormalised (QR) under the measure.
-    """
-    x, w = grid.nodes, grid.weights
-    vals, grads, parity = _channel_candidates(kind, x, degree, scale, scale_sigma, centre, spin1)
-    order = np.argsort(-parity, kind="stable")  # even first: odd ones orthogonalised to them
-    vals, grads, parity = vals[..., order], grads[..., order], parity[order]
-    P, d, K = vals.shape
-    sw = np.sqrt(w)[:, None, None]
-    Qr, Rr = np.linalg.qr((sw * vals).reshape(P * d, K))
-    keep = np.abs(np.diag(Rr)) > 1e-10 * np.max(np.abs(np.diag(Rr)))
-    T = linalg.solve_triangular(Rr[np.ix_(keep, keep)], np.eye(int(keep.sum())))
-    vals = vals[..., keep] @ T
-    grads = grads[..., keep] @ T
-    parity = parity[keep]
-    H, S = channel3_forms(kind, potential, hbar, inertia, grid, vals, grads, spin1)
-    # the basis is orthonormal up to rounding: finish with a Cholesky change of basis
-    Lc = np.linalg.cholesky(0.5 * (S + S.T))
-    Linv = linalg.solve_triangular(Lc, np.eye(len(S)), lower=True)
-    H = Linv @ H @ Linv.T
-    data = (kind, grid, vals @ Linv.T, parity, spin1)
-    return 0.5 * (H + H.T), Basis("grid3", data)
-
-
-def channel3_forms(kind: str, potential: Potential, hbar: float,
-                   inertia: AffineInertia | float, grid: Grid3, vals: np.ndarray,
-                   grads: np.ndarray, spin1: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(H, S): the weak-form Hamiltonian and the Gram matrix of :func:`channel3_block` for
-    functions given by values [P, d, K] and gradients [P, d, 3, K] on ``grid``."""
-    x, w = grid.nodes, grid.weights
-    if kind == "lebesgue3":
-        I_ = float(inertia)
-        G = np.eye(3) / I_
-        coords = "Q"
-    else:
-        M = inertia.M
-        G = np.eye(3) / M - inertia.B / (M * (M + 3 * inertia.B)) * np.ones((3, 3))
-        coords = "q"
-    Q = x if coords == "Q" else np.exp(x)
-    V = np.asarray(potential(Q), float)
-    gradG = np.matmul(G, grads)  # [P, d, 3, K]: G acts on the gradient index
-
-    def gram(left: np.ndarray, weight: np.ndarray, right: np.ndarray) -> np.ndarray:
-        shape = (1,) * (left.ndim - 2)
-        lw = left * weight.reshape((-1,) + shape + (1,))
-        return lw.reshape(-1, left.shape[-1]).T @ right.reshape(-1, right.shape[-1])
-
-    H = (hbar**2 / 2) * gram(gradG, w, grads)
-    H += gram(vals, w * V, vals)
-    if spin1:
-        for a, b in ((0, 1), (0, 2), (1, 2)):
-            # divided difference (f_a - f_b)/(x_a - x_b): finite at the wall x_a = x_b
-            diff = (vals[:, a] - vals[:, b]) / (x[:, a] - x[:, b])[:, None]
-            both = vals[:, a] + vals[:, b]
-            if kind == "lebesgue3":
-                w_diff = (hbar**2 / (2 * I_)) * w  # 2 hbar^2 c_+ (Q_a - Q_b)^2
-                both = both / (x[:, a] + x[:, b])[:, None]
-                w_both = (hbar**2 / (2 * I_)) * w  # 2 hbar^2 c_- (Q_a + Q_b)^2
-            else:
-                h = 0.5 * (x[:, a] - x[:, b])
-                w_diff = 2 * hbar**2 * w * (2 * h) ** 2 / (16 * M * np.sinh(h) ** 2)
-                w_both = -2 * hbar**2 * w / (16 * M * np.cosh(h) ** 2)
-            H += diff.T @ (w_diff[:, None] * diff) + both.T @ (w_both[:, None] * both)
-        if kind == "haar3":
-            H += hbar**2 * inertia.inv_I_tilde * gram(vals, w, vals)
-    return H, gram(vals, w, vals)
-
-
-def auto_scale_scalar3(potential: Potential, hbar: float, inertia: float) -> float:
-    quad = ChamberQuadrature.build(12.0, 40, 16)
-
-    def energy(logb):
-        b = float(np.exp(np.clip(logb[0], -2.4, 0.4)))
-        H, _ = scalar3_block(potential, hbar, inertia, 4, b, quad)
-        return float(np.sum(linalg.eigvalsh(H)[:2]))
-    return float(np.exp(np.clip(variational_parameters(energy, np.array([-0.5]))[0], -2.4, 0.4)))
-
-
-def auto_scale_haar3(potential: Potential, hbar: float, inertia: AffineInertia
-                     ) -> tuple[float, float, float]:
-    """(scale, scale_sigma, centre) of the n = 3 affine basis minimising the sum of the two
-    lowest scalar levels in a small basis (clipped: a continuous spectrum drives the scales
-    to the clip, where the honesty check flags the pseudo-levels)."""
-    sig = np.linspace(-12, 12, 241)
-    line = np.asarray(potential(np.exp(np.stack([sig / 3] * 3, axis=-1))), float)
-    centre0 = float(sig[np.argmin(np.where(np.isfinite(line), line, np.inf))])
-
-    def energy(p):
-        b, bs = np.exp(np.clip(p[:2], -3, 1.5))
-        grid = haar3_grid(b, bs, p[2], 24, 10, 12)
-        H, _ = channel3_block("haar3", potential, hbar, inertia, grid, 4, b, bs, p[2])
-        return float(np.sum(linalg.eigvalsh(H)[:2]))
-    p = variational_parameters(energy, np.array([-0.5, -0.5, centre0]))
-    b, bs = np.exp(np.clip(p[:2], -3, 1.5))
-    return float(b), float(bs), float(p[2])
 
 
 # ---------------------------------------------------------------- general sectors (j, j')
@@ -785,118 +358,7 @@ def lowest_degree(j: int, jp: int) -> int:
     return next(d for d in range(4 * (j + jp) + 1) if cov.polynomial_multiplicity(j, jp, d))
 
 
-# -------------------------------------------------------------------------------- solvers
-def solve_dalembert_scalar(potential: Potential, hbar: float, inertia: float, levels: int,
-                           settings: Settings) -> Spectrum:
-    """n = 3 d'Alembert, the scalar sector only (``sectors="scalar"``), in the Weyl-invariant
-    Arnoldi basis of :func:`scalar3_block`; J = inertia * Id."""
-    blocks: dict[tuple, Block] = {}
-    entries: list = []
-    unconverged: list[Level] = []
-    info: dict = {"basis_size": settings.basis_size}
-    count = levels + 4
-    b = settings.scale or auto_scale_scalar3(potential, hbar, inertia)
-    info["scale"] = b
-    quad = ChamberQuadrature.build(b * (8.0 + 0.75 * math.sqrt(settings.basis_size + 1)),
-                                   n_rho=40 + 2 * settings.basis_size,
-                                   n_angle=16 + settings.basis_size)
-    # a Gaussian of another width is a poor polynomial basis: the check here is the degree
-    # only (basis_size - check_shrink), which flags every level the smaller space misses
-    E, vec, err, basis = solve_block(
-        lambda d, s: scalar3_block(potential, hbar, inertia, d, s, quad),
-        settings.basis_size, b, count, replace(settings, check_widen=1.0))
-    # parity under phi -> -phi is a symmetry iff V(Q1,Q2,-Q3) = V(Q)
-    Qn = quad.nodes
-    sym = np.allclose(potential(Qn * np.array([1, 1, -1.0])), potential(Qn),
-                      rtol=1e-12, atol=1e-12)
-    par = basis.factors[0].parity
-    for i in range(len(E)):
-        weight_even = float(np.sum(vec[par == 1, i] ** 2))
-        p = 1 if weight_even > 1 - 1e-8 else (-1 if weight_even < 1e-8 else None)
-        sec = (Sector(0, 0, p if sym else None),)
-        key = ("scalar", i)
-        blocks[key] = Block(key, sec, basis, E[i:i + 1], vec[:, i:i + 1], err[i:i + 1])
-        if is_converged(E[i], err[i], settings):
-            entries.append((float(E[i]), float(err[i]), sec, key, 0))
-        else:
-            unconverged.append(Level(float(E[i]), 1, sec, float(err[i]), key, 0))
-    return Spectrum(merge_levels(entries, settings), unconverged, blocks, "dalembert", 3,
-                    "scalar", info, True, [_N3_PARTIAL.format(sectors="(0, 0)")])
-
-
-def solve_channels(model: str, potential: Potential, hbar: float, inertia_scalar: float,
-                   inertia: AffineInertia, levels: int, settings: Settings, sectors: str
-                   ) -> Spectrum:
-    """n = 3: the scalar and/or spin = vorticity = 1 sectors (``sectors`` "scalar", "spin1",
-    "scalar+spin1") in the dedicated bases of :func:`channel3_block`."""
-    blocks: dict[tuple, Block] = {}
-    entries: list = []
-    unconverged: list[Level] = []
-    info: dict = {"basis_size": settings.basis_size}
-    degree = settings.basis_size
-    count = levels + 4
-    wanted = {"scalar": (False,), "spin1": (True,), "scalar+spin1": (False, True)}[sectors]
-    if model == "dalembert":
-        b = settings.scale or auto_scale_scalar3(potential, hbar, inertia_scalar)
-        info["scale"] = b
-        quad = ChamberQuadrature.build(b * (8.0 + 0.75 * math.sqrt(degree + 1)),
-                                       n_rho=40 + 2 * degree, n_angle=16 + degree)
-        grid = Grid3(quad.nodes, quad.weights)
-        flip = quad.nodes * np.array([1.0, 1.0, -1.0])
-        symmetric = np.allclose(potential(flip), potential(quad.nodes), rtol=1e-12, atol=1e-12)
-
-        def build(spin1):
-            # a Gaussian of another width is a poor polynomial basis: degree check only
-            return lambda d, sc: channel3_block("lebesgue3", potential, hbar, inertia_scalar,
-                                                grid, d, sc, spin1=spin1)
-        check = replace(settings, check_widen=1.0)
-    else:
-        if settings.scale is None or settings.scale_sigma is None or settings.centre is None:
-            b, bs, c0 = auto_scale_haar3(potential, hbar, inertia)
-        b = settings.scale or b
-        bs = settings.scale_sigma or bs
-        c0 = c0 if settings.centre is None else settings.centre
-        info.update(scale=b, scale_sigma=bs, centre=c0)
-        symmetric = False  # -phi is not in GL+(3)
-
-        def build(spin1):
-            def block(d, sc):
-                grid = haar3_grid(sc, bs * sc / b, c0, 20 + 2 * d, 10 + d, 6 + d)
-                return channel3_block("haar3", potential, hbar, inertia, grid, d, sc,
-                                      bs * sc / b, c0, spin1=spin1)
-            return block
-        # widening the Gaussian by 1.3 leaves the polynomial space too far for a check at
-        # 1e-7; 1.1 still moves every pseudo-level of a continuous spectrum by far more
-        check = replace(settings, check_widen=min(settings.check_widen, 1.1))
-    for spin1 in wanted:
-        E, vec, err, basis = solve_block(build(spin1), degree, info["scale"], count, check)
-        parity = basis.factors[3]
-        for i in range(len(E)):
-            even = float(np.sum(vec[parity == 1, i] ** 2))
-            p = 1 if even > 1 - 1e-8 else (-1 if even < 1e-8 else None)
-            j = 1 if spin1 else 0
-            sec = (Sector(j, j, p if symmetric else None, (2 * j + 1) ** 2),)
-            key = ("spin1" if spin1 else "scalar", i)
-            blocks[key] = Block(key, sec, basis, E[i:i + 1], vec[:, i:i + 1], err[i:i + 1])
-            if is_converged(E[i], err[i], settings):
-                entries.append((float(E[i]), float(err[i]), sec, key, 0))
-            else:
-                unconverged.append(Level(float(E[i]), state_count(sec), sec, float(err[i]),
-                                         key, 0))
-    label = {"scalar": "(0, 0)", "spin1": "(1, 1)", "scalar+spin1": "(0, 0) and (1, 1)"}
-    warnings = [_N3_PARTIAL.format(sectors=label[sectors])]
-    bounded = True
-    if model == "af-af":
-        bounded = False
-        warnings.append("af-af: the kinetic energy (72) is indefinite; the sectors computed are "
-                        "bounded below but the sum over all sectors (j, j') is not (the n = 2 "
-                        "mechanism: -hbar^2 (rho - tau)^2 / (16 A cosh^2) wells that deepen "
-                        "with the spin)")
-    merged = truncate_levels(merge_levels(entries, settings), levels)
-    unconverged.sort(key=lambda lv: lv.energy)
-    return Spectrum(merged, unconverged, blocks, model, 3, sectors, info, bounded, warnings)
-
-
+# -------------------------------------------------------------------------------- solver
 def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float, inertia,
                       levels: int, settings):
     """The lowest ``levels`` states of the n = 3 body over every sector (j, j'), shell by shell
@@ -1018,9 +480,8 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
     return Spectrum(merged, unconverged, blocks, model, 3, "all", info, bounded, warnings)
 
 
-__all__ = ["ChamberQuadrature", "Grid3", "haar3_grid", "Jet", "ScalarBasis3", "scalar3_block",
-           "channel3_block", "channel3_forms", "auto_scale_scalar3", "auto_scale_haar3",
-           "SectorAlgebra", "sector_algebra", "sector_block", "sector_forms",
-           "sector_candidates", "generator_values", "sector_dimension", "sectors_by_shell",
-           "lowest_degree", "MAX_SHELL", "solve_dalembert_scalar", "solve_channels",
-           "solve_all_sectors"]
+
+
+__all__ = ["SectorAlgebra", "sector_algebra", "generator_values", "sector_coefficients",
+           "sector_forms", "sector_candidates", "SectorBasis", "sector_block", "sector_dimension",
+           "sectors_by_shell", "lowest_degree", "MAX_SHELL", "solve_all_sectors"]

@@ -514,15 +514,15 @@ def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: flo
         raise ValueError(f"quantum.sectors must be one of {', '.join(SECTORS3)} for n = 3 (got "
                          f"{sectors!r})")
     if n == 3:
-        from affinebody.quantum import n3
+        from affinebody.quantum import channels3, n3
 
         if sectors == "all":
             return n3.solve_all_sectors(model, potential, hbar, inertia,
                                         AffineInertia(model, I, A, B), levels, settings)
         if model == "dalembert" and sectors == "scalar":
-            return n3.solve_dalembert_scalar(potential, hbar, inertia, levels, settings)
-        return n3.solve_channels(model, potential, hbar, inertia, AffineInertia(model, I, A, B),
-                                 levels, settings, sectors)
+            return channels3.solve_dalembert_scalar(potential, hbar, inertia, levels, settings)
+        return channels3.solve_channels(model, potential, hbar, inertia,
+                                        AffineInertia(model, I, A, B), levels, settings, sectors)
     blocks: dict[tuple, Block] = {}
     entries: list = []
     unconverged: list[Level] = []
@@ -706,26 +706,17 @@ def cartesian_n2_levels(potential: Potential, hbar: float, inertia: float, count
 #: and the helpers renamed
 _MOVED: dict[str, tuple[str, str]] = {
     **{name: ("thermal", name) for name in (
-        "affine_metric_determinant", "_log_sinh_weight", "classical_partition_function_affine2",
-        "PartitionFunction", "_boltzmann_sum", "_radial_sector_sums",
-        "partition_function_affine2")},
-    **{name: ("n3", name) for name in (
+        "affine_metric_determinant", "classical_partition_function_affine2",
+        "PartitionFunction", "partition_function_affine2")},
+    **{name: ("channels3", name) for name in (
         "ChamberQuadrature", "ScalarBasis3", "scalar3_block", "auto_scale_scalar3", "Jet",
-        "Grid3", "haar3_grid", "_sqrt_x_over_sinh_derivative_ratio", "_channel_candidates",
-        "channel3_block", "channel3_forms", "auto_scale_haar3", "_N3_PARTIAL")},
-    "_solve_n3": ("n3", "solve_channels"),
-    # helpers renamed when they became shared (old private name -> public name)
-    **{old: ("spectra", new) for old, new in (
-        ("_states", "state_count"), ("_kth", "kth_energy"), ("_truncate", "truncate_levels"),
-        ("_merge", "merge_levels"), ("_converged", "is_converged"),
-        ("_solve_block", "solve_block"), ("_variational", "variational_parameters"),
-        ("_inv_x2_minus_inv_sinh2", "inv_x2_minus_inv_sinh2"))},
+        "Grid3", "haar3_grid", "channel3_block", "channel3_forms", "auto_scale_haar3")},
 }
 
 
 def __getattr__(name: str):
     """``spectra.<name>`` for the names in :data:`_MOVED`, importing their module on first use
-    (a top-level import would be a cycle: n3 and thermal import this module)."""
+    (a top-level import would be a cycle: channels3, n3 and thermal import this module)."""
     if name in _MOVED:
         module, attribute = _MOVED[name]
         return getattr(importlib.import_module(f"affinebody.quantum.{module}"), attribute)
