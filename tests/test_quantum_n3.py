@@ -234,3 +234,19 @@ def test_spectrum_cli_n3_default_is_every_sector_with_oscillator_degeneracies(tm
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "densities.json").read_text())
     assert abs(summary["normalisation"] - 1) < 1e-8
+
+
+def test_progress_names_every_sector_solved():
+    """The progress callback (a status line in the CLI) is called once per sector solved, and
+    the shell search stops after the first shell lying above the 10 lowest states (N <= 1 of
+    the R^9 oscillator: shells 0, 1 and the stopping shell 2)."""
+    lines = []
+    s = sp.solve("dalembert", 3, lambda Q: 0.5 * np.sum(Q**2, -1), 1.0, levels=10,
+                 settings=sp.Settings(basis_size=4, scale=1.0, check_shrink=2),
+                 progress=lines.append)
+    solved = {(k[1], k[2]) for k in s.blocks}
+    assert len(lines) == len(solved)
+    in_order = sorted(solved, key=lambda p: (max(p), p))
+    assert all(f"({j}, {jp})" in line for line, (j, jp) in zip(lines, in_order, strict=True))
+    assert max(max(p) for p in solved) == 2
+    assert s.energies() == pytest.approx([4.5] + [5.5] * 9, abs=1e-10)

@@ -27,6 +27,10 @@ def _enable_x64() -> None:
 
 
 def _solve(config_path: str, levels: int | None):
+    """Solve CONFIG; on a terminal, a status line on stderr names the sector being solved (an
+    n = 3 spectrum over every sector can take minutes)."""
+    from contextlib import nullcontext
+
     from affinebody.quantum import config as qconfig
     from affinebody.quantum.spectra import solve
 
@@ -36,7 +40,15 @@ def _solve(config_path: str, levels: int | None):
         if levels < 1:
             raise click.UsageError(f"--levels must be >= 1 (got {levels})")
         kwargs["levels"] = levels
-    return solve(**kwargs), kwargs["levels"]
+    status = nullcontext(None)
+    if sys.stderr.isatty():
+        from rich.console import Console
+
+        status = Console(stderr=True).status("solving ...")
+    with status as live:
+        if live is not None:
+            kwargs["progress"] = lambda text: live.update(f"solving {text} ...")
+        return solve(**kwargs), kwargs["levels"]
 
 
 def _run(fn):

@@ -360,13 +360,16 @@ def lowest_degree(j: int, jp: int) -> int:
 
 # -------------------------------------------------------------------------------- solver
 def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float, inertia,
-                      levels: int, settings):
+                      levels: int, settings, progress=None):
     """The lowest ``levels`` states of the n = 3 body over every sector (j, j'), shell by shell
     (shell = max(j, j')), stopping when a whole shell lies above the levels found.
 
     d'Alembert and af-af are symmetric under phi -> phi^T, which swaps (j, j') and (j', j):
     one block serves both (both sectors are listed on its levels). af-is and is-af are each
     other's transpose and need every sector.
+
+    ``progress``: optional callable receiving a one-line description of each sector as it
+    starts.
     """
     kind = "lebesgue3" if model == "dalembert" else "haar3"
     degree = settings.basis_size
@@ -431,6 +434,8 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
                 continue
             if kind == "lebesgue3" and lowest_degree(j, jp) > degree:
                 continue  # no covariant polynomial of the basis degree: not resolved
+            if progress is not None:
+                progress(f"n = 3 {model}: sector (j, j') = ({j}, {jp}), shell {max(j, jp)}")
             E, vec, err, basis = solve_block(build(j, jp), degree, info["scale"], count, check)
             if len(E) == 0:
                 continue

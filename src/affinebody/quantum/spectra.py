@@ -491,8 +491,10 @@ def _n2_sectors(key: tuple, model: str) -> tuple[Sector, ...]:
 
 def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: float = 1.0,
           I: float = 1.0, A: float = 0.0, B: float = 0.0, levels: int = 10,  # noqa: E741
-          settings: Settings | None = None, sectors: str = "auto") -> Spectrum:
+          settings: Settings | None = None, sectors: str = "auto",
+          progress: Callable[[str], None] | None = None) -> Spectrum:
     """The lowest ``levels`` states (counted with multiplicity) of the reduced problem.
+    ``progress`` (n = 3, all sectors) receives a line per sector as it starts.
 
     ``model`` in :data:`MODELS`; d'Alembert uses J = inertia * Id, the affine models (I, A, B).
     ``sectors``: "all" (every sector: n = 2 the characters (s, k), n = 3 the SO(3) x SO(3)
@@ -518,7 +520,8 @@ def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: flo
 
         if sectors == "all":
             return n3.solve_all_sectors(model, potential, hbar, inertia,
-                                        AffineInertia(model, I, A, B), levels, settings)
+                                        AffineInertia(model, I, A, B), levels, settings,
+                                        progress)
         if model == "dalembert" and sectors == "scalar":
             return channels3.solve_dalembert_scalar(potential, hbar, inertia, levels, settings)
         return channels3.solve_channels(model, potential, hbar, inertia,
