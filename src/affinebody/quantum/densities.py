@@ -90,6 +90,8 @@ def densities(spectrum: Spectrum, state: int, points: int = 300) -> dict:
                   "trG": np.exp(2 * q1) + np.exp(2 * q2)}
     elif basis.kind == "grid3":
         kind, grid, values, _parity, _spin1 = basis.factors
+        if callable(values):  # n3.SectorBasis.values: evaluated on demand
+            values = values()
         psi = values @ coeff  # [P, d]: the radial functions f_a on the quadrature grid
         w = grid.weights * np.sum(psi**2, axis=-1)
         x = grid.nodes

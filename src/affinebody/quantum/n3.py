@@ -283,54 +283,86 @@ def sector_candidates(kind: str, algebra: SectorAlgebra, x: np.ndarray, degree: 
 
 @dataclass(frozen=True)
 class SectorBasis:
-    """Orthonormal basis functions of a sector on a grid (for densities and checks)."""
+    """The orthonormal basis of a sector as a recipe: the candidates (``sector_candidates`` with
+    ``candidate_args`` = (degree, scale, scale_sigma, centre), ordered by level, those in
+    ``keep``) times ``transform`` [kept, K] (upper triangular, so the first k functions span
+    the nested basis of the first k candidates). :meth:`values` evaluates it on the nodes on
+    demand: a spectrum keeps one basis per sector, too large to hold as arrays."""
 
     kind: str
     j: int
     jp: int
     nodes: np.ndarray
     weights: np.ndarray
-    values: np.ndarray  # [P, r, K], orthonormal under the weights
+    candidate_args: tuple
+    keep: np.ndarray
+    transform: np.ndarray
     parity: np.ndarray
     levels: np.ndarray  # [K] the level of each function, ascending (nested smaller bases)
+
+    def truncated(self, count: int) -> SectorBasis:
+        """The nested basis of the first ``count`` functions."""
+        return replace(self, transform=self.transform[:, :count], parity=self.parity[:count],
+                       levels=self.levels[:count])
+
+    def values(self, chunk: int = 8192) -> np.ndarray:
+        """Basis functions at the nodes, [P, r, K], orthonormal under the weights."""
+        algebra = sector_algebra(self.j, self.jp, _model(self.kind))
+        degree, scale, scale_sigma, centre = self.candidate_args
+        out = []
+        for i in range(0, len(self.nodes), chunk):
+            cv = _ordered_candidates(self.kind, algebra, self.nodes[i:i + chunk], degree, scale,
+                                     scale_sigma, centre)[0]
+            out.append(cv[..., self.keep] @ self.transform)
+        return np.concatenate(out)
+
+
+def _model(kind: str) -> str:
+    return "matrix" if kind == "lebesgue3" else "symmetric"
+
+
+def _ordered_candidates(kind, algebra, x, degree, scale, scale_sigma, centre):
+    vals, grads, parity, level = sector_candidates(kind, algebra, x, degree, scale, scale_sigma,
+                                                   centre)
+    order = np.argsort(level, kind="stable")
+    return vals[..., order], grads[..., order], parity[order], level[order]
 
 
 def sector_block(kind: str, potential, hbar: float, inertia, grid, j: int, jp: int,
                  degree: int, scale: float, scale_sigma: float = 1.0, centre: float = 0.0,
-                 chunk_floats: int = 2**24) -> tuple[np.ndarray, SectorBasis]:
+                 chunk_floats: int = 2**22) -> tuple[np.ndarray, SectorBasis]:
     """Galerkin Hamiltonian of the sector (j, j') in an orthonormal basis: Householder QR of
-    the candidates' values under the measure in the order of their levels, so the leading
-    k x k block of H is the Hamiltonian of the nested basis of the first k functions (the
-    parities stay separate: even and odd functions are orthogonal under the measure when
-    phi -> -phi is a symmetry); then the forms accumulated over chunks of nodes (bounded
-    memory), and a Cholesky finish (lower-triangular, so the nesting is kept)."""
-    algebra = sector_algebra(j, jp, "matrix" if kind == "lebesgue3" else "symmetric")
+    the candidates' values under the measure in the order of their levels (chunk by chunk,
+    combining the chunks' R factors), so the leading k x k block of H is the Hamiltonian of
+    the nested basis of the first k functions (the parities stay separate: even and odd
+    functions are orthogonal under the measure when phi -> -phi is a symmetry); then the forms
+    accumulated over chunks of nodes, and a Cholesky finish (lower-triangular, so the nesting
+    is kept). Memory is bounded by ``chunk_floats`` and the K x K matrices."""
+    algebra = sector_algebra(j, jp, _model(kind))
     x, w = grid.nodes, grid.weights
-    args = (kind, algebra)
-    kwargs = dict(degree=degree, scale=scale, scale_sigma=scale_sigma, centre=centre)
-
-    probe = sector_candidates(*args, x[:1], **kwargs)[0]
-    chunk = max(64, chunk_floats // max(1, 4 * probe.shape[1] * probe.shape[2]))
-
-    def candidates(sl):
-        vals, grads, parity, level = sector_candidates(*args, x[sl], **kwargs)
-        order = np.argsort(level, kind="stable")
-        return vals[..., order], grads[..., order], parity[order], level[order]
-    vals = np.concatenate([candidates(slice(i, i + chunk))[0] for i in range(0, len(x), chunk)])
-    _, _, parity, level = candidates(slice(0, 1))
-    P, r, K = vals.shape
+    args = (degree, scale, scale_sigma, centre)
+    _, _, parity, level = _ordered_candidates(kind, algebra, x[:1], *args)
+    r, K = algebra.rank, len(level)
+    chunk = max(64, chunk_floats // max(1, 4 * r * K))
     if K == 0:
-        return np.zeros((0, 0)), SectorBasis(kind, j, jp, x, w, vals, parity, level)
-    R = np.linalg.qr((np.sqrt(w)[:, None, None] * vals).reshape(P * r, K), mode="r")
+        empty = np.zeros((0, 0))
+        return empty, SectorBasis(kind, j, jp, x, w, args, np.zeros(0, bool), empty, parity,
+                                  level)
+    factors = []
+    for i in range(0, len(x), chunk):
+        cv = _ordered_candidates(kind, algebra, x[i:i + chunk], *args)[0]
+        factors.append(np.linalg.qr((np.sqrt(w[i:i + chunk])[:, None, None] * cv)
+                                    .reshape(-1, K), mode="r"))
+    R = np.linalg.qr(np.vstack(factors), mode="r")
     keep = np.abs(np.diag(R)) > 1e-10 * np.max(np.abs(np.diag(R)))
     T = linalg.solve_triangular(R[np.ix_(keep, keep)], np.eye(int(keep.sum())))
     Q = x if kind == "lebesgue3" else np.exp(x)
     V = np.asarray(potential(Q), float)
     H = np.zeros((len(T), len(T)))
     S = np.zeros_like(H)
-    for i in range(0, P, chunk):
+    for i in range(0, len(x), chunk):
         sl = slice(i, i + chunk)
-        cv, cg, *_ = candidates(sl)
+        cv, cg, *_ = _ordered_candidates(kind, algebra, x[sl], *args)
         if not keep.all():
             cv, cg = cv[..., keep], cg[..., keep]
         h, s = sector_forms(kind, algebra, V[sl], hbar, inertia, x[sl], w[sl], cv @ T, cg @ T)
@@ -338,8 +370,8 @@ def sector_block(kind: str, potential, hbar: float, inertia, grid, j: int, jp: i
         S += s
     Linv = linalg.solve_triangular(np.linalg.cholesky(S), np.eye(len(S)), lower=True)
     H = Linv @ H @ Linv.T
-    values = vals[..., keep] @ T @ Linv.T
-    return 0.5 * (H + H.T), SectorBasis(kind, j, jp, x, w, values, parity[keep], level[keep])
+    basis = SectorBasis(kind, j, jp, x, w, args, keep, T @ Linv.T, parity[keep], level[keep])
+    return 0.5 * (H + H.T), basis
 
 
 def sector_dimension(j: int, jp: int) -> int:
@@ -384,8 +416,8 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
                 cache[sc] = (d,) + compute(d, sc)
             _, grid, (H, basis) = cache[sc]
             k = int(np.sum(basis.levels <= d))
-            return H[:k, :k], Basis("grid3", (kind, grid, basis.values[..., :k],
-                                              basis.parity[:k], None))
+            nested = basis.truncated(k)
+            return H[:k, :k], Basis("grid3", (kind, grid, nested.values, nested.parity, None))
         return block
 
     info: dict = {"basis_size": degree}
