@@ -267,3 +267,16 @@ def test_sector_basis_is_orthonormal_and_independent_of_chunking(chamber_grid):
     assert np.allclose(gram, np.eye(len(gram)), atol=1e-12)
     assert np.allclose(np.abs(H), np.abs(H_one), atol=1e-12)
     assert np.allclose(linalg.eigvalsh(H), linalg.eigvalsh(H_one), atol=1e-12)
+
+
+def test_every_sector_of_a_continuous_spectrum_is_flagged():
+    """af-is on GL+(3) with V = 2 (ln det phi)^2: the SL(3) part is free (no discrete series),
+    so with every sector searched no level is reported; each candidate moves with the basis."""
+    def V(Q):
+        return 2.0 * np.sum(np.log(Q), -1) ** 2
+    s = sp.solve("af-is", 3, V, 1.0, I=1.0, A=0.3, B=0.2, levels=6,
+                 settings=sp.Settings(basis_size=6, check_shrink=2, scale=3.0, scale_sigma=0.84,
+                                      centre=0.0))
+    assert s.levels == [] and s.sectors == "all"
+    assert len({(k[1], k[2]) for k in s.blocks}) >= 2
+    assert len(s.unconverged) >= 6 and min(lv.error for lv in s.unconverged) > 1e-3
