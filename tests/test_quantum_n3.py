@@ -280,3 +280,30 @@ def test_every_sector_of_a_continuous_spectrum_is_flagged():
     assert s.levels == [] and s.sectors == "all"
     assert len({(k[1], k[2]) for k in s.blocks}) >= 2
     assert len(s.unconverged) >= 6 and min(lv.error for lv in s.unconverged) > 1e-3
+
+
+@pytest.mark.parametrize("model", ["dalembert", "af-is", "is-af", "af-af"])
+def test_sector_weak_form_is_the_reduced_operator_of_reduction_py(model):
+    """The centrifugal and Casimir part of the weak form (r x r matrices on the M-fixed
+    coordinates) equals E^T U_sector E of reduction.py -- whose operator is checked pointwise
+    against the full operator on R^9 / GL(3) in test_quantum_reduction.py -- with rho, tau the
+    spin-j, spin-j' generator matrices of covariants3 (same K_ab convention)."""
+    from affinebody.quantum.reduction import Channel, TwoPolarReduction
+
+    I_, A, B = (1.3, 0.0, 0.0) if model == "dalembert" else (1.0, 0.3, 0.2)
+    red = TwoPolarReduction(model, 3, I=I_, A=A, B=B, hbar=0.8)
+    inertia = I_ if model == "dalembert" else sp.AffineInertia(model, I_, A, B)
+    kind = "lebesgue3" if model == "dalembert" else "haar3"
+    x = np.array([[1.3, 0.4, -0.2], [0.9, 0.5, 0.1]])
+    for j, jp in ((2, 1), (2, 2), (0, 3)):
+        Kj, Kjp = cov.rotation_generators(j), cov.rotation_generators(jp)
+        channel = Channel(rho=np.array([np.kron(k, np.eye(2 * jp + 1)) for k in Kj]),
+                          tau=np.array([np.kron(np.eye(2 * j + 1), k) for k in Kjp]))
+        E = n3.sector_algebra(j, jp, "matrix" if kind == "lebesgue3" else "symmetric").E
+        alg = n3.sector_algebra(j, jp)
+        co = n3.sector_coefficients(kind, x, np.ones(len(x)), 0.8, inertia, j, jp)
+        for p in range(len(x)):
+            U = np.real(np.asarray(red.sector_potential(x[p], channel)))
+            ours = (np.tensordot(co.c_plus[p], alg.N_plus, 1)
+                    + np.tensordot(co.c_minus[p], alg.N_minus, 1) + co.casimir * np.eye(len(E.T)))
+            assert np.allclose(E.T @ U @ E, ours, rtol=1e-12, atol=1e-12)
