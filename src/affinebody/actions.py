@@ -25,6 +25,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from affinebody import _linalg as linalg
 from affinebody._checks import as_matrix, check_invertible, transpose
 from affinebody.state import State, VelocityState
 
@@ -55,13 +56,13 @@ def transform_state(state: State, A=None, B=None, b=None) -> State:
         check_invertible(A, "A")
         x = _matvec(A, x)
         phi = A @ phi
-        p = _matvec(transpose(jnp.linalg.inv(A)), p)
-        pi = pi @ jnp.linalg.inv(A)
+        p = _matvec(transpose(linalg.inv(A)), p)
+        pi = pi @ linalg.inv(A)
     if B is not None:
         B = as_matrix(B, "B")
         check_invertible(B, "B")
         phi = phi @ B
-        pi = jnp.linalg.solve(B, pi)
+        pi = linalg.solve(B, pi)
     if b is not None:
         x = x + b
     return State(x, phi, p, pi)

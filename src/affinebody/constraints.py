@@ -50,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from affinebody import _linalg as linalg
 from affinebody import kinetic as kin
 from affinebody._checks import transpose
 from affinebody.groups import lie_algebra, project_algebra
@@ -102,7 +103,7 @@ def constraint_residual(phi: jax.Array, group: str) -> jax.Array:
     if algebra == "gl":
         return jnp.zeros(phi.shape[:-2] + (0,), phi.dtype)
     if algebra == "sl":
-        return jnp.linalg.slogdet(phi)[1][..., None]
+        return linalg.slogdet(phi)[1][..., None]
     g = transpose(phi) @ phi
     rows, cols = np.triu_indices(n)
     if algebra == "so":
@@ -132,7 +133,7 @@ def newton_blockwise(residual, z0, tol: float = NEWTON_TOL, max_iter: int = NEWT
 
     def newton_step(z):
         r, jac = _blockwise_jacobian(residual, z)
-        return z - jnp.linalg.solve(jac, r[..., None])[..., 0]
+        return z - linalg.solve(jac, r[..., None])[..., 0]
 
     def change(z_new, z):
         return jnp.max(jnp.abs(z_new - z)) / (1.0 + jnp.max(jnp.abs(z_new)))
@@ -155,14 +156,14 @@ def solve_linear_blockwise(residual, m: int, like: jax.Array) -> jax.Array:
     """Solution z [..., m] of the affine, block-diagonal equation residual(z) = 0."""
     z0 = jnp.zeros(like.shape[:-2] + (m,), like.dtype)
     r, jac = _blockwise_jacobian(residual, z0)
-    return -jnp.linalg.solve(jac, r[..., None])[..., 0]
+    return -linalg.solve(jac, r[..., None])[..., 0]
 
 
 # ------------------------------------------------------------------------------- momenta
 def _annihilator_directions(phi: jax.Array, group: str) -> jax.Array:
     """Lambda_j phi^-1 for the basis Lambda_j of g^perp: [..., m, n, n] (the fibre of pi)."""
     basis = complement_basis(group, phi.shape[-1])
-    return jnp.einsum("jab,...bc->...jac", basis, jnp.linalg.inv(phi))
+    return jnp.einsum("jab,...bc->...jac", basis, linalg.inv(phi))
 
 
 def metric_lift(kinetic_hamiltonian, state: State, group: str) -> State:

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from affinebody import _linalg as linalg
 from affinebody._checks import as_matrix, as_vector, check_invertible, eye_like, trace, transpose
 
 
@@ -33,7 +34,7 @@ def cauchy_tensor(phi) -> jax.Array:
     """C[phi] = phi^-T phi^-1, eq. (11)."""
     phi = as_matrix(phi)
     check_invertible(phi)
-    inv = jnp.linalg.inv(phi)
+    inv = linalg.inv(phi)
     return transpose(inv) @ inv
 
 
@@ -41,7 +42,7 @@ def inverse_green_tensor(phi) -> jax.Array:
     """Contravariant inverse G~[phi] = phi^-1 phi^-T = G^-1, eq. (12)."""
     phi = as_matrix(phi)
     check_invertible(phi)
-    inv = jnp.linalg.inv(phi)
+    inv = linalg.inv(phi)
     return inv @ transpose(inv)
 
 

@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from affinebody import _linalg as linalg
 from affinebody._checks import (
     as_matrix,
     eye_like,
@@ -79,7 +80,7 @@ def is_member(phi, group: str, tol: float = 1e-10) -> jax.Array:
     _check_group(group)
     phi = as_matrix(phi, "phi")
     n = phi.shape[-1]
-    det = jnp.linalg.det(phi)
+    det = linalg.det(phi)
     invertible = hadamard_ratio(phi) > tol
     if group == "L":
         return jnp.all(jnp.isfinite(phi), axis=(-2, -1))
@@ -122,7 +123,7 @@ def project(phi, group: str) -> jax.Array:
     _check_group(group)
     phi = as_matrix(phi, "phi")
     n = phi.shape[-1]
-    det = jnp.linalg.det(phi)
+    det = linalg.det(phi)
     if group in ("GL", "SL", "UL"):
         singular = hadamard_ratio(phi) <= 1e-13
         _refuse_if(singular, f"phi is singular: it has no projection onto {group}(n)")
@@ -183,7 +184,7 @@ def _sqrtm_denman_beavers(a: jax.Array, iterations: int) -> jax.Array:
 
     def body(_, yz):
         y, z = yz
-        return 0.5 * (y + jnp.linalg.inv(z)), 0.5 * (z + jnp.linalg.inv(y))
+        return 0.5 * (y + linalg.inv(z)), 0.5 * (z + linalg.inv(y))
 
     y, _ = lax.fori_loop(0, iterations, body, (a, jnp.broadcast_to(eye_like(a), a.shape)))
     return y
@@ -213,7 +214,7 @@ def _logm(a: jax.Array, max_square_roots: int) -> jax.Array:
         return _sqrtm_denman_beavers(m, 12), k + 1
 
     a, k = lax.while_loop(far, root, (a, 0))
-    z = (a - ident) @ jnp.linalg.inv(a + ident)
+    z = (a - ident) @ linalg.inv(a + ident)
     z2 = z @ z
     term, series = z, z
     for j in range(1, 14):

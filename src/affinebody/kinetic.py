@@ -57,6 +57,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from affinebody import _linalg as linalg
 from affinebody._checks import (
     as_float64,
     check_symmetric_positive_definite,
@@ -191,7 +192,7 @@ class AffineTranslational:
         return as_float64(self.mass, "kinetic.mass")
 
     def lagrangian(self, phi, v):
-        v_hat = jnp.linalg.solve(phi, v[..., None])[..., 0]
+        v_hat = linalg.solve(phi, v[..., None])[..., 0]
         return 0.5 * self._m() * jnp.sum(v_hat * v_hat, axis=-1)
 
     def hamiltonian(self, phi, p):
@@ -199,7 +200,7 @@ class AffineTranslational:
         return 0.5 * jnp.sum(p_hat * p_hat, axis=-1) / self._m()
 
     def legendre(self, phi, v):
-        inv = jnp.linalg.inv(phi)
+        inv = linalg.inv(phi)
         cauchy = transpose(inv) @ inv
         return self._m()[..., None] * jnp.einsum("...ij,...j->...i", cauchy, v)
 
@@ -240,13 +241,13 @@ class _LeftInvariantModel:
     """
 
     def lagrangian(self, phi, xi):
-        return self._energy_of_velocity(jnp.linalg.solve(phi, xi))
+        return self._energy_of_velocity(linalg.solve(phi, xi))
 
     def hamiltonian(self, phi, pi):
         return self._energy_of_spin(pi @ phi)
 
     def legendre(self, phi, xi):
-        return self._spin_of_velocity(jnp.linalg.solve(phi, xi)) @ jnp.linalg.inv(phi)
+        return self._spin_of_velocity(linalg.solve(phi, xi)) @ linalg.inv(phi)
 
     def inverse_legendre(self, phi, pi):
         return phi @ self._velocity_of_spin(pi @ phi)
@@ -256,13 +257,13 @@ class _RightInvariantModel:
     """T depends on xi only through Omega = xi phi^-1; H only through Sigma = phi pi."""
 
     def lagrangian(self, phi, xi):
-        return self._energy_of_velocity(xi @ jnp.linalg.inv(phi))
+        return self._energy_of_velocity(xi @ linalg.inv(phi))
 
     def hamiltonian(self, phi, pi):
         return self._energy_of_spin(phi @ pi)
 
     def legendre(self, phi, xi):
-        return jnp.linalg.solve(phi, self._spin_of_velocity(xi @ jnp.linalg.inv(phi)))
+        return linalg.solve(phi, self._spin_of_velocity(xi @ linalg.inv(phi)))
 
     def inverse_legendre(self, phi, pi):
         return self._velocity_of_spin(phi @ pi) @ phi
@@ -347,13 +348,13 @@ class DAlembert:
         return 0.5 * _frob(xi @ self._j(), xi)
 
     def hamiltonian(self, phi, pi):
-        return 0.5 * _frob(pi, jnp.linalg.solve(self._j(), pi))
+        return 0.5 * _frob(pi, linalg.solve(self._j(), pi))
 
     def legendre(self, phi, xi):
         return self._j() @ transpose(xi)
 
     def inverse_legendre(self, phi, pi):
-        return transpose(jnp.linalg.solve(self._j(), pi))
+        return transpose(linalg.solve(self._j(), pi))
 
     def flow(self, state: State, h) -> State:
         return state._replace(phi=state.phi + h * self.inverse_legendre(state.phi, state.pi))
@@ -393,10 +394,10 @@ class AffineJ(_LeftInvariantModel):
         return self._j() @ transpose(om)
 
     def _velocity_of_spin(self, s):
-        return transpose(jnp.linalg.solve(self._j(), s))
+        return transpose(linalg.solve(self._j(), s))
 
     def _energy_of_spin(self, s):
-        return 0.5 * _frob(s, jnp.linalg.solve(self._j(), s))
+        return 0.5 * _frob(s, linalg.solve(self._j(), s))
 
     def flow(self, state: State, h) -> State:
         w, rates = _principal_directions(self._j())
@@ -436,10 +437,10 @@ class HAffine(_RightInvariantModel):
         return self._h() @ transpose(om)
 
     def _velocity_of_spin(self, s):
-        return transpose(jnp.linalg.solve(self._h(), s))
+        return transpose(linalg.solve(self._h(), s))
 
     def _energy_of_spin(self, s):
-        return 0.5 * _frob(s, jnp.linalg.solve(self._h(), s))
+        return 0.5 * _frob(s, linalg.solve(self._h(), s))
 
     def flow(self, state: State, h) -> State:
         w, rates = _principal_directions(self._h())
@@ -479,11 +480,11 @@ class _BiTensorModel:
 
     def _velocity_of_spin(self, s):
         vec = transpose(s).reshape(s.shape[:-2] + (-1,))
-        return jnp.linalg.solve(self._matrix(), vec[..., None])[..., 0].reshape(s.shape)
+        return linalg.solve(self._matrix(), vec[..., None])[..., 0].reshape(s.shape)
 
     def _energy_of_spin(self, s):
         vec = transpose(s).reshape(s.shape[:-2] + (-1,))
-        return 0.5 * jnp.sum(vec * jnp.linalg.solve(self._matrix(), vec[..., None])[..., 0], -1)
+        return 0.5 * jnp.sum(vec * linalg.solve(self._matrix(), vec[..., None])[..., 0], -1)
 
     def _directions(self):
         mu, u = jnp.linalg.eigh(self._matrix())
@@ -591,12 +592,12 @@ class _IsotropicAffineFamily:
     def _flow_left(self, state: State, h) -> State:
         c, r = self._group_elements(state.pi @ state.phi, h)
         # r is orthogonal (exponential of a skew matrix): r^-1 = r^T.
-        pi = transpose(r) @ jnp.linalg.solve(c, state.pi)
+        pi = transpose(r) @ linalg.solve(c, state.pi)
         return state._replace(phi=state.phi @ c @ r, pi=pi)
 
     def _flow_right(self, state: State, h) -> State:
         c, r = self._group_elements(state.phi @ state.pi, h)
-        pi = transpose(jnp.linalg.solve(transpose(c), transpose(state.pi))) @ transpose(r)
+        pi = transpose(linalg.solve(transpose(c), transpose(state.pi))) @ transpose(r)
         return state._replace(phi=r @ c @ state.phi, pi=pi)
 
     def _check_region(self, model: str, n: int | None) -> None:

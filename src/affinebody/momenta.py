@@ -16,6 +16,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from affinebody import _linalg as linalg
 from affinebody._checks import as_matrix, as_vector, check_invertible, same_n, trace, transpose
 
 
@@ -50,14 +51,14 @@ def momentum_from_affine_spin(phi, sigma) -> jax.Array:
     """pi = phi^-1 Sigma (inverse of (45))."""
     phi, sigma = _matrices(phi, sigma, "Sigma")
     check_invertible(phi)
-    return jnp.linalg.solve(phi, sigma)
+    return linalg.solve(phi, sigma)
 
 
 def momentum_from_comoving_affine_spin(phi, sigma_hat) -> jax.Array:
     """pi = Sigma_hat phi^-1 (inverse of (45))."""
     phi, sigma_hat = _matrices(phi, sigma_hat, "Sigma_hat")
     check_invertible(phi)
-    return transpose(jnp.linalg.solve(transpose(phi), transpose(sigma_hat)))
+    return transpose(linalg.solve(transpose(phi), transpose(sigma_hat)))
 
 
 def spin(sigma) -> jax.Array:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from affinebody import _linalg as linalg
 from affinebody._checks import as_matrix, as_vector, check_invertible, eye_like, same_n, transpose
 from affinebody.deformation import matrix_power_traces
 
@@ -42,21 +43,21 @@ def mutual_cauchy(psi, phi) -> jax.Array:
     psi, phi = _pair(psi, phi)
     check_invertible(psi, "psi")
     check_invertible(phi, "phi")
-    return transpose(jnp.linalg.inv(phi)) @ jnp.linalg.inv(psi)
+    return transpose(linalg.inv(phi)) @ linalg.inv(psi)
 
 
 def mutual_gamma(psi, phi) -> jax.Array:
     """Gamma[psi, phi] = psi^-1 phi, eq. (21) (material "displacement" of phi from psi)."""
     psi, phi = _pair(psi, phi)
     check_invertible(psi, "psi")
-    return jnp.linalg.solve(psi, phi)
+    return linalg.solve(psi, phi)
 
 
 def mutual_sigma(psi, phi) -> jax.Array:
     """Sigma[psi, phi] = phi psi^-1, eq. (21) (spatial "displacement" of phi from psi)."""
     psi, phi = _pair(psi, phi)
     check_invertible(psi, "psi")
-    return phi @ jnp.linalg.inv(psi)
+    return phi @ linalg.inv(psi)
 
 
 def mutual_lagrange_strain(psi, phi) -> jax.Array:
@@ -100,7 +101,7 @@ def mean_cauchy_tensor(phi_k, phi_l) -> jax.Array:
     phi_k, phi_l = _pair(phi_k, phi_l)
     check_invertible(phi_k, "phi_k")
     check_invertible(phi_l, "phi_l")
-    inv_k, inv_l = jnp.linalg.inv(phi_k), jnp.linalg.inv(phi_l)
+    inv_k, inv_l = linalg.inv(phi_k), linalg.inv(phi_l)
     return 0.5 * (transpose(inv_k) @ inv_k + transpose(inv_l) @ inv_l)
 
 
@@ -118,8 +119,8 @@ def affine_distance_squared(x_k, phi_k, x_l, phi_l) -> jax.Array:
     check_invertible(phi_k, "phi_k")
     check_invertible(phi_l, "phi_l")
     u = x_k - x_l
-    a = jnp.linalg.solve(phi_k, u[..., None])[..., 0]
-    b = jnp.linalg.solve(phi_l, u[..., None])[..., 0]
+    a = linalg.solve(phi_k, u[..., None])[..., 0]
+    b = linalg.solve(phi_l, u[..., None])[..., 0]
     return 0.5 * (jnp.sum(a * a, axis=-1) + jnp.sum(b * b, axis=-1))
 
 
@@ -137,4 +138,4 @@ def relative_volume(phi_k, phi_l) -> jax.Array:
     """det Gamma[phi_K, phi_L] = det phi_L / det phi_K, eq. (79)."""
     phi_k, phi_l = _pair(phi_k, phi_l)
     check_invertible(phi_k, "phi_k")
-    return jnp.linalg.det(phi_l) / jnp.linalg.det(phi_k)
+    return linalg.det(phi_l) / linalg.det(phi_k)

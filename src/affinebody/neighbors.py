@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from affinebody import _linalg as linalg
 from affinebody.space import Space, as_space
 
 PAIR_OVERFLOW, CELL_OVERFLOW, REACH_OVERFLOW = 1, 2, 4
@@ -105,7 +106,7 @@ def largest_singular_values(phi: jax.Array) -> jax.Array:
         p = jnp.sqrt((dev + 2.0 * off) / 6.0)
         safe_p = jnp.where(p > 0, p, 1.0)
         b = (g - q[..., None, None] * jnp.eye(3)) / safe_p[..., None, None]
-        half_det = 0.5 * jnp.linalg.det(b)
+        half_det = 0.5 * linalg.det(b)
         angle = jnp.arccos(jnp.clip(half_det, -1.0, 1.0)) / 3.0
         lam = jnp.where(p > 0, q + 2.0 * p * jnp.cos(angle), q)
     else:

@@ -42,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from affinebody import _linalg as linalg
 from affinebody._checks import sym, transpose
 from affinebody.constraints import newton_blockwise, solve_linear_blockwise
 from affinebody.groups import lie_algebra
@@ -91,12 +92,12 @@ def velocity_constraint(phi, xi, rotationless: str, group: str = "GL+") -> jax.A
     """C_phi(xi) [..., m]: Omega - Omega^T (40) or Omega_hat - Omega_hat^T (41) above the
     diagonal, and Tr(phi^-1 xi) on SL/UL. Linear in xi; zero exactly for admissible xi."""
     if rotationless == "spatial":
-        omega = transpose(jnp.linalg.solve(transpose(phi), transpose(xi)))
+        omega = transpose(linalg.solve(transpose(phi), transpose(xi)))
     else:
-        omega = jnp.linalg.solve(phi, xi)
+        omega = linalg.solve(phi, xi)
     c = _upper_skew(omega)
     if lie_algebra(group) == "sl":
-        c = jnp.concatenate([c, jnp.trace(jnp.linalg.solve(phi, xi), axis1=-2, axis2=-1)[
+        c = jnp.concatenate([c, jnp.trace(linalg.solve(phi, xi), axis1=-2, axis2=-1)[
             ..., None]], axis=-1)
     return c
 
@@ -106,7 +107,7 @@ def _discrete_constraint(phi0, phi1, h, rotationless: str, group: str) -> jax.Ar
     mid = 0.5 * (phi0 + phi1)
     c = velocity_constraint(mid, (phi1 - phi0) / h, rotationless, "GL+")
     if lie_algebra(group) == "sl":
-        c = jnp.concatenate([c, jnp.linalg.slogdet(phi1)[1][..., None]], axis=-1)
+        c = jnp.concatenate([c, linalg.slogdet(phi1)[1][..., None]], axis=-1)
     return c
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from affinebody import _linalg as linalg
 from affinebody import momenta
 from affinebody._checks import transpose
 from affinebody.state import State
@@ -88,7 +89,7 @@ def dilatation_momentum(state: State) -> jax.Array:
 
 def volumes(state: State) -> jax.Array:
     """Volumes det phi_K, shape [..., N]."""
-    return jnp.linalg.det(state.phi)
+    return linalg.det(state.phi)
 
 
 def relative_volumes(state: State) -> jax.Array:

@@ -50,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from affinebody import _linalg as linalg
 from affinebody.space import Space
 
 PAIR_CHUNK = 1 << 16
@@ -198,8 +199,8 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int = PA
     padding. Memory: one chunk of pairs at a time."""
     _require_cutoff(pot)
     bodies, n = x.shape
-    binv = jnp.linalg.inv(phi)
-    det = jnp.linalg.det(phi)
+    binv = linalg.inv(phi)
+    det = linalg.det(phi)
     capacity = i.shape[0]
     chunk = max(1, min(chunk, capacity))
     chunks = -(-capacity // chunk)

@@ -29,6 +29,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from affinebody import _linalg as linalg
 from affinebody._checks import as_matrix, as_vector, check_invertible, transpose
 
 
@@ -51,8 +52,8 @@ def _svd_rotations(phi: jax.Array):
     n = phi.shape[-1]
     u, s, vt = jnp.linalg.svd(phi)
     v = transpose(vt)
-    det_u = jnp.sign(jnp.linalg.det(u))
-    det_v = jnp.sign(jnp.linalg.det(v))
+    det_u = jnp.sign(linalg.det(u))
+    det_v = jnp.sign(linalg.det(v))
     rot_l = u * _last_entry(det_u, n)[..., None, :]
     rot_r = v * _last_entry(det_v, n)[..., None, :]
     return rot_l, s, rot_r, det_u * det_v
@@ -83,7 +84,7 @@ def signed_singular_values(phi) -> jax.Array:
     """Q = (s_1, ..., s_{n-1}, sign(det phi) s_n), s descending; defined for singular phi too."""
     phi = as_matrix(phi, "phi")
     s = jnp.linalg.svd(phi, compute_uv=False)
-    sign = jnp.sign(jnp.linalg.det(phi))
+    sign = jnp.sign(linalg.det(phi))
     sign = jnp.where(sign == 0, 1.0, sign)
     return s * _last_entry(sign, phi.shape[-1])
 
@@ -126,7 +127,7 @@ def left_polar(phi) -> tuple[jax.Array, jax.Array]:
 def haar_density(phi) -> jax.Array:
     """Density of the Haar measure on GL(n) w.r.t. Lebesgue measure: |det phi|^-n, eq. (91)."""
     phi = as_matrix(phi, "phi")
-    return jnp.abs(jnp.linalg.det(phi)) ** (-phi.shape[-1])
+    return jnp.abs(linalg.det(phi)) ** (-phi.shape[-1])
 
 
 def haar_density_with_translations(phi) -> jax.Array:
@@ -136,7 +137,7 @@ def haar_density_with_translations(phi) -> jax.Array:
     phi -> phi B (the affine group is not unimodular; NOTES.md).
     """
     phi = as_matrix(phi, "phi")
-    return jnp.abs(jnp.linalg.det(phi)) ** (-phi.shape[-1] - 1)
+    return jnp.abs(linalg.det(phi)) ** (-phi.shape[-1] - 1)
 
 
 def _pairwise(values: jax.Array):

@@ -93,6 +93,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from affinebody import _linalg as linalg
 from affinebody._checks import as_matrix, as_vector
 from affinebody.deformation import (
     characteristic_from_traces,
@@ -232,7 +233,7 @@ def one_body_variables(names: Iterable[str], x: jax.Array, phi: jax.Array) -> di
         if f"x{a + 1}" in names:
             out[f"x{a + 1}"] = x[..., a]
     if "det" in names:
-        out["det"] = jnp.linalg.det(phi)
+        out["det"] = linalg.det(phi)
     if names & {"trG", "K", "I"} or _indexed(names, "K") or _indexed(names, "I"):
         k = matrix_power_traces(green_tensor(phi), n)
         out["K"], out["trG"] = k, k[..., 0]

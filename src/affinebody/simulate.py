@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from affinebody import _linalg as linalg
 from affinebody import neighbors as nb
 from affinebody import observables as obs
 from affinebody.integrators import ImplicitMidpoint, get_integrator
@@ -136,7 +137,7 @@ def _simulate(system, state, dt, neighbors, *, n_chunks, every, method, observer
     valid for the carried state; a step whose list overflowed is discarded like a non-finite
     one (status _OVERFLOW), recording what the reallocation must hold in ``lost``."""
     watch_det = system.group in OPEN_GROUPS
-    sign0 = jnp.sign(jnp.linalg.det(state.phi))
+    sign0 = jnp.sign(linalg.det(state.phi))
     zero = jnp.asarray(0)
 
     def one_step(carry, _):
@@ -147,7 +148,7 @@ def _simulate(system, state, dt, neighbors, *, n_chunks, every, method, observer
             new, tracked = method.step_with_neighbors(system, state, dt, spec, nbrs)
             new_list, overflow = tracked.neighbors, tracked.overflow != 0
         finite = _per_body_finite(new)
-        crossed = (jnp.sign(jnp.linalg.det(new.phi)) != sign0) & finite & watch_det
+        crossed = (jnp.sign(linalg.det(new.phi)) != sign0) & finite & watch_det
         bad_bodies = ~finite | crossed
         first = (status == _OK) & (jnp.any(bad_bodies) | overflow)
         code = jnp.where(overflow, _OVERFLOW,

@@ -346,8 +346,8 @@ def draw_initial_state(system, state, key, *, internal: str, internal_scale, tra
     of ``state`` (through the inverse Legendre maps).
     """
     import jax
-    import jax.numpy as jnp
 
+    from affinebody import _linalg as linalg
     from affinebody.groups import project_algebra
     from affinebody.state import State
 
@@ -359,7 +359,7 @@ def draw_initial_state(system, state, key, *, internal: str, internal_scale, tra
         pi = kinetic.internal.legendre(phi, phi @ omega_hat)
     else:
         pi = state.pi
-        omega_hat = jnp.linalg.solve(phi, kinetic.internal.inverse_legendre(phi, pi))
+        omega_hat = linalg.solve(phi, kinetic.internal.inverse_legendre(phi, pi))
     if translational == "normal":
         v = translational_scale * jax.random.normal(jax.random.fold_in(key, 1), state.x.shape,
                                                     dtype=state.x.dtype)
@@ -374,9 +374,11 @@ def _measures(phi):
     """(max_K max(sigma_max(phi_K), 1/sigma_min(phi_K)), min det, max det, max |det ratio|)."""
     import jax.numpy as jnp
 
+    from affinebody import _linalg as linalg
+
     sigma = jnp.linalg.svd(phi, compute_uv=False)
     spread = jnp.max(jnp.maximum(sigma[..., 0], 1.0 / sigma[..., -1]))
-    det = jnp.linalg.det(phi)
+    det = linalg.det(phi)
     volume = jnp.abs(det)
     return spread, jnp.min(det), jnp.max(det), jnp.max(volume) / jnp.min(volume)
 
@@ -398,8 +400,10 @@ def follow(system, state, dt, bound, *, steps: int, method, watch_det: bool):
     import jax.numpy as jnp
     from jax import lax
 
+    from affinebody import _linalg as linalg
+
     energy0 = system.hamiltonian(state)
-    sign0 = jnp.sign(jnp.linalg.det(state.phi))
+    sign0 = jnp.sign(linalg.det(state.phi))
     runaway = bound * bound
     spread, dmin, dmax, rel = _measures(state.phi)
     ok0 = jnp.isfinite(energy0) & _finite(state)
@@ -417,7 +421,7 @@ def follow(system, state, dt, bound, *, steps: int, method, watch_det: bool):
         finite = _finite(new)
         phi = jnp.where(finite, new.phi, state.phi)
         s, lo, hi, r = _measures(phi)
-        crossed = watch_det & jnp.any(jnp.sign(jnp.linalg.det(phi)) != sign0)
+        crossed = watch_det & jnp.any(jnp.sign(linalg.det(phi)) != sign0)
         good = finite & ~crossed
         code = jnp.where(finite, jnp.where(crossed, _LEFT_GROUP, code), _NON_FINITE)
         state = jax.tree.map(lambda a, b: jnp.where(good, a, b), new, state)

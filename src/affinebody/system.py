@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from affinebody import _linalg as linalg
 from affinebody import constraints, nonholonomic
 from affinebody._checks import as_matrix, as_vector, is_concrete, transpose
 from affinebody.constraints import CONSTRAINED_GROUPS
@@ -79,7 +80,7 @@ def project_momentum(phi: jax.Array, pi: jax.Array, group: str) -> jax.Array:
     sigma_hat = pi @ phi
     removed = sigma_hat - project_algebra(sigma_hat, group)
     # removed @ phi^-1, via a solve with phi^T
-    return pi - transpose(jnp.linalg.solve(transpose(phi), transpose(removed)))
+    return pi - transpose(linalg.solve(transpose(phi), transpose(removed)))
 
 
 @dataclass(frozen=True)
@@ -286,7 +287,7 @@ class HamiltonianSystem:
         a = 0.3 * rng.standard_normal((1, n, n))
         phi = jax.scipy.linalg.expm(project_algebra(jnp.asarray(a), g))
         sigma_hat = project_algebra(jnp.asarray(rng.standard_normal((1, n, n))), g)
-        pi = sigma_hat @ jnp.linalg.inv(phi)
+        pi = sigma_hat @ linalg.inv(phi)
         probe = State(jnp.asarray(rng.standard_normal((1, n))), phi,
                       jnp.asarray(rng.standard_normal((1, n))), pi)
         for term in kinetic_terms(self.kinetic):

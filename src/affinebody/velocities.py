@@ -14,8 +14,8 @@ Constraint residuals (zero when the constraint holds):
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 
+from affinebody import _linalg as linalg
 from affinebody._checks import as_matrix, as_vector, check_invertible, same_n, transpose
 
 
@@ -30,13 +30,13 @@ def _configuration_and_velocity(phi, xi) -> tuple[jax.Array, jax.Array]:
 def spatial_affine_velocity(phi, xi) -> jax.Array:
     """Omega = xi phi^-1, eq. (34)."""
     phi, xi = _configuration_and_velocity(phi, xi)
-    return transpose(jnp.linalg.solve(transpose(phi), transpose(xi)))
+    return transpose(linalg.solve(transpose(phi), transpose(xi)))
 
 
 def comoving_affine_velocity(phi, xi) -> jax.Array:
     """Omega_hat = phi^-1 xi, eq. (34)."""
     phi, xi = _configuration_and_velocity(phi, xi)
-    return jnp.linalg.solve(phi, xi)
+    return linalg.solve(phi, xi)
 
 
 def comoving_velocity(phi, v) -> jax.Array:
@@ -45,7 +45,7 @@ def comoving_velocity(phi, v) -> jax.Array:
     v = as_vector(v, "v")
     same_n(phi, v, ("phi", "v"))
     check_invertible(phi)
-    return jnp.linalg.solve(phi, v[..., None])[..., 0]
+    return linalg.solve(phi, v[..., None])[..., 0]
 
 
 def gyroscopic_residual(phi, xi) -> jax.Array:

@@ -1,0 +1,130 @@
+"""Determinant, inverse and linear solves of small matrices in closed form (n <= 3).
+
+Every configuration phi of this project is an n x n matrix with n <= 3, and so are most
+matrices built from it (Gamma = psi^-1 phi (21), the inertia J, Newton blocks of the
+constraints). For them ``det``, ``inv``, ``solve`` and ``slogdet`` here use the cofactor
+expansion and the adjugate, adj(a) a = det(a) Id:
+
+    n = 1: det = a_00,                    adj = [[1]]
+    n = 2: det = a_00 a_11 - a_01 a_10,   adj = [[a_11, -a_01], [-a_10, a_00]]
+    n = 3: adj_ij = cofactor_ji (2 x 2 minors), det = sum_j a_0j adj_j0
+    inv(a) = adj(a) / det(a),  solve(a, b) = adj(a) b / det(a).
+
+Why not ``jnp.linalg``: on CPU jaxlib 0.10 runs a batched inverse or solve as LAPACK
+getrf/trsm FFI kernels that fan out over the XLA intra-op thread pool (``ParallelBatchMap``)
+and block until their sub-tasks finish. When XLA runs two such kernels at once on a pool of
+two threads (large vmapped batches: all pairs of 125 bodies in 3D on a 2-core machine), both
+threads wait for sub-tasks that no free thread can run: the process deadlocks, idle, forever
+(see ``affinebody/_xla.py``). The closed forms are plain elementwise XLA arithmetic, contain no
+LAPACK custom call, fuse with their neighbours, and are faster for such tiny matrices.
+
+Numerical caveat: the adjugate formulas are not pivoted. Their relative error is bounded by
+about eps * n^(n/2) / h(a), h(a) = |det a| / prod_j |a e_j| the Hadamard ratio that
+``_checks.check_invertible`` thresholds (singular phi are refused on input). That is a few
+cond(a) * eps, as for LAPACK's pivoted LU, when at most one singular value is small, but can
+reach cond(a)^2 * eps for a 3 x 3 matrix with two small singular values (a body squashed to a
+line), where LU keeps cond(a) * eps (tests/test_linalg.py measures both). ``jnp.linalg.det``
+itself uses the same unpivoted formula for 2 x 2 and 3 x 3. Fine for the well-conditioned phi
+of this project.
+
+All functions act on the last two axes, broadcast over leading (batch) axes, are jit-, vmap- and
+grad-safe (polynomials and one division), and keep the input's precision (float64 in this
+project). For n > 3 they fall back to ``jnp.linalg``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+CLOSED_FORM_MAX_N = 3
+
+
+def _square(a, name: str = "a") -> jax.Array:
+    a = jnp.asarray(a)
+    if a.ndim < 2 or a.shape[-1] != a.shape[-2]:
+        raise ValueError(f"{name} must be a square matrix [..., n, n] (got shape {a.shape})")
+    if not jnp.issubdtype(a.dtype, jnp.inexact):
+        a = a.astype(jnp.result_type(a, 0.0))
+    return a
+
+
+def _adjugate_and_det(a: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(adj(a), det(a)) for n <= 3, with det the cofactor expansion along the first row."""
+    n = a.shape[-1]
+    if n == 1:
+        return jnp.ones_like(a), a[..., 0, 0]
+    if n == 2:
+        a00, a01, a10, a11 = a[..., 0, 0], a[..., 0, 1], a[..., 1, 0], a[..., 1, 1]
+        adj = jnp.stack([jnp.stack([a11, -a01], -1), jnp.stack([-a10, a00], -1)], -2)
+        return adj, a00 * a11 - a01 * a10
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = (
+        (a[..., i, 0], a[..., i, 1], a[..., i, 2]) for i in range(3))
+    rows = (
+        (a11 * a22 - a12 * a21, a02 * a21 - a01 * a22, a01 * a12 - a02 * a11),
+        (a12 * a20 - a10 * a22, a00 * a22 - a02 * a20, a02 * a10 - a00 * a12),
+        (a10 * a21 - a11 * a20, a01 * a20 - a00 * a21, a00 * a11 - a01 * a10),
+    )
+    adj = jnp.stack([jnp.stack(row, -1) for row in rows], -2)
+    return adj, a00 * rows[0][0] + a01 * rows[1][0] + a02 * rows[2][0]
+
+
+def det(a) -> jax.Array:
+    """det(a) [...] of a [..., n, n]."""
+    a = _square(a)
+    if a.shape[-1] > CLOSED_FORM_MAX_N:
+        return jnp.linalg.det(a)
+    return _adjugate_and_det(a)[1]
+
+
+def slogdet(a) -> tuple[jax.Array, jax.Array]:
+    """(sign, log|det a|) of a [..., n, n], as ``jnp.linalg.slogdet`` (sign 0, log -inf when
+    det a = 0)."""
+    a = _square(a)
+    if a.shape[-1] > CLOSED_FORM_MAX_N:
+        sign, logabsdet = jnp.linalg.slogdet(a)
+        return sign, logabsdet
+    d = det(a)
+    return jnp.sign(d), jnp.log(jnp.abs(d))
+
+
+def inv(a) -> jax.Array:
+    """a^-1 [..., n, n] of a [..., n, n] (adj(a) / det(a) for n <= 3)."""
+    a = _square(a)
+    if a.shape[-1] > CLOSED_FORM_MAX_N:
+        return jnp.linalg.inv(a)
+    adj, d = _adjugate_and_det(a)
+    return adj / d[..., None, None]
+
+
+def solve(a, b) -> jax.Array:
+    """x with a x = b, as ``jnp.linalg.solve``: a [..., n, n]; b a vector [n] (x [..., n]) or a
+    stack of matrices [..., n, k] (x [..., n, k]), leading axes broadcast against a's. Solve a
+    stack of vectors as ``solve(a, b[..., None])[..., 0]``."""
+    a = _square(a)
+    b = jnp.asarray(b)
+    n = a.shape[-1]
+    vector = b.ndim == 1
+    if (b.shape[0] if vector else b.shape[-2] if b.ndim >= 2 else -1) != n:
+        raise ValueError(f"solve: b must have shape [{n}] or [..., {n}, k] for a of shape "
+                         f"{a.shape} (got {b.shape}); for a stack of vectors use "
+                         f"solve(a, b[..., None])[..., 0]")
+    dtype = jnp.result_type(a, b, 0.0)
+    a, b = a.astype(dtype), b.astype(dtype)
+    if n > CLOSED_FORM_MAX_N:
+        return _lapack_solve(a, b)
+    adj, d = _adjugate_and_det(a)
+    if vector:
+        return jnp.einsum("...ij,j->...i", adj, b) / d[..., None]
+    return (adj @ b) / d[..., None, None]
+
+
+def _lapack_solve(a: jax.Array, b: jax.Array) -> jax.Array:
+    """jnp.linalg.solve, with one factorisation (no batch) when a has no leading axes: the
+    right-hand sides of every batch entry become columns of one [n, K] system."""
+    if a.ndim > 2 or b.ndim <= 2:
+        return jnp.linalg.solve(a, b)
+    n, k = b.shape[-2], b.shape[-1]
+    columns = jnp.moveaxis(b, -2, 0).reshape(n, -1)  # [n, batch * k]
+    x = jnp.linalg.solve(a, columns).reshape((n,) + b.shape[:-2] + (k,))
+    return jnp.moveaxis(x, 0, -2)
