@@ -100,9 +100,19 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
     for text in result.warnings:
         console.print(f"[bold red]warning:[/] {text}")
     if result.unconverged:
-        console.print(f"{len(result.unconverged)} unconverged candidates (continuous spectrum or"
-                      f" too small a basis), lowest {result.unconverged[0].energy:.6g}: "
-                      "not listed as levels")
+        shown = result.unconverged[:count]
+        extra = Table(title=f"unconverged candidates: error estimate above quantum.tolerance, not "
+                            f"levels (continuous spectrum or too small a basis); lowest "
+                            f"{len(shown)} of {len(result.unconverged)}")
+        for col in ("energy", "mult.", "spin", "vorticity", "error estimate"):
+            extra.add_column(col, justify="right")
+        for lv in shown:
+            d = lv.as_dict()
+            extra.add_row(f"{lv.energy:.9g}", str(lv.multiplicity), str(d["spin"]),
+                          str(d["vorticity"]), f"{lv.error:.1e}")
+        console.print(extra)
+        console.print("to converge them: raise quantum.basis_size (n = 2: up to 80, n = 3: up "
+                      "to 16), or accept them with a larger quantum.tolerance")
 
 
 @click.command("density")
