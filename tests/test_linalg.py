@@ -220,3 +220,42 @@ def test_integrator_step_of_an_all_pairs_system_has_no_lu_calls():
                   jnp.asarray(rng.normal(size=(8, 3))), jnp.asarray(rng.normal(size=(8, 3, 3))))
     step = jax.jit(lambda s: get_integrator("strang").step(system, s, 0.01))
     assert lapack_calls(step.lower(state).as_text()) == []
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_expm_agrees_with_scipy_and_is_a_group_exponential(n):
+    """Pade [13/13] scaling and squaring over norms from 1e-8 to ~50 (up to 4 squarings): as
+    close to scipy's expm as jax.scipy.linalg.expm is (the same algorithm with LU; exp is
+    ill-conditioned for large non-normal X, so neither agrees to eps there), and below 1e-11;
+    exp(X) exp(-X) = Id, det exp(X) = exp(tr X), exp of a skew matrix orthogonal; gradients
+    equal those through jax.scipy.linalg.expm."""
+    import scipy.linalg as sl
+
+    rng = np.random.default_rng(70 + n)
+    for scale in (1e-8, 1e-3, 0.5, 3.0, 15.0):
+        a = scale * rng.normal(size=(BATCH, n, n))
+        ours = np.asarray(la.expm(jnp.asarray(a)))
+        ref = np.array([sl.expm(m) for m in a])
+        theirs = np.asarray(jax.vmap(jax.scipy.linalg.expm)(jnp.asarray(a)))
+        assert rel(ours, ref) <= max(2 * rel(theirs, ref), 4 * EPS) and rel(ours, ref) < 1e-11
+        if scale > 1:  # exp(X) exp(-X) and det exp(X) cancel catastrophically for large X
+            continue
+        back = np.asarray(la.expm(jnp.asarray(-a)))
+        size = np.linalg.norm(ours, axis=(-2, -1)) * np.linalg.norm(back, axis=(-2, -1))
+        assert np.all(np.linalg.norm(ours @ back - np.eye(n), axis=(-2, -1)) < 1e-13 * size)
+        trace = np.trace(a, axis1=-2, axis2=-1)
+        assert np.allclose(np.linalg.det(ours), np.exp(trace), rtol=1e-11)
+    w = rng.normal(size=(BATCH, n, n))
+    q = np.asarray(la.expm(jnp.asarray(w - np.swapaxes(w, -1, -2))))
+    assert np.allclose(q @ np.swapaxes(q, -1, -2), np.eye(n), atol=1e-13)
+    x = jnp.asarray(rng.normal(size=(n, n)))
+    grad_ours = jax.grad(lambda m: jnp.sum(jnp.sin(la.expm(m))))(x)
+    grad_jax = jax.grad(lambda m: jnp.sum(jnp.sin(jax.scipy.linalg.expm(m))))(x)
+    assert np.allclose(grad_ours, grad_jax, rtol=1e-11, atol=1e-12)
+
+
+def test_expm_of_a_large_batch_compiles_without_lapack_calls():
+    """jax.scipy.linalg.expm solves its Pade system with LAPACK (getrf/trsm); ours does not."""
+    x = jnp.zeros((20000, 3, 3))
+    assert lapack_calls(jax.jit(la.expm).lower(x).compile().as_text()) == []
+    assert lapack_calls(jax.jit(jax.scipy.linalg.expm).lower(x).compile().as_text())

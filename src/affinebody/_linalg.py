@@ -1,4 +1,5 @@
-"""Determinant, inverse and linear solves of small matrices in closed form (n <= 3).
+"""Determinant, inverse, linear solves and the exponential of small matrices without LAPACK
+(n <= 3).
 
 Every configuration phi of this project is an n x n matrix with n <= 3, and so are most
 matrices built from it (Gamma = psi^-1 phi (21), the inertia J, Newton blocks of the
@@ -128,3 +129,47 @@ def _lapack_solve(a: jax.Array, b: jax.Array) -> jax.Array:
     columns = jnp.moveaxis(b, -2, 0).reshape(n, -1)  # [n, batch * k]
     x = jnp.linalg.solve(a, columns).reshape((n,) + b.shape[:-2] + (k,))
     return jnp.moveaxis(x, 0, -2)
+
+
+# Pade [13/13] coefficients of exp (Higham 2005, "The scaling and squaring method for the matrix
+# exponential revisited"), and the norm up to which it is accurate to unit roundoff.
+_PADE13 = (64764752532480000.0, 32382376266240000.0, 7771770303897600.0, 1187353796428800.0,
+           129060195264000.0, 10559470521600.0, 670442572800.0, 33522128640.0, 1323241920.0,
+           40840800.0, 960960.0, 16380.0, 182.0, 1.0)
+_THETA13 = 5.371920351148152
+#: squarings available: norms up to _THETA13 * 2**_MAX_SQUARINGS (~5.6e6 for 20)
+_MAX_SQUARINGS = 20
+
+
+def expm(a) -> jax.Array:
+    """Matrix exponential, batched, without LAPACK for n <= 3 (for n > 3:
+    ``jax.scipy.linalg.expm``).
+
+    Scaling and squaring with the Pade [13/13] approximant: s = ceil(log2(|a|_1 / theta_13))
+    (at least 0), r13(a / 2^s) = (V - U)^-1 (V + U) solved in closed form (V - U is well
+    conditioned for |a / 2^s|_1 <= theta_13), then squared s times -- as a fixed number of
+    masked squarings, so the function stays reverse-differentiable under jit and vmap. The
+    same algorithm as scipy's and jax's expm (tests/test_linalg.py: at least as close to
+    scipy's as jax's own, which solves the Pade system with LAPACK).
+    """
+    a = _square(a)
+    n = a.shape[-1]
+    if n > CLOSED_FORM_MAX_N:
+        return jax.scipy.linalg.expm(a)
+    norm = jnp.max(jnp.sum(jnp.abs(a), axis=-2), axis=-1)  # 1-norm, [...]
+    ratio = jnp.where(norm > 0, norm / _THETA13, 1.0)
+    s = jnp.clip(jnp.ceil(jnp.log2(ratio)), 0, _MAX_SQUARINGS)
+    x = a / (2.0**s)[..., None, None]
+    eye = jnp.broadcast_to(jnp.eye(n, dtype=a.dtype), a.shape)
+    b = _PADE13
+    x2 = x @ x
+    x4 = x2 @ x2
+    x6 = x4 @ x2
+    u = x @ (x6 @ (b[13] * x6 + b[11] * x4 + b[9] * x2) + b[7] * x6 + b[5] * x4 + b[3] * x2
+             + b[1] * eye)
+    v = x6 @ (b[12] * x6 + b[10] * x4 + b[8] * x2) + b[6] * x6 + b[4] * x4 + b[2] * x2 + b[0] * eye
+    r = solve(v - u, v + u)
+
+    def square(i, m):
+        return jnp.where((i < s)[..., None, None], m @ m, m)
+    return jax.lax.fori_loop(0, _MAX_SQUARINGS, square, r)

@@ -16,8 +16,8 @@ def pin_to_one_cpu(index: int = 0) -> None:
     ``TriMatrixEquationSolverKernel`` -> ``ParallelBatchMap`` -> ``BlockingCounter::Wait``).
     With one CPU the pool has one thread and ``ParallelBatchMap`` runs the batch inline.
     Used by the test suite (one core per pytest-xdist worker). Processes spawned later
-    inherit the mask. The library's n <= 3 det/inv/solve avoid LAPACK altogether through
-    :mod:`affinebody._linalg`; pinning remains the safeguard for expm/svd/eigh batches.
+    inherit the mask. The library's n <= 3 det/inv/solve/expm avoid LAPACK altogether through
+    :mod:`affinebody._linalg`; pinning remains the safeguard for svd/eigh batches.
     """
     allowed = sorted(os.sched_getaffinity(0))
     os.sched_setaffinity(0, {allowed[index % len(allowed)]})

@@ -174,9 +174,10 @@ def project_algebra(x, group: str) -> jax.Array:
 
 
 def expm(x) -> jax.Array:
-    """Matrix exponential (one-parameter subgroups t -> expm(t X)), batched."""
+    """Matrix exponential (one-parameter subgroups t -> expm(t X)), batched; Pade [13/13] with
+    scaling and squaring and no LAPACK call for n <= 3 (:func:`affinebody._linalg.expm`)."""
     x = as_matrix(x, "X")
-    return jax.scipy.linalg.expm(x)
+    return linalg.expm(x)
 
 
 def _sqrtm_denman_beavers(a: jax.Array, iterations: int) -> jax.Array:

@@ -281,7 +281,7 @@ def rotationless_loop(phi0, s1, s2, rotationless: str):
     For a holonomic constraint every such loop would close: phi_end = phi0.
     """
     phi0, s1, s2 = (jnp.asarray(a, jnp.float64) for a in (phi0, s1, s2))
-    e = jax.scipy.linalg.expm
+    e = linalg.expm
     if rotationless == "spatial":
         m = e(-s2) @ e(-s1) @ e(s2) @ e(s1)
         u, a = polar(m)

@@ -285,7 +285,7 @@ class HamiltonianSystem:
         rng = np.random.default_rng(12345)
         g = self.group
         a = 0.3 * rng.standard_normal((1, n, n))
-        phi = jax.scipy.linalg.expm(project_algebra(jnp.asarray(a), g))
+        phi = linalg.expm(project_algebra(jnp.asarray(a), g))
         sigma_hat = project_algebra(jnp.asarray(rng.standard_normal((1, n, n))), g)
         pi = sigma_hat @ linalg.inv(phi)
         probe = State(jnp.asarray(rng.standard_normal((1, n))), phi,
