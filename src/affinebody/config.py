@@ -310,12 +310,17 @@ def _show(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def parse_config(text: str, source: str = "config") -> Config:
-    """Parse TOML ``text`` and check types and keys; raises :class:`ConfigError`."""
+def load_toml(text: str, source: str = "config") -> dict:
+    """The TOML document ``text`` as a dict; a syntax error is a one-line :class:`ConfigError`."""
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{source} is not valid TOML: {err}") from None
+
+
+def parse_config(text: str, source: str = "config") -> Config:
+    """Parse TOML ``text`` and check types and keys; raises :class:`ConfigError`."""
+    data = load_toml(text, source)
     try:
         config = Config.model_validate({**data, "source_text": text} if "source_text" not in data
                                        else data)

@@ -33,18 +33,13 @@ from scipy import linalg, special
 from affinebody.quantum.spectra import (
     AffineInertia,
     Basis,
-    Block,
-    Level,
+    LevelCollector,
     Potential,
     Sector,
     Settings,
     Spectrum,
-    is_converged,
-    merge_levels,
     solve_block,
     sqrt_x_over_sinh,
-    state_count,
-    truncate_levels,
     variational_parameters,
 )
 
@@ -461,42 +456,82 @@ def auto_scale_haar3(potential: Potential, hbar: float, inertia: AffineInertia
 
 
 # -------------------------------------------------------------------------------- solvers
+@dataclass(frozen=True)
+class Setup3:
+    """The discretisation every n = 3 solver shares: basis scales (variational unless given),
+    the quadrature grid, whether phi -> -phi is a symmetry, and the convergence checks.
+
+    d'Alembert: one chamber grid for every degree (the polynomial degree is the check: a
+    Gaussian of another width is a poor polynomial basis, so no widened basis). Affine: a Haar
+    grid per (degree, scale) and a basis 1.1 times wider as the second check (1.3 leaves the
+    polynomial space too far for 1e-7; 1.1 still moves every pseudo-level of a continuous
+    spectrum by far more)."""
+
+    kind: str
+    scale: float
+    scale_sigma: float
+    centre: float
+    chamber: ChamberQuadrature | None
+    parity_symmetric: bool
+    check: Settings
+
+    def grid(self, degree: int, scale: float):
+        if self.chamber is not None:
+            return self.chamber
+        return haar3_grid(scale, self.sigma_scale(scale), self.centre, 20 + 2 * degree,
+                          10 + degree, 6 + degree)
+
+    def sigma_scale(self, scale: float) -> float:
+        """The sigma scale that goes with ``scale`` (both widen together)."""
+        return self.scale_sigma * scale / self.scale
+
+    def info(self, settings: Settings) -> dict:
+        out = {"basis_size": settings.basis_size, "scale": self.scale}
+        if self.kind == "haar3":
+            out.update(scale_sigma=self.scale_sigma, centre=self.centre)
+        return out
+
+
+def setup3(model: str, potential: Potential, hbar: float, inertia_scalar: float,
+           inertia: AffineInertia, settings: Settings) -> Setup3:
+    """:class:`Setup3` for ``model`` (d'Alembert with J = inertia_scalar * Id, or an affine
+    model with ``inertia``)."""
+    degree = settings.basis_size
+    if model == "dalembert":
+        b = settings.scale or auto_scale_scalar3(potential, hbar, inertia_scalar)
+        quad = ChamberQuadrature.build(b * (8.0 + 0.75 * math.sqrt(degree + 1)),
+                                       n_rho=40 + 2 * degree, n_angle=16 + degree)
+        # parity under phi -> -phi is a symmetry iff V(Q1, Q2, -Q3) = V(Q)
+        flip = quad.nodes * np.array([1.0, 1.0, -1.0])
+        symmetric = bool(np.allclose(potential(flip), potential(quad.nodes), rtol=1e-12,
+                                     atol=1e-12))
+        return Setup3("lebesgue3", b, 1.0, 0.0, quad, symmetric,
+                      replace(settings, check_widen=1.0))
+    if settings.scale is None or settings.scale_sigma is None or settings.centre is None:
+        b, bs, c0 = auto_scale_haar3(potential, hbar, inertia)
+    b = settings.scale or b
+    bs = settings.scale_sigma or bs
+    c0 = c0 if settings.centre is None else settings.centre
+    # -phi is not in GL+(3): no parity
+    return Setup3("haar3", b, bs, c0, None, False,
+                  replace(settings, check_widen=min(settings.check_widen, 1.1)))
+
+
 def solve_dalembert_scalar(potential: Potential, hbar: float, inertia: float, levels: int,
                            settings: Settings) -> Spectrum:
     """n = 3 d'Alembert, the scalar sector only (``sectors="scalar"``), in the Weyl-invariant
     Arnoldi basis of :func:`scalar3_block`; J = inertia * Id."""
-    blocks: dict[tuple, Block] = {}
-    entries: list = []
-    unconverged: list[Level] = []
-    info: dict = {"basis_size": settings.basis_size}
-    count = levels + 4
-    b = settings.scale or auto_scale_scalar3(potential, hbar, inertia)
-    info["scale"] = b
-    quad = ChamberQuadrature.build(b * (8.0 + 0.75 * math.sqrt(settings.basis_size + 1)),
-                                   n_rho=40 + 2 * settings.basis_size,
-                                   n_angle=16 + settings.basis_size)
-    # a Gaussian of another width is a poor polynomial basis: the check here is the degree
-    # only (basis_size - check_shrink), which flags every level the smaller space misses
+    setup = setup3("dalembert", potential, hbar, inertia, None, settings)
     E, vec, err, basis = solve_block(
-        lambda d, s: scalar3_block(potential, hbar, inertia, d, s, quad),
-        settings.basis_size, b, count, replace(settings, check_widen=1.0))
-    # parity under phi -> -phi is a symmetry iff V(Q1,Q2,-Q3) = V(Q)
-    Qn = quad.nodes
-    sym = np.allclose(potential(Qn * np.array([1, 1, -1.0])), potential(Qn),
-                      rtol=1e-12, atol=1e-12)
-    par = basis.factors[0].parity
-    for i in range(len(E)):
-        weight_even = float(np.sum(vec[par == 1, i] ** 2))
-        p = 1 if weight_even > 1 - 1e-8 else (-1 if weight_even < 1e-8 else None)
-        sec = (Sector(0, 0, p if sym else None),)
-        key = ("scalar", i)
-        blocks[key] = Block(key, sec, basis, E[i:i + 1], vec[:, i:i + 1], err[i:i + 1])
-        if is_converged(E[i], err[i], settings):
-            entries.append((float(E[i]), float(err[i]), sec, key, 0))
-        else:
-            unconverged.append(Level(float(E[i]), 1, sec, float(err[i]), key, 0))
-    return Spectrum(merge_levels(entries, settings), unconverged, blocks, "dalembert", 3,
-                    "scalar", info, True, [_N3_PARTIAL.format(sectors="(0, 0)")])
+        lambda d, s: scalar3_block(potential, hbar, inertia, d, s, setup.chamber),
+        settings.basis_size, setup.scale, levels + 4, setup.check)
+    found = LevelCollector(settings)
+    found.record_each(("scalar",), lambda p: (Sector(0, 0, p if setup.parity_symmetric
+                                                     else None),),
+                      basis, E, vec, err, basis.factors[0].parity)
+    merged, unconverged = found.levels(None)  # one block: every level it resolves
+    return Spectrum(merged, unconverged, found.blocks, "dalembert", 3, "scalar",
+                    setup.info(settings), True, [_N3_PARTIAL.format(sectors="(0, 0)")])
 
 
 def solve_channels(model: str, potential: Potential, hbar: float, inertia_scalar: float,
@@ -504,60 +539,20 @@ def solve_channels(model: str, potential: Potential, hbar: float, inertia_scalar
                    ) -> Spectrum:
     """n = 3: the scalar and/or spin = vorticity = 1 sectors (``sectors`` "scalar", "spin1",
     "scalar+spin1") in the dedicated bases of :func:`channel3_block`."""
-    blocks: dict[tuple, Block] = {}
-    entries: list = []
-    unconverged: list[Level] = []
-    info: dict = {"basis_size": settings.basis_size}
-    degree = settings.basis_size
-    count = levels + 4
-    wanted = {"scalar": (False,), "spin1": (True,), "scalar+spin1": (False, True)}[sectors]
-    if model == "dalembert":
-        b = settings.scale or auto_scale_scalar3(potential, hbar, inertia_scalar)
-        info["scale"] = b
-        quad = ChamberQuadrature.build(b * (8.0 + 0.75 * math.sqrt(degree + 1)),
-                                       n_rho=40 + 2 * degree, n_angle=16 + degree)
-        grid = Grid3(quad.nodes, quad.weights)
-        flip = quad.nodes * np.array([1.0, 1.0, -1.0])
-        symmetric = np.allclose(potential(flip), potential(quad.nodes), rtol=1e-12, atol=1e-12)
-
-        def build(spin1):
-            # a Gaussian of another width is a poor polynomial basis: degree check only
-            return lambda d, sc: channel3_block("lebesgue3", potential, hbar, inertia_scalar,
-                                                grid, d, sc, spin1=spin1)
-        check = replace(settings, check_widen=1.0)
-    else:
-        if settings.scale is None or settings.scale_sigma is None or settings.centre is None:
-            b, bs, c0 = auto_scale_haar3(potential, hbar, inertia)
-        b = settings.scale or b
-        bs = settings.scale_sigma or bs
-        c0 = c0 if settings.centre is None else settings.centre
-        info.update(scale=b, scale_sigma=bs, centre=c0)
-        symmetric = False  # -phi is not in GL+(3)
-
-        def build(spin1):
-            def block(d, sc):
-                grid = haar3_grid(sc, bs * sc / b, c0, 20 + 2 * d, 10 + d, 6 + d)
-                return channel3_block("haar3", potential, hbar, inertia, grid, d, sc,
-                                      bs * sc / b, c0, spin1=spin1)
-            return block
-        # widening the Gaussian by 1.3 leaves the polynomial space too far for a check at
-        # 1e-7; 1.1 still moves every pseudo-level of a continuous spectrum by far more
-        check = replace(settings, check_widen=min(settings.check_widen, 1.1))
-    for spin1 in wanted:
-        E, vec, err, basis = solve_block(build(spin1), degree, info["scale"], count, check)
-        parity = basis.factors[3]
-        for i in range(len(E)):
-            even = float(np.sum(vec[parity == 1, i] ** 2))
-            p = 1 if even > 1 - 1e-8 else (-1 if even < 1e-8 else None)
-            j = 1 if spin1 else 0
-            sec = (Sector(j, j, p if symmetric else None, (2 * j + 1) ** 2),)
-            key = ("spin1" if spin1 else "scalar", i)
-            blocks[key] = Block(key, sec, basis, E[i:i + 1], vec[:, i:i + 1], err[i:i + 1])
-            if is_converged(E[i], err[i], settings):
-                entries.append((float(E[i]), float(err[i]), sec, key, 0))
-            else:
-                unconverged.append(Level(float(E[i]), state_count(sec), sec, float(err[i]),
-                                         key, 0))
+    setup = setup3(model, potential, hbar, inertia_scalar, inertia, settings)
+    physical = inertia_scalar if setup.kind == "lebesgue3" else inertia
+    found = LevelCollector(settings)
+    for spin1 in {"scalar": (False,), "spin1": (True,), "scalar+spin1": (False, True)}[sectors]:
+        def block(d, sc, spin1=spin1):
+            return channel3_block(setup.kind, potential, hbar, physical, setup.grid(d, sc), d,
+                                  sc, setup.sigma_scale(sc), setup.centre, spin1=spin1)
+        E, vec, err, basis = solve_block(block, settings.basis_size, setup.scale, levels + 4,
+                                         setup.check)
+        j = 1 if spin1 else 0
+        found.record_each(("spin1" if spin1 else "scalar",),
+                          lambda p, j=j: (Sector(j, j, p if setup.parity_symmetric else None,
+                                                 (2 * j + 1) ** 2),),
+                          basis, E, vec, err, basis.factors[3])
     label = {"scalar": "(0, 0)", "spin1": "(1, 1)", "scalar+spin1": "(0, 0) and (1, 1)"}
     warnings = [_N3_PARTIAL.format(sectors=label[sectors])]
     bounded = True
@@ -567,13 +562,11 @@ def solve_channels(model: str, potential: Potential, hbar: float, inertia_scalar
                         "bounded below but the sum over all sectors (j, j') is not (the n = 2 "
                         "mechanism: -hbar^2 (rho - tau)^2 / (16 A cosh^2) wells that deepen "
                         "with the spin)")
-    merged = truncate_levels(merge_levels(entries, settings), levels)
-    unconverged.sort(key=lambda lv: lv.energy)
-    return Spectrum(merged, unconverged, blocks, model, 3, sectors, info, bounded, warnings)
-
-
+    merged, unconverged = found.levels(levels)
+    return Spectrum(merged, unconverged, found.blocks, model, 3, sectors,
+                    setup.info(settings), bounded, warnings)
 
 
 __all__ = ["ChamberQuadrature", "Grid3", "haar3_grid", "Jet", "ScalarBasis3", "scalar3_block",
            "channel3_block", "channel3_forms", "auto_scale_scalar3", "auto_scale_haar3",
-           "solve_dalembert_scalar", "solve_channels"]
+           "Setup3", "setup3", "solve_dalembert_scalar", "solve_channels"]

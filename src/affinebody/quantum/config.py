@@ -25,14 +25,13 @@ Every error is one line naming the field, e.g.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from affinebody.config import ConfigError, one_line_error
+from affinebody.config import ConfigError, load_toml, one_line_error
 from affinebody.quantum.spectra import Settings
 
 KINETIC_NAMES = ("dalembert", "af-is", "is-af", "af-af", "af-J")
@@ -173,10 +172,7 @@ def compile_potential(text: str, n: int):
 
 
 def parse(text: str, source: str = "config") -> QuantumConfig:
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{source} is not valid TOML: {err}") from None
+    data = load_toml(text, source)
     try:
         config = QuantumConfig.model_validate(data)
     except ValidationError as err:

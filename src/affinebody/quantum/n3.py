@@ -47,27 +47,15 @@ import numpy as np
 from scipy import linalg
 
 from affinebody.quantum import covariants3 as cov
-from affinebody.quantum.channels3 import (
-    ChamberQuadrature,
-    Grid3,
-    _sqrt_x_over_sinh_derivative_ratio,
-    auto_scale_haar3,
-    auto_scale_scalar3,
-    haar3_grid,
-)
+from affinebody.quantum.channels3 import _sqrt_x_over_sinh_derivative_ratio, setup3
 from affinebody.quantum.spectra import (
     Basis,
-    Block,
-    Level,
+    LevelCollector,
     Sector,
     Spectrum,
-    is_converged,
-    kth_energy,
-    merge_levels,
+    shell_complete,
     solve_block,
     sqrt_x_over_sinh,
-    state_count,
-    truncate_levels,
 )
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
@@ -403,61 +391,30 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
     ``progress``: optional callable receiving a one-line description of each sector as it
     starts.
     """
-    kind = "lebesgue3" if model == "dalembert" else "haar3"
-    degree = settings.basis_size
+    setup = setup3(model, potential, hbar, inertia_scalar, inertia, settings)
+    kind, degree = setup.kind, settings.basis_size
+    physical = inertia_scalar if kind == "lebesgue3" else inertia
 
-    def nested(compute):
-        """A block builder that computes the largest basis once per scale and answers the
-        nested check bases (smaller degree) with the leading block of its Hamiltonian."""
+    def build(j, jp):
+        """Block builder computing the largest basis once per scale; the nested check basis
+        (smaller degree) is the leading block of its Hamiltonian."""
         cache: dict = {}
 
         def block(d, sc):
             if sc not in cache or cache[sc][0] < d:
-                cache[sc] = (d,) + compute(d, sc)
+                grid = setup.grid(d, sc)
+                cache[sc] = (d, grid, sector_block(kind, potential, hbar, physical, grid, j, jp,
+                                                   d, sc, setup.sigma_scale(sc), setup.centre))
             _, grid, (H, basis) = cache[sc]
-            k = int(np.sum(basis.levels <= d))
-            nested = basis.truncated(k)
+            nested = basis.truncated(int(np.sum(basis.levels <= d)))
+            k = len(nested.levels)
             return H[:k, :k], Basis("grid3", (kind, grid, nested.values, nested.parity, None))
         return block
 
-    info: dict = {"basis_size": degree}
-    if kind == "lebesgue3":
-        b = settings.scale or auto_scale_scalar3(potential, hbar, inertia_scalar)
-        info["scale"] = b
-        quad = ChamberQuadrature.build(b * (8.0 + 0.75 * np.sqrt(degree + 1)),
-                                       n_rho=40 + 2 * degree, n_angle=16 + degree)
-        grid = Grid3(quad.nodes, quad.weights)
-        flip = quad.nodes * np.array([1.0, 1.0, -1.0])
-        symmetric_parity = np.allclose(potential(flip), potential(quad.nodes), rtol=1e-12,
-                                       atol=1e-12)
-
-        def build(j, jp):
-            return nested(lambda d, sc: (grid, sector_block(kind, potential, hbar, inertia_scalar,
-                                                            grid, j, jp, d, sc)))
-        check = replace(settings, check_widen=1.0)  # a Gaussian of another width: degree only
-    else:
-        if settings.scale is None or settings.scale_sigma is None or settings.centre is None:
-            b, bs, c0 = auto_scale_haar3(potential, hbar, inertia)
-        b = settings.scale or b
-        bs = settings.scale_sigma or bs
-        c0 = c0 if settings.centre is None else settings.centre
-        info.update(scale=b, scale_sigma=bs, centre=c0)
-        symmetric_parity = False  # -phi is not in GL+(3)
-
-        def build(j, jp):
-            def block(d, sc):
-                grid = haar3_grid(sc, bs * sc / b, c0, 20 + 2 * d, 10 + d, 6 + d)
-                return grid, sector_block(kind, potential, hbar, inertia, grid, j, jp, d, sc,
-                                          bs * sc / b, c0)
-            return nested(block)
-        check = replace(settings, check_widen=min(settings.check_widen, 1.1))
     transpose_symmetric = model in ("dalembert", "af-af")
     max_shell = min(settings.max_spin, MAX_SHELL)
-    blocks: dict = {}
-    entries: list = []
-    unconverged: list = []
+    found = LevelCollector(settings)
     shell_minima: list[float] = []
-    count = levels + 4
     finished = False
     for shell in sectors_by_shell(max_shell):
         shell_min = np.inf
@@ -468,31 +425,20 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
                 continue  # no covariant polynomial of the basis degree: not resolved
             if progress is not None:
                 progress(f"n = 3 {model}: sector (j, j') = ({j}, {jp}), shell {max(j, jp)}")
-            E, vec, err, basis = solve_block(build(j, jp), degree, info["scale"], count, check)
+            E, vec, err, basis = solve_block(build(j, jp), degree, setup.scale, levels + 4,
+                                             setup.check)
             if len(E) == 0:
                 continue
-            parity = basis.factors[3]
             twins = [(j, jp)] + ([(jp, j)] if transpose_symmetric and j != jp else [])
-            for i in range(len(E)):
-                even = float(np.sum(vec[parity == 1, i] ** 2))
-                p = 1 if even > 1 - 1e-8 else (-1 if even < 1e-8 else None)
-                sec = tuple(Sector(a, c, p if symmetric_parity else None,
-                                   sector_dimension(a, c)) for a, c in twins)
-                key = ("sector", j, jp, i)
-                blocks[key] = Block(key, sec, basis, E[i:i + 1], vec[:, i:i + 1],
-                                    err[i:i + 1])
-                if is_converged(E[i], err[i], settings):
-                    entries.append((float(E[i]), float(err[i]), sec, key, 0))
-                else:
-                    unconverged.append(Level(float(E[i]), state_count(sec), sec,
-                                             float(err[i]), key, 0))
+            found.record_each(
+                ("sector", j, jp),
+                lambda p, twins=twins: tuple(
+                    Sector(a, c, p if setup.parity_symmetric else None, sector_dimension(a, c))
+                    for a, c in twins),
+                basis, E, vec, err, basis.factors[3])
             shell_min = min(shell_min, float(E[0]))
         shell_minima.append(shell_min)
-        # a shell entirely above the lowest `levels` states found so far (converged or not:
-        # an unconverged level still bounds what a higher shell could add) ends the search
-        known = entries + [(lv.energy, lv.error, lv.sectors, lv.block, 0) for lv in unconverged]
-        total = sum(state_count(e[2]) for e in known)
-        if model != "af-af" and total >= levels and shell_min > kth_energy(known, levels):
+        if model != "af-af" and shell_complete(found.known(), levels, shell_min):
             finished = True
             break
     warnings = []
@@ -508,13 +454,9 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
         warnings.append(f"the sector search stopped at max(j, j') = {max_shell} before the "
                         f"{levels} lowest states were certain: raise quantum.max_spin "
                         f"(at most {MAX_SHELL} for n = 3)")
-    merged = truncate_levels(merge_levels(entries, settings), levels)
-    top = merged[-1].energy if merged and sum(lv.multiplicity for lv in merged) >= levels \
-        else np.inf
-    limit = top + settings.merge * max(1.0, abs(top))
-    unconverged = sorted((lv for lv in unconverged if lv.energy <= limit),
-                         key=lambda lv: lv.energy)
-    return Spectrum(merged, unconverged, blocks, model, 3, "all", info, bounded, warnings)
+    merged, unconverged = found.levels(levels)
+    return Spectrum(merged, unconverged, found.blocks, model, 3, "all", setup.info(settings),
+                    bounded, warnings)
 
 
 

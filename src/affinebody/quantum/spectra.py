@@ -526,19 +526,8 @@ def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: flo
             return channels3.solve_dalembert_scalar(potential, hbar, inertia, levels, settings)
         return channels3.solve_channels(model, potential, hbar, inertia,
                                         AffineInertia(model, I, A, B), levels, settings, sectors)
-    blocks: dict[tuple, Block] = {}
-    entries: list = []
-    unconverged: list[Level] = []
+    found = LevelCollector(settings)
     info: dict = {"basis_size": settings.basis_size}
-
-    def record(key, secs, E, vec, err, basis):
-        blocks[key] = Block(key, secs, basis, E, vec, err)
-        for i, (e, de) in enumerate(zip(E, err, strict=True)):
-            if is_converged(e, de, settings):
-                entries.append((float(e), float(de), secs, key, i))
-            else:
-                unconverged.append(Level(float(e), state_count(secs), secs, float(de), key, i))
-
     count = levels + 4
     if model == "dalembert":
         b = settings.scale or auto_scale_lebesgue2(potential, hbar, inertia)
@@ -572,14 +561,13 @@ def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: flo
         shell = shell_of(key)
         if shell != current_shell:
             shell_minima.append(shell_min)
-            total = sum(state_count(e[2]) for e in entries)
-            if total >= levels and shell_min > kth_energy(entries, levels):
+            if shell_complete(found.known(), levels, shell_min):
                 break
             current_shell, shell_min = shell, np.inf
         E, vec, err, basis = solve_block(build_for(*key), settings.basis_size,
                                          info["scale"], count, settings)
         shell_min = min(shell_min, float(E[0]))
-        record(key, _n2_sectors(key, model), E, vec, err, basis)
+        found.record(key, _n2_sectors(key, model), basis, E, vec, err)
     else:
         shell_minima.append(shell_min)
         info["max_spin_reached"] = True
@@ -591,12 +579,8 @@ def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: flo
     elif info.get("max_spin_reached"):
         warnings.append(f"the sector search stopped at max_spin = {settings.max_spin} before the "
                         f"{levels} lowest states were certain: raise quantum.max_spin")
-    merged = truncate_levels(merge_levels(entries, settings), levels)
-    top = merged[-1].energy if sum(lv.multiplicity for lv in merged) >= levels else np.inf
-    limit = top + settings.merge * max(1.0, abs(top))
-    unconverged = sorted((lv for lv in unconverged if lv.energy <= limit),
-                         key=lambda lv: lv.energy)
-    return Spectrum(merged, unconverged, blocks, model, n, "all", info, bounded, warnings)
+    merged, unconverged = found.levels(levels)
+    return Spectrum(merged, unconverged, found.blocks, model, n, "all", info, bounded, warnings)
 
 
 def _afaf_warning(hbar: float, A: float, max_spin: int, shell_minima: list[float]) -> str:
@@ -617,6 +601,14 @@ def kth_energy(entries, count: int) -> float:
     return values[count - 1] if len(values) >= count else np.inf
 
 
+def shell_complete(known: list, levels: int, shell_min: float) -> bool:
+    """The sector search may stop: the candidates found (converged or not; an unconverged one
+    still bounds what a higher shell could add) hold ``levels`` states, all below the lowest
+    level ``shell_min`` of the shell just solved."""
+    return (sum(state_count(e[2]) for e in known) >= levels
+            and shell_min > kth_energy(known, levels))
+
+
 def truncate_levels(levels: list[Level], count: int) -> list[Level]:
     """The lowest levels that hold the first ``count`` states (the last may hold more)."""
     out, total = [], 0
@@ -626,6 +618,65 @@ def truncate_levels(levels: list[Level], count: int) -> list[Level]:
         out.append(lv)
         total += lv.multiplicity
     return out
+
+
+def eigen_parity(vector: np.ndarray, parity: np.ndarray) -> int | None:
+    """Parity of an eigenvector in a basis of functions of definite ``parity`` (+1 / -1):
+    +1 or -1 when its weight lies (to 1e-8) on one class, None when it mixes them."""
+    even = float(np.sum(vector[parity == 1] ** 2))
+    return 1 if even > 1 - 1e-8 else (-1 if even < 1e-8 else None)
+
+
+@dataclass
+class LevelCollector:
+    """The solved blocks of a spectrum being assembled, their converged levels (as entries for
+    :func:`merge_levels`) and the unconverged candidates."""
+
+    settings: Settings
+    blocks: dict = field(default_factory=dict)
+    entries: list = field(default_factory=list)
+    unconverged: list = field(default_factory=list)
+
+    def _add(self, E: float, err: float, sectors: tuple, key: tuple, index: int) -> None:
+        if is_converged(E, err, self.settings):
+            self.entries.append((float(E), float(err), sectors, key, index))
+        else:
+            self.unconverged.append(Level(float(E), state_count(sectors), sectors, float(err),
+                                          key, index))
+
+    def record(self, key: tuple, sectors: tuple, basis: Basis, E, vec, err) -> None:
+        """One block whose eigenvectors all belong to ``sectors`` (level i: index i)."""
+        self.blocks[key] = Block(key, sectors, basis, E, vec, err)
+        for i in range(len(E)):
+            self._add(E[i], err[i], sectors, key, i)
+
+    def record_each(self, key: tuple, sectors_of: Callable[[int | None], tuple], basis: Basis,
+                    E, vec, err, parity: np.ndarray) -> None:
+        """One block per eigenvector, keyed ``key + (i,)``, its sectors labelled by its parity
+        (:func:`eigen_parity` over the basis functions' ``parity``)."""
+        for i in range(len(E)):
+            sec = sectors_of(eigen_parity(vec[:, i], parity))
+            one = key + (i,)
+            self.blocks[one] = Block(one, sec, basis, E[i:i + 1], vec[:, i:i + 1], err[i:i + 1])
+            self._add(E[i], err[i], sec, one, 0)
+
+    def known(self) -> list:
+        """Entries of every candidate, converged or not (a bound on what is still missing)."""
+        return self.entries + [(lv.energy, lv.error, lv.sectors, lv.block, 0)
+                               for lv in self.unconverged]
+
+    def levels(self, count: int | None) -> tuple[list[Level], list[Level]]:
+        """(the lowest ``count`` states as merged levels, the unconverged candidates up to the
+        highest of them, ascending); ``count`` None: every level and candidate found."""
+        merged = merge_levels(self.entries, self.settings)
+        if count is None:
+            return merged, sorted(self.unconverged, key=lambda lv: lv.energy)
+        merged = truncate_levels(merged, count)
+        top = (merged[-1].energy if merged and sum(lv.multiplicity for lv in merged) >= count
+               else np.inf)
+        limit = top + self.settings.merge * max(1.0, abs(top))
+        return merged, sorted((lv for lv in self.unconverged if lv.energy <= limit),
+                              key=lambda lv: lv.energy)
 
 
 # ------------------------------------------------------- independent Cartesian check (n = 2)
