@@ -247,3 +247,41 @@ def test_the_list_at_a_checkpoint_depends_on_the_state_alone_and_grows_to_fit():
     again, lst2 = neighbors_at(built.system, base, clustered)
     assert again == spec
     assert all(np.array_equal(a, b) for a, b in zip(lst, lst2, strict=True))
+
+
+def test_build_with_a_list_never_sums_over_all_pairs(monkeypatch):
+    """Set-up is O(N): with a list, the initial energy (and its finiteness check) is summed
+    over the list, and equals the all-pairs energy; the all-pairs path is never taken."""
+    from affinebody.potentials import PairTerm
+
+    enable_x64()
+    config = check_config(parse_config(crystal("on")))
+    all_pairs = build(check_config(parse_config(crystal("off"))))
+    reference = float(all_pairs.system.hamiltonian(all_pairs.state))
+
+    def refuse(*_args, **_kwargs):
+        raise AssertionError("the all-pairs sum was called during an O(N) set-up")
+
+    monkeypatch.setattr(PairTerm, "pair_energies", refuse)
+    built = build(config)
+    spec, lst = built.neighbors
+    assert built.neighbor_list and spec.bodies == SIDE * SIDE
+    energy = float(built.system.hamiltonian(built.state, lst))
+    assert energy == pytest.approx(reference, rel=1e-12)
+    assert set(built.timings) >= {"initial state", "neighbour list", "initial energy"}
+
+
+def test_verbose_run_prints_the_phases_and_the_rate_without_compilation(folder):
+    out = folder / "verbose.h5"
+    result = invoke("run", folder / "on.toml", "-o", out, "--steps", 20, "--verbose")
+    assert result.exit_code == 0, result.stderr
+    text = result.stdout
+    for phase in ("load and validate", "set-up: neighbour list", "set-up: initial energy",
+                  "integrate", "output"):
+        assert phase in text, text
+    # the summary tells compiling and integrating apart; both are positive numbers
+    line = next(s for s in text.splitlines() if s.startswith("20 steps in"))
+    compiling = float(line.split("compiling ")[1].split(" s")[0])
+    integrating = float(line.split("integrating ")[1].split(" s")[0])
+    total = float(line.split("steps in ")[1].split(" s")[0])
+    assert 0 <= compiling and 0 < integrating and compiling + integrating <= total

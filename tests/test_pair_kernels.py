@@ -1,7 +1,9 @@
 """Pair kernels over a neighbour list: energies and generalised forces equal the all-pairs
 autodiff of affinebody.potentials (to 1e-12) on random periodic systems, for every pair
-variable r, D, det, K_a, M_a; also after strong deformation, after a capacity overflow, through
-jax.grad, and along a trajectory (energy conservation unchanged)."""
+variable r, D, det, K_a, M_a and every built-in pair family, cut-offs on r and on D, n = 2 and
+3, for both kernels (the compiled host kernel that runs on a CPU and the JAX kernel that runs
+on a GPU); also inside compiled code (the path ``simulate.run`` takes), after strong
+deformation, after a capacity overflow, through jax.grad, and along a trajectory."""
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +17,10 @@ from affinebody import pair_kernels as pk
 from affinebody.potentials import (
     Cutoff,
     Dilatation,
+    Gaussian,
+    HarmonicInvariants,
     LennardJones,
+    Morse,
     PairPotential,
     StVenantKirchhoff,
     generalized_forces,
@@ -43,6 +48,11 @@ CASES = {
     "all-variables-2d": (PairPotential.from_expression(
         "exp(-D**2)*(M1 - 1.5)**2 + det + 0.1*K2 + 0.2*M2 + r", 2, cutoff=Cutoff(1.5),
         box=BOX2), 2),
+    "morse-r-2d": (Morse(1.0, 3.0, 1.0, cutoff=Cutoff(1.5, 1.2), box=BOX2), 2),
+    "gaussian-in-D-free-2d": (
+        Gaussian(-0.7, 0.5, argument="D", cutoff=Cutoff(1.3, variable="D")), 2),
+    "harmonic-M-3d": (HarmonicInvariants(0.8, "M", cutoff=Cutoff(1.5), box=BOX3), 3),
+    "harmonic-K-2d": (HarmonicInvariants(0.8, "K", cutoff=Cutoff(1.5), box=BOX2), 2),
 }
 
 
@@ -84,8 +94,15 @@ def list_for(potential, x, phi, skin=0.3):
                        cell_capacity=BODIES)
 
 
+@jax.jit(static_argnums=0)
+def _in_loop(potential, x, phi, nbrs):
+    """What a kick in ``simulate.run`` computes: jax.grad of the list energy, jitted."""
+    energy = lambda x, phi: potential.energy(x, phi, nbrs)  # noqa: E731
+    return energy(x, phi), *jax.grad(energy, argnums=(0, 1))(x, phi)
+
+
 @pytest.mark.parametrize("case", list(CASES))
-def test_list_forces_equal_all_pairs_forces_jax_and_numba(case):
+def test_list_forces_equal_all_pairs_forces_host_and_jax(case):
     potential, n = CASES[case]
     rng = np.random.default_rng(sum(map(ord, case)))
     x, phi = configuration(rng, n, potential.space)
@@ -95,17 +112,38 @@ def test_list_forces_equal_all_pairs_forces_jax_and_numba(case):
     jax_result = pk.energy_and_gradients_jit(
         potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count, 64)  # several chunks
     assert_same(jax_result, reference)
-    if n == 2:  # the compiled kernel is the same code with n = 2; one compilation (n = 3) here
-        return
-    numba_result = pk.energy_and_gradients_numba(
-        potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count, 50)
-    assert_same(numba_result, reference)
+    host_result = pk.energy_and_gradients_host(
+        potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count)
+    assert_same(host_result, reference)
+    # inside compiled code on this CPU the host kernel runs, through jax.pure_callback
+    assert pk.host_kernel_in_use()
+    assert_same(_in_loop(potential, x, phi, nbrs), reference)
     # translation invariance: the pair forces on the centres sum to zero
-    np.testing.assert_allclose(np.sum(numba_result[1], axis=0), 0.0,
+    np.testing.assert_allclose(np.sum(host_result[1], axis=0), 0.0,
                                atol=1e-12 * np.max(np.abs(reference[1])))
     if "material-affine" in potential.symmetry:  # Noether (31): sum_K phi_K^T dV/dphi_K = 0
-        charge = np.einsum("kia,kib->ab", np.asarray(phi), numba_result[2])
-        assert np.max(np.abs(charge)) < 1e-11 * np.max(np.abs(reference[2]))
+        charge = np.einsum("kia,kib->ab", np.asarray(phi), host_result[2])
+        assert np.max(np.abs(charge)) <= 1e-11 * np.max(np.abs(reference[2]))
+
+
+def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch):
+    """Chunks of pairs (per-body sums carried between callbacks) give the all-pairs forces,
+    and the threads' fixed parts give the same bits on one thread or two."""
+    potential, n = CASES["demo-3d"]
+    x, phi = configuration(np.random.default_rng(3), n, potential.space)
+    _, nbrs = list_for(potential, x, phi)
+    args = (potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count)
+    monkeypatch.setattr(pk, "HOST_CHUNK_PAIRS", 97)  # several chunks, the last one partial
+    monkeypatch.setattr(pk, "HOST_THREAD_MIN_ROWS", 0)
+    chunked = jax.jit(pk._host_pair_sum, static_argnums=(0, 1))
+    assert nbrs.i.shape[0] > 3 * 97
+    monkeypatch.setattr(pk, "host_threads", lambda: 1)
+    one = chunked(*args)
+    monkeypatch.setattr(pk, "host_threads", lambda: 2)
+    two = chunked(*args)
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))  # bit for bit
+    assert_same(one, all_pairs(potential, x, phi))
 
 
 def test_forces_after_strong_deformation_and_after_a_capacity_overflow():
@@ -124,8 +162,8 @@ def test_forces_after_strong_deformation_and_after_a_capacity_overflow():
         nb.check(rebuilt)
     spec, nbrs = list_for(potential, x, deformed, skin=0.2)
     reference = all_pairs(potential, x, deformed)
-    assert_same(pk.energy_and_gradients_numba(potential, free_space(), x, deformed, nbrs.i,
-                                              nbrs.j, nbrs.count), reference)
+    assert_same(pk.energy_and_gradients_host(potential, free_space(), x, deformed, nbrs.i,
+                                             nbrs.j, nbrs.count), reference)
     assert_same(pk.energy_and_gradients_jit(potential, free_space(), x, deformed, nbrs.i,
                                             nbrs.j, nbrs.count, 64), reference)
 
@@ -194,5 +232,5 @@ def test_a_neighbour_list_needs_a_cut_off():
     potential = PairPotential.from_expression("exp(-r)", 3)
     x, phi = configuration(np.random.default_rng(0), 3, free_space())
     with pytest.raises(ValueError, match="needs a cut-off"):
-        pk.energy_and_gradients_numba(potential, free_space(), x, phi, np.zeros(1, int),
-                                      np.ones(1, int), 1)
+        pk.energy_and_gradients_host(potential, free_space(), x, phi, np.zeros(1, int),
+                                     np.ones(1, int), 1)

@@ -28,6 +28,7 @@ import json
 import math
 import tomllib
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -408,51 +409,59 @@ class Inertia:
     labels: tuple[str, ...]
 
 
+def _one_body_inertia(field: str, body, n: int) -> tuple[float, np.ndarray, float]:
+    """(mass, J of eq. (8), drawing radius) of one [body] / [[bodies]] entry, checked."""
+    _positive(body.mass, f"{field}.mass")
+    _positive(body.radius, f"{field}.radius")
+    mass = body.mass
+    J = None
+    if body.constituents is not None:
+        c = body.constituents
+        cm = _array(c.masses, f"{field}.constituents.masses", (len(c.masses),))
+        pos = _array(c.positions, f"{field}.constituents.positions", (len(c.masses), n))
+        if np.any(cm <= 0):
+            raise ConfigError(f"{field}.constituents.masses must all be > 0")
+        total = float(cm.sum())
+        rel = pos - cm @ pos / total
+        J = np.einsum("p,pk,pl->kl", cm, rel, rel)
+        if np.linalg.eigvalsh(J).min() <= 1e-12 * max(1.0, np.abs(J).max()):
+            raise ConfigError(
+                f"{field}.constituents span fewer than n = {n} dimensions, so J of eq. (8) "
+                f"is singular (need n + 1 points not in one hyperplane)")
+        if mass is not None and not math.isclose(mass, total, rel_tol=1e-12):
+            raise ConfigError(f"{field}.mass = {mass} disagrees with the constituents' total "
+                              f"mass {total} (drop one of them)")
+        if body.inertia is not None:
+            raise ConfigError(f"{field}: give inertia or constituents, not both")
+        mass = total
+    elif body.inertia is not None:
+        J = _spd(body.inertia, f"{field}.inertia", n)
+    mass = 1.0 if mass is None else mass
+    if J is None:  # a uniform ball of the drawing radius, J = M r^2 / (n + 2) Id
+        J = mass * body.radius**2 / (n + 2) * np.eye(n)
+    return mass, J, body.radius
+
+
 def body_inertia(config: Config) -> Inertia:
     """Masses, J (eq. (8)) and drawing radii of every body, checked."""
     n, count = config.n, config.bodies_count
     if config.body is not None and config.bodies is not None:
         raise ConfigError("give either [body] (identical bodies) or [[bodies]], not both")
-    if config.bodies is not None:
-        entries = [(f"bodies.{k}", b) for k, b in enumerate(config.bodies)]
-    else:
-        entries = [("body", config.body or BodySection())] * count
-    masses, inertias, radii, labels = [], [], [], []
     system_labels = config.system.bodies if isinstance(config.system.bodies, list) else None
-    for k, (field, body) in enumerate(entries):
-        _positive(body.mass, f"{field}.mass")
-        _positive(body.radius, f"{field}.radius")
-        mass = body.mass
-        J = None
-        if body.constituents is not None:
-            c = body.constituents
-            cm = _array(c.masses, f"{field}.constituents.masses", (len(c.masses),))
-            pos = _array(c.positions, f"{field}.constituents.positions", (len(c.masses), n))
-            if np.any(cm <= 0):
-                raise ConfigError(f"{field}.constituents.masses must all be > 0")
-            total = float(cm.sum())
-            rel = pos - cm @ pos / total
-            J = np.einsum("p,pk,pl->kl", cm, rel, rel)
-            if np.linalg.eigvalsh(J).min() <= 1e-12 * max(1.0, np.abs(J).max()):
-                raise ConfigError(
-                    f"{field}.constituents span fewer than n = {n} dimensions, so J of eq. (8) "
-                    f"is singular (need n + 1 points not in one hyperplane)")
-            if mass is not None and not math.isclose(mass, total, rel_tol=1e-12):
-                raise ConfigError(f"{field}.mass = {mass} disagrees with the constituents' total "
-                                  f"mass {total} (drop one of them)")
-            if body.inertia is not None:
-                raise ConfigError(f"{field}: give inertia or constituents, not both")
-            mass = total
-        elif body.inertia is not None:
-            J = _spd(body.inertia, f"{field}.inertia", n)
-        mass = 1.0 if mass is None else mass
-        if J is None:  # a uniform ball of the drawing radius, J = M r^2 / (n + 2) Id
-            J = mass * body.radius**2 / (n + 2) * np.eye(n)
+    if config.bodies is None:  # identical bodies: check one, broadcast (O(1) Python work)
+        body = config.body or BodySection()
+        mass, J, radius = _one_body_inertia("body", body, n)
+        labels = ((body.label,) * count if body.label else tuple(system_labels) if system_labels
+                  else tuple(f"B{k}" for k in range(count)))
+        return Inertia(np.full(count, mass), np.broadcast_to(J, (count, n, n)).copy(),
+                       np.full(count, radius), labels)
+    masses, inertias, radii, labels = [], [], [], []
+    for k, body in enumerate(config.bodies):
+        mass, J, radius = _one_body_inertia(f"bodies.{k}", body, n)
         masses.append(mass)
         inertias.append(J)
-        radii.append(body.radius)
-        label = body.label or (system_labels[k] if system_labels else f"B{k}")
-        labels.append(label)
+        radii.append(radius)
+        labels.append(body.label or (system_labels[k] if system_labels else f"B{k}"))
     return Inertia(np.asarray(masses), np.asarray(inertias), np.asarray(radii), tuple(labels))
 
 
@@ -692,6 +701,10 @@ class Built:
     state: Any  # affinebody.state.State, the initial state
     inertia: Inertia
     neighbor_list: bool = False  # sum the pair forces over a neighbour list (uses_neighbor_list)
+    #: (spec, list) of ``neighbors.allocate`` for the initial state when ``neighbor_list``
+    neighbors: Any = None
+    #: seconds spent in each stage of :func:`build` (what ``affinebody run --verbose`` prints)
+    timings: dict = dataclass_field(default_factory=dict)
 
 
 def build_kinetic(config: Config, inertia: Inertia):
@@ -793,12 +806,27 @@ def initial_state(config: Config, kinetic):
 
 
 def build(config: Config) -> Built:
-    """System, initial state and inertia of a checked config (needs JAX's float64 mode)."""
+    """System, initial state and inertia of a checked config (needs JAX's float64 mode).
+
+    Every stage is O(N) when the pair forces use a neighbour list: the list is allocated here
+    (kept in ``Built.neighbors``) and the initial energy, whose finiteness is checked, is
+    summed over it instead of over all N(N-1)/2 pairs."""
+    import time
+
     from affinebody._checks import require_x64
     from affinebody.potentials import total_potential
     from affinebody.system import SYSTEM_GROUPS, HamiltonianSystem
 
     require_x64()
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = now - clock
+        clock = now
+
     inertia = body_inertia(config)
     kinetic = build_kinetic(config, inertia)
     terms = [build_potential_entry(e, k, config) for k, e in enumerate(config.potential)]
@@ -812,13 +840,29 @@ def build(config: Config) -> Built:
                                    rotationless=config.constraints.rotationless)
     except ValueError as err:
         raise ConfigError(str(err)) from None
+    lap("models")
     state = initial_state(config, kinetic)
+    lap("initial state")
     try:
         state = system.check(state)
     except ValueError as err:
         raise ConfigError(f"initial: {err}") from None
-    energy = float(system.hamiltonian(state))
+    lap("state checks")
+    neighbor_list = uses_neighbor_list(config, terms)
+    lists = None
+    if neighbor_list:
+        from affinebody import neighbors as nb
+
+        space, cutoff, variable = system.neighbor_range()
+        try:
+            lists = nb.allocate(space, state.x, state.phi, cutoff, variable,
+                                config.run.neighbor_skin)
+        except ValueError as err:
+            raise ConfigError(f"initial: {err}") from None
+        lap("neighbour list")
+    energy = float(system.hamiltonian(state, None if lists is None else lists[1]))
+    lap("initial energy")
     if not math.isfinite(energy):
         raise ConfigError(f"initial: the energy of the initial state is {energy} (bodies on top "
                           f"of each other in a singular potential, or det phi = 0?)")
-    return Built(system, state, inertia, uses_neighbor_list(config, terms))
+    return Built(system, state, inertia, neighbor_list, lists, timings)

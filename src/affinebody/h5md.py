@@ -304,6 +304,47 @@ class H5MDWriter:
         self.close()
 
 
+def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: int,
+                          block_bytes: int = 1 << 26) -> tuple[int, np.ndarray]:
+    """Append the frames of the file ``path`` with step <= ``through_step`` to ``writer``,
+    a block of frames at a time (memory: about ``block_bytes``, not the whole trajectory).
+
+    Used by ``--resume``. Returns the number of frames copied and their total energies.
+    """
+    with open_h5(path) as f:
+        try:
+            bodies = f["particles"][PARTICLE_GROUP]
+            elements = {name: bodies[element] for name, element in STATE_ELEMENTS.items()}
+            obs_group = f["observables"]
+            missing = [k for k in OBSERVABLES if k not in obs_group]
+            if missing:
+                raise TrajectoryFileError(f"missing observables {missing} in the file to resume")
+            lengths = [len(g["step"]) for g in elements.values()]
+            lengths += [len(g["value"]) for g in elements.values()]
+            lengths += [len(obs_group[k]["value"]) for k in OBSERVABLES]
+            steps = np.asarray(elements["x"]["step"][:min(lengths)])
+            keep = steps <= through_step
+            count = int(np.count_nonzero(keep))
+            if count and not np.all(keep[:count]):
+                raise TrajectoryFileError(f"{path}: steps are not increasing")
+            per_frame = sum(int(np.prod(g["value"].shape[1:])) for g in elements.values()) * 8
+            block = max(1, block_bytes // max(per_frame, 1))
+            for lo in range(0, count, block):
+                hi = min(lo + block, count)
+                state = State(*(np.asarray(elements[name]["value"][lo:hi])
+                                for name in ("x", "phi", "p", "pi")))
+                writer.append(steps[lo:hi], np.asarray(elements["x"]["time"][lo:hi]), state,
+                              {k: np.asarray(obs_group[k]["value"][lo:hi]) for k in OBSERVABLES})
+            energies = np.asarray(obs_group["total_energy"]["value"][:count])
+        except TrajectoryFileError:
+            raise
+        except (OSError, KeyError, ValueError, TypeError) as err:
+            raise TrajectoryFileError(
+                f"{path}: cannot read the trajectory (truncated or corrupt: {_short(err)})"
+            ) from None
+    return count, energies
+
+
 def copy_frames(source: Trajectory, writer: H5MDWriter, through_step: int) -> int:
     """Append the frames of ``source`` with step <= ``through_step`` to ``writer``.
 

@@ -75,25 +75,10 @@ class Splitting:
         return (0.5 * w[0],) + inner + (0.5 * w[-1],)
 
     def step(self, system: HamiltonianSystem, state: State, h) -> State:
-        """One step K(c_0 h) D(d_1 h) K(c_1 h) ... D(d_m h) K(c_m h).
-
-        The stages run in a ``lax.scan``, so compiling a 7-stage scheme costs about as much as
-        compiling Strang.
-        """
-        _refuse_nonholonomic(system, self.name)
-        kicks = self.kicks
-        state = system.kick(state, kicks[0] * h)
-        if len(self.drifts) == 1:
-            return system.kick(system.drift(state, self.drifts[0] * h), kicks[1] * h)
-
-        def stage(s, coefficients):
-            d, c = coefficients
-            return system.kick(system.drift(s, d * h), c * h), None
-
-        coefficients = (jnp.asarray(self.drifts), jnp.asarray(kicks[1:]))
-        state, _ = lax.scan(stage, state, coefficients)
-        return state
-
+        """One step K(c_0 h) D(d_1 h) K(c_1 h) ... D(d_m h) K(c_m h) (pair terms over all
+        pairs). The stages run in a ``lax.scan``, so compiling a 7-stage scheme costs about as
+        much as compiling Strang."""
+        return self.advance(system, state, system.forces(state), h)[0]
 
     def step_with_neighbors(self, system: HamiltonianSystem, state: State, h, spec,
                             neighbors) -> tuple[State, NeighborStep]:
@@ -106,24 +91,46 @@ class Splitting:
         unless ``overflow`` is non-zero (then the step's forces may be wrong and the step must
         be discarded), and the number of rebuilds.
         """
+        state, tracked, _ = self.advance(system, state, system.forces(state, neighbors), h,
+                                         spec, neighbors)
+        return state, tracked
+
+    def advance(self, system: HamiltonianSystem, state: State, forces, h, spec=None,
+                neighbors=None) -> tuple[State, NeighborStep | None, tuple]:
+        """One step from ``state`` whose forces (``system.forces``) are ``forces``, returning
+        (new state, :class:`NeighborStep` or None, forces at the new state).
+
+        The last kick of a step and the first of the next act on the same configuration, so
+        a run that carries the forces from step to step evaluates them once per stage, not
+        twice ("first same as last"); the result is :meth:`step`'s to round-off. With
+        ``spec`` and ``neighbors`` the pair forces are summed over the list, updated after
+        every drift as in :meth:`step_with_neighbors`.
+        """
         _refuse_nonholonomic(system, self.name)
         kicks = self.kicks
-        state = system.kick(state, kicks[0] * h, neighbors)
-        zero = jnp.zeros((), dtype=jnp.int32)
+        state = system.kick(state, kicks[0] * h, forces=forces)
+        tracked = None
+        if spec is not None:
+            zero = jnp.zeros((), dtype=jnp.int32)
+            tracked = NeighborStep(neighbors, zero, zero, neighbors.count, neighbors.reach)
 
         def stage(carry, coefficients):
-            s, tracked = carry
+            s, tracked, _ = carry
             d, c = coefficients
             s = system.drift(s, d * h)
-            tracked = _update_neighbors(spec, tracked, s)
-            return (system.kick(s, c * h, tracked.neighbors), tracked), None
+            current = None
+            if spec is not None:
+                tracked = _update_neighbors(spec, tracked, s)
+                current = tracked.neighbors
+            f = system.forces(s, current)
+            return (system.kick(s, c * h, forces=f), tracked, f), None
 
-        tracked = NeighborStep(neighbors, zero, zero, neighbors.count, neighbors.reach)
+        carry = (state, tracked, forces)
         if len(self.drifts) == 1:
-            return stage((state, tracked), (self.drifts[0], kicks[1]))[0]
+            return stage(carry, (self.drifts[0], kicks[1]))[0]
         coefficients = (jnp.asarray(self.drifts), jnp.asarray(kicks[1:]))
-        (state, tracked), _ = lax.scan(stage, (state, tracked), coefficients)
-        return state, tracked
+        carry, _ = lax.scan(stage, carry, coefficients)
+        return carry
 
 
 class NeighborStep(NamedTuple):

@@ -29,21 +29,32 @@ chain rule through B = phi^-1 and det phi finishes once per body:
     dV/dphi = (dV/dphi)_direct - B^T (dV/dB) B^T + (dV/d det) det(phi) B^T.
 
 Two implementations of the same formulas, same interface
-``energy_and_gradients(pot, space, x, phi, i, j, count) -> (E, dV/dx, dV/dphi)``:
+``energy_and_gradients(pot, space, x, phi, i, j, count) -> (E, dV/dx, dV/dphi)``, and the
+product runs both, one per backend (:func:`pair_sum` chooses):
 
+- the host kernel (:func:`energy_and_gradients_host`): compiled CPU code (Numba) for the
+  geometry and for the chain rule and per-body sums, reached from compiled JAX code through
+  two ``jax.pure_callback`` calls per chunk of pairs, with f and its partial derivatives
+  evaluated by XLA between them (fused, elementwise). On a CPU the arrays stay in host
+  memory, so the callbacks cost no transfer. Each chunk is split into
+  :data:`HOST_PARTITIONS` fixed parts summed in a fixed order and run on as many threads as
+  the process may use, so results do not depend on the core count;
 - :func:`energy_and_gradients` in JAX (jit, CPU or GPU; chunks of pairs in a ``lax.scan`` so
-  memory stays linear in N); :func:`neighbor_energy` wraps it as a ``jax.custom_vjp`` energy,
-  so ``jax.grad`` of a potential evaluated with a neighbour list uses these closed forms;
-- :func:`energy_and_gradients_numba`, a compiled CPU kernel (Numba) for the geometry and the
-  scatter, with f and its derivatives still from JAX (one fused elementwise XLA call per chunk
-  of pairs). It is the fast path on a CPU; the JAX path is the one for GPUs and for autodiff.
+  memory stays linear in N): the path on a GPU (no host round trip inside the loop) and where
+  Numba is missing.
+
+:func:`neighbor_energy` wraps :func:`pair_sum` as a ``jax.custom_vjp`` energy, so ``jax.grad``
+of a potential evaluated with a neighbour list uses these closed forms, whichever kernel runs.
 """
 
 from __future__ import annotations
 
 import functools
+import os
 import types
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -54,7 +65,14 @@ from affinebody import _linalg as linalg
 from affinebody.space import Space
 
 PAIR_CHUNK = 1 << 16
-NUMBA_CHUNK = 1 << 14  # pairs per pass: the scalars of a chunk stay in a 1 MiB L2 cache
+#: Fixed parts of a chunk of pairs in the host kernel, each with its own per-body sums, added
+#: in a fixed order (threads run the parts; the result is the same on any number of cores).
+HOST_PARTITIONS = 2
+#: Largest chunk of pairs per host-kernel pass: bounds the pair scalars held at once (about
+#: 0.3 GB) while keeping the per-chunk copies of the per-body sums few.
+HOST_CHUNK_PAIRS = 1 << 22
+#: Fewest pairs worth handing to threads (below, the parts run one after the other).
+HOST_THREAD_MIN_ROWS = 4096
 
 
 # --------------------------------------------------------------------------------------------
@@ -93,17 +111,6 @@ def _scalar_values_and_partials(pot, n: int):
         energies, pullback = jax.vjp(lambda b: pot.energy_from_scalars(b, n), base)
         (partials,) = pullback(jnp.ones_like(energies))
         return energies, partials
-
-    return run
-
-
-def _summed_scalar_values_and_partials(pot, n: int):
-    """base -> (sum of the pair energies, df/dbase)."""
-    single = _scalar_values_and_partials(pot, n)
-
-    def run(base):
-        energies, partials = single(base)
-        return jnp.sum(energies), partials
 
     return run
 
@@ -234,11 +241,11 @@ energy_and_gradients_jit = jax.jit(energy_and_gradients, static_argnums=(0, 1, 7
 
 @partial(jax.custom_vjp, nondiff_argnums=(0, 1))
 def _energy_over_pairs(pot, space, x, phi, i, j, count):
-    return energy_and_gradients(pot, space, x, phi, i, j, count)[0]
+    return pair_sum(pot, space, x, phi, i, j, count)[0]
 
 
 def _energy_over_pairs_fwd(pot, space, x, phi, i, j, count):
-    energy, g_x, g_phi = energy_and_gradients(pot, space, x, phi, i, j, count)
+    energy, g_x, g_phi = pair_sum(pot, space, x, phi, i, j, count)
     return energy, (g_x, g_phi, i, j, count)
 
 
@@ -272,19 +279,14 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
 
 
-def numba_available() -> bool:
-    """True when the compiled CPU kernel can be used."""
-    return numba is not None
-
-
 @functools.cache
 def _numba_kernels(n: int):
     """The compiled kernels for dimension n: n is a compile-time constant of the closures, so
     the small loops over components unroll (about 5x faster than a run-time n)."""
-    _jit = numba.njit(fastmath=False, boundscheck=False)
+    _jit = numba.njit(fastmath=False, boundscheck=False, nogil=True, cache=True)
     # a call of a jitted helper with array arguments cost ~50 ns per pair here (measured; more
     # than the arithmetic), so the per-pair code is written out inside the two loops
-    _inline = numba.njit(fastmath=False, boundscheck=False, inline="always")
+    _inline = numba.njit(fastmath=False, boundscheck=False, nogil=True, inline="always")
 
     @_inline
     def _power_traces(m, powers, mats, traces_out, p):
@@ -517,72 +519,201 @@ def _numba_kernels(n: int):
     return types.SimpleNamespace(geometry=_geometry, scatter=_scatter, finish=_finish_numba)
 
 
-_SCALAR_JIT: dict = {}
+def host_threads() -> int:
+    """Threads the host kernel uses: the cores this process may run on, at most
+    :data:`HOST_PARTITIONS` (``taskset -c 0`` gives one)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(HOST_PARTITIONS, cores))
 
 
-def _scalar_partials_jit(pot, n: int):
-    key = (pot, n)
-    if key not in _SCALAR_JIT:
-        _SCALAR_JIT[key] = jax.jit(_summed_scalar_values_and_partials(pot, n))
-    return _SCALAR_JIT[key]
+@functools.cache
+def _pool(threads: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="affinebody-pairs")
 
 
-def energy_and_gradients_numba(pot, space: Space, x, phi, i, j, count, chunk: int = NUMBA_CHUNK):
-    """The compiled-CPU twin of :func:`energy_and_gradients` (NumPy arrays in and out)."""
+def _in_parts(work, rows: int) -> list:
+    """``work(lo, hi)`` over :data:`HOST_PARTITIONS` fixed parts of range(rows), on up to
+    :func:`host_threads` threads (Numba releases the GIL); results in part order."""
+    bounds = [rows * k // HOST_PARTITIONS for k in range(HOST_PARTITIONS + 1)]
+    ranges = list(zip(bounds[:-1], bounds[1:], strict=True))
+    threads = host_threads()
+    if threads > 1 and rows >= HOST_THREAD_MIN_ROWS:
+        return list(_pool(threads).map(lambda r: work(*r), ranges))
+    return [work(lo, hi) for lo, hi in ranges]
+
+
+class _HostGeometry(NamedTuple):
+    """What the host kernel needs of a potential and a space (static, per compilation)."""
+
+    n: int
+    plain: frozenset
+    k_powers: int
+    m_powers: int
+    swapped: bool
+    mode: int
+    h: np.ndarray
+    h_inv: np.ndarray
+    edges: np.ndarray
+
+    @classmethod
+    def of(cls, pot, space: Space, n: int) -> _HostGeometry:
+        plain, k_powers, m_powers, swapped = _requirements(pot, n)
+        if space.periodic:
+            mode = 1 if space.orthorhombic else 2
+            h, h_inv, edges = space.matrix, space.inverse, space.edges
+        else:
+            mode, h, h_inv, edges = 0, np.eye(n), np.eye(n), np.ones(n)
+        return cls(n, plain, k_powers, m_powers, swapped, mode, np.asarray(h, np.float64),
+                   np.asarray(h_inv, np.float64), np.asarray(edges, np.float64))
+
+    def columns(self, rows: int) -> dict[str, tuple[int, ...]]:
+        """Shapes of the scalar arrays of ``rows`` pairs (the keys of ``_padding_base``)."""
+        out = {name: (rows,) for name in sorted(self.plain)}
+        if self.k_powers:
+            out["K"] = (rows, self.k_powers)
+        if self.m_powers:
+            out["M"] = (rows, self.m_powers)
+            if self.swapped:
+                out["Ms"] = (rows, self.m_powers)
+        return out
+
+
+def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid):
+    """u [C, n] and the pair scalars of the first ``valid`` pairs of the chunk (i, j); the
+    other rows are left at zero (the caller replaces them by padding)."""
+    kernels = _numba_kernels(g.n)
+    rows = i.shape[0]
+    valid = int(valid)
+    u = np.zeros((rows, g.n))
+    out = {key: np.zeros(shape) for key, shape in g.columns(rows).items()}
+    empty1, empty2 = np.zeros(1), np.zeros((1, 1))
+    i = np.ascontiguousarray(i)
+    j = np.ascontiguousarray(j)
+
+    def work(lo, hi):
+        view = {key: a[lo:hi] for key, a in out.items()}
+        kernels.geometry(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, g.h,
+                         g.h_inv, g.edges, "r" in g.plain, "D" in g.plain, "det" in g.plain,
+                         g.k_powers, g.m_powers, g.swapped, u[lo:hi],
+                         view.get("r", empty1), view.get("D", empty1),
+                         view.get("det", empty1), view.get("K", empty2),
+                         view.get("M", empty2), view.get("Ms", empty2))
+
+    _in_parts(work, valid)
+    return (u, *(out[key] for key in g.columns(rows)))
+
+
+def _host_scatter(g: _HostGeometry, sums, phi, binv, det, i, j, valid, u, base, partials):
+    """``sums`` (dV/dx, dV/dphi direct, dV/dB, dV/d det per body) plus the closed-form
+    geometric derivatives of the chunk's first ``valid`` pairs."""
+    kernels = _numba_kernels(g.n)
+    valid = int(valid)
+    i = np.ascontiguousarray(i)
+    j = np.ascontiguousarray(j)
+    keys = list(g.columns(i.shape[0]))
+    base = dict(zip(keys, base, strict=True))
+    partials = dict(zip(keys, partials, strict=True))
+    empty1, empty2 = np.zeros(1), np.zeros((1, 1))
+
+    def work(lo, hi):
+        acc = tuple(np.zeros_like(np.asarray(a)) for a in sums)
+        rows = lambda d, key, empty: d[key][lo:hi] if key in d else empty  # noqa: E731
+        kernels.scatter(0, hi - lo, i[lo:hi], j[lo:hi], phi, binv, det, u[lo:hi],
+                        rows(base, "r", empty1), rows(base, "D", empty1),
+                        rows(base, "det", empty1), rows(partials, "r", empty1),
+                        rows(partials, "D", empty1), rows(partials, "det", empty1),
+                        rows(partials, "K", empty2), rows(partials, "M", empty2),
+                        rows(partials, "Ms", empty2), "r" in g.plain, "D" in g.plain,
+                        "det" in g.plain, g.k_powers, g.m_powers, g.swapped, *acc)
+        return acc
+
+    out = tuple(np.array(a, dtype=np.float64) for a in sums)
+    for part in _in_parts(work, valid):  # a fixed order: the same sums on any thread count
+        for total, add in zip(out, part, strict=True):
+            total += add
+    return out
+
+
+def host_chunk(capacity: int) -> int:
+    """Pairs per host-kernel pass for a list of ``capacity`` pairs (a function of the
+    capacity only, so the summation order, hence every bit, is the same on every run)."""
+    return max(1, min(capacity, HOST_CHUNK_PAIRS))
+
+
+def _host_pair_sum(pot, space: Space, x, phi, i, j, count):
+    """(E, dV/dx, dV/dphi) with the compiled host kernel, from compiled JAX code: per chunk of
+    pairs, a ``jax.pure_callback`` computes the geometry (Numba), XLA the scalar function f
+    and its partial derivatives (fused, elementwise), a second callback the closed-form chain
+    rule and the per-body sums; the per-body chain rule through B = phi^-1 and det phi
+    finishes in JAX. No JAX runs inside a callback (that could wait on the thread that
+    called it)."""
+    _require_cutoff(pot)
+    bodies, n = x.shape
+    g = _HostGeometry.of(pot, space, n)
+    binv, det = linalg.inv(phi), linalg.det(phi)
+    capacity = i.shape[0]
+    chunk = host_chunk(capacity)
+    chunks = -(-capacity // chunk)
+    fill = chunks * chunk - capacity
+    i_all = jnp.concatenate([i, jnp.zeros(fill, i.dtype)])
+    j_all = jnp.concatenate([j, jnp.zeros(fill, j.dtype)])
+    columns = g.columns(chunk)
+    pad = _padding_base(pot, n, chunk, g.plain, g.k_powers, g.m_powers, g.swapped)
+    f64 = lambda shape: jax.ShapeDtypeStruct(shape, x.dtype)  # noqa: E731
+    geometry_shapes = (f64((chunk, n)), *(f64(shape) for shape in columns.values()))
+    sum_shapes = (f64(x.shape), f64(phi.shape), f64(phi.shape), f64((bodies,)))
+    partials_of = _scalar_values_and_partials(pot, n)
+    rows = jnp.arange(chunk)
+
+    def step(carry, k):
+        energy, sums = carry
+        lo = k * chunk
+        ii = lax.dynamic_slice(i_all, (lo,), (chunk,))
+        jj = lax.dynamic_slice(j_all, (lo,), (chunk,))
+        valid = jnp.clip(count - lo, 0, chunk).astype(jnp.int32)
+        u, *scalars = jax.pure_callback(partial(_host_geometry, g), geometry_shapes, x, phi,
+                                        binv, det, ii, jj, valid, vmap_method="sequential")
+        inside = rows < valid
+        base = {key: jnp.where(inside.reshape((chunk,) + (1,) * (v.ndim - 1)), v, pad[key])
+                for key, v in zip(columns, scalars, strict=True)}
+        energies, partials = partials_of(base)
+        sums = jax.pure_callback(
+            partial(_host_scatter, g), sum_shapes, sums, phi, binv, det, ii, jj, valid, u,
+            tuple(base[key] for key in columns), tuple(partials[key] for key in columns),
+            vmap_method="sequential")
+        return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
+
+    init = (jnp.zeros((), x.dtype), (jnp.zeros_like(x), jnp.zeros_like(phi),
+                                      jnp.zeros_like(phi), jnp.zeros((bodies,), x.dtype)))
+    (energy, (g_x, g_phi, g_b, g_det)), _ = lax.scan(step, init, jnp.arange(chunks))
+    return energy, g_x, _finish(phi, binv, det, g_phi, g_b, g_det)
+
+
+def energy_and_gradients_host(pot, space: Space, x, phi, i, j, count):
+    """The compiled-CPU twin of :func:`energy_and_gradients`: the host kernel, jitted (the
+    path ``simulate.run`` takes on a CPU). Needs Numba."""
     if numba is None:
         raise ValueError("pair_kernels: the compiled CPU kernel needs numba (pip install numba)")
     _require_cutoff(pot)
-    x = np.ascontiguousarray(x, dtype=np.float64)
-    phi = np.ascontiguousarray(phi, dtype=np.float64)
-    i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)  # int32 lists are used as they are
-    if i.dtype != np.int32 or j.dtype != np.int32:
-        i, j = i.astype(np.int64), j.astype(np.int64)
-    bodies, n = x.shape
-    count = int(min(int(count), i.shape[0]))
-    plain, k_powers, m_powers, swapped = _requirements(pot, n)
-    need_r, need_d, need_det = "r" in plain, "D" in plain, "det" in plain
-    uses_phi = need_d or need_det or k_powers > 0 or m_powers > 0
-    # per-body B = phi^-1 and det phi only when a variable needs them (not for f(r) alone)
-    binv = np.linalg.inv(phi) if uses_phi else phi
-    det = np.linalg.det(phi) if need_det else np.ones(bodies)
-    if space.periodic:
-        mode = 1 if space.orthorhombic else 2
-        h, h_inv, edges = space.matrix, space.inverse, space.edges
-    else:
-        mode, h, h_inv, edges = 0, np.eye(n), np.eye(n), np.ones(n)
-    partials_of = _scalar_partials_jit(pot, n)
-    kernels = _numba_kernels(n)
-    chunk = max(1, min(chunk, max(count, 1)))
-    pad = _padding_base(pot, n, chunk, plain, k_powers, m_powers, swapped, xp=np)
-    buffers = {key: v.copy() for key, v in pad.items()}
-    u_buf = np.zeros((chunk, n))
-    empty1, empty2 = np.zeros(1), np.zeros((1, 1))
-    gx = np.zeros((bodies, n))
-    gphi = np.zeros((bodies, n, n))
-    gb = np.zeros((bodies, n, n))
-    gdet = np.zeros(bodies)
-    energy = 0.0
-    for start in range(0, count, chunk):
-        stop = min(start + chunk, count)
-        size = stop - start
-        if size < chunk:  # the last, partial chunk: reset the tail to padding
-            for key, v in buffers.items():
-                v[size:] = pad[key][size:]
-        kernels.geometry(start, stop, i, j, x, phi, binv, det, mode, h, h_inv, edges,
-                         need_r, need_d, need_det, k_powers, m_powers, swapped, u_buf,
-                         buffers.get("r", empty1), buffers.get("D", empty1),
-                         buffers.get("det", empty1), buffers.get("K", empty2),
-                         buffers.get("M", empty2), buffers.get("Ms", empty2))
-        chunk_energy, partials = partials_of(buffers)
-        energy += float(chunk_energy)
-        g = {key: np.asarray(v) for key, v in partials.items()}
-        kernels.scatter(start, stop, i, j, phi, binv, det, u_buf, buffers.get("r", empty1),
-                        buffers.get("D", empty1), buffers.get("det", empty1),
-                        g.get("r", empty1), g.get("D", empty1), g.get("det", empty1),
-                        g.get("K", empty2), g.get("M", empty2), g.get("Ms", empty2),
-                        need_r, need_d, need_det, k_powers, m_powers, swapped, gx, gphi, gb,
-                        gdet)
-    out = np.zeros_like(phi)
-    if uses_phi:
-        kernels.finish(binv, det, gphi, gb, gdet, out)
-    return energy, gx, out
+    return _host_pair_sum_jit(pot, space, jnp.asarray(x), jnp.asarray(phi), jnp.asarray(i),
+                              jnp.asarray(j), jnp.asarray(count))
+
+
+_host_pair_sum_jit = jax.jit(_host_pair_sum, static_argnums=(0, 1))
+
+
+def host_kernel_in_use() -> bool:
+    """True when :func:`pair_sum` runs the compiled host kernel (CPU backend with Numba)."""
+    return numba is not None and jax.default_backend() == "cpu"
+
+
+def pair_sum(pot, space: Space, x, phi, i, j, count):
+    """(E, dV/dx, dV/dphi) over the list's pairs, with the kernel for the backend: the
+    compiled host kernel on a CPU (when Numba is installed), the JAX kernel otherwise (a GPU:
+    no host round trip). Both are tested against all-pairs autodiff."""
+    if host_kernel_in_use():
+        return _host_pair_sum(pot, space, x, phi, i, j, count)
+    return energy_and_gradients(pot, space, x, phi, i, j, count)

@@ -27,13 +27,14 @@ import math
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
 import click
 import numpy as np
 
+from affinebody._timing import CompileClock, Phases
 from affinebody.checkpoint import Checkpoint, checkpoint_path, load_checkpoint, save_checkpoint
 from affinebody.config import (
     Config,
@@ -44,7 +45,7 @@ from affinebody.config import (
     parse_config,
     uses_neighbor_list,
 )
-from affinebody.h5md import OBSERVABLES, H5MDWriter, copy_frames, read_trajectory
+from affinebody.h5md import OBSERVABLES, H5MDWriter, copy_frames_from_file, read_trajectory
 from affinebody.state import State
 
 #: Largest number of steps integrated by one compiled call (the progress bar's resolution).
@@ -67,7 +68,11 @@ class SimulationStopped(RuntimeError):
 
 @dataclass(frozen=True)
 class RunSummary:
-    """What a run did: where it wrote, how far it got, how fast, how well energy was kept."""
+    """What a run did: where it wrote, how far it got, how fast, how well energy was kept.
+
+    ``phases`` holds the wall seconds of each stage (set-up stages, "neighbour lists",
+    "integrate", "output"); ``compile_seconds`` the part of "integrate" that JAX spent
+    compiling, so the integration rate excludes it."""
 
     output: Path
     start_step: int
@@ -77,21 +82,41 @@ class RunSummary:
     initial_energy: float
     final_energy: float
     max_relative_energy_error: float
+    bodies: int = 0
+    phases: dict = field(default_factory=dict)
+    compile_seconds: float = 0.0
+
+    @property
+    def integrate_seconds(self) -> float:
+        """Seconds in the compiled loop, compilation excluded."""
+        return max(self.phases.get("integrate", self.wall_seconds) - self.compile_seconds, 0.0)
 
     @property
     def steps_per_second(self) -> float:
         done = self.steps - self.start_step
-        return done / self.wall_seconds if self.wall_seconds > 0 else math.inf
+        seconds = self.integrate_seconds
+        return done / seconds if seconds > 0 else math.inf
 
     def lines(self) -> list[str]:
         resumed = f" (resumed at step {self.start_step})" if self.start_step else ""
+        done = self.steps - self.start_step
+        rate = self.steps_per_second
         return [
             f"wrote {self.frames} frames, steps 0..{self.steps}{resumed}, to {self.output}",
-            f"{self.steps - self.start_step} steps in {self.wall_seconds:.2f} s "
-            f"({self.steps_per_second:.3g} steps/s)",
+            f"{done} steps in {self.wall_seconds:.2f} s: compiling {self.compile_seconds:.2f} s, "
+            f"integrating {self.integrate_seconds:.2f} s ({rate:.3g} steps/s, "
+            f"{rate * self.bodies:.3g} body-steps/s)",
             f"energy {self.initial_energy:.12g} -> {self.final_energy:.12g}, "
             f"max relative error {self.max_relative_energy_error:.3e}",
         ]
+
+    def phase_lines(self) -> list[str]:
+        """One line per phase (``affinebody run --verbose``)."""
+        out = []
+        for name, seconds in self.phases.items():
+            extra = (f" (compiling {self.compile_seconds:.3f} s)" if name == "integrate" else "")
+            out.append(f"  {name:<22} {seconds:9.3f} s{extra}")
+        return out
 
 
 def enable_x64() -> None:
@@ -171,11 +196,16 @@ def run_simulation(
     from affinebody.simulate import run as integrate
 
     enable_x64()
+    started = time.perf_counter()
     output = Path(output)
     total = config.run.steps if steps is None else int(steps)
     if total < 1:
         raise ConfigError(f"--steps must be >= 1 (got {total})")
     built = build(config)
+    phases = Phases()
+    for name, seconds in built.timings.items():
+        phases.add(f"set-up: {name}", seconds)
+    compiling = CompileClock()
     dt, every = config.run.dt, config.run.every
     ckpt_file = checkpoint_path(output)
     config_hash = config.hash()
@@ -191,12 +221,8 @@ def run_simulation(
     }
     base_spec = None
     if built.neighbor_list:
-        from affinebody import neighbors as nb
-
         parameters["neighbor_skin"] = config.run.neighbor_skin
-        space, cutoff, variable = built.system.neighbor_range()
-        base_spec, _ = nb.allocate(space, built.state.x, built.state.phi, cutoff, variable,
-                                   config.run.neighbor_skin)
+        base_spec = built.neighbors[0]
     writer_args = dict(mass=built.inertia.mass, radius=built.inertia.radius, n=config.n,
                        box=config.system.box, parameters=parameters)
     if resume:
@@ -204,11 +230,10 @@ def run_simulation(
         if checkpoint.step > total:
             raise ConfigError(f"--steps {total} is before the checkpoint at step "
                               f"{checkpoint.step}; nothing to resume")
-        old = read_trajectory(output)
         temporary = output.with_name(output.name + ".resume.tmp")
         writer = H5MDWriter(temporary, **writer_args)
         try:
-            copied = copy_frames(old, writer, checkpoint.step)
+            copied, energies = copy_frames_from_file(output, writer, checkpoint.step)
             if copied != checkpoint.frames:
                 raise ConfigError(f"{output} holds {copied} frames up to step {checkpoint.step}, "
                                   f"the checkpoint expects {checkpoint.frames}; cannot resume")
@@ -219,10 +244,9 @@ def run_simulation(
         temporary.replace(output)
         writer.path = output
         start, state = checkpoint.step, checkpoint.state
-        initial_energy = float(old.observables["total_energy"][0])
-        max_error = float(np.max(_relative_error(
-            old.observables["total_energy"][:copied], initial_energy)))
-        last_energy = float(old.observables["total_energy"][copied - 1])
+        initial_energy = float(energies[0])
+        max_error = float(np.max(_relative_error(energies, initial_energy)))
+        last_energy = float(energies[-1])
     else:
         ckpt_file.unlink(missing_ok=True)
         writer = H5MDWriter(output, **writer_args)
@@ -233,21 +257,25 @@ def run_simulation(
 
     chunk = chunk_steps(config)
     interval = config.checkpoint_every
-    clock = time.perf_counter()
     step = start
     lists = None  # (spec, list) valid for `state`, or None: all pairs
-    with writer:
+    if progress is not None:
+        progress(step, total, math.nan)  # before the first (compiling) chunk
+    with writer, compiling.installed():
         while step < total:
             if base_spec is not None and (step == start or step % interval == 0):
-                lists = neighbors_at(built.system, base_spec, state)
+                with phases("neighbour lists"):
+                    lists = neighbors_at(built.system, base_spec, state)
             end = min((step // chunk + 1) * chunk, total)
             pieces = [(end - step - (end - step) % every, every)] if end - step >= every else []
             if (end - step) % every:
                 pieces.append(((end - step) % every, (end - step) % every))
             for length, stride in pieces:
                 try:
-                    trajectory = integrate(built.system, state, dt, length, config.run.integrator,
-                                           every=stride, observers=_OBSERVERS, neighbors=lists)
+                    with phases("integrate"):
+                        trajectory = integrate(built.system, state, dt, length,
+                                               config.run.integrator, every=stride,
+                                               observers=_OBSERVERS, neighbors=lists)
                     stop = None
                 except IntegrationStopped as stopped:
                     trajectory, stop = stopped.trajectory, stopped.report
@@ -256,12 +284,13 @@ def run_simulation(
                 energy = np.asarray(trajectory.observables["total_energy"])
                 if math.isnan(initial_energy):
                     initial_energy = float(energy[0])
-                writer.append(
-                    frame_steps[first:],
-                    frame_steps[first:] * dt,
-                    State(*(np.asarray(a)[first:] for a in trajectory.states)),
-                    {k: np.asarray(v)[first:] for k, v in trajectory.observables.items()},
-                )
+                with phases("output"):
+                    writer.append(
+                        frame_steps[first:],
+                        frame_steps[first:] * dt,
+                        State(*(np.asarray(a)[first:] for a in trajectory.states)),
+                        {k: np.asarray(v)[first:] for k, v in trajectory.observables.items()},
+                    )
                 max_error = max(max_error, float(np.max(_relative_error(energy, initial_energy))))
                 last_energy = float(energy[-1])
                 if stop is not None:
@@ -271,13 +300,16 @@ def run_simulation(
                 lists = trajectory.neighbors
                 step += length
             if step % interval == 0 or step == total:
-                save_checkpoint(ckpt_file, Checkpoint(step, state, writer.frames, config_hash))
+                with phases("output"):
+                    save_checkpoint(ckpt_file, Checkpoint(step, state, writer.frames,
+                                                          config_hash))
             if progress is not None:
                 progress(step, total, float(_relative_error(np.asarray([last_energy]),
                                                              initial_energy)[0]))
         frames = writer.frames
-    return RunSummary(output, start, total, frames, time.perf_counter() - clock,
-                      initial_energy, last_energy, max_error)
+    return RunSummary(output, start, total, frames, time.perf_counter() - started,
+                      initial_energy, last_energy, max_error, bodies=config.bodies_count,
+                      phases=phases.seconds, compile_seconds=compiling.seconds)
 
 
 def _stop_message(report, offset: int, dt: float, labels, frames: int, output: Path) -> str:
@@ -338,7 +370,7 @@ def _progress_callback(quiet: bool):
     )
 
     bar = Progress(
-        TextColumn("[bold]integrating"),
+        TextColumn("[bold]{task.fields[phase]}"),
         BarColumn(),
         MofNCompleteColumn(),
         TextColumn("{task.fields[rate]} steps/s"),
@@ -351,13 +383,20 @@ def _progress_callback(quiet: bool):
     task = {}
 
     def update(step: int, total: int, drift: float) -> None:
-        if "id" not in task:
-            task["id"] = bar.add_task("run", total=total, completed=step, rate="-", drift="-")
-            task["t0"], task["s0"] = time.perf_counter(), step
+        now = time.perf_counter()
+        if "id" not in task:  # the first chunk compiles: no rate until it is done
+            task["id"] = bar.add_task("run", total=total, completed=step, rate="-", drift="-",
+                                      phase="compiling")
+            task["since"] = None
             return
-        elapsed = time.perf_counter() - task["t0"]
-        rate = (step - task["s0"]) / elapsed if elapsed > 0 else 0.0
-        bar.update(task["id"], completed=step, rate=f"{rate:.3g}", drift=f"{drift:.2e}")
+        if task["since"] is None:
+            task["since"] = (now, step)
+            bar.update(task["id"], completed=step, phase="integrating", drift=f"{drift:.2e}")
+            return
+        t0, s0 = task["since"]
+        rate = (step - s0) / (now - t0) if now > t0 else 0.0
+        bar.update(task["id"], completed=step, rate=f"{rate:.3g}", drift=f"{drift:.2e}",
+                   phase="integrating")
 
     return bar, update
 
@@ -377,15 +416,25 @@ def _run_with_progress(config: Config, output: Path, steps, resume: bool, quiet:
 @click.option("--steps", type=int, default=None, help="Number of steps (overrides run.steps).")
 @click.option("--resume", is_flag=True, help="Continue from the last checkpoint of OUTPUT.")
 @click.option("--quiet", is_flag=True, help="No progress bar and no summary.")
+@click.option("--verbose", is_flag=True,
+              help="Also print the seconds spent in each phase (set-up stages, neighbour lists, "
+                   "integration with its compilation, output).")
 @one_line_errors
-def run(config_file, output, steps, resume, quiet):
+def run(config_file, output, steps, resume, quiet, verbose):
     """Integrate the system of CONFIG.toml and write an H5MD trajectory."""
+    started = time.perf_counter()
     enable_x64()
     config = load_config(config_file)
+    loaded = time.perf_counter() - started
     output = Path(output) if output else Path(config_file).with_suffix(".h5")
     summary = _run_with_progress(config, output, steps, resume, quiet)
     if not quiet:
         for line in summary.lines():
+            click.echo(line)
+    if verbose:
+        click.echo("phases:")
+        click.echo(f"  {'load and validate':<22} {loaded:9.3f} s")
+        for line in summary.phase_lines():
             click.echo(line)
 
 

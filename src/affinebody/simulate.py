@@ -30,7 +30,7 @@ from jax import lax
 from affinebody import _linalg as linalg
 from affinebody import neighbors as nb
 from affinebody import observables as obs
-from affinebody.integrators import ImplicitMidpoint, get_integrator
+from affinebody.integrators import ImplicitMidpoint, Splitting, get_integrator
 from affinebody.state import State
 from affinebody.system import OPEN_GROUPS, HamiltonianSystem
 
@@ -140,12 +140,18 @@ def _simulate(system, state, dt, neighbors, *, n_chunks, every, method, observer
     sign0 = jnp.sign(linalg.det(state.phi))
     zero = jnp.asarray(0)
 
+    fsal = isinstance(method, Splitting)
+
     def one_step(carry, _):
-        state, nbrs, status, bad_step, bad_body, k, rebuilds, lost = carry
-        if spec is None:
-            new, new_list, overflow = method.step(system, state, dt), nbrs, False
+        state, nbrs, forces, status, bad_step, bad_body, k, rebuilds, lost = carry
+        tracked = None
+        if fsal:
+            new, tracked, new_forces = method.advance(system, state, forces, dt, spec, nbrs)
         else:
-            new, tracked = method.step_with_neighbors(system, state, dt, spec, nbrs)
+            new, new_forces = method.step(system, state, dt), forces
+        if tracked is None:
+            new_list, overflow = nbrs, False
+        else:
             new_list, overflow = tracked.neighbors, tracked.overflow != 0
         finite = _per_body_finite(new)
         crossed = (jnp.sign(linalg.det(new.phi)) != sign0) & finite & watch_det
@@ -157,26 +163,29 @@ def _simulate(system, state, dt, neighbors, *, n_chunks, every, method, observer
         bad_step = jnp.where(first, k + 1, bad_step)
         bad_body = jnp.where(first, jnp.argmax(bad_bodies), bad_body)
         keep_old = status != _OK
-        state = jax.tree.map(lambda old, nw: jnp.where(keep_old, old, nw), state, new)
-        nbrs = jax.tree.map(lambda old, nw: jnp.where(keep_old, old, nw), nbrs, new_list)
-        if spec is not None:
+        keep = lambda old, nw: jnp.where(keep_old, old, nw)  # noqa: E731
+        state = jax.tree.map(keep, state, new)
+        nbrs = jax.tree.map(keep, nbrs, new_list)
+        forces = jax.tree.map(keep, forces, new_forces)
+        if tracked is not None:
             rebuilds = rebuilds + jnp.where(keep_old, 0, tracked.rebuilds)
             seen = (tracked.overflow, tracked.most_pairs, tracked.largest_reach)
             lost = jax.tree.map(lambda old, nw: jnp.where(first, nw, old), lost, seen)
-        return (state, nbrs, status, bad_step, bad_body, k + 1, rebuilds, lost), None
+        return (state, nbrs, forces, status, bad_step, bad_body, k + 1, rebuilds, lost), None
 
     def chunk(carry, _):
         carry, _ = lax.scan(one_step, carry, None, length=every)
-        state, nbrs, status, bad_step = carry[:4]
-        k = carry[5]
+        state, nbrs, _, status, bad_step = carry[:5]
+        k = carry[6]
         done = jnp.where(status == _OK, k, bad_step - 1)
         return carry, (state, _evaluate(system, state, observers, nbrs), done)
 
     flags_and_count = jnp.zeros((), dtype=jnp.int32)
     lost = (flags_and_count, flags_and_count, jnp.zeros((), dtype=state.x.dtype))
-    init = (state, neighbors, zero, zero, zero, zero, zero, lost)
+    forces = system.forces(state, neighbors) if fsal else ()
+    init = (state, neighbors, forces, zero, zero, zero, zero, zero, lost)
     carry, (frames, values, done) = lax.scan(chunk, init, None, length=n_chunks)
-    _, last_list, status, bad_step, bad_body, _, rebuilds, lost = carry
+    _, last_list, _, status, bad_step, bad_body, _, rebuilds, lost = carry
     first_values = _evaluate(system, state, observers, neighbors)
     frames = jax.tree.map(lambda a, f: jnp.concatenate([a[None], f]), state, frames)
     values = jax.tree.map(lambda a, f: jnp.concatenate([a[None], f]), first_values, values)

@@ -181,16 +181,26 @@ class HamiltonianSystem:
             return state
         return state._replace(pi=project_momentum(state.phi, state.pi, self.group))
 
-    def kick(self, state: State, h, neighbors=None) -> State:
+    def forces(self, state: State, neighbors=None) -> tuple[jax.Array, jax.Array]:
+        """(dV/dx, dV/dphi) at ``state`` (zeros without a potential); ``neighbors`` as in
+        :meth:`potential_energy` (then the closed-form kernels of ``affinebody.pair_kernels``)."""
+        if self.potential is None:
+            return jnp.zeros_like(state.x), jnp.zeros_like(state.phi)
+        return jax.grad(lambda x, phi: jnp.sum(self._potential_energy(x, phi, neighbors)),
+                        argnums=(0, 1))(state.x, state.phi)
+
+    def kick(self, state: State, h, neighbors=None, forces=None) -> State:
         """Exact flow of V for time h: p -= h dV/dx, pi -= h (dV/dphi)^T (projected on G).
 
         neighbors: None (all pairs) or a ``neighbors.NeighborList`` valid for ``state`` (the
         pair forces then come from the closed-form kernels of ``affinebody.pair_kernels``).
+        forces: (dV/dx, dV/dphi) at ``state`` if already known (:meth:`forces`): the
+        configuration does not move during a kick, so a step can reuse the forces of the
+        kick before it.
         """
         if self.potential is None:
             return state
-        gx, gphi = jax.grad(lambda x, phi: jnp.sum(self._potential_energy(x, phi, neighbors)),
-                            argnums=(0, 1))(state.x, state.phi)
+        gx, gphi = self.forces(state, neighbors) if forces is None else forces
         dpi = project_momentum(state.phi, -h * transpose(gphi), self.group)
         return state._replace(p=state.p - h * gx, pi=state.pi + dpi)
 

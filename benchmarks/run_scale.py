@@ -1,0 +1,203 @@
+"""The simulator at scale, measured through the command users run: ``affinebody run``.
+
+System (issue "The simulator at scale"): a 3D simple cubic lattice of affine bodies, spacing 1,
+in a periodic box; d'Alembert translational + af-is internal kinetic energy (I, A, B = 1, 0.2,
+0.1); the pair potential ``(1 - exp(-3*(r - 1)))**2 - 1 + 0.5*exp(-D**2/4)*(M1 - 3)**2`` cut at
+r = 2.5 (skin 0.3, neighbour list on) and a dilatation term; Strang, dt = 0.002.
+
+``--lammps`` (default): 16^3 = 4096 bodies, 1000 steps, against LAMMPS Gay-Berne ellipsoids
+(``in.gb`` of the shared benchmark inputs, the same 16^3 lattice, 1000 steps), each pinned to
+the same core in the same run (``taskset -c 0``, one thread); then ours on both cores.
+Reported: body-steps/s inside the loop (the summary line of ``affinebody run``, compilation
+excluded), the whole command's wall time (start-up, set-up, compilation and output included),
+and the ratios. Without ``lmp`` on the PATH (``apt-get install lammps``) it says so and still
+runs ours.
+
+``--memory N1 N2 ...``: peak resident memory of ``affinebody run`` (a few steps, one frame at
+the end) for each N, and the memory per body.
+
+``--bodies N --steps S``: one run at N bodies on whatever JAX backend is installed (a GPU
+when there is one: the same command, nothing else to change), printing body-steps/s.
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py            # vs LAMMPS, 2 cores
+    .venv/bin/python benchmarks/run_scale.py --memory 1000 10000 100000 1000000
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+AFFINEBODY = [str(Path(sys.executable).parent / "affinebody")]  # the installed command
+LAMMPS_INPUT = ROOT.parent / "shared" / "bench" / "lammps" / "in.gb"
+
+CONFIG = """\
+[system]
+n = 3
+group = "GL+"
+bodies = {bodies}
+box = [{side}.0, {side}.0, {side}.0]
+
+[body]
+mass = 1.0
+inertia = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+[kinetic]
+translational = "dalembert"
+internal = "af-is"
+I = 1.0
+A = 0.2
+B = 0.1
+
+[[potential]]
+kind = "pair"
+expr = "(1 - exp(-3*(r - 1)))**2 - 1 + 0.5*exp(-D**2/4)*(M1 - 3)**2"
+r_cut = 2.5
+
+[[potential]]
+kind = "dilatation"
+stiffness = 5.0
+
+[initial]
+generator = "lattice"
+spacing = 1.0
+jitter = 0.03
+phi_noise = 0.05
+momentum_scale = 0.1
+phi_momentum_scale = 0.05
+
+[run]
+dt = 0.002
+steps = {steps}
+integrator = "strang"
+every = {every}
+neighbor_list = "on"
+"""
+
+
+def write_config(folder: Path, side: int, steps: int, every: int) -> Path:
+    path = folder / f"lattice{side}.toml"
+    path.write_text(CONFIG.format(bodies=side**3, side=side, steps=steps, every=every))
+    return path
+
+
+def timed(command: list[str], env: dict | None = None) -> tuple[float, str, int]:
+    """(wall seconds, stdout + stderr, peak RSS of the command in kB, from GNU time)."""
+    start = time.perf_counter()
+    done = subprocess.run(["/usr/bin/time", "-f", "MAXRSS_KB %M", *command],
+                          capture_output=True, text=True, env=env, check=False)
+    wall = time.perf_counter() - start
+    if done.returncode:
+        raise SystemExit(f"{' '.join(command)} failed:\n{done.stderr[-2000:]}")
+    peak = int(re.findall(r"MAXRSS_KB (\d+)", done.stderr)[-1])
+    return wall, done.stdout + done.stderr, peak
+
+
+def ours(config: Path, out: Path, cores: str, threads: int) -> dict:
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+    out.unlink(missing_ok=True)
+    wall, text, peak = timed(["taskset", "-c", cores, *AFFINEBODY, "run", str(config), "-o",
+                              str(out), "--verbose"], env)
+    match = re.search(r"compiling ([\d.]+) s, integrating ([\d.]+) s \(([\d.e+]+) steps/s, "
+                      r"([\d.e+]+) body-steps/s\)", text)
+    if not match:
+        raise SystemExit(f"no summary line in the output of affinebody run:\n{text}")
+    return {"wall": wall, "compile": float(match[1]), "loop": float(match[2]),
+            "rate": float(match[4]), "peak_kb": peak, "text": text}
+
+
+def lammps(folder: Path, side: int, steps: int) -> dict | None:
+    if shutil.which("lmp") is None or not LAMMPS_INPUT.is_file():
+        return None
+    text = LAMMPS_INPUT.read_text()
+    text = re.sub(r"region box block .*", f"region box block 0 {side} 0 {side} 0 {side}", text)
+    text = re.sub(r"^run \d+", f"run {steps}", text, flags=re.M)
+    script = folder / "in.gb"
+    script.write_text(text)
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    wall, output, _ = timed(["taskset", "-c", "0", "lmp", "-in", str(script), "-log", "none"],
+                            env)
+    loop = float(re.search(r"Loop time of ([\d.]+)", output)[1])
+    atoms = int(re.search(r"with (\d+) atoms", output)[1])
+    return {"wall": wall, "loop": loop, "rate": atoms * steps / loop}
+
+
+def versus_lammps(side: int, steps: int) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        config = write_config(folder, side, steps, every=steps // 10)
+        one = ours(config, folder / "one.h5", "0", 1)
+        peer = lammps(folder, side, steps)
+        two = ours(config, folder / "two.h5", "0,1", 2)
+    bodies = side**3
+    print(f"affinebody run, {bodies} bodies, {steps} steps (phases of the one-core run):")
+    print("\n".join(line for line in one["text"].splitlines() if line.startswith("  ")))
+    print()
+    print("| run | body-steps/s in the loop | whole command (s) | compile (s) |")
+    print("|---|---|---|---|")
+    print(f"| affinebody, 1 core | {one['rate']:.3g} | {one['wall']:.1f} | {one['compile']:.1f} |")
+    print(f"| affinebody, 2 cores | {two['rate']:.3g} | {two['wall']:.1f} | {two['compile']:.1f} |")
+    if peer is None:
+        print("| LAMMPS Gay-Berne | not measured: `lmp` not found (apt-get install lammps) | | |")
+        return
+    print(f"| LAMMPS Gay-Berne, 1 core | {peer['rate']:.3g} | {peer['wall']:.1f} | |")
+    print()
+    print(f"in the loop, ours / Gay-Berne (1 core): {one['rate'] / peer['rate']:.2f} (goal >= 2)")
+    print(f"whole command, lmp / ours (1 core): {peer['wall'] / one['wall']:.2f} (goal >= 1)")
+    print(f"2 cores / 1 core (ours, in the loop): {two['rate'] / one['rate']:.2f} (goal >= 1.7)")
+
+
+def memory(sizes: list[int]) -> None:
+    print("| N | peak RSS | per body | whole command (s) | body-steps/s |")
+    print("|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        for bodies in sizes:
+            side = round(bodies ** (1 / 3))
+            config = write_config(folder, side, steps=4, every=4)
+            result = ours(config, folder / "m.h5", ",".join(map(str, sorted(
+                os.sched_getaffinity(0)))), len(os.sched_getaffinity(0)))
+            peak = result["peak_kb"] * 1024
+            print(f"| {side**3} | {peak / 2**30:.2f} GiB | {peak / side**3 / 1024:.1f} kB | "
+                  f"{result['wall']:.1f} | {result['rate']:.3g} |", flush=True)
+
+
+def single(bodies: int, steps: int) -> None:
+    import jax
+
+    side = round(bodies ** (1 / 3))
+    with tempfile.TemporaryDirectory() as tmp:
+        config = write_config(Path(tmp), side, steps, every=steps)
+        cores = ",".join(map(str, sorted(os.sched_getaffinity(0))))
+        result = ours(config, Path(tmp) / "s.h5", cores, len(os.sched_getaffinity(0)))
+    print(f"{side**3} bodies, {steps} steps on {jax.devices()[0].device_kind}: "
+          f"{result['rate']:.3g} body-steps/s in the loop, whole command {result['wall']:.1f} s, "
+          f"compile {result['compile']:.1f} s")
+    print(result["text"])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--side", type=int, default=16)
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--memory", type=int, nargs="*")
+    parser.add_argument("--bodies", type=int)
+    args = parser.parse_args()
+    if args.memory:
+        memory(args.memory)
+    elif args.bodies:
+        single(args.bodies, args.steps)
+    else:
+        versus_lammps(args.side, args.steps)
+
+
+if __name__ == "__main__":
+    main()
