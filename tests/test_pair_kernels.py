@@ -234,3 +234,15 @@ def test_a_neighbour_list_needs_a_cut_off():
     with pytest.raises(ValueError, match="needs a cut-off"):
         pk.energy_and_gradients_host(potential, free_space(), x, phi, np.zeros(1, int),
                                      np.ones(1, int), 1)
+
+
+def test_list_energy_alone_equals_the_energy_of_the_gradient_pass():
+    """The energy-only host pass (observables, set-up checks) sums the same pairs as the pass
+    with gradients, and both equal the all-pairs energy."""
+    potential, n = CASES["all-variables-2d"]
+    x, phi = configuration(np.random.default_rng(8), n, potential.space)
+    _, nbrs = list_for(potential, x, phi)
+    alone = float(jax.jit(lambda x, phi: potential.energy(x, phi, nbrs))(x, phi))
+    with_gradients = float(_in_loop(potential, x, phi, nbrs)[0])
+    assert alone == pytest.approx(with_gradients, rel=1e-14)
+    assert alone == pytest.approx(all_pairs(potential, x, phi)[0], rel=1e-12)

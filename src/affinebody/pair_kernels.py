@@ -69,8 +69,9 @@ PAIR_CHUNK = 1 << 16
 #: in a fixed order (threads run the parts; the result is the same on any number of cores).
 HOST_PARTITIONS = 2
 #: Largest chunk of pairs per host-kernel pass: bounds the pair scalars held at once (about
-#: 0.3 GB) while keeping the per-chunk copies of the per-body sums few.
-HOST_CHUNK_PAIRS = 1 << 22
+#: 0.15 GB) while keeping the per-chunk copies of the per-body sums few (10^6 bodies in 3D:
+#: about 25 chunks per evaluation, their copies ~10 % of its time).
+HOST_CHUNK_PAIRS = 1 << 21
 #: Fewest pairs worth handing to threads (below, the parts run one after the other).
 HOST_THREAD_MIN_ROWS = 4096
 
@@ -241,7 +242,9 @@ energy_and_gradients_jit = jax.jit(energy_and_gradients, static_argnums=(0, 1, 7
 
 @partial(jax.custom_vjp, nondiff_argnums=(0, 1))
 def _energy_over_pairs(pot, space, x, phi, i, j, count):
-    return pair_sum(pot, space, x, phi, i, j, count)[0]
+    if host_kernel_in_use():  # the energy alone: no chain rule (observables, checks)
+        return _host_pair_sum(pot, space, x, phi, i, j, count, gradients=False)
+    return energy_and_gradients(pot, space, x, phi, i, j, count)[0]  # XLA drops the rest
 
 
 def _energy_over_pairs_fwd(pot, space, x, phi, i, j, count):
@@ -585,6 +588,9 @@ def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid):
     """u [C, n] and the pair scalars of the first ``valid`` pairs of the chunk (i, j); the
     other rows are left at zero (the caller replaces them by padding)."""
     kernels = _numba_kernels(g.n)
+    # callbacks receive jax.Arrays: as NumPy arrays (no copy on a CPU) Numba indexes them
+    # as typed arrays, not as generic buffers (which made the kernels ~2x slower)
+    x, phi, binv, det = (np.asarray(a) for a in (x, phi, binv, det))
     rows = i.shape[0]
     valid = int(valid)
     u = np.zeros((rows, g.n))
@@ -613,9 +619,10 @@ def _host_scatter(g: _HostGeometry, sums, phi, binv, det, i, j, valid, u, base, 
     valid = int(valid)
     i = np.ascontiguousarray(i)
     j = np.ascontiguousarray(j)
+    phi, binv, det, u = (np.asarray(a) for a in (phi, binv, det, u))
     keys = list(g.columns(i.shape[0]))
-    base = dict(zip(keys, base, strict=True))
-    partials = dict(zip(keys, partials, strict=True))
+    base = dict(zip(keys, (np.asarray(a) for a in base), strict=True))
+    partials = dict(zip(keys, (np.asarray(a) for a in partials), strict=True))
     empty1, empty2 = np.zeros(1), np.zeros((1, 1))
 
     def work(lo, hi):
@@ -643,13 +650,13 @@ def host_chunk(capacity: int) -> int:
     return max(1, min(capacity, HOST_CHUNK_PAIRS))
 
 
-def _host_pair_sum(pot, space: Space, x, phi, i, j, count):
+def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = True):
     """(E, dV/dx, dV/dphi) with the compiled host kernel, from compiled JAX code: per chunk of
     pairs, a ``jax.pure_callback`` computes the geometry (Numba), XLA the scalar function f
     and its partial derivatives (fused, elementwise), a second callback the closed-form chain
     rule and the per-body sums; the per-body chain rule through B = phi^-1 and det phi
     finishes in JAX. No JAX runs inside a callback (that could wait on the thread that
-    called it)."""
+    called it). ``gradients=False``: the energy alone (no chain rule, no second callback)."""
     _require_cutoff(pot)
     bodies, n = x.shape
     g = _HostGeometry.of(pot, space, n)
@@ -679,6 +686,9 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count):
         inside = rows < valid
         base = {key: jnp.where(inside.reshape((chunk,) + (1,) * (v.ndim - 1)), v, pad[key])
                 for key, v in zip(columns, scalars, strict=True)}
+        if not gradients:
+            energies = pot.energy_from_scalars(base, n)
+            return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
         energies, partials = partials_of(base)
         sums = jax.pure_callback(
             partial(_host_scatter, g), sum_shapes, sums, phi, binv, det, ii, jj, valid, u,
@@ -689,6 +699,8 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count):
     init = (jnp.zeros((), x.dtype), (jnp.zeros_like(x), jnp.zeros_like(phi),
                                       jnp.zeros_like(phi), jnp.zeros((bodies,), x.dtype)))
     (energy, (g_x, g_phi, g_b, g_det)), _ = lax.scan(step, init, jnp.arange(chunks))
+    if not gradients:
+        return energy
     return energy, g_x, _finish(phi, binv, det, g_phi, g_b, g_det)
 
 

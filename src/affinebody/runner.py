@@ -263,7 +263,9 @@ def run_simulation(
         progress(step, total, math.nan)  # before the first (compiling) chunk
     with writer, compiling.installed():
         while step < total:
-            if base_spec is not None and (step == start or step % interval == 0):
+            if base_spec is not None and step == 0:
+                lists = built.neighbors  # allocated for the initial state (= neighbors_at's)
+            elif base_spec is not None and (step == start or step % interval == 0):
                 with phases("neighbour lists"):
                     lists = neighbors_at(built.system, base_spec, state)
             end = min((step // chunk + 1) * chunk, total)
