@@ -169,3 +169,29 @@ def test_checkpoint_round_trip_is_bit_exact_and_atomic(tmp_path):
         load_checkpoint(path)
     with pytest.raises(CheckpointError, match="no checkpoint"):
         load_checkpoint(tmp_path / "none.npz")
+
+
+def test_lazy_reader_gives_the_same_frames_and_streaming_copies_them(tmp_path):
+    """open_trajectory reads frames on demand (O(N) memory) and gives exactly the arrays of
+    read_trajectory; copy_frames_from_file (--resume) copies the frames up to a step in
+    blocks, identical to the source."""
+    from affinebody.h5md import copy_frames_from_file, open_trajectory
+
+    path = tmp_path / "lazy.h5"
+    write(path, frames=4, blocks=3)
+    eager = read_trajectory(path)
+    with open_trajectory(path) as lazy:
+        assert lazy.frames == eager.frames == 12 and lazy.bodies == 3
+        for k in (0, 5, -1):
+            for name in ("x", "phi", "p", "pi"):
+                np.testing.assert_array_equal(getattr(lazy, name)[k], getattr(eager, name)[k])
+        np.testing.assert_array_equal(lazy.phi[::5], eager.phi[::5])
+        np.testing.assert_array_equal(np.asarray(lazy.pi), eager.pi)
+    target = tmp_path / "copy.h5"
+    with H5MDWriter(target, mass=eager.mass, radius=eager.radius, n=2) as writer:
+        count, energies = copy_frames_from_file(path, writer, int(eager.step[6]),
+                                                block_bytes=1)  # one frame per block
+    assert count == 7
+    copied = read_trajectory(target)
+    np.testing.assert_array_equal(copied.phi, eager.phi[:7])
+    np.testing.assert_array_equal(energies, eager.observables["total_energy"][:7])

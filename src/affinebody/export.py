@@ -129,22 +129,19 @@ def write_xyz(
         raise ValueError(f"--every must be >= 1 (got {every})")
     n = trajectory.n
     frames = range(0, trajectory.frames, every)
-    axes, quat, deform = ellipsoids(trajectory.phi[::every], trajectory.radius, thickness)
-    position = np.zeros(trajectory.x[::every].shape[:-1] + (3,))
-    position[..., :n] = trajectory.x[::every]
     lattice = _lattice(trajectory.box, n)
     with open(path, "w", encoding="ascii") as out:
-        for index, frame in enumerate(frames):
+        for frame in frames:  # one frame in memory at a time (open_trajectory reads lazily)
+            axes, quat, deform = ellipsoids(trajectory.phi[frame], trajectory.radius, thickness)
+            position = np.zeros((trajectory.bodies, 3))
+            position[:, :n] = trajectory.x[frame]
             out.write(f"{trajectory.bodies}\n")
             out.write(
                 f"{lattice}Properties={PROPERTIES} "
                 f"Time={trajectory.time[frame]:.17g} Step={int(trajectory.step[frame])}\n"
             )
             rows = np.concatenate(
-                [position[index], axes[index], quat[index],
-                 deform[index].reshape(trajectory.bodies, 9)],
-                axis=-1,
-            )
-            for row in rows:
-                out.write(species + " " + " ".join(f"{v:.17g}" for v in row) + "\n")
+                [position, axes, quat, deform.reshape(trajectory.bodies, 9)], axis=-1)
+            fmt = species + " " + " ".join(["%.17g"] * rows.shape[1])
+            np.savetxt(out, rows, fmt=fmt)
     return len(frames)

@@ -26,7 +26,9 @@ read, which is why every reader here goes through it. Frames are flushed as they
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import dataclasses
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -127,13 +129,57 @@ class Trajectory:
 
 
 def read_trajectory(path: str | Path) -> Trajectory:
-    """Read an affinebody H5MD file into a :class:`Trajectory`.
+    """Read an affinebody H5MD file into a :class:`Trajectory` (every frame in memory).
 
     Raises :class:`TrajectoryFileError` (a ``ValueError``) with a one-line message for missing,
     truncated or foreign files. Frames are cut to the length every element agrees on, so a file
-    whose writer was killed between two element writes still reads consistently.
+    whose writer was killed between two element writes still reads consistently. For large
+    systems use :func:`open_trajectory`, which reads frames on demand.
     """
-    with open_h5(path) as f:
+    with open_trajectory(path) as lazy:
+        try:
+            return dataclasses.replace(lazy, **{name: np.asarray(getattr(lazy, name)[:])
+                                                for name in STATE_ELEMENTS})
+        except (OSError, KeyError, ValueError, TypeError) as err:
+            raise TrajectoryFileError(
+                f"{path}: cannot read the trajectory (truncated or corrupt: {_short(err)})"
+            ) from None
+
+
+class _Frames:
+    """The first ``count`` frames of an H5MD ``value`` dataset, read on indexing."""
+
+    def __init__(self, dataset: h5py.Dataset, count: int):
+        self.dataset, self.count = dataset, count
+        self.shape = (count, *dataset.shape[1:])
+        self.ndim = len(self.shape)
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, key):
+        if isinstance(key, tuple):
+            first, rest = key[0], key[1:]
+        else:
+            first, rest = key, ()
+        if isinstance(first, slice):
+            first = slice(*first.indices(self.count))
+        elif int(first) < 0:
+            first = int(first) + self.count
+        return np.asarray(self.dataset[(first, *rest)])
+
+    def __array__(self, dtype=None, copy=None):
+        return np.asarray(self.dataset[: self.count], dtype=dtype)
+
+
+@contextmanager
+def open_trajectory(path: str | Path) -> Iterator[Trajectory]:
+    """A :class:`Trajectory` whose x, phi, p and pi are read frame by frame from the open file
+    (``trajectory.phi[k]`` reads frame k only), so memory stays O(N) for any number of frames;
+    steps, times, observables and parameters (O(T)) are read at once. Same errors as
+    :func:`read_trajectory`."""
+    f = open_h5(path)
+    try:
         try:
             if "h5md" not in f or "particles" not in f or PARTICLE_GROUP not in f["particles"]:
                 raise TrajectoryFileError(
@@ -150,7 +196,7 @@ def read_trajectory(path: str | Path) -> Trajectory:
             lengths += [len(g["value"]) for g in elements.values()]
             lengths += [len(obs_group[k]["value"]) for k in obs_group]
             count = min(lengths) if lengths else 0
-            arrays = {k: np.asarray(g["value"][:count]) for k, g in elements.items()}
+            arrays = {k: _Frames(g["value"], count) for k, g in elements.items()}
             step = np.asarray(elements["x"]["step"][:count])
             time = np.asarray(elements["x"]["time"][:count])
             observables = {k: np.asarray(obs_group[k]["value"][:count]) for k in obs_group}
@@ -158,12 +204,12 @@ def read_trajectory(path: str | Path) -> Trajectory:
             if "box" in bodies and "edges" in bodies["box"]:
                 box = np.asarray(bodies["box"]["edges"][()])
             params = f["parameters"] if "parameters" in f else {}
-            return Trajectory(
+            trajectory = Trajectory(
                 step=step,
                 time=time,
                 mass=np.asarray(bodies["mass"][()]),
                 radius=np.asarray(bodies["radius"][()]) if "radius" in bodies
-                else np.full(arrays["phi"].shape[-3], 0.5),
+                else np.full(elements["phi"]["value"].shape[-3], 0.5),
                 box=box,
                 observables=observables,
                 config_text=_read_string(params, "config"),
@@ -178,6 +224,9 @@ def read_trajectory(path: str | Path) -> Trajectory:
             raise TrajectoryFileError(
                 f"{path}: cannot read the trajectory (truncated or corrupt: {_short(err)})"
             ) from None
+        yield trajectory
+    finally:
+        f.close()
 
 
 def _read_string(group, name: str) -> str:

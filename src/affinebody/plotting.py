@@ -3,11 +3,16 @@
 - ``energy.png``: total, kinetic and potential energy, and the relative error |E - E0| / |E0|;
 - ``momenta.png``: the momentum maps (103), (108), (109) minus their initial values: total linear
   momentum, affine momentum J = sum_K (x_K p_K^T + phi_K pi_K), angular momentum J - J^T;
-- ``deformation.png``: trace invariants K_a = Tr(G^a) of every body (17), volumes det phi_K and
-  relative volumes det phi_L / det phi_1 (79);
+- ``deformation.png``: trace invariants K_a = Tr(G^a) (17), volumes det phi_K and relative
+  volumes det phi_L / det phi_1 (79), one line per body for at most :data:`TRACED_BODIES`
+  bodies (evenly sampled) and the band between the smallest and largest value over all bodies;
 - ``bodies.png`` (n = 2): first and last frame, each body drawn as the image of the disc of its
-  drawing radius under phi (an ellipse) with the image of the material axis e_1 as a line;
+  drawing radius under phi (an ellipse) with the image of the material axis e_1 as a line (at
+  most :data:`DRAWN_BODIES` bodies, evenly sampled, for large systems);
 - optionally ``bodies.gif`` / ``bodies.mp4``: the animation of the n = 2 bodies.
+
+Every plot reads the trajectory one frame at a time (``h5md.open_trajectory``), so memory is
+O(N) for any number of frames.
 """
 
 from __future__ import annotations
@@ -25,6 +30,15 @@ from matplotlib.collections import LineCollection, PolyCollection  # noqa: E402
 from affinebody.h5md import Trajectory  # noqa: E402
 
 DPI = 110
+#: Bodies drawn as individual lines in deformation.png (the band covers all of them).
+TRACED_BODIES = 16
+#: Bodies drawn as ellipses in bodies.png and the animation.
+DRAWN_BODIES = 5000
+
+
+def _sample(bodies: int, most: int) -> np.ndarray:
+    """Evenly spaced body indices, at most ``most`` of them."""
+    return np.unique(np.linspace(0, bodies - 1, min(bodies, most)).round().astype(int))
 
 
 def _save(fig, path: Path) -> Path:
@@ -88,24 +102,37 @@ def plot_momenta(trajectory: Trajectory, path: str | Path) -> Path:
 
 
 def plot_deformation(trajectory: Trajectory, path: str | Path) -> Path:
-    """Trace invariants K_a (17) of every body, volumes det phi_K and relative volumes (79)."""
+    """Trace invariants K_a (17), volumes det phi_K and relative volumes (79): lines for a
+    sample of bodies, a band from the smallest to the largest value over all bodies."""
     from affinebody.deformation import trace_invariants
 
     t = trajectory.time
-    invariants = np.asarray(trace_invariants(trajectory.phi))  # [T, N, n]
-    volumes = np.linalg.det(trajectory.phi)  # [T, N]
     n, bodies = trajectory.n, trajectory.bodies
+    traced = _sample(bodies, TRACED_BODIES)
+    series = []  # per frame: [n + 2, traced] values and [n + 2, 2] min/max over all bodies
+    for k in range(trajectory.frames):
+        phi = np.asarray(trajectory.phi[k])
+        invariants = np.asarray(trace_invariants(phi))  # [N, n]
+        volumes = np.linalg.det(phi)
+        columns = [invariants[:, a] for a in range(n)] + [volumes, volumes / volumes[0]]
+        series.append((np.stack([c[traced] for c in columns]),
+                       np.stack([(np.min(c), np.max(c)) for c in columns])))
+    lines = np.stack([s[0] for s in series])  # [T, n + 2, traced]
+    bands = np.stack([s[1] for s in series])  # [T, n + 2, 2]
+    labels = [f"K{a + 1} = Tr G^{a + 1}" for a in range(n)] + ["det phi_K",
+                                                              "det phi_K / det phi_1"]
     fig, axes = plt.subplots(n + 2, 1, figsize=(7, 2.2 * (n + 2)), sharex=True)
-    for a in range(n):
-        axes[a].plot(t, invariants[:, :, a], lw=0.8)
-        axes[a].set_ylabel(f"K{a + 1} = Tr G^{a + 1}")
-    axes[n].plot(t, volumes, lw=0.8)
-    axes[n].set_ylabel("det phi_K")
-    if bodies > 1:
-        axes[n + 1].plot(t, volumes[:, 1:] / volumes[:, :1], lw=0.8)
-    axes[n + 1].set_ylabel("det phi_K / det phi_1")
+    for row, ax in enumerate(axes):
+        if bodies > len(traced):
+            ax.fill_between(t, bands[:, row, 0], bands[:, row, 1], color="0.85",
+                            label=f"range over all {bodies} bodies")
+        ax.plot(t, lines[:, row, :], lw=0.8)
+        ax.set_ylabel(labels[row])
     axes[-1].set_xlabel("time")
-    axes[0].set_title(f"deformation invariants and volumes of {bodies} bodies")
+    shown = f"{len(traced)} of {bodies} bodies" if bodies > len(traced) else f"{bodies} bodies"
+    axes[0].set_title(f"deformation invariants and volumes ({shown})")
+    if bodies > len(traced):
+        axes[0].legend(fontsize=7, loc="best")
     fig.tight_layout()
     return _save(fig, Path(path))
 
@@ -122,19 +149,24 @@ def _axis_segments(x, phi, radius):
     return np.stack([x, tip], axis=1)
 
 
-def _limits(trajectory: Trajectory):
-    reach = np.linalg.norm(trajectory.phi, ord=2, axis=(-2, -1)) * trajectory.radius
-    low = np.min(trajectory.x - reach[..., None], axis=(0, 1))
-    high = np.max(trajectory.x + reach[..., None], axis=(0, 1))
+def _limits(trajectory: Trajectory, frames, drawn):
+    low = np.full(2, np.inf)
+    high = np.full(2, -np.inf)
+    for k in frames:
+        x, phi = np.asarray(trajectory.x[k])[drawn], np.asarray(trajectory.phi[k])[drawn]
+        reach = np.linalg.norm(phi, ord=2, axis=(-2, -1)) * trajectory.radius[drawn]
+        low = np.minimum(low, np.min(x - reach[:, None], axis=0))
+        high = np.maximum(high, np.max(x + reach[:, None], axis=0))
     pad = 0.05 * max(float(np.max(high - low)), 1e-9)
     return low - pad, high + pad
 
 
-def _draw(ax, trajectory: Trajectory, frame: int, low, high):
-    x, phi = trajectory.x[frame], trajectory.phi[frame]
-    shapes = PolyCollection(body_outlines(x, phi, trajectory.radius), facecolors="C0",
+def _draw(ax, trajectory: Trajectory, frame: int, low, high, drawn):
+    x, phi = np.asarray(trajectory.x[frame])[drawn], np.asarray(trajectory.phi[frame])[drawn]
+    radius = trajectory.radius[drawn]
+    shapes = PolyCollection(body_outlines(x, phi, radius), facecolors="C0",
                             edgecolors="k", alpha=0.55, linewidths=0.8)
-    axes = LineCollection(_axis_segments(x, phi, trajectory.radius), colors="C3", linewidths=1.2)
+    axes = LineCollection(_axis_segments(x, phi, radius), colors="C3", linewidths=1.2)
     ax.add_collection(shapes)
     ax.add_collection(axes)
     ax.set_xlim(low[0], high[0])
@@ -149,11 +181,15 @@ def plot_bodies(trajectory: Trajectory, path: str | Path) -> Path:
     """First and last frame of a 2D trajectory, bodies as ellipses phi(disc) (n = 2 only)."""
     if trajectory.n != 2:
         raise ValueError(f"bodies can be drawn for n = 2 only (got n = {trajectory.n})")
-    low, high = _limits(trajectory)
+    drawn = _sample(trajectory.bodies, DRAWN_BODIES)
+    frames = (0, trajectory.frames - 1)
+    low, high = _limits(trajectory, frames, drawn)
     fig, axes = plt.subplots(1, 2, figsize=(10, 5))
-    for ax, frame in zip(axes, (0, trajectory.frames - 1), strict=True):
-        _draw(ax, trajectory, frame, low, high)
-    fig.suptitle("bodies: images of their discs under phi; red: phi e_1")
+    for ax, frame in zip(axes, frames, strict=True):
+        _draw(ax, trajectory, frame, low, high, drawn)
+    sample = (f" ({len(drawn)} of {trajectory.bodies} bodies)"
+              if len(drawn) < trajectory.bodies else "")
+    fig.suptitle(f"bodies: images of their discs under phi; red: phi e_1{sample}")
     fig.tight_layout()
     return _save(fig, Path(path))
 
@@ -173,14 +209,17 @@ def animate_bodies(trajectory: Trajectory, path: str | Path, fps: int = 20) -> P
         writer = animation.PillowWriter(fps=fps)
     else:
         raise ValueError(f"animation file must end in .gif or .mp4 (got {path.name})")
-    low, high = _limits(trajectory)
+    drawn = _sample(trajectory.bodies, DRAWN_BODIES)
+    low, high = _limits(trajectory, range(trajectory.frames), drawn)
     fig, ax = plt.subplots(figsize=(5, 5))
-    shapes, axes = _draw(ax, trajectory, 0, low, high)
+    shapes, axes = _draw(ax, trajectory, 0, low, high, drawn)
+    radius = trajectory.radius[drawn]
 
     def update(frame):
-        x, phi = trajectory.x[frame], trajectory.phi[frame]
-        shapes.set_verts(body_outlines(x, phi, trajectory.radius))
-        axes.set_segments(_axis_segments(x, phi, trajectory.radius))
+        x = np.asarray(trajectory.x[frame])[drawn]
+        phi = np.asarray(trajectory.phi[frame])[drawn]
+        shapes.set_verts(body_outlines(x, phi, radius))
+        axes.set_segments(_axis_segments(x, phi, radius))
         ax.set_title(f"t = {trajectory.time[frame]:.4g}", fontsize=9)
         return shapes, axes
 

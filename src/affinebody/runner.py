@@ -45,7 +45,13 @@ from affinebody.config import (
     parse_config,
     uses_neighbor_list,
 )
-from affinebody.h5md import OBSERVABLES, H5MDWriter, copy_frames_from_file, read_trajectory
+from affinebody.h5md import (
+    OBSERVABLES,
+    H5MDWriter,
+    copy_frames_from_file,
+    open_trajectory,
+    read_trajectory,
+)
 from affinebody.state import State
 
 #: Largest number of steps integrated by one compiled call (the progress bar's resolution).
@@ -489,12 +495,12 @@ def plot(trajectory_file, output_dir, animate, fps):
     from affinebody.plotting import plot_all
 
     enable_x64()
-    trajectory = read_trajectory(trajectory_file)
     source = Path(trajectory_file)
     folder = Path(output_dir) if output_dir else source.with_name(source.stem + "_plots")
-    folder.mkdir(parents=True, exist_ok=True)
-    for path in plot_all(trajectory, folder, animate=animate, fps=fps):
-        click.echo(str(path))
+    with open_trajectory(trajectory_file) as trajectory:  # frames read one at a time
+        folder.mkdir(parents=True, exist_ok=True)
+        for path in plot_all(trajectory, folder, animate=animate, fps=fps):
+            click.echo(str(path))
 
 
 @click.command("export")
@@ -510,8 +516,8 @@ def export(trajectory_file, xyz_file, every, thickness):
     from affinebody.export import write_xyz
 
     enable_x64()
-    count = write_xyz(read_trajectory(trajectory_file), xyz_file, every=every,
-                      thickness=thickness)
+    with open_trajectory(trajectory_file) as trajectory:  # frames read one at a time
+        count = write_xyz(trajectory, xyz_file, every=every, thickness=thickness)
     click.echo(f"wrote {count} frames to {xyz_file}")
 
 
