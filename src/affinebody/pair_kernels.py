@@ -85,16 +85,19 @@ def _requirements(pot, n: int):
     return plain, k_powers, m_powers, bool(pot._asymmetric) and m_powers > 0
 
 
+def padding_value(name: str, n: int, r_cut: float) -> float:
+    """The value of scalar ``name`` for a harmless padding pair: beyond the cut-off (r and D
+    at 4 r_cut), identity configurations (det Gamma = 1, K_a = M_a = n)."""
+    return 4.0 * r_cut if name in ("r", "D") else 1.0 if name == "det" else float(n)
+
+
 def _padding_base(pot, n: int, size: int, plain, k_powers, m_powers, swapped, xp=jnp):
-    """Scalars of a harmless padding pair: beyond the cut-off, identity configurations."""
-    far = 4.0 * pot.cutoff.r_cut
-    base = {name: xp.full((size,), far if name in ("r", "D") else 1.0) for name in plain}
-    if k_powers:
-        base["K"] = xp.full((size, k_powers), float(n))
-    if m_powers:
-        base["M"] = xp.full((size, m_powers), float(n))
-        if swapped:
-            base["Ms"] = xp.full((size, m_powers), float(n))
+    """Scalars of a harmless padding pair (:func:`padding_value`), ``size`` of each."""
+    r_cut = pot.cutoff.r_cut
+    base = {name: xp.full((size,), padding_value(name, n, r_cut)) for name in plain}
+    for name, powers in (("K", k_powers), ("M", m_powers), ("Ms", m_powers if swapped else 0)):
+        if powers:
+            base[name] = xp.full((size, powers), padding_value(name, n, r_cut))
     return base
 
 
@@ -314,7 +317,7 @@ def _numba_kernels(n: int):
     @_jit
     def _geometry(start, stop, i, j, x, phi, binv, det, mode, h, h_inv, edges,
                   need_r, need_d, need_det, k_powers, m_powers, swapped,
-                  u_out, r_out, d_out, det_out, k_out, m_out, ms_out):
+                  r_out, d_out, det_out, k_out, m_out, ms_out):
         """Scalar pair variables of pairs start..stop-1 into rows 0..stop-start-1."""
         u = np.empty(n)
         s = np.empty(n)
@@ -339,8 +342,6 @@ def _numba_kernels(n: int):
                     for e in range(n):
                         acc += h[d, e] * s[e]
                     u[d] = acc
-            for d in range(n):
-                u_out[q, d] = u[d]
             if need_r:
                 r2 = 0.0
                 for d in range(n):
@@ -411,37 +412,63 @@ def _numba_kernels(n: int):
                     w[r, c] += (a + 1) * partial_row[a] * acc
 
     @_jit
-    def _scatter(start, stop, i, j, phi, binv, det, u_in, r_in, d_in, det_in,
+    def _scatter(start, stop, i, j, x, phi, binv, det, mode, h, h_inv, edges,
                  g_r, g_d, g_det, g_k, g_m, g_ms, need_r, need_d, need_det,
                  k_powers, m_powers, swapped, gx, gphi, gb, gdet):
-        """Closed-form geometric derivatives of pairs start..stop-1, summed per body."""
+        """Closed-form geometric derivatives of pairs start..stop-1, summed per body (u, r, D
+        and det Gamma recomputed exactly as :func:`_geometry` computed them)."""
         m = np.empty((n, n))
         w = np.empty((n, n))
         mats = np.empty((max(1, max(k_powers, m_powers)), n, n))
+        u = np.empty(n)
+        s = np.empty(n)
         ak = np.empty(n)
         al = np.empty(n)
         for p in range(start, stop):
             q = p - start
             a, b = i[p], j[p]
-            if need_r:
-                r = r_in[q]
-                if r > 0 and g_r[q] != 0.0:
+            # the minimum image again, written out as in _geometry: an inlined helper made
+            # both kernels ~30 % slower (measured), and a called one costs ~50 ns per pair
+            for d in range(n):  # u = x_K - x_L, minimum image (space.Space.displacement)
+                u[d] = x[a, d] - x[b, d]
+            if mode == 1:
+                for d in range(n):
+                    u[d] -= edges[d] * np.round(u[d] / edges[d])
+            elif mode == 2:
+                for d in range(n):
+                    acc = 0.0
+                    for e in range(n):
+                        acc += h_inv[d, e] * u[e]
+                    s[d] = acc - np.round(acc)
+                for d in range(n):
+                    acc = 0.0
+                    for e in range(n):
+                        acc += h[d, e] * s[e]
+                    u[d] = acc
+            if need_r and g_r[q] != 0.0:
+                r2 = 0.0
+                for d in range(n):
+                    r2 += u[d] * u[d]
+                r = np.sqrt(r2)
+                if r > 0:
                     c = g_r[q] / r
                     for d in range(n):
-                        gx[a, d] += c * u_in[q, d]
-                        gx[b, d] -= c * u_in[q, d]
-            if need_d:
-                dist = d_in[q]
-                if dist > 0 and g_d[q] != 0.0:
+                        gx[a, d] += c * u[d]
+                        gx[b, d] -= c * u[d]
+            if need_d and g_d[q] != 0.0:
+                d2 = 0.0
+                for r in range(n):
+                    sk = 0.0
+                    sl = 0.0
+                    for k in range(n):
+                        sk += binv[a, r, k] * u[k]
+                        sl += binv[b, r, k] * u[k]
+                    ak[r] = sk
+                    al[r] = sl
+                    d2 += sk * sk + sl * sl
+                dist = np.sqrt(0.5 * d2)
+                if dist > 0:
                     c = g_d[q] / (2.0 * dist)
-                    for r in range(n):
-                        sk = 0.0
-                        sl = 0.0
-                        for k in range(n):
-                            sk += binv[a, r, k] * u_in[q, k]
-                            sl += binv[b, r, k] * u_in[q, k]
-                        ak[r] = sk
-                        al[r] = sl
                     for k in range(n):
                         gu = 0.0
                         for r in range(n):
@@ -450,11 +477,11 @@ def _numba_kernels(n: int):
                         gx[b, k] -= c * gu
                     for r in range(n):
                         for k in range(n):
-                            gb[a, r, k] += c * ak[r] * u_in[q, k]
-                            gb[b, r, k] += c * al[r] * u_in[q, k]
+                            gb[a, r, k] += c * ak[r] * u[k]
+                            gb[b, r, k] += c * al[r] * u[k]
             if need_det and g_det[q] != 0.0:
                 gdet[b] += g_det[q] / det[a]
-                gdet[a] -= g_det[q] * det_in[q] / det[a]
+                gdet[a] -= g_det[q] * (det[b] / det[a]) / det[a]
             if k_powers > 0:
                 for r in range(n):
                     for c in range(n):
@@ -560,6 +587,7 @@ class _HostGeometry(NamedTuple):
     h: np.ndarray
     h_inv: np.ndarray
     edges: np.ndarray
+    r_cut: float  # the potential's cut-off (padding pairs lie beyond it)
 
     @classmethod
     def of(cls, pot, space: Space, n: int) -> _HostGeometry:
@@ -570,7 +598,8 @@ class _HostGeometry(NamedTuple):
         else:
             mode, h, h_inv, edges = 0, np.eye(n), np.eye(n), np.ones(n)
         return cls(n, plain, k_powers, m_powers, swapped, mode, np.asarray(h, np.float64),
-                   np.asarray(h_inv, np.float64), np.asarray(edges, np.float64))
+                   np.asarray(h_inv, np.float64), np.asarray(edges, np.float64),
+                   float(pot.cutoff.r_cut))
 
     def columns(self, rows: int) -> dict[str, tuple[int, ...]]:
         """Shapes of the scalar arrays of ``rows`` pairs (the keys of ``_padding_base``)."""
@@ -585,16 +614,19 @@ class _HostGeometry(NamedTuple):
 
 
 def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid):
-    """u [C, n] and the pair scalars of the first ``valid`` pairs of the chunk (i, j); the
-    other rows are left at zero (the caller replaces them by padding)."""
+    """The pair scalars of the chunk (i, j): computed for its first ``valid`` pairs, the
+    harmless padding values (beyond the cut-off, identity configurations) in the other rows.
+    Only the scalars cross back to XLA (the displacements are recomputed by the scatter):
+    what crosses a callback costs a copy, ~1 ns per byte here."""
     kernels = _numba_kernels(g.n)
     # callbacks receive jax.Arrays: as NumPy arrays (no copy on a CPU) Numba indexes them
     # as typed arrays, not as generic buffers (which made the kernels ~2x slower)
     x, phi, binv, det = (np.asarray(a) for a in (x, phi, binv, det))
     rows = i.shape[0]
     valid = int(valid)
-    u = np.zeros((rows, g.n))
-    out = {key: np.zeros(shape) for key, shape in g.columns(rows).items()}
+    out = {key: np.empty(shape) for key, shape in g.columns(rows).items()}
+    for key, value in out.items():
+        value[valid:] = padding_value(key, g.n, g.r_cut)
     empty1, empty2 = np.zeros(1), np.zeros((1, 1))
     i = np.ascontiguousarray(i)
     j = np.ascontiguousarray(j)
@@ -603,37 +635,34 @@ def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid):
         view = {key: a[lo:hi] for key, a in out.items()}
         kernels.geometry(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, g.h,
                          g.h_inv, g.edges, "r" in g.plain, "D" in g.plain, "det" in g.plain,
-                         g.k_powers, g.m_powers, g.swapped, u[lo:hi],
+                         g.k_powers, g.m_powers, g.swapped,
                          view.get("r", empty1), view.get("D", empty1),
                          view.get("det", empty1), view.get("K", empty2),
                          view.get("M", empty2), view.get("Ms", empty2))
 
     _in_parts(work, valid)
-    return (u, *(out[key] for key in g.columns(rows)))
+    return tuple(out[key] for key in g.columns(rows))
 
 
-def _host_scatter(g: _HostGeometry, sums, phi, binv, det, i, j, valid, u, base, partials):
+def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partials):
     """``sums`` (dV/dx, dV/dphi direct, dV/dB, dV/d det per body) plus the closed-form
-    geometric derivatives of the chunk's first ``valid`` pairs."""
+    geometric derivatives of the chunk's first ``valid`` pairs, from df/dq (``partials``)."""
     kernels = _numba_kernels(g.n)
     valid = int(valid)
     i = np.ascontiguousarray(i)
     j = np.ascontiguousarray(j)
-    phi, binv, det, u = (np.asarray(a) for a in (phi, binv, det, u))
+    x, phi, binv, det = (np.asarray(a) for a in (x, phi, binv, det))
     keys = list(g.columns(i.shape[0]))
-    base = dict(zip(keys, (np.asarray(a) for a in base), strict=True))
     partials = dict(zip(keys, (np.asarray(a) for a in partials), strict=True))
     empty1, empty2 = np.zeros(1), np.zeros((1, 1))
 
     def work(lo, hi):
-        acc = tuple(np.zeros_like(np.asarray(a)) for a in sums)
-        rows = lambda d, key, empty: d[key][lo:hi] if key in d else empty  # noqa: E731
-        kernels.scatter(0, hi - lo, i[lo:hi], j[lo:hi], phi, binv, det, u[lo:hi],
-                        rows(base, "r", empty1), rows(base, "D", empty1),
-                        rows(base, "det", empty1), rows(partials, "r", empty1),
-                        rows(partials, "D", empty1), rows(partials, "det", empty1),
-                        rows(partials, "K", empty2), rows(partials, "M", empty2),
-                        rows(partials, "Ms", empty2), "r" in g.plain, "D" in g.plain,
+        acc = tuple(np.zeros(np.shape(a)) for a in sums)
+        rows = lambda key, empty: partials[key][lo:hi] if key in partials else empty  # noqa: E731
+        kernels.scatter(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, g.h,
+                        g.h_inv, g.edges, rows("r", empty1), rows("D", empty1),
+                        rows("det", empty1), rows("K", empty2), rows("M", empty2),
+                        rows("Ms", empty2), "r" in g.plain, "D" in g.plain,
                         "det" in g.plain, g.k_powers, g.m_powers, g.swapped, *acc)
         return acc
 
@@ -668,9 +697,8 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     i_all = jnp.concatenate([i, jnp.zeros(fill, i.dtype)])
     j_all = jnp.concatenate([j, jnp.zeros(fill, j.dtype)])
     columns = g.columns(chunk)
-    pad = _padding_base(pot, n, chunk, g.plain, g.k_powers, g.m_powers, g.swapped)
     f64 = lambda shape: jax.ShapeDtypeStruct(shape, x.dtype)  # noqa: E731
-    geometry_shapes = (f64((chunk, n)), *(f64(shape) for shape in columns.values()))
+    geometry_shapes = tuple(f64(shape) for shape in columns.values())
     sum_shapes = (f64(x.shape), f64(phi.shape), f64(phi.shape), f64((bodies,)))
     partials_of = _scalar_values_and_partials(pot, n)
     rows = jnp.arange(chunk)
@@ -681,19 +709,17 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
         ii = lax.dynamic_slice(i_all, (lo,), (chunk,))
         jj = lax.dynamic_slice(j_all, (lo,), (chunk,))
         valid = jnp.clip(count - lo, 0, chunk).astype(jnp.int32)
-        u, *scalars = jax.pure_callback(partial(_host_geometry, g), geometry_shapes, x, phi,
-                                        binv, det, ii, jj, valid, vmap_method="sequential")
+        scalars = jax.pure_callback(partial(_host_geometry, g), geometry_shapes, x, phi, binv,
+                                    det, ii, jj, valid, vmap_method="sequential")
+        base = dict(zip(columns, scalars, strict=True))  # padding rows: beyond the cut-off
         inside = rows < valid
-        base = {key: jnp.where(inside.reshape((chunk,) + (1,) * (v.ndim - 1)), v, pad[key])
-                for key, v in zip(columns, scalars, strict=True)}
         if not gradients:
             energies = pot.energy_from_scalars(base, n)
             return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
         energies, partials = partials_of(base)
         sums = jax.pure_callback(
-            partial(_host_scatter, g), sum_shapes, sums, phi, binv, det, ii, jj, valid, u,
-            tuple(base[key] for key in columns), tuple(partials[key] for key in columns),
-            vmap_method="sequential")
+            partial(_host_scatter, g), sum_shapes, sums, x, phi, binv, det, ii, jj, valid,
+            tuple(partials[key] for key in columns), vmap_method="sequential")
         return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
 
     init = (jnp.zeros((), x.dtype), (jnp.zeros_like(x), jnp.zeros_like(phi),
