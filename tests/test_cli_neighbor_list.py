@@ -238,7 +238,7 @@ def test_the_list_at_a_checkpoint_depends_on_the_state_alone_and_grows_to_fit():
     clustered = State(jnp.asarray(x), *built.state[1:])
     spec, lst = neighbors_at(built.system, base, clustered)
     assert int(lst.overflow) == 0 and spec.capacity > base.capacity
-    assert spec.cell_capacity > base.cell_capacity
+    assert spec.cell_capacity >= base.cell_capacity  # the host build (CPU) has no cell limit
     want = nb.brute_force_pairs(space, x, cutoff + SKIN)
     assert len(want) > base.capacity
     got = nb.pairs_of(lst)

@@ -132,7 +132,13 @@ def test_cell_and_reach_overflows_are_flagged():
     x, phi = system(rng, space)
     spec, _ = nb.allocate(space, x, phi, 1.0, "D", 0.2, capacity=BODIES * (BODIES - 1) // 2)
     clumped = x.at[:20].set(x[0] + 0.01 * jnp.arange(20)[:, None])  # 20 bodies in one cell
-    assert int(nb.build_jit(spec, clumped, phi).overflow) & nb.CELL_OVERFLOW
+    # the JAX build (GPU) fills cells of a fixed capacity; the host build (CPU) has none
+    assert int(jax.jit(nb.build_jax, static_argnums=0)(spec, clumped, phi).overflow) \
+        & nb.CELL_OVERFLOW
+    host = nb.build_jit(spec, clumped, phi)
+    assert nb._host.in_use() and int(host.overflow) == 0
+    radius = float(host.reach) + spec.skin
+    assert pair_set(nb.pairs_of(host)) == pair_set(nb.brute_force_pairs(space, clumped, radius))
     grown = nb.build_jit(spec, x, phi * 2.0)  # the reach doubles: wider than the cells
     assert int(grown.overflow) & nb.REACH_OVERFLOW
     with pytest.raises(nb.NeighborListOverflow, match="outgrew"):
@@ -145,3 +151,17 @@ def test_allocate_refuses_a_radius_beyond_half_the_box():
         nb.allocate(orthorhombic((4.0, 4.0, 4.0)), x, jnp.stack([jnp.eye(3)] * 2), 1.9, "r", 0.3)
     with pytest.raises(ValueError, match="variable must be"):
         nb.allocate(None, x, jnp.stack([jnp.eye(3)] * 2), 1.0, "q")
+
+
+@pytest.mark.parametrize("kind", list(BOXES))
+def test_host_build_and_jax_build_give_the_same_list(kind):
+    """The compiled CPU build (what runs on a CPU) and the JAX build (what runs on a GPU)
+    give the same pairs in the same order, and the same count, reach and flags."""
+    space = BOXES[kind]
+    x, phi = system(np.random.default_rng(17), space)
+    spec, _ = nb.allocate(space, x, phi, 1.1, "D", 0.25)
+    host = jax.jit(nb.build, static_argnums=0)(spec, x, phi)
+    reference = jax.jit(nb.build_jax, static_argnums=0)(spec, x, phi)
+    assert int(host.count) > BODIES  # many pairs
+    for a, b in zip(host, reference, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

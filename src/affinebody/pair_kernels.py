@@ -279,10 +279,8 @@ def neighbor_energy(pot, x, phi, neighbors) -> jax.Array:
 # --------------------------------------------------------------------------------------------
 # Numba kernel (CPU)
 
-try:  # optional dependency: the JAX path above works without it
-    import numba
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    numba = None
+from affinebody._host import in_use as _host_in_use  # noqa: E402
+from affinebody._host import numba  # noqa: E402
 
 
 @functools.cache
@@ -745,7 +743,7 @@ _host_pair_sum_jit = jax.jit(_host_pair_sum, static_argnums=(0, 1))
 
 def host_kernel_in_use() -> bool:
     """True when :func:`pair_sum` runs the compiled host kernel (CPU backend with Numba)."""
-    return numba is not None and jax.default_backend() == "cpu"
+    return _host_in_use()
 
 
 def pair_sum(pot, space: Space, x, phi, i, j, count):
