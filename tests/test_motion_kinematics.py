@@ -182,7 +182,7 @@ def _test_function(phi, weights):
     return jnp.sum(jnp.sin(phi) * weights) + jnp.linalg.det(phi) ** 2
 
 
-#: pi = (df/dphi)^T in the transposed placement of NOTES.md.
+#: pi = (df/dphi)^T in the transposed placement of docs/theory/conventions.md.
 _momentum_of = jax.jit(lambda phi, weights: jax.grad(_test_function)(phi, weights).T)
 _along_spatial = jax.jit(
     lambda phi, z, w: _tangent_at_zero(lambda t: _test_function(_cayley(t * z) @ phi, w))

@@ -89,7 +89,7 @@ def test_trace_invariants_28_29(data):
 @FAST
 @given(st.data())
 def test_affine_invariants_30_31_for_all_of_gl(data):
-    """(31) holds for all A, B in GL(n) (the printed O(n) is a typo, NOTES.md)."""
+    """(31) holds for all A, B in GL(n) (the printed O(n) is a typo, docs/theory/paper-typos.md)."""
     n = data.draw(dims)
     psi, phi, a, b = (data.draw(matrices("GL", n)) for _ in range(4))
     M = np.asarray(mu.affine_invariants(psi, phi))
@@ -101,7 +101,7 @@ def test_affine_invariants_30_31_for_all_of_gl(data):
 @FAST
 @given(st.data())
 def test_mutual_strains_33_33a(data):
-    """(33) with the mutual tensors (NOTES.md), and (33a)."""
+    """(33) with the mutual tensors (docs/theory/paper-typos.md), and (33a)."""
     n = data.draw(dims)
     psi, phi, a = (data.draw(matrices("GL", n)) for _ in range(3))
     rot = data.draw(matrices("O", n))

@@ -8,7 +8,8 @@
    the single volumes det phi_K.
 
 Every trajectory comes from the library's integrator (``simulate.run``); the expectations come
-from closed forms derived independently (DERIVATIONS.md "Facts useful for tests").
+from closed forms derived independently (docs/theory/exact-flows.md, "Closed-form facts used by
+the tests").
 """
 
 import jax.numpy as jnp
@@ -108,7 +109,8 @@ def gl_state(seed, n=2, dilatation_rate=0.1, mu=1.0):
 @pytest.mark.parametrize("model", list(GL_MODELS))
 def test_geodesic_dilatation_is_unbounded_and_a_volume_potential_bounds_it(model):
     """ln det phi moves with constant speed Tr S / (I + A + nB); with V = k/2 (ln det)^2 (81) it
-    oscillates with w^2 = k n / (I + A + nB) (the decoupled dilatation of DERIVATIONS.md)."""
+    oscillates with w^2 = k n / (I + A + nB) (the decoupled dilatation of
+    docs/theory/exact-flows.md)."""
     internal, i_plus_a = GL_MODELS[model]
     n, rate = 2, 0.1
     mu = i_plus_a + n * internal.B

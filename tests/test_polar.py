@@ -2,7 +2,7 @@
 
 Paper, last section: phi = U A = B U = L D R^T, G = A^2 = R D^2 R^T, C = B^-2 = L D^-2 L^T;
 Haar measure |det phi|^-n dphi (91) and its two-polar form (with the products over a < b,
-NOTES.md), checked through autodiff Jacobians of the parametrisations.
+docs/theory/paper-typos.md), checked through autodiff Jacobians of the parametrisations.
 """
 
 from __future__ import annotations

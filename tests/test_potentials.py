@@ -1,5 +1,5 @@
 """Potentials: autodiff forces, declared symmetries (invariance, tightness, Noether), cut-off,
-periodic images, analytic minima and the closed-form gradients of DERIVATIONS.md."""
+periodic images, analytic minima and the closed-form gradients of docs/theory/exact-flows.md."""
 
 import dataclasses
 import itertools
@@ -344,7 +344,7 @@ def test_elastic_energy_formula_and_rotation_free():
 
 
 def test_dilatation_gradient_is_f_prime_det_phi_inverse_transpose():
-    # DERIVATIONS.md: d/dphi V(det phi) = V'(det phi) det(phi) phi^-T
+    # docs/theory/exact-flows.md: d/dphi V(det phi) = V'(det phi) det(phi) phi^-T
     rng = np.random.default_rng(12)
     x, phi = configuration(rng, BODIES, 3)
     det = np.linalg.det(np.asarray(phi))
@@ -368,7 +368,7 @@ def test_external_fields_give_analytic_forces():
 
 
 # --------------------------------------------------------------------------------------------
-# closed-form gradients of the mutual invariants (DERIVATIONS.md)
+# closed-form gradients of the mutual invariants (docs/theory/exact-flows.md)
 
 
 def mpow(m, a):
@@ -387,7 +387,8 @@ def test_gradient_of_mutual_trace_invariant_k(a):
 
 @pytest.mark.parametrize("a", [1, 2, 3])
 def test_gradient_of_affine_invariant_m(a):
-    # the energy is (Tr(Gamma^a) + Tr(Gamma^-a))/2, Gamma = psi^-1 phi, eq. (59); DERIVATIONS.md:
+    # the energy is (Tr(Gamma^a) + Tr(Gamma^-a))/2, Gamma = psi^-1 phi, eq. (59);
+    # docs/theory/exact-flows.md:
     # d/dphi Tr((psi^-1 phi)^a) = a psi^-T ((psi^-1 phi)^(a-1))^T,
     # d/dpsi Tr((psi^-1 phi)^a) = -a psi^-T ((psi^-1 phi)^a)^T
     x, phi = configuration(np.random.default_rng(30 + a), 2, 3)

@@ -586,7 +586,7 @@ def _lb_cases():
 def test_affine_kinetic_operators_are_laplace_beltrami(case):
     """Substituting Sigma_hat / Sigma into (85), (84a), (72), (79a), (81a) (with the constants
     (86)) gives exactly -(hbar^2/2) Laplace-Beltrami of the classical metric (74), (73), (72),
-    (65), (67): no ordering corrections (DERIVATIONS.md)."""
+    (65), (67): no ordering corrections (docs/theory/two-polar.md)."""
     _, n, kinetic, lagrangian = case
     rng = np.random.default_rng(40 + n)
     psi = gaussian_wave(rng, n)

@@ -120,7 +120,8 @@ def test_free_affine_motion_reports_no_bound_states():
 def test_confined_affine_model_converges_and_respects_dilatation_separation():
     """af-is with V = c (q1^2 + q2^2) = c (sigma^2 + x^2)/2: the dilatation sigma = ln det phi
     separates and is an oscillator whose mass follows from m_q = n (I + A + n B) for
-    q = ln(det phi)/n (DERIVATIONS.md), so E_1 - E_0 of the scalar sector is its quantum."""
+    q = ln(det phi)/n (docs/theory/exact-flows.md), so E_1 - E_0 of the scalar sector is its
+    quantum."""
     I, A, B, c = 1.0, 0.2, 0.3, 1.5
     V = lambda Q: c * np.sum(np.log(np.abs(Q)) ** 2, axis=-1)
     inert = sp.AffineInertia("af-is", I, A, B)

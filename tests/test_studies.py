@@ -2,8 +2,9 @@
 
 Sweeps run in this process (``workers=0``; the Dask path is tested in test_sweep.py). Every
 expectation is derived independently of the simulator: closed forms of the geodesics
-exp(t S/(I + A)) (DERIVATIONS.md, af-is/af-af drifts), scipy's expm, spectra, energy bounds, and
-Monte Carlo with numpy for the predicted fractions. docs/studies.md runs the same at full size.
+exp(t S/(I + A)) (docs/theory/exact-flows.md, af-is/af-af drifts), scipy's expm, spectra,
+energy bounds, and Monte Carlo with numpy for the predicted fractions. docs/studies.md runs the
+same at full size.
 """
 
 import math

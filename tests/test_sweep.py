@@ -2,9 +2,10 @@
 worker counts (2-worker cluster, 1-worker cluster started by the CLI, no Dask), float64 workers.
 
 One local cluster of 2 workers serves the module. The sweep config is geodesic af-af motion on
-GL(2) (72), whose solution phi(t) = exp(t Omega_hat) is known exactly (DERIVATIONS.md), plus the
-potential 0 * sqrt(det phi - 0.9): zero force while det phi > 0.9, NaN below, so exactly the
-samples with T Tr(Omega_hat) < ln 0.9 (det phi(t) = exp(t Tr Omega_hat)) blow up.
+GL(2) (72), whose solution phi(t) = exp(t Omega_hat) is known exactly
+(docs/theory/exact-flows.md), plus the potential 0 * sqrt(det phi - 0.9): zero force while
+det phi > 0.9, NaN below, so exactly the samples with T Tr(Omega_hat) < ln 0.9
+(det phi(t) = exp(t Tr Omega_hat)) blow up.
 """
 
 import json

@@ -8,9 +8,9 @@ Loading goes in two passes:
 1. :func:`parse_config` checks types and refuses unknown keys (pydantic, ``extra="forbid"``);
 2. :func:`check_config` checks meaning: shapes against ``system.n`` and the number of bodies,
    positive masses and inertia, the kinetic model's parameters (e.g. af-is is positive definite
-   exactly when I + A > 0, I - A > 0 and I + A + nB > 0, NOTES.md), group membership of the
-   initial phi, potentials (expressions are compiled by the restricted evaluator of
-   :mod:`affinebody.expressions`, so a config can never run code).
+   exactly when I + A > 0, I - A > 0 and I + A + nB > 0, docs/theory/conventions.md), group
+   membership of the initial phi, potentials (expressions are compiled by the restricted
+   evaluator of :mod:`affinebody.expressions`, so a config can never run code).
 
 Every failure is a :class:`ConfigError` (a ``ValueError``) with one line that names the field,
 e.g. ``config error: kinetic.I must be > |kinetic.A| for af-is to be positive definite
@@ -467,8 +467,8 @@ def body_inertia(config: Config) -> Inertia:
 
 def check_kinetic(config: Config) -> None:
     """Model names exist, every parameter the model needs is there, none it ignores is given,
-    and the quadratic form is positive definite (NOTES.md: (73)/(74) need I + A > 0, I - A > 0,
-    I + A + nB > 0; af-af (72) is indefinite by construction and allowed)."""
+    and the quadratic form is positive definite (docs/theory/conventions.md: (73)/(74) need
+    I + A > 0, I - A > 0, I + A + nB > 0; af-af (72) is indefinite by construction and allowed)."""
     k, n = config.kinetic, config.n
     if k.translational not in TRANSLATIONAL_MODELS:
         raise ConfigError(f"kinetic.translational must be one of {', '.join(TRANSLATIONAL_MODELS)} "

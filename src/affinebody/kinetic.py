@@ -15,8 +15,9 @@ state ``[..., N, n]`` / ``[..., N, n, n]``. Every model offers
 - ``check(n=None)``              ValueError with the fix when the model is degenerate,
 - ``symmetry``                   the invariance groups, as strings (see ``SYMMETRIES``).
 
-Conventions (NOTES.md): ``xi = dphi/dt``; Omega = xi phi^-1, Omega_hat = phi^-1 xi (34);
-Sigma = phi pi, Sigma_hat = pi phi (45); Tr(Sigma Omega) = Tr(Sigma_hat Omega_hat) (46).
+Conventions (docs/theory/conventions.md): ``xi = dphi/dt``; Omega = xi phi^-1,
+Omega_hat = phi^-1 xi (34); Sigma = phi pi, Sigma_hat = pi phi (45);
+Tr(Sigma Omega) = Tr(Sigma_hat Omega_hat) (46).
 Hamilton's equations: dphi/dt = (dH/dpi)^T, dpi/dt = -(dH/dphi)^T.
 
 Models (labels of the paper):

@@ -6,13 +6,14 @@ For psi, phi in GL(n):
   for phi = psi; invariant under common spatial / material isometries (23);
 - Gamma[psi, phi] = psi^-1 phi and Sigma[psi, phi] = phi psi^-1 (21), the group-theoretic
   "displacements": Gamma is spatially affine invariant (26), Sigma materially (27);
-- strain forms (33) (with the mutual tensors: the printed (33) has a typo, NOTES.md) and (33a);
+- strain forms (33) (with the mutual tensors: the printed (33) has a typo,
+  docs/theory/paper-typos.md) and (33a);
 - K_a[psi, phi] = Tr(G[psi, phi]^a) (28), invariant under A psi B, A phi B for orthogonal
   A, B (29); M_a[psi, phi] = Tr(Gamma^a) = Tr(Sigma^a) (30), invariant for all A, B in GL(n)
-  (31; the printed O(n) there is a typo, NOTES.md);
+  (31; the printed O(n) there is a typo, docs/theory/paper-typos.md);
 - the affinely invariant distance D of (75) built on the *mean* Cauchy tensor
-  (C[phi_K] + C[phi_L])/2 (NOTES.md: not the mutual C of (20)), invariant under the spatial
-  affine action (76); the relative volume det Gamma = det phi_L / det phi_K (79).
+  (C[phi_K] + C[phi_L])/2 (docs/theory/paper-typos.md: not the mutual C of (20)), invariant
+  under the spatial affine action (76); the relative volume det Gamma = det phi_L / det phi_K (79).
 """
 
 from __future__ import annotations
@@ -61,13 +62,13 @@ def mutual_sigma(psi, phi) -> jax.Array:
 
 
 def mutual_lagrange_strain(psi, phi) -> jax.Array:
-    """E[psi, phi] = (G[psi, phi] - Id)/2, eq. (33) corrected as in NOTES.md."""
+    """E[psi, phi] = (G[psi, phi] - Id)/2, eq. (33) corrected (docs/theory/paper-typos.md)."""
     g = mutual_green(psi, phi)
     return 0.5 * (g - eye_like(g))
 
 
 def mutual_euler_strain(psi, phi) -> jax.Array:
-    """e[psi, phi] = (Id - C[psi, phi])/2, eq. (33) corrected as in NOTES.md."""
+    """e[psi, phi] = (Id - C[psi, phi])/2, eq. (33) corrected (docs/theory/paper-typos.md)."""
     c = mutual_cauchy(psi, phi)
     return 0.5 * (eye_like(c) - c)
 

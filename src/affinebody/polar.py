@@ -10,9 +10,9 @@ Sign convention (also for GL^-): L, R are in SO(n), q_1 >= ... >= q_n, and
 
 i.e. the signed singular values are Q = (exp q_1, ..., exp q_{n-1}, s exp q_n). For the
 d'Alembert models on all of L(n, R) the last Q passes through 0 when det phi changes sign
-(DERIVATIONS.md: Q_1 > ... > |Q_n|).
+(docs/theory/two-polar.md: Q_1 > ... > |Q_n|).
 
-Measures (NOTES.md fixes the printed i != j products to unordered pairs i < j):
+Measures (docs/theory/paper-typos.md: the printed i != j products run over pairs i < j):
 - Haar on GL(n): |det phi|^-n dphi (91); on R^n x GL(n): |det phi|^(-n-1) dx dphi (89);
 - in two-polar coordinates: |det phi|^-n dphi = 2^(n(n-1)/2) prod_{a<b} |sinh(q_a - q_b)|
   dq dmu(L) dmu(R), and dphi = prod_{a<b} |Q_a^2 - Q_b^2| dQ dmu(L) dmu(R).
@@ -134,7 +134,7 @@ def haar_density_with_translations(phi) -> jax.Array:
     """Density |det phi|^(-n-1) of the measure alpha on R^n x GL(n), eq. (89).
 
     Invariant under the spatial affine action (x, phi) -> (A x + b, A phi) but not under
-    phi -> phi B (the affine group is not unimodular; NOTES.md).
+    phi -> phi B (the affine group is not unimodular; docs/theory/paper-typos.md).
     """
     phi = as_matrix(phi, "phi")
     return jnp.abs(linalg.det(phi)) ** (-phi.shape[-1] - 1)

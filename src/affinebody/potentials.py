@@ -9,8 +9,8 @@ Every potential is a small frozen (hashable) dataclass with
   variables it depends on, so a declaration cannot be wrong;
 
 and :func:`total_potential` adds several. Generalised forces are ``-jax.grad`` of the energy
-(:func:`generalized_forces`); note ``dV/dphi`` has the shape of ``phi`` (NOTES.md: Hamilton's
-equation is ``dpi/dt = -(dV/dphi)^T``).
+(:func:`generalized_forces`); note ``dV/dphi`` has the shape of ``phi``
+(docs/theory/conventions.md: Hamilton's equation is ``dpi/dt = -(dV/dphi)^T``).
 
 One-body potentials (57) are sums over bodies of ``f(variables)`` where the variables are
 (``n`` the dimension, ``a = 1..n``):
@@ -629,7 +629,7 @@ class Dilatation(OneBodyTerm):
 
     ``form="log"``: f = (k/2) ln(|det phi| / v0)^2 (diverges at collapse and at infinite
     expansion); ``form="harmonic"``: f = (k/2) (det phi - v0)^2. Its gradient is
-    f'(det) det(phi) phi^-T (DERIVATIONS.md).
+    f'(det) det(phi) phi^-T (docs/theory/exact-flows.md, "Gradients of the invariants").
     """
 
     stiffness: float
@@ -887,7 +887,7 @@ def total_potential(potentials: Iterable[Any]) -> TotalPotential:
 def generalized_forces(potential, x, phi) -> tuple[jax.Array, jax.Array]:
     """(-dV/dx, -dV/dphi), shaped like x and phi (summed energy over leading batch axes,
     which are independent systems). The momentum equations are dp/dt = -dV/dx and
-    dpi/dt = -(dV/dphi)^T in the paper's placement of pi (NOTES.md)."""
+    dpi/dt = -(dV/dphi)^T in the paper's placement of pi (docs/theory/conventions.md)."""
     x, phi = _coordinates(x, phi)
     gx, gphi = jax.grad(lambda a, b: jnp.sum(potential.energy(a, b)), argnums=(0, 1))(x, phi)
     return -gx, -gphi

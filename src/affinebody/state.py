@@ -11,7 +11,7 @@ leading batch axes in front, e.g. for ensembles):
                           pi[a, i] = pi^a_i, paired as Tr(pi @ xi) (42); so the affine spins
                           are Sigma = phi @ pi and Sigma_hat = pi @ phi (45).
 
-Hamilton's equations in this placement (see NOTES.md): dphi/dt = (dH/dpi)^T,
+Hamilton's equations in this placement (docs/theory/conventions.md): dphi/dt = (dH/dpi)^T,
 dpi/dt = -(dH/dphi)^T, where dH/dM is the array of partials with the shape of M.
 """
 

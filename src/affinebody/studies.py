@@ -14,11 +14,12 @@ the bounded fractions with predictions derived independently of the simulator:
 - On SL(n), n >= 3, exp(t S) is bounded iff S is diagonalisable with imaginary eigenvalues,
   a condition of codimension 1 in sl(n): bounded geodesics have no interior, and the fraction
   bounded up to a horizon T decays like 1/T (:func:`sl3_study`).
-- On GL(n) the dilatation q = ln(det phi)/n decouples (DERIVATIONS.md): for (72)-(74) the
-  kinetic energy is T_sl(traceless part) + n (I + A + nB) q'^2 / 2 (af-af: I = 0), so ln det phi
-  moves freely (unbounded) unless a potential V(det phi) (80), (81) holds it; a well of depth D
-  holds it iff the dilatational energy (I + A + nB) (Tr Omega)^2 / (2n) is below D
-  (:func:`dilatation_fraction`), and the shape still moves as on SL(n).
+- On GL(n) the dilatation q = ln(det phi)/n decouples (docs/theory/exact-flows.md): for
+  (72)-(74) the kinetic energy is T_sl(traceless part) + n (I + A + nB) q'^2 / 2 (af-af:
+  I = 0), so ln det phi moves freely (unbounded) unless a potential V(det phi) (80), (81)
+  holds it; a well of depth D holds it iff the dilatational energy
+  (I + A + nB) (Tr Omega)^2 / (2n) is below D (:func:`dilatation_fraction`), and the shape
+  still moves as on SL(n).
 - Two bodies with a binary affine potential (78): relative volumes (79) bounded, single volumes
   not; with (81) both bounded (:func:`binary_study`).
 

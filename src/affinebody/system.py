@@ -10,7 +10,7 @@ and the configuration space of every phi_K (``affinebody.groups``):
 - ``"SL"``, ``"UL"`` (incompressible), ``"SO"``, ``"O"`` (rigid), ``"R+SO"``, ``"R+O"``
   (shape-preserving): constrained bodies, see ``affinebody.constraints``.
 
-Hamilton's equations in the project's placement pi[a, i] = pi^a_i (NOTES.md):
+Hamilton's equations in the project's placement pi[a, i] = pi^a_i (docs/theory/conventions.md):
 ``dx/dt = dH/dp, dp/dt = -dH/dx, dphi/dt = (dH/dpi)^T, dpi/dt = -(dH/dphi)^T`` (53), (87).
 
 Constrained groups. For a subgroup G with Lie algebra g, the momentum of the constrained system is

@@ -248,7 +248,7 @@ def _sqrt_x_over_sinh_derivative_ratio(x: np.ndarray) -> np.ndarray:
 def scalar3_block(potential: Potential, hbar: float, inertia: float, degree: int, scale: float,
                   quad: ChamberQuadrature | None = None) -> tuple[np.ndarray, Basis]:
     """Galerkin Hamiltonian of the n = 3 d'Alembert scalar sector (spin = vorticity = 0):
-    H = -(hbar^2/2I)(1/J_L) sum_a d_a J_L d_a + V (DERIVATIONS.md), weak form
+    H = -(hbar^2/2I)(1/J_L) sum_a d_a J_L d_a + V (docs/theory/two-polar.md), weak form
     int [(hbar^2/2I) grad f . grad g + V f g] J_L dQ on the chamber (natural boundary)."""
     quad = quad or ChamberQuadrature.build(scale * (8.0 + 0.75 * math.sqrt(degree + 1)),
                                            n_rho=40 + 2 * degree, n_angle=16 + degree)

@@ -1,6 +1,6 @@
 """SO(3) x SO(3) covariants of a 3 x 3 matrix, restricted to diagonal matrices: the angular
 part of every (spin j, vorticity j') sector of the n = 3 two-polar reduction (paper, last
-section; DERIVATIONS.md "Quantum: the two-polar reduction"; reduction.py for the operator).
+section; docs/theory/two-polar.md, "Reduced Hamiltonians"; reduction.py for the operator).
 
 A wave function of the sector (j, j') is psi_c(phi) = <c, Psi(phi)> with a covariant
 Psi : R^{3x3} -> V_j (x) V_j', Psi(L phi R^T) = (D^j(L) (x) D^j'(R)) Psi(phi), and c fixed

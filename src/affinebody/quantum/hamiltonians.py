@@ -16,7 +16,7 @@ Checked in tests/test_quantum_operators.py: d'Alembert (76a) equals -hbar^2/2 ti
 J^-1-weighted Laplacian on R^{n^2}; the affine models (af-is (85), is-af (84a), af-af (72),
 af-J (79a), H-af (81a)) equal -hbar^2/2 times the Laplace-Beltrami operator of their classical
 metric (74), (73), (72), (65), (67) computed independently from g(phi): no ordering
-corrections (DERIVATIONS.md); af-is = Casimir combination + vorticity term (see
+corrections (docs/theory/two-polar.md); af-is = Casimir combination + vorticity term (see
 :func:`affine_isotropic_kinetic`).
 
 Models (generators and coefficient tensors; indices as in operators.py):

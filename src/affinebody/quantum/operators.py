@@ -13,7 +13,7 @@ callables too: if ``f`` returns an array of shape S, ``affine_spin_op(f)`` retur
 shape [n, n, *S] (one body) or [N, n, n, *S] (the operator's own indices first, per body).
 Use float64 (``jax.config.update("jax_enable_x64", True)``).
 
-Index placement (NOTES.md): ``phi[i, a]`` = phi^i_a. The operator arrays are
+Index placement (docs/theory/conventions.md): ``phi[i, a]`` = phi^i_a. The operator arrays are
 
 - ``Sigma[a, b]``     = Sigma^a_b     = (hbar/i) phi^a_c d/dphi^b_c          (93) spatial
 - ``Sigma_hat[a, b]`` = Sigma_hat^a_b = (hbar/i) phi^c_b d/dphi^c_a          (93) co-moving
@@ -37,16 +37,18 @@ div_w v = (1/w) d_k(w v^k) = 0, and X + (hbar/2i) div_w v always is. Hence:
 - pi: div_w = -k (phi^-1)^a_j: Hermitian in "lebesgue" (as stated after (113)); in "haar",
   pi_haar = pi - (hbar n / 2i) phi^-T (transposed placement).
 - p, p_hat: always Hermitian. Lambda: div = delta^a_b in every measure: (110).
-- Paper inconsistency (checked in the tests): in L^2(alpha) of (89), Sigma and Sigma_hat are
-  *not* formally Hermitian (div = -delta); only J = Lambda + Sigma is, with no correction at all.
-  (93) is Hermitian in L^2(lambda) and in L^2(lambda x dx).
+- Paper inconsistency (checked in the tests; docs/theory/paper-typos.md): in L^2(alpha) of
+  (89), Sigma and Sigma_hat are *not* formally Hermitian (div = -delta); only
+  J = Lambda + Sigma is, with no correction at all. (93) is Hermitian in L^2(lambda) and in
+  L^2(lambda x dx).
 
 Each operator takes ``measure``: ``None`` gives the paper's bare differential operator; a name
 gives its formally Hermitian version in that measure (the correction above).
 
 Unitary groups (94)-(102): ``translation_group``, ``left_translation_group``,
 ``right_translation_group``, ``spatial_affine_group`` return the transformed wave function
-(96), (97), (99) (with NOTES.md's fix of (99): ``(R(z) Psi)(phi) = Psi(phi exp z)``), times
+(96), (97), (99) (with the fix of (99) in docs/theory/paper-typos.md:
+``(R(z) Psi)(phi) = Psi(phi exp z)``), times
 the multiplier ``exp((n - k) Tr z / 2)`` per body that makes them unitary in the chosen measure
 (none for "haar"). They are exp((i/hbar) z^b_a X^a_b) for the corresponding generator X.
 """
@@ -341,7 +343,8 @@ def left_translation_group(psi: WaveFunction, z: jax.Array, measure: str | None 
 
 def right_translation_group(psi: WaveFunction, z: jax.Array, measure: str | None = None):
     """(98), (99), (102): ``(R(z) Psi)(phi) = Psi(phi exp(z))`` = exp((i/hbar) z^b_a Sigma_hat^a_b)
-    Psi (NOTES.md's corrected (99)); ``measure`` as in :func:`left_translation_group`."""
+    Psi (the corrected (99) of docs/theory/paper-typos.md); ``measure`` as in
+    :func:`left_translation_group`."""
 
     def out(phi):
         return _multiplier(z, phi, measure) * psi(phi @ expm(z))

@@ -1,5 +1,5 @@
 """Reduction of doubly isotropic Hamiltonians to the deformation invariants (two-polar
-coordinates, the paper's last section; DERIVATIONS.md "Quantum: the two-polar reduction").
+coordinates, the paper's last section; docs/theory/two-polar.md, "Reduced Hamiltonians").
 
 Coordinates. ``phi = L D R^T`` with ``L, R`` in SO(n) and ``D = diag(exp q)``,
 ``q_1 > ... > q_n`` (affine models, GL+(n), Haar measure); for d'Alembert the whole of

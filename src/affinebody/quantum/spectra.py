@@ -1,5 +1,5 @@
 """Energy levels of one quantum affine body, sector by sector, in bases orthonormal under the
-measure of the two-polar reduction (paper, last section; DERIVATIONS.md, "Quantum").
+measure of the two-polar reduction (paper, last section; docs/theory/two-polar.md).
 
 The configuration phi = L diag(Q) R^T is split into its SO(n) x SO(n) orbit (L, R) and the
 signed singular values Q (d'Alembert, Lebesgue measure prod_{a<b} |Q_a^2 - Q_b^2|, domain
@@ -18,12 +18,12 @@ Discretisations (all Galerkin, potential matrices by Gauss quadrature):
   by e^{-i beta}, e^{i beta}; a state e^{i(m1 arg z + m2 arg w)} has spin s = m1 + m2 and
   vorticity k = m2 - m1. In the sector (m1, m2) the reduced problem lives on r1 = |z|,
   r2 = |w| >= 0 with measure r1 r2 (= (Q_1^2 - Q_2^2)/4) and centrifugal terms
-  hbar^2 m_i^2 / (4 I r_i^2), i.e. (rho -+ tau)^2 / (4 I (Q_1 +- Q_2)^2) of DERIVATIONS.md with
-  rho = hbar s, tau = hbar k. Basis: products of 2D-radial oscillator functions
-  r^|m| L_j^|m|(r^2/b^2) e^{-r^2/2b^2} (generalised Laguerre, orthonormal under r dr), exact
-  for the oscillator and exponentially convergent for smooth confining V.
+  hbar^2 m_i^2 / (4 I r_i^2), i.e. (rho -+ tau)^2 / (4 I (Q_1 +- Q_2)^2) of
+  docs/theory/two-polar.md with rho = hbar s, tau = hbar k. Basis: products of 2D-radial
+  oscillator functions r^|m| L_j^|m|(r^2/b^2) e^{-r^2/2b^2} (generalised Laguerre, orthonormal
+  under r dr), exact for the oscillator and exponentially convergent for smooth confining V.
 * n = 2, affine models (73) is-af, (74) af-is, (72) af-af on GL+(2). With x = q_1 - q_2 > 0 and
-  sigma = q_1 + q_2, the reduced operator of DERIVATIONS.md (M = I + A) is
+  sigma = q_1 + q_2, the reduced operator of docs/theory/two-polar.md (M = I + A) is
   H = -(hbar^2/M)(1/sinh x) d_x sinh x d_x - hbar^2/(M + 2B) d_sigma^2
       + hbar^2 (s+k)^2 / (16 M sinh^2(x/2)) - hbar^2 (s-k)^2 / (16 M cosh^2(x/2))
       + hbar^2 k^2 / (2 I~)   [is-af: s^2; af-af: none] + V(q).

@@ -1,5 +1,5 @@
 """Thermal equilibrium of one quantum affine body and its classical limit (paper, last section;
-DERIVATIONS.md, "Quantum"): the partition functions Z(beta) of af-is (74) / is-af (73) on GL+(2).
+docs/theory/two-polar.md): the partition functions Z(beta) of af-is (74) / is-af (73) on GL+(2).
 
 Quantum: Z_q(beta) = Tr exp(-beta H) = sum over all states of exp(-beta E), summed over every
 SO(2) x SO(2) sector (s, k), s + k even, of the two-polar reduction (the reduced operator of
@@ -42,7 +42,8 @@ def affine_metric_determinant(model: str, n: int, I: float, A: float,  # noqa: E
     """det k of the kinetic metric T = 1/2 k(Omega, Omega) of (73) is-af / (74) af-is on gl(n) in
     Frobenius-orthonormal coordinates (Omega = Omega_hat or Omega): k acts as I + A on the
     symmetric traceless, I - A on the skew and I + A + n B on the pure-trace velocities
-    (NOTES.md), so det k = (I + A)^{n(n+1)/2 - 1} (I - A)^{n(n-1)/2} (I + A + n B).
+    (docs/theory/conventions.md), so
+    det k = (I + A)^{n(n+1)/2 - 1} (I - A)^{n(n-1)/2} (I + A + n B).
 
     In the coordinates phi the metric is K(phi) = k o (phi^-1 x Id) with det K = det k
     |det phi|^{-2n}: sqrt(det K) is the Haar density |det phi|^-n of (91) times sqrt(det k).
