@@ -360,38 +360,29 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
 
     Used by ``--resume``. Returns the number of frames copied and their total energies.
     """
-    with open_h5(path) as f:
+    with open_trajectory(path) as source:
+        missing = [k for k in OBSERVABLES if k not in source.observables]
+        if missing:
+            raise TrajectoryFileError(f"missing observables {missing} in the file to resume")
+        keep = source.step <= through_step
+        count = int(np.count_nonzero(keep))
+        if count and not np.all(keep[:count]):
+            raise TrajectoryFileError(f"{path}: steps are not increasing")
+        per_frame = 8 * sum(int(np.prod(getattr(source, name).shape[1:]))
+                            for name in STATE_ELEMENTS)
+        block = max(1, block_bytes // max(per_frame, 1))
         try:
-            bodies = f["particles"][PARTICLE_GROUP]
-            elements = {name: bodies[element] for name, element in STATE_ELEMENTS.items()}
-            obs_group = f["observables"]
-            missing = [k for k in OBSERVABLES if k not in obs_group]
-            if missing:
-                raise TrajectoryFileError(f"missing observables {missing} in the file to resume")
-            lengths = [len(g["step"]) for g in elements.values()]
-            lengths += [len(g["value"]) for g in elements.values()]
-            lengths += [len(obs_group[k]["value"]) for k in OBSERVABLES]
-            steps = np.asarray(elements["x"]["step"][:min(lengths)])
-            keep = steps <= through_step
-            count = int(np.count_nonzero(keep))
-            if count and not np.all(keep[:count]):
-                raise TrajectoryFileError(f"{path}: steps are not increasing")
-            per_frame = sum(int(np.prod(g["value"].shape[1:])) for g in elements.values()) * 8
-            block = max(1, block_bytes // max(per_frame, 1))
             for lo in range(0, count, block):
                 hi = min(lo + block, count)
-                state = State(*(np.asarray(elements[name]["value"][lo:hi])
-                                for name in ("x", "phi", "p", "pi")))
-                writer.append(steps[lo:hi], np.asarray(elements["x"]["time"][lo:hi]), state,
-                              {k: np.asarray(obs_group[k]["value"][lo:hi]) for k in OBSERVABLES})
-            energies = np.asarray(obs_group["total_energy"]["value"][:count])
-        except TrajectoryFileError:
-            raise
+                writer.append(source.step[lo:hi], source.time[lo:hi],
+                              State(*(getattr(source, name)[lo:hi]
+                                      for name in ("x", "phi", "p", "pi"))),
+                              {k: source.observables[k][lo:hi] for k in OBSERVABLES})
         except (OSError, KeyError, ValueError, TypeError) as err:
             raise TrajectoryFileError(
                 f"{path}: cannot read the trajectory (truncated or corrupt: {_short(err)})"
             ) from None
-    return count, energies
+        return count, np.asarray(source.observables["total_energy"][:count])
 
 
 def copy_frames(source: Trajectory, writer: H5MDWriter, through_step: int) -> int:
