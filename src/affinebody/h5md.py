@@ -383,26 +383,3 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
                 f"{path}: cannot read the trajectory (truncated or corrupt: {_short(err)})"
             ) from None
         return count, np.asarray(source.observables["total_energy"][:count])
-
-
-def copy_frames(source: Trajectory, writer: H5MDWriter, through_step: int) -> int:
-    """Append the frames of ``source`` with step <= ``through_step`` to ``writer``.
-
-    Used by ``--resume``: the output is rebuilt from the frames written before the last
-    checkpoint, so that the resumed file is identical to an uninterrupted run's.
-    Returns the number of frames copied.
-    """
-    keep = source.step <= through_step
-    count = int(np.count_nonzero(keep))
-    if count and not np.all(keep[:count]):
-        raise TrajectoryFileError(f"{writer.path}: steps are not increasing")
-    missing = [k for k in OBSERVABLES if k not in source.observables]
-    if missing:
-        raise TrajectoryFileError(f"missing observables {missing} in the file to resume")
-    writer.append(
-        source.step[:count],
-        source.time[:count],
-        State(source.x[:count], source.phi[:count], source.p[:count], source.pi[:count]),
-        {k: v[:count] for k, v in source.observables.items() if k in OBSERVABLES},
-    )
-    return count

@@ -486,8 +486,9 @@ def uniform_pair_count(space: Space, bodies: int, radius: float) -> int:
     N (N - 1) / 2 times the volume of the n-ball of that radius over the box volume.
 
     A list allocated for a perfect lattice counts its shells, and the first shell just outside
-    the radius moves in as soon as the lattice vibrates (a simple cubic lattice at spacing 1
-    and radius 2.8 has 41 pairs per body, 51 after a few hundred steps at a low temperature):
+    the radius moves in as soon as the lattice vibrates (measured: a simple cubic lattice at
+    spacing 1 and radius 2.8 has 41 pairs per body, 53 after 1000 steps of the scale benchmark,
+    ``benchmarks/run_scale.py``):
     allocating for at least the uniform count spares the run its reallocations (each a
     recompilation)."""
     n = space.dimension

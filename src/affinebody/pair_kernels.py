@@ -91,14 +91,22 @@ def padding_value(name: str, n: int, r_cut: float) -> float:
     return 4.0 * r_cut if name in ("r", "D") else 1.0 if name == "det" else float(n)
 
 
-def _padding_base(pot, n: int, size: int, plain, k_powers, m_powers, swapped, xp=jnp):
-    """Scalars of a harmless padding pair (:func:`padding_value`), ``size`` of each."""
-    r_cut = pot.cutoff.r_cut
-    base = {name: xp.full((size,), padding_value(name, n, r_cut)) for name in plain}
+def scalar_columns(plain, k_powers: int, m_powers: int, swapped: bool,
+                   rows: int) -> dict[str, tuple[int, ...]]:
+    """Shapes of the scalar pair arrays of ``rows`` pairs that f needs: r, D, det [rows] and
+    K, M, Ms [rows, powers] (the ``base`` of ``PairTerm.energy_from_scalars``)."""
+    out = {name: (rows,) for name in sorted(plain)}
     for name, powers in (("K", k_powers), ("M", m_powers), ("Ms", m_powers if swapped else 0)):
         if powers:
-            base[name] = xp.full((size, powers), padding_value(name, n, r_cut))
-    return base
+            out[name] = (rows, powers)
+    return out
+
+
+def _padding_base(pot, n: int, size: int, plain, k_powers, m_powers, swapped, xp=jnp):
+    """Scalars of a harmless padding pair (:func:`padding_value`), ``size`` of each."""
+    columns = scalar_columns(plain, k_powers, m_powers, swapped, size)
+    return {name: xp.full(shape, padding_value(name, n, pot.cutoff.r_cut))
+            for name, shape in columns.items()}
 
 
 def _require_cutoff(pot) -> None:
@@ -425,8 +433,8 @@ def _numba_kernels(n: int):
         for p in range(start, stop):
             q = p - start
             a, b = i[p], j[p]
-            # the minimum image again, written out as in _geometry: an inlined helper made
-            # both kernels ~30 % slower (measured), and a called one costs ~50 ns per pair
+            # the minimum image again, written out as in _geometry: measured at 4096 bodies, an
+            # inlined Numba helper made both kernels ~30 % slower, a called one 1.3-2x slower
             for d in range(n):  # u = x_K - x_L, minimum image (space.Space.displacement)
                 u[d] = x[a, d] - x[b, d]
             if mode == 1:
@@ -600,15 +608,8 @@ class _HostGeometry(NamedTuple):
                    float(pot.cutoff.r_cut))
 
     def columns(self, rows: int) -> dict[str, tuple[int, ...]]:
-        """Shapes of the scalar arrays of ``rows`` pairs (the keys of ``_padding_base``)."""
-        out = {name: (rows,) for name in sorted(self.plain)}
-        if self.k_powers:
-            out["K"] = (rows, self.k_powers)
-        if self.m_powers:
-            out["M"] = (rows, self.m_powers)
-            if self.swapped:
-                out["Ms"] = (rows, self.m_powers)
-        return out
+        """Shapes of the scalar arrays of ``rows`` pairs (:func:`scalar_columns`)."""
+        return scalar_columns(self.plain, self.k_powers, self.m_powers, self.swapped, rows)
 
 
 def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid):
@@ -671,7 +672,7 @@ def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partia
     return out
 
 
-def host_chunk(capacity: int) -> int:
+def _host_chunk(capacity: int) -> int:
     """Pairs per host-kernel pass for a list of ``capacity`` pairs (a function of the
     capacity only, so the summation order, hence every bit, is the same on every run)."""
     return max(1, min(capacity, HOST_CHUNK_PAIRS))
@@ -689,7 +690,7 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     g = _HostGeometry.of(pot, space, n)
     binv, det = linalg.inv(phi), linalg.det(phi)
     capacity = i.shape[0]
-    chunk = host_chunk(capacity)
+    chunk = _host_chunk(capacity)
     chunks = -(-capacity // chunk)
     fill = chunks * chunk - capacity
     i_all = jnp.concatenate([i, jnp.zeros(fill, i.dtype)])
