@@ -28,7 +28,7 @@ from affinebody.config import (
 )
 from affinebody.h5md import read_trajectory
 from affinebody.integrators import INTEGRATORS
-from affinebody.runner import enable_x64, neighbors_at
+from affinebody._checks import enable_x64
 from affinebody.state import State
 from test_cli_sim import assert_bitwise_equal, datasets, invoke
 
@@ -219,15 +219,15 @@ def test_auto_uses_a_list_from_500_bodies_when_the_system_allows_one():
             continue  # needs [constraints]: refused before the list is considered
         config = check_config(parse_config(big_crystal(side, integrator)))
         # exactly the integrators with a neighbour-list step
-        assert uses_neighbor_list(config) == (integrator in SPLITTING_INTEGRATORS) == hasattr(
-            INTEGRATORS[integrator], "step_with_neighbors")
+        assert uses_neighbor_list(config) == (integrator in SPLITTING_INTEGRATORS) == INTEGRATORS[
+            integrator].uses_neighbor_lists
     assert not uses_neighbor_list(check_config(parse_config(big_crystal(side - 1))))
     assert not uses_neighbor_list(check_config(parse_config(big_crystal(side, box=False))))
 
 
 def test_the_list_at_a_checkpoint_depends_on_the_state_alone_and_grows_to_fit():
     # a base spec allocated for a sparse start, then a clustered state with far more pairs:
-    # neighbors_at grows the capacities by its fixed rule, whatever spec was used before
+    # list_at grows the capacities by the one capacity rule, whatever spec was used before
     enable_x64()
     built = build(check_config(parse_config(crystal("on"))))
     space, cutoff, variable = built.system.neighbor_range()
@@ -236,7 +236,7 @@ def test_the_list_at_a_checkpoint_depends_on_the_state_alone_and_grows_to_fit():
     rng = np.random.default_rng(5)
     x = 2.0 + 1.5 * rng.uniform(size=built.state.x.shape)  # 36 bodies in a 1.5 x 1.5 square
     clustered = State(jnp.asarray(x), *built.state[1:])
-    spec, lst = neighbors_at(built.system, base, clustered)
+    spec, lst = nb.list_at(base, clustered.x, clustered.phi)
     assert int(lst.overflow) == 0 and spec.capacity > base.capacity
     assert spec.cell_capacity >= base.cell_capacity  # the host build (CPU) has no cell limit
     want = nb.brute_force_pairs(space, x, cutoff + SKIN)
@@ -244,7 +244,7 @@ def test_the_list_at_a_checkpoint_depends_on_the_state_alone_and_grows_to_fit():
     got = nb.pairs_of(lst)
     assert {tuple(p) for p in got} == {tuple(p) for p in want} and len(got) == len(want)
     # called again (as a resumed run does): the same spec and list, bit for bit
-    again, lst2 = neighbors_at(built.system, base, clustered)
+    again, lst2 = nb.list_at(base, clustered.x, clustered.phi)
     assert again == spec
     assert all(np.array_equal(a, b) for a, b in zip(lst, lst2, strict=True))
 
@@ -285,3 +285,81 @@ def test_verbose_run_prints_the_phases_and_the_rate_without_compilation(folder):
     integrating = float(line.split("integrating ")[1].split(" s")[0])
     total = float(line.split("steps in ")[1].split(" s")[0])
     assert 0 <= compiling and 0 < integrating and compiling + integrating <= total
+
+
+SWEEP_TABLE = textwrap.dedent('''
+    [sweep]
+    samples = 2
+    batch = 2
+    seed = 11
+    x_velocity = "normal"
+    x_velocity_scale = 1.0
+''')
+
+
+def sweep_config(mode: str):
+    # spacing 1.2: the diagonal neighbours (1.70) lie just outside the list radius (1.55), so
+    # moving bodies bring new pairs into it
+    wide = float(1.2 * SIDE)
+    text = (crystal(mode).replace(f"steps = {STEPS}", "steps = 40")
+            .replace("spacing = 1.0", "spacing = 1.2")
+            .replace(f"box = [{float(SIDE)}, {float(SIDE)}]", f"box = [{wide}, {wide}]"))
+    return check_config(parse_config(text + SWEEP_TABLE))
+
+
+@pytest.fixture(scope="module")
+def all_pairs_sweep():
+    from affinebody.sweep import run_sweep
+
+    enable_x64()
+    return run_sweep(sweep_config("off"), workers=0)
+
+
+def test_sweep_samples_use_the_list_and_equal_the_all_pairs_samples(all_pairs_sweep,
+                                                                    monkeypatch):
+    """The samples of a sweep run the driver's step with the run's neighbour list (O(N) per
+    step): never the all-pairs sum, and the same motion as the all-pairs sweep."""
+    from affinebody import sweep
+    from affinebody.potentials import PairTerm
+
+    def refuse(*_args, **_kwargs):
+        raise AssertionError("a sweep sample summed over all pairs")
+
+    monkeypatch.setattr(PairTerm, "pair_energies", refuse)
+    sweep._prepare.cache_clear()
+    listed = sweep.run_sweep(sweep_config("on"), workers=0)
+    sweep._prepare.cache_clear()
+    assert list(listed.status.ravel()) == list(all_pairs_sweep.status.ravel()) == ["bounded"] * 2
+    for key in ("initial_energy", "final_energy", "max_spread", "max_relative_volume"):
+        np.testing.assert_allclose(listed.samples[key], all_pairs_sweep.samples[key],
+                                   rtol=1e-10, err_msg=key)
+
+
+def test_a_sweep_sample_whose_list_overflows_is_repeated_with_room(all_pairs_sweep,
+                                                                   monkeypatch):
+    """A list allocated with no room overflows as the bodies move: the sample is repeated with
+    the list reallocated by the one capacity policy, and ends as the all-pairs sample does."""
+    from affinebody import sweep
+
+    real_allocate, real_reallocate = nb.allocate, nb.reallocate
+    reallocations = []
+
+    def tight(*args, **kwargs):  # the set-up's list: exactly full, no room to move
+        if "capacity" not in kwargs:
+            _, full = real_allocate(*args, **kwargs)
+            kwargs["capacity"] = int(full.count)
+        return real_allocate(*args, **kwargs)
+
+    def counted(*args, **kwargs):
+        reallocations.append(kwargs["flags"])
+        return real_reallocate(*args, **kwargs)
+
+    monkeypatch.setattr(nb, "allocate", tight)
+    monkeypatch.setattr(nb, "reallocate", counted)
+    sweep._prepare.cache_clear()
+    listed = sweep.run_sweep(sweep_config("on"), workers=0)
+    sweep._prepare.cache_clear()
+    assert reallocations and all(f & nb.PAIR_OVERFLOW for f in reallocations)
+    assert list(listed.status.ravel()) == ["bounded"] * 2
+    np.testing.assert_allclose(listed.samples["final_energy"],
+                               all_pairs_sweep.samples["final_energy"], rtol=1e-10)

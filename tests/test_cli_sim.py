@@ -20,7 +20,7 @@ from matplotlib.image import imread
 from affinebody.checkpoint import checkpoint_path, load_checkpoint
 from affinebody.export import rotation_from_quaternion
 from affinebody.h5md import read_trajectory
-from affinebody.runner import COMMANDS
+from affinebody.cli.run import COMMANDS
 
 CLI = click.Group("affinebody", commands={c.name: c for c in COMMANDS})
 TOTAL = 20000
@@ -135,7 +135,7 @@ def test_resume_reproduces_the_uninterrupted_run_bit_for_bit(folder, reference):
 
 def test_a_run_killed_with_sigkill_resumes_bit_for_bit(folder, reference):
     out = folder / "killed.h5"
-    code = (f"from affinebody.runner import run; run.main([{str(folder / 'tiny.toml')!r}, "
+    code = (f"from affinebody.cli.run import run; run.main([{str(folder / 'tiny.toml')!r}, "
             f"'-o', {str(out)!r}, '--steps', '100000000', '--quiet'])")
     proc = subprocess.Popen([sys.executable, "-c", code])
     ckpt = checkpoint_path(out)

@@ -22,6 +22,7 @@ from scipy.linalg import expm
 from scipy.stats import binomtest
 
 from affinebody.config import ConfigError, build, check_config, parse_config
+from affinebody.cli.sweep import sweep
 from affinebody.sweep import (
     STATUS_CODES,
     SweepSpec,
@@ -32,7 +33,6 @@ from affinebody.sweep import (
     draw_initial_state,
     run_sweep,
     scan_points,
-    sweep,
 )
 
 DT, STEPS, SAMPLES, BATCH = 0.1, 20, 20, 8

@@ -1,6 +1,7 @@
 """Input validation shared by every module: float64, shapes, invertibility, positivity.
 
-The library never flips JAX's global x64 flag; it refuses to compute in float32 instead.
+The library never flips JAX's global x64 flag on import; it refuses to compute in float32
+instead (:func:`enable_x64` is for the command line and the workers it starts).
 Checks that need *values* (singular phi, positive-definite J) run only on concrete arrays:
 inside ``jax.jit`` the arguments are tracers and these checks are skipped, so validate
 eagerly once (as the config layer does) and then run the compiled code.
@@ -19,6 +20,12 @@ X64_FIX = (
 
 #: Relative tolerance below which |det phi| / prod(column norms) counts as singular.
 SINGULAR_RTOL = 1e-13
+
+
+def enable_x64() -> None:
+    """Switch JAX to float64 for this process: what the command line and the workers do for
+    themselves (importing affinebody never does it; computing in float32 is refused)."""
+    jax.config.update("jax_enable_x64", True)
 
 
 def require_x64() -> None:

@@ -481,6 +481,55 @@ def allocate(
     return spec, check(build_jit(spec, x, phi))
 
 
+#: Reallocations in a row (no step kept in between) before a run gives up on its list.
+MAX_REALLOCATIONS_IN_A_ROW = 8
+
+
+def reallocate(spec: NeighborSpec, x, phi, *, flags: int, pairs: int,
+               reach: float | None = None) -> tuple[NeighborSpec, NeighborList]:
+    """The one capacity policy: a list for (x, phi) after ``spec`` overflowed with ``flags``
+    (``PAIR_/CELL_/REACH_OVERFLOW``), having seen ``pairs`` pairs and a spatial ``reach``.
+
+    Capacities never shrink, so repeated reallocations make progress: the pair capacity grows
+    to at least 3/2 of the pairs seen, the cell capacity doubles, and a reach that outgrew the
+    cells gets 5/4 of the room it needed as headroom (a new grid). Deterministic in its
+    arguments, so a resumed run rebuilds exactly the list of the uninterrupted one. Raises
+    ``NeighborListOverflow`` (or the space's ValueError for a reach beyond half the box) when
+    no list can be built.
+    """
+    x, phi = jnp.asarray(x), jnp.asarray(phi)
+    capacity, cell_capacity, headroom = spec.capacity, spec.cell_capacity, None
+    if flags & PAIR_OVERFLOW:
+        capacity = max(capacity, int(math.ceil(1.5 * pairs)))
+    if flags & CELL_OVERFLOW:
+        cell_capacity = 2 * cell_capacity
+    if flags & REACH_OVERFLOW:
+        radius = float(spatial_reach(spec.cutoff, spec.variable, phi)) + spec.skin
+        needed = (spec.skin if reach is None else float(reach) + spec.skin) / radius
+        headroom = max(0.25, 1.25 * needed - 1.0)
+    args = (spec.space, x, phi, spec.cutoff, spec.variable, spec.skin)
+    try:  # one build at the grown capacities
+        return allocate(*args, capacity=capacity, cell_capacity=cell_capacity,
+                        reach_headroom=headroom)
+    except NeighborListOverflow:  # other cells (a new grid): measure them
+        measured, _ = allocate(*args, reach_headroom=headroom)
+        return allocate(*args, capacity=max(capacity, measured.capacity),
+                        cell_capacity=max(cell_capacity, measured.cell_capacity),
+                        reach_headroom=headroom)
+
+
+def list_at(base: NeighborSpec, x, phi) -> tuple[NeighborSpec, NeighborList]:
+    """A list for (x, phi) with ``base``'s capacities, or :func:`reallocate`'s when they do
+    not hold it: a function of ``base`` and the configuration alone (checkpoints, resume)."""
+    x, phi = jnp.asarray(x), jnp.asarray(phi)
+    built = build_jit(base, x, phi)
+    flags = int(built.overflow)
+    if not flags:
+        return base, built
+    return reallocate(base, x, phi, flags=flags, pairs=int(built.count),
+                      reach=float(built.reach))
+
+
 def uniform_pair_count(space: Space, bodies: int, radius: float) -> int:
     """Pairs closer than ``radius`` in a periodic box if the bodies were spread uniformly:
     N (N - 1) / 2 times the volume of the n-ball of that radius over the box volume.

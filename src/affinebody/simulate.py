@@ -18,9 +18,11 @@ A stop raises ``IntegrationStopped`` (with ``.report`` and the partial ``.trajec
 
 from __future__ import annotations
 
+import enum
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -30,7 +32,7 @@ from jax import lax
 from affinebody import _linalg as linalg
 from affinebody import neighbors as nb
 from affinebody import observables as obs
-from affinebody.integrators import ImplicitMidpoint, Splitting, get_integrator
+from affinebody.integrators import get_integrator
 from affinebody.state import State
 from affinebody.system import OPEN_GROUPS, HamiltonianSystem
 
@@ -50,9 +52,30 @@ NAMED_OBSERVABLES: Mapping[str, Callable[..., jax.Array]] = {
     "relative_volumes": lambda system, s, neighbors=None: obs.relative_volumes(s),
 }
 
-_OK, _LEFT_GROUP, _NON_FINITE, _OVERFLOW = 0, 1, 2, 3
-#: Reallocations of the neighbour list in a row at the same frame before ``run`` gives up.
-MAX_REALLOCATIONS_IN_A_ROW = 8
+
+
+class Stop(enum.IntEnum):
+    """Why the driver did not keep a step: the one status type of ``run``, ``sweep`` and the
+    studies (a compiled loop carries it as an integer)."""
+
+    NONE = 0
+    LEFT_GROUP = 1  #: det phi of a body changed sign on GL+ / GL (it crossed det phi = 0)
+    NON_FINITE = 2  #: a body's x, phi, p or pi is not finite
+    OVERFLOW = 3  #: the neighbour list overflowed its capacities (reallocate and go on)
+
+    @property
+    def reason(self) -> str:
+        """A short phrase for reports and sweep results."""
+        return _STOP_REASONS[self]
+
+
+_STOP_REASONS = {
+    Stop.NONE: "",
+    Stop.LEFT_GROUP: "left the group (det phi crossed 0)",
+    Stop.NON_FINITE: "non-finite state",
+    Stop.OVERFLOW: "neighbour list overflow",
+}
+_OK, _LEFT_GROUP, _NON_FINITE, _OVERFLOW = (int(s) for s in Stop)
 
 
 @dataclass(frozen=True)
@@ -132,44 +155,79 @@ def _per_body_finite(state: State) -> jax.Array:
             & jnp.all(jnp.isfinite(state.pi), axis=(-2, -1)))
 
 
-def _simulate(system, state, dt, neighbors, *, n_chunks, every, method, observers, spec):
-    """The compiled run. With a neighbour list (``spec`` not None) the carry holds the list,
-    valid for the carried state; a step whose list overflowed is discarded like a non-finite
-    one (status _OVERFLOW), recording what the reallocation must hold in ``lost``."""
-    watch_det = system.group in OPEN_GROUPS
-    sign0 = jnp.sign(linalg.det(state.phi))
-    zero = jnp.asarray(0)
+class Watched(NamedTuple):
+    """One step of the driver with its verdict (see :func:`watched_step`)."""
 
-    fsal = isinstance(method, Splitting)
+    state: State
+    neighbors: object  # the list after the step (None without a list)
+    forces: object  # the forces at ``state`` (first same as last), () when not carried
+    stop: jax.Array  # int, a :class:`Stop` code: NONE when the step may be kept
+    bad_bodies: jax.Array  # [N] bool, the bodies that made it fail
+    tracked: object  # integrators.NeighborStep of the step, or None without a list
 
-    def one_step(carry, _):
-        state, nbrs, forces, status, bad_step, bad_body, k, rebuilds, lost = carry
+
+def watched_step(system, method, dt, spec=None, *, sign0, watch_det: bool):
+    """``step(state, neighbors, forces) -> Watched``: one step of ``method`` and the checks
+    that decide whether it may be kept, shared by every loop that integrates (``run``, the
+    samples of ``sweep``).
+
+    A step fails when a body's state is not finite (``Stop.NON_FINITE``), when, on GL+ / GL
+    (``watch_det``), det phi of a body no longer has the sign ``sign0`` it started with
+    (``Stop.LEFT_GROUP``: it crossed det phi = 0, the boundary of the group), or when the
+    neighbour list of ``spec`` overflowed (``Stop.OVERFLOW``: the forces may be wrong).
+    Integrators that carry the forces from step to step (``method.carries_forces``: the
+    splittings, first same as last) take and return them; others get and return ``()``.
+    """
+    carries = getattr(method, "carries_forces", False)
+
+    def step(state, neighbors, forces) -> Watched:
         tracked = None
-        if fsal:
-            new, tracked, new_forces = method.advance(system, state, forces, dt, spec, nbrs)
+        if carries:
+            new, tracked, new_forces = method.advance(system, state, forces, dt, spec, neighbors)
         else:
             new, new_forces = method.step(system, state, dt), forces
         if tracked is None:
-            new_list, overflow = nbrs, False
+            new_list, overflow = neighbors, jnp.asarray(False)
         else:
             new_list, overflow = tracked.neighbors, tracked.overflow != 0
         finite = _per_body_finite(new)
         crossed = (jnp.sign(linalg.det(new.phi)) != sign0) & finite & watch_det
-        bad_bodies = ~finite | crossed
-        first = (status == _OK) & (jnp.any(bad_bodies) | overflow)
-        code = jnp.where(overflow, _OVERFLOW,
-                         jnp.where(jnp.any(~finite), _NON_FINITE, _LEFT_GROUP))
-        status = jnp.where(first, code, status)
+        stop = jnp.where(overflow, _OVERFLOW, jnp.where(
+            jnp.any(~finite), _NON_FINITE, jnp.where(jnp.any(crossed), _LEFT_GROUP, _OK)))
+        return Watched(new, new_list, new_forces, stop, ~finite | crossed, tracked)
+
+    return step
+
+
+def initial_forces(system, method, state, neighbors=None):
+    """What :func:`watched_step` carries in at the first step: the forces at ``state`` for an
+    integrator that carries them, else ``()``."""
+    return system.forces(state, neighbors) if getattr(method, "carries_forces", False) else ()
+
+
+def _simulate(system, state, dt, neighbors, *, n_chunks, every, method, observers, spec):
+    """The compiled run. With a neighbour list (``spec`` not None) the carry holds the list,
+    valid for the carried state; a step whose list overflowed is discarded like a non-finite
+    one (status _OVERFLOW), recording what the reallocation must hold in ``lost``."""
+    zero = jnp.asarray(0)
+    step = watched_step(system, method, dt, spec, sign0=jnp.sign(linalg.det(state.phi)),
+                        watch_det=system.group in OPEN_GROUPS)
+
+    def one_step(carry, _):
+        state, nbrs, forces, status, bad_step, bad_body, k, rebuilds, lost = carry
+        w = step(state, nbrs, forces)
+        first = (status == _OK) & (w.stop != _OK)
+        status = jnp.where(first, w.stop, status)
         bad_step = jnp.where(first, k + 1, bad_step)
-        bad_body = jnp.where(first, jnp.argmax(bad_bodies), bad_body)
+        bad_body = jnp.where(first, jnp.argmax(w.bad_bodies), bad_body)
         keep_old = status != _OK
         keep = lambda old, nw: jnp.where(keep_old, old, nw)  # noqa: E731
-        state = jax.tree.map(keep, state, new)
-        nbrs = jax.tree.map(keep, nbrs, new_list)
-        forces = jax.tree.map(keep, forces, new_forces)
-        if tracked is not None:
-            rebuilds = rebuilds + jnp.where(keep_old, 0, tracked.rebuilds)
-            seen = (tracked.overflow, tracked.most_pairs, tracked.largest_reach)
+        state = jax.tree.map(keep, state, w.state)
+        nbrs = jax.tree.map(keep, nbrs, w.neighbors)
+        forces = jax.tree.map(keep, forces, w.forces)
+        if w.tracked is not None:
+            rebuilds = rebuilds + jnp.where(keep_old, 0, w.tracked.rebuilds)
+            seen = (w.tracked.overflow, w.tracked.most_pairs, w.tracked.largest_reach)
             lost = jax.tree.map(lambda old, nw: jnp.where(first, nw, old), lost, seen)
         return (state, nbrs, forces, status, bad_step, bad_body, k + 1, rebuilds, lost), None
 
@@ -182,7 +240,7 @@ def _simulate(system, state, dt, neighbors, *, n_chunks, every, method, observer
 
     flags_and_count = jnp.zeros((), dtype=jnp.int32)
     lost = (flags_and_count, flags_and_count, jnp.zeros((), dtype=state.x.dtype))
-    forces = system.forces(state, neighbors) if fsal else ()
+    forces = initial_forces(system, method, state, neighbors)
     init = (state, neighbors, forces, zero, zero, zero, zero, zero, lost)
     carry, (frames, values, done) = lax.scan(chunk, init, None, length=n_chunks)
     _, last_list, _, status, bad_step, bad_body, _, rebuilds, lost = carry
@@ -223,7 +281,7 @@ def _initial_neighbors(system, method, state, neighbors, neighbor_skin):
         return None, None
     if neighbors is not None and neighbor_skin is not None:
         raise ValueError("give run(...) either neighbors=(spec, list) or neighbor_skin, not both")
-    if not hasattr(method, "step_with_neighbors"):
+    if not method.uses_neighbor_lists:
         raise ValueError(
             f"integrator {getattr(method, 'name', method)!r} sums over all pairs: neighbour lists "
             f"work with the splitting integrators (strang, yoshida4, suzuki4, yoshida6); run "
@@ -257,31 +315,11 @@ def _initial_neighbors(system, method, state, neighbors, neighbor_skin):
     return spec, lst
 
 
-def _reallocate(system, spec, state, lost):
-    """A new (spec, list) at ``state`` with room for what overflowed ``spec`` (``lost`` =
-    overflow flags, largest pair count, largest reach seen in the failed step). Capacities
-    never shrink, so reallocations at the same frame make progress."""
-    space, cutoff, variable = system.neighbor_range()
-    flags, most_pairs, largest_reach = int(lost[0]), int(lost[1]), float(lost[2])
-    x, phi = jnp.asarray(state.x), jnp.asarray(state.phi)
-    capacity, cell_capacity, headroom = spec.capacity, spec.cell_capacity, None
-    if flags & nb.PAIR_OVERFLOW:
-        capacity = max(capacity, int(np.ceil(1.5 * most_pairs)))
-    if flags & nb.CELL_OVERFLOW:
-        cell_capacity = 2 * cell_capacity
-    if flags & nb.REACH_OVERFLOW:
-        radius = float(nb.spatial_reach(cutoff, variable, phi)) + spec.skin
-        headroom = max(0.25, 1.25 * (largest_reach + spec.skin) / radius - 1.0)
-    try:  # one build at the fixed capacities
-        return nb.allocate(space, x, phi, cutoff, variable, spec.skin, capacity=capacity,
-                           cell_capacity=cell_capacity, reach_headroom=headroom)
-    except nb.NeighborListOverflow:  # other cells (a new grid): measure them
-        measured, _ = nb.allocate(space, x, phi, cutoff, variable, spec.skin,
-                                  reach_headroom=headroom)
-        return nb.allocate(space, x, phi, cutoff, variable, spec.skin,
-                           capacity=max(capacity, measured.capacity),
-                           cell_capacity=max(cell_capacity, measured.cell_capacity),
-                           reach_headroom=headroom)
+def _reallocate(spec, state, lost):
+    """:func:`neighbors.reallocate` at ``state`` from what the failed step saw (``lost`` =
+    overflow flags, largest pair count, largest reach)."""
+    return nb.reallocate(spec, state.x, state.phi, flags=int(lost[0]), pairs=int(lost[1]),
+                         reach=float(lost[2]))
 
 
 def _diagnose_non_finite(system, method, initial, state, dt, spec=None) -> str:
@@ -352,8 +390,7 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
     if on_stop not in ("raise", "return"):
         raise ValueError(f"on_stop must be 'raise' or 'return' (got {on_stop!r})")
     method = get_integrator(integrator)
-    if system.constrained and isinstance(method, ImplicitMidpoint):
-        method.step(system, state, dt)  # raises its own ValueError before any work
+    method.check(system)  # a one-line ValueError before any work
     state = system.check(state)
     if state.phi.ndim != 3:
         raise ValueError(f"run integrates one system: state.phi must be [N, n, n] "
@@ -384,11 +421,11 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
         in_a_row = in_a_row + 1 if aligned == 0 else 1
         restart_state = jax.tree.map(lambda a, j=aligned: a[j], frames)
         try:
-            if in_a_row > MAX_REALLOCATIONS_IN_A_ROW:
+            if in_a_row > nb.MAX_REALLOCATIONS_IN_A_ROW:
                 raise nb.NeighborListOverflow(
                     f"{in_a_row - 1} reallocations at step {(start + aligned) * every} did not "
                     f"get past step {bad_step}")
-            spec, nbrs = _reallocate(system, spec, restart_state, lost)
+            spec, nbrs = _reallocate(spec, restart_state, lost)
         except ValueError as error:  # NeighborListOverflow, or a reach beyond half the box
             failed_reallocation = str(error)
             segments[-1] = (frames, values, done, first, len(done))
@@ -442,12 +479,20 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
     return trajectory
 
 
+def relative_error(values, reference) -> np.ndarray:
+    """|E - E_0| / max(|E_0|, tiny): the relative energy error every report uses (run's
+    progress bar and summary, sweep samples, ``energy_error``). Broadcasts."""
+    values, reference = np.asarray(values, dtype=float), np.asarray(reference, dtype=float)
+    return np.abs(values - reference) / np.maximum(np.abs(reference), np.finfo(float).tiny)
+
+
 def energy_error(trajectory: Trajectory, key: str = "energy") -> np.ndarray:
-    """|E(t) - E(0)| / max(|E(0)|, tiny) for a trajectory recorded with an energy observer."""
+    """:func:`relative_error` of a trajectory's energy observable against its first frame."""
     e = np.asarray(trajectory.observables[key])
-    return np.abs(e - e[0]) / max(abs(float(e[0])), np.finfo(float).tiny)
+    return relative_error(e, e[0])
 
 
 __all__: Sequence[str] = (
-    "IntegrationStopped", "NAMED_OBSERVABLES", "StopReport", "Trajectory", "energy_error", "run",
+    "IntegrationStopped", "NAMED_OBSERVABLES", "Stop", "StopReport", "Trajectory", "Watched",
+    "energy_error", "initial_forces", "relative_error", "run", "watched_step",
 )

@@ -548,7 +548,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import argparse
     import time
 
-    from affinebody.runner import enable_x64
+    from affinebody._checks import enable_x64
     from affinebody.sweep import dask_client
 
     parser = argparse.ArgumentParser(description="Run the studies of docs/studies.md.")

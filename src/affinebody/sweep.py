@@ -66,13 +66,11 @@ import contextlib
 import copy
 import dataclasses
 import functools
-import io
 import itertools
 import json
 import logging
 import math
 import os
-import sys
 import time
 import uuid
 from collections import Counter
@@ -81,11 +79,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import click
 import numpy as np
 
 from affinebody.config import Config, ConfigError, ScanRange, check_config
-from affinebody.runner import enable_x64, one_line_errors
+from affinebody.simulate import Stop, relative_error
 
 #: Environment of local Dask workers: one thread for XLA and BLAS, float64 JAX.
 WORKER_ENV = {
@@ -96,13 +93,13 @@ WORKER_ENV = {
     "JAX_ENABLE_X64": "True",
 }
 
-_BOUNDED, _UNBOUNDED, _NON_FINITE, _LEFT_GROUP, _BAD_INITIAL, _ERROR = range(6)
-#: Status codes of a sample -> (status, failure reason).
+#: Outcomes of a sample beyond the driver's stops (``simulate.Stop``: a failed step keeps its
+#: code, 1..3), in one table with them: code -> (status, failure reason).
+_BOUNDED, _UNBOUNDED, _BAD_INITIAL, _ERROR = 10, 11, 12, 13
 STATUS_CODES = {
     _BOUNDED: ("bounded", ""),
     _UNBOUNDED: ("unbounded", ""),
-    _NON_FINITE: ("failed", "non-finite state"),
-    _LEFT_GROUP: ("failed", "left the group (det phi crossed 0)"),
+    **{int(stop): ("failed", stop.reason) for stop in Stop if stop != Stop.NONE},
     _BAD_INITIAL: ("failed", "non-finite initial energy"),
     _ERROR: ("failed", "error"),
 }
@@ -320,6 +317,7 @@ class _Prepared:
     method: Any
     dt: float
     steps: int
+    neighbors: Any = None  # (spec, list) allocated for the initial configuration, or None
 
 
 @functools.lru_cache(maxsize=32)
@@ -335,7 +333,8 @@ def _prepare(config_json: str) -> _Prepared:
         raise ConfigError(one_line_error(err)) from None
     built = build(check_config(config))
     return _Prepared(built.system, built.state, get_integrator(config.run.integrator),
-                     float(config.run.dt), int(config.run.steps))
+                     float(config.run.dt), int(config.run.steps),
+                     built.neighbors if built.neighbor_list else None)
 
 
 def draw_initial_state(system, state, key, *, internal: str, internal_scale, translational: str,
@@ -383,64 +382,77 @@ def _measures(phi):
     return spread, jnp.min(det), jnp.max(det), jnp.max(volume) / jnp.min(volume)
 
 
-def _finite(state) -> Any:
-    import jax
-    import jax.numpy as jnp
+def follow(system, state, dt, bound, *, steps: int, method, watch_det: bool, spec=None,
+           neighbors=None):
+    """Integrate one sample and classify it (module docstring); a ``lax.while_loop`` of the
+    run driver's :func:`~affinebody.simulate.watched_step`, so a sample fails exactly where
+    ``affinebody run`` would stop. With a neighbour list (``spec``, ``neighbors`` valid for
+    ``state``) the pair terms are summed over it, as in ``run``: O(N) per step.
 
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(state)]))
-
-
-def follow(system, state, dt, bound, *, steps: int, method, watch_det: bool):
-    """Integrate one sample and classify it (module docstring); a ``lax.while_loop``.
-
-    Returns a dict of scalars: code (status code), steps_done, exit_step (-1: never reached the
-    bound), max_spread, min_det, max_det, max_relative_volume, initial_energy, final_energy.
+    Returns a dict of scalars: code (a key of :data:`STATUS_CODES`; ``Stop.OVERFLOW`` when the
+    list overflowed: the caller reallocates and repeats the sample), steps_done, exit_step
+    (-1: never reached the bound), max_spread, min_det, max_det, max_relative_volume,
+    initial_energy, final_energy.
     """
     import jax
     import jax.numpy as jnp
     from jax import lax
 
     from affinebody import _linalg as linalg
+    from affinebody.simulate import initial_forces, watched_step
 
-    energy0 = system.hamiltonian(state)
-    sign0 = jnp.sign(linalg.det(state.phi))
+    energy0 = system.hamiltonian(state, neighbors)
+    step = watched_step(system, method, dt, spec, sign0=jnp.sign(linalg.det(state.phi)),
+                        watch_det=watch_det)
     runaway = bound * bound
     spread, dmin, dmax, rel = _measures(state.phi)
-    ok0 = jnp.isfinite(energy0) & _finite(state)
-    code0 = jnp.where(ok0, _BOUNDED, _BAD_INITIAL)
+    finite0 = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(state)]))
+    code0 = jnp.where(jnp.isfinite(energy0) & finite0, _BOUNDED, _BAD_INITIAL)
     exit0 = jnp.where(spread >= bound, 0, -1)
-    init = (state, code0, jnp.asarray(0), exit0, spread, dmin, dmax, rel)
+    forces = initial_forces(system, method, state, neighbors)
+    lost = (jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32), jnp.zeros((), state.x.dtype))
+    init = (state, neighbors, forces, code0, jnp.asarray(0), exit0, spread, dmin, dmax, rel,
+            lost)
 
     def running(carry):
-        _, code, k, _, spread, *_ = carry
+        code, k, _, spread = carry[3:7]
         return (k < steps) & (code == _BOUNDED) & (spread < runaway)
 
-    def step(carry):
-        state, code, k, exit_step, spread, dmin, dmax, rel = carry
-        new = method.step(system, state, dt)
-        finite = _finite(new)
-        phi = jnp.where(finite, new.phi, state.phi)
-        s, lo, hi, r = _measures(phi)
-        crossed = watch_det & jnp.any(jnp.sign(linalg.det(phi)) != sign0)
-        good = finite & ~crossed
-        code = jnp.where(finite, jnp.where(crossed, _LEFT_GROUP, code), _NON_FINITE)
-        state = jax.tree.map(lambda a, b: jnp.where(good, a, b), new, state)
+    def advance(carry):
+        state, nbrs, forces, code, k, exit_step, spread, dmin, dmax, rel, lost = carry
+        w = step(state, nbrs, forces)
+        good = w.stop == Stop.NONE
+        if w.tracked is not None:  # what a reallocation must hold (as in simulate.run)
+            lost = (w.tracked.overflow, w.tracked.most_pairs, w.tracked.largest_reach)
+        s, lo, hi, r = _measures(jnp.where(good, w.state.phi, state.phi))
+        code = jnp.where(good, code, w.stop)
+        keep = lambda new, old: jnp.where(good, new, old)  # noqa: E731
+        state, nbrs, forces = (jax.tree.map(keep, w.state, state),
+                               jax.tree.map(keep, w.neighbors, nbrs),
+                               jax.tree.map(keep, w.forces, forces))
         exit_step = jnp.where(good & (exit_step < 0) & (s >= bound), k + 1, exit_step)
         spread = jnp.where(good, jnp.maximum(spread, s), spread)
         dmin = jnp.where(good, jnp.minimum(dmin, lo), dmin)
         dmax = jnp.where(good, jnp.maximum(dmax, hi), dmax)
         rel = jnp.where(good, jnp.maximum(rel, r), rel)
-        return state, code, jnp.where(good, k + 1, k), exit_step, spread, dmin, dmax, rel
+        return (state, nbrs, forces, code, jnp.where(good, k + 1, k), exit_step, spread, dmin,
+                dmax, rel, lost)
 
-    state, code, k, exit_step, spread, dmin, dmax, rel = lax.while_loop(running, step, init)
+    state, nbrs, _, code, k, exit_step, spread, dmin, dmax, rel, lost = lax.while_loop(
+        running, advance, init)
     code = jnp.where((code == _BOUNDED) & (exit_step >= 0), _UNBOUNDED, code)
     return {"code": code, "steps_done": k, "exit_step": exit_step, "max_spread": spread,
             "min_det": dmin, "max_det": dmax, "max_relative_volume": rel,
-            "initial_energy": energy0, "final_energy": system.hamiltonian(state)}
+            "initial_energy": energy0, "final_energy": system.hamiltonian(state, nbrs),
+            "overflow": lost[0], "most_pairs": lost[1], "largest_reach": lost[2]}
 
 
-def _batch(system, state, seed, indices, dt, bound, internal_scale, translational_scale, *,
-           steps, method, watch_det, internal, translational):
+def _batch(system, state, seed, indices, dt, bound, internal_scale, translational_scale,
+           neighbors, *, steps, method, watch_det, internal, translational, spec):
+    """Every sample of a task. Without a list the samples are vmapped (one batched loop);
+    with one they run one after the other (``lax.map``): a list's rebuild is a ``lax.cond``,
+    which vmap would turn into a rebuild at every step, and a system large enough to need a
+    list has work enough per step."""
     import jax
 
     def one(index):
@@ -448,10 +460,13 @@ def _batch(system, state, seed, indices, dt, bound, internal_scale, translationa
         start, omega_hat, v = draw_initial_state(
             system, state, key, internal=internal, internal_scale=internal_scale,
             translational=translational, translational_scale=translational_scale)
-        out = follow(system, start, dt, bound, steps=steps, method=method, watch_det=watch_det)
+        out = follow(system, start, dt, bound, steps=steps, method=method, watch_det=watch_det,
+                     spec=spec, neighbors=neighbors)
         return {**out, "omega_hat": omega_hat, "velocity": v}
 
-    return jax.vmap(one)(indices)
+    if spec is None:
+        return jax.vmap(one)(indices)
+    return jax.lax.map(one, indices)
 
 
 @functools.cache
@@ -459,7 +474,7 @@ def _compiled_batch():
     import jax
 
     return jax.jit(_batch, static_argnames=("steps", "method", "watch_det", "internal",
-                                             "translational"))
+                                             "translational", "spec"))
 
 
 def run_task(task: Task, in_worker: bool = True) -> dict[str, Any]:
@@ -489,19 +504,27 @@ def run_task(task: Task, in_worker: bool = True) -> dict[str, Any]:
 
     spec = task.spec
     system = prepared.system
-    out = _compiled_batch()(
-        system, prepared.state, jnp.asarray(spec.seed, dtype=jnp.uint32),
-        jnp.asarray(task.indices), jnp.asarray(prepared.dt), jnp.asarray(spec.bound),
-        jnp.asarray(spec.velocity_scale), jnp.asarray(spec.x_velocity_scale),
-        steps=prepared.steps, method=prepared.method, watch_det=system.group in OPEN_GROUPS,
-        internal=spec.initial_velocity, translational=spec.x_velocity)
-    out = {k: np.asarray(v)[: task.count] for k, v in out.items()}
+    lists = prepared.neighbors or (None, None)
+
+    def samples(indices, lists):
+        out = _compiled_batch()(
+            system, prepared.state, jnp.asarray(spec.seed, dtype=jnp.uint32),
+            jnp.asarray(indices), jnp.asarray(prepared.dt), jnp.asarray(spec.bound),
+            jnp.asarray(spec.velocity_scale), jnp.asarray(spec.x_velocity_scale), lists[1],
+            steps=prepared.steps, method=prepared.method,
+            watch_det=system.group in OPEN_GROUPS, internal=spec.initial_velocity,
+            translational=spec.x_velocity, spec=lists[0])
+        return {k: np.array(v) for k, v in out.items()}  # writable: repeats fill them in
+
+    out = {k: v[: task.count] for k, v in samples(task.indices, lists).items()}
+    for j in np.flatnonzero(out["code"] == Stop.OVERFLOW):
+        out = _repeat_with_larger_list(samples, out, j, task.indices[j], lists, prepared.state)
     dt = prepared.dt
     code = out["code"].astype(np.int64)
     exit_step = out["exit_step"]
     e0, e1 = out["initial_energy"], out["final_energy"]
     with np.errstate(invalid="ignore", divide="ignore"):
-        energy_error = np.abs(e1 - e0) / np.maximum(np.abs(e0), np.finfo(float).tiny)
+        energy_error = relative_error(e1, e0)
     result = {
         "code": code,
         "message": [STATUS_CODES[int(c)][1] for c in code],
@@ -520,6 +543,31 @@ def run_task(task: Task, in_worker: bool = True) -> dict[str, Any]:
         "worker": {**info, "seconds": time.perf_counter() - clock},
     }
     return result
+
+
+def _repeat_with_larger_list(samples, out, j, index, lists, state):
+    """Sample ``j`` (sample number ``index``) overflowed its neighbour list: run it again, alone,
+    with the list reallocated at the initial configuration by the one capacity policy
+    (:func:`affinebody.neighbors.reallocate`, from what the failed step saw), until it
+    completes (at most ``MAX_REALLOCATIONS_IN_A_ROW`` times; then it stays failed with the
+    reason "neighbour list overflow"). Its result depends on the sample alone, not on the
+    batch it ran in."""
+    from affinebody import neighbors as nb
+
+    spec = lists[0]
+    for _ in range(nb.MAX_REALLOCATIONS_IN_A_ROW):
+        try:
+            spec, lst = nb.reallocate(spec, state.x, state.phi, flags=int(out["overflow"][j]),
+                                      pairs=int(out["most_pairs"][j]),
+                                      reach=float(out["largest_reach"][j]))
+        except ValueError:  # NeighborListOverflow, or a reach beyond half the box
+            break
+        again = samples(np.asarray([index]), (spec, lst))
+        for key, value in again.items():
+            out[key][j] = value[0]
+        if int(out["code"][j]) != Stop.OVERFLOW:
+            break
+    return out
 
 
 def _failure_result(task: Task, message: str, info: dict | None = None) -> dict[str, Any]:
@@ -614,14 +662,15 @@ def _execute(tasks: list[Task], client, on_done: Callable[[Task, dict], None]) -
         on_done(task, result)
 
 
-def _json_safe(value):
+def json_safe(value):
+    """``value`` with NumPy arrays and scalars as lists and Python numbers (for json.dumps)."""
     """Plain JSON data (NaN and infinities become null, numpy scalars and arrays lists)."""
     if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
+        return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
+        return [json_safe(v) for v in value]
     if isinstance(value, np.ndarray):
-        return _json_safe(value.tolist())
+        return json_safe(value.tolist())
     if isinstance(value, np.generic):
         value = value.item()
     if isinstance(value, float) and not math.isfinite(value):
@@ -645,7 +694,7 @@ def _write_task_file(folder: Path, task: Task, point: ScanPoint, result: dict) -
             "worker": result["worker"], "rows": rows}
     path = folder / f"{task.name}.json"
     temporary = path.with_suffix(".json.tmp")
-    temporary.write_text(json.dumps(_json_safe(data)), encoding="utf-8")
+    temporary.write_text(json.dumps(json_safe(data)), encoding="utf-8")
     temporary.replace(path)
 
 
@@ -812,7 +861,7 @@ def run_sweep(
         "wall_seconds": time.perf_counter() - clock,
     }
     if folder is not None:
-        (folder / "summary.json").write_text(json.dumps(_json_safe(summary), indent=1),
+        (folder / "summary.json").write_text(json.dumps(json_safe(summary), indent=1),
                                              encoding="utf-8")
         _write_samples_csv(folder / "samples.csv", points, status, failure, data)
     return SweepResult(spec, points, data, status, failure, summary, folder,
@@ -834,106 +883,6 @@ def _write_samples_csv(path: Path, points, status, failure, data) -> None:
                                  *(repr(float(data[s][point.index, k])) for s in SCALARS)])
 
 
-# --------------------------------------------------------------------------- CLI
-def _format(value: float, digits: int = 3) -> str:
-    return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
-
-
-def summary_lines(summary: dict) -> list[str]:
-    """A plain-text table of the per-point summaries (used when rich is not a terminal)."""
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table(title=f"sweep: {summary['samples']} samples per point, horizon "
-                        f"{summary['horizon']:.6g}, bound {summary['bound']:.6g}")
-    names = list(summary["points"][0]["parameters"]) if summary["points"] else []
-    for name in [*names, "bounded", "unbounded", "failed", "fraction bounded",
-                 "|dE/E| median", "max rel. volume", "det phi range"]:
-        table.add_column(name, justify="right")
-    for point in summary["points"]:
-        fraction = (f"{_format(point['fraction_bounded'], 4)} ± "
-                    f"{_format(point['fraction_bounded_error'], 2)}")
-        table.add_row(
-            *(str(point["parameters"][k]) for k in names),
-            str(point["bounded"]), str(point["unbounded"]), str(point["failed"]), fraction,
-            _format(point["energy_error_median"], 2), _format(point["max_relative_volume"]),
-            f"{_format(point['min_det'])} .. {_format(point['max_det'])}")
-    console = Console(width=160, record=True, file=io.StringIO())
-    console.print(table)
-    lines = console.export_text().rstrip("\n").splitlines()
-    lines.append(f"fraction bounded (all points): {_format(summary['fraction_bounded'], 4)} ± "
-                 f"{_format(summary['fraction_bounded_error'], 2)} over "
-                 f"{summary['total_samples'] - summary['failed']} classified samples "
-                 f"({summary['failed']} failed), {summary['wall_seconds']:.1f} s on "
-                 f"{summary['workers']} worker(s)")
-    for point in summary["points"]:
-        for reason, count in point["failures"].items():
-            lines.append(f"point {point['index']}: {count} failed: {reason}")
-    return lines
-
-
-def _progress_bar(enabled: bool):
-    from rich.console import Console
-
-    console = Console(stderr=True)
-    if not enabled or not console.is_terminal:
-        return contextlib.nullcontext(), None
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    bar = Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(),
-                   TextColumn("samples"), TimeElapsedColumn(), console=console)
-    task = {}
-
-    def update(done: int, total: int) -> None:
-        if "id" not in task:
-            task["id"] = bar.add_task("sweep", total=total)
-        bar.update(task["id"], completed=done)
-
-    return bar, update
-
-
-@click.command("sweep")
-@click.argument("config_file", metavar="CONFIG.toml", type=click.Path(dir_okay=False))
-@click.option("--samples", type=int, default=None, help="Samples per point (overrides "
-              "sweep.samples).")
-@click.option("--seed", type=int, default=None, help="Random seed (overrides sweep.seed).")
-@click.option("--scheduler", metavar="ADDRESS", default=None,
-              help="Dask scheduler to use, e.g. tcp://host:8786 (default: a local cluster).")
-@click.option("--workers", type=int, default=None,
-              help="Processes of the local cluster (default: all cores; 0: no Dask).")
-@click.option("-o", "--output-dir", "output_dir", type=click.Path(file_okay=False), default=None,
-              help="Folder for task files, samples.csv, summary.json (default: CONFIG_sweep).")
-@click.option("--json", "as_json", is_flag=True,
-              help="Print the summary as one JSON object on stdout.")
-@one_line_errors
-def sweep(config_file, samples, seed, scheduler, workers, output_dir, as_json):
-    """Run an ensemble / parameter sweep of CONFIG.toml ([sweep] table) on Dask."""
-    from affinebody.config import load_config
-
-    enable_x64()
-    config = load_config(config_file)
-    folder = Path(output_dir) if output_dir else Path(config_file).with_name(
-        Path(config_file).stem + "_sweep")
-    bar, update = _progress_bar(True)
-    try:
-        with bar:
-            result = run_sweep(config, samples=samples, seed=seed, scheduler=scheduler,
-                               workers=workers, output=folder, progress=update)
-    except KeyboardInterrupt:
-        click.echo(f"interrupted: the task files written so far are kept in {folder / 'tasks'}",
-                   err=True)
-        sys.exit(130)
-    if as_json:
-        click.echo(json.dumps(_json_safe(result.summary)))
-    else:
-        for line in summary_lines(result.summary):
-            click.echo(line)
-        click.echo(f"results: {folder}")
-
-
 __all__ = ("SweepResult", "SweepSpec", "ScanPoint", "Task", "WORKER_ENV", "binomial_summary",
            "dask_client", "draw_initial_state", "follow", "make_tasks", "prepare_worker",
-           "run_sweep", "run_task", "scan_points", "sweep")
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(sweep())
+           "run_sweep", "run_task", "scan_points")

@@ -1,10 +1,17 @@
-"""The ``affinebody`` command line: one click group, one subcommand per job."""
+"""The ``affinebody`` command line: one click group, one subcommand per job.
+
+``run``, ``demo``, ``plot``, ``export``, ``validate`` (:mod:`.run`), ``sweep`` (:mod:`.sweep`),
+``spectrum`` and ``density`` (:mod:`affinebody.quantum.cli`) and ``kinematics-demo``. Every
+command turns JAX's float64 mode on for its own process and reports errors as one line
+(:mod:`.common`).
+"""
 
 from __future__ import annotations
 
 import click
 
 from affinebody import __version__
+from affinebody._checks import enable_x64
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -13,29 +20,24 @@ def main() -> None:
     """Classical and quantum mechanics of affinely-rigid bodies (Slawianowski's affine models)."""
 
 
-def _enable_x64() -> None:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-
-
 @main.command("kinematics-demo")
 def kinematics_demo() -> None:
     """Print a worked example of the kinematics of one affine body (paper §1)."""
-    _enable_x64()
+    enable_x64()
     from affinebody.demo_kinematics import print_worked_example
 
     print_worked_example()
 
 
-
 def _register_commands() -> None:
+    from affinebody.cli.run import COMMANDS  # run, demo, plot, export, validate
+    from affinebody.cli.sweep import sweep
     from affinebody.quantum.cli import density, spectrum
-    from affinebody.runner import COMMANDS  # run, demo, plot, export, validate
-    from affinebody.sweep import sweep
 
     for command in (*COMMANDS, spectrum, density, sweep):
         main.add_command(command)
 
 
 _register_commands()
+
+__all__ = ["main"]

@@ -1,6 +1,4 @@
-"""Time steppers for a ``HamiltonianSystem``: explicit symplectic splittings and implicit midpoint.
-
-Splitting schemes compose *exact* sub-flows of H = T + V (75a):
+"""Explicit symplectic splittings of H = T + V (75a) into exact sub-flows.
 
 - the kick K(h): exact flow of V (configuration fixed, momenta change), ``system.kick``;
 - the drift D(h): flow of T, the palindromic composition of the kinetic terms' exact flows
@@ -17,50 +15,44 @@ Adjacent half-kicks are merged, so a composition of m Strang steps costs m drift
 Every composition of exact flows is symplectic and keeps each momentum map that all sub-flows keep
 (e.g. total linear momentum, affine momentum), so these are conserved to round-off.
 
-``implicit-midpoint``: z' = z + h f((z + z')/2) with the autodiff vector field f, solved by
-fixed-point iteration (a ``lax.while_loop``, jit-compatible) to a relative tolerance with a
-bounded number of iterations; for kinetic models without an exact splitting. It is symplectic
-and symmetric, order 2, and defined on GL+, GL and L (not on the constrained groups). A step
-that does not converge returns NaN, which the run driver reports.
+On the subgroups SL, UL, SO, O, R+SO, R+O the kicks are projected and the drifts constrained
+(``affinebody.constraints``: exact flows, Lie-group splittings, RATTLE), all symplectic and
+symmetric on T*G, so the compositions keep their orders there as well.
 
-On the subgroups SL, UL, SO, O, R+SO, R+O the splittings compose the projected kicks with the
-constrained drifts of ``affinebody.constraints`` (exact flows, Lie-group splittings, RATTLE), all
-symplectic and symmetric on T*G, so the compositions keep their orders there as well.
-
-Neighbour lists. ``Splitting.step_with_neighbors`` sums the pair forces over a neighbour list
+Neighbour lists. :meth:`Splitting.advance` sums the pair forces over a neighbour list
 (``affinebody.neighbors``) and updates the list after every drift, before the next kick (the only
 sub-flow that moves the configuration is the drift), inside compiled code; ``simulate.run``
-carries the list through its scan. The other integrators sum over all pairs.
-
-``nonholonomic-rattle`` (``affinebody.nonholonomic``): the discrete Lagrange-d'Alembert step
-with velocity projection, the only integrator for rotationless (non-holonomic) systems (40), (41).
+carries the list through its scan.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
 from affinebody import neighbors as nb
-from affinebody.nonholonomic import NONHOLONOMIC_RATTLE, NonholonomicRattle
+from affinebody.integrators.base import AbstractIntegrator
 from affinebody.state import State
 from affinebody.system import HamiltonianSystem
 
-Step = Callable[[State, jax.Array], State]
-
 
 @dataclass(frozen=True)
-class Splitting:
+class Splitting(AbstractIntegrator):
     """Symmetric composition S(w_1 h) ... S(w_m h) of Strang steps S = K(h/2) D(h) K(h/2)."""
 
     name: str
     order: int
     weights: tuple[float, ...]
+    carries_forces: ClassVar[bool] = True
+    uses_neighbor_lists: ClassVar[bool] = True
+
+    def check(self, system: HamiltonianSystem) -> None:
+        """Splittings ignore a rotationless (non-holonomic) constraint: refuse such systems."""
+        refuse_nonholonomic(system, self.name)
 
     @property
     def drifts(self) -> tuple[float, ...]:
@@ -106,7 +98,7 @@ class Splitting:
         ``spec`` and ``neighbors`` the pair forces are summed over the list, updated after
         every drift as in :meth:`step_with_neighbors`.
         """
-        _refuse_nonholonomic(system, self.name)
+        self.check(system)
         kicks = self.kicks
         state = system.kick(state, kicks[0] * h, forces=forces)
         tracked = None
@@ -120,7 +112,7 @@ class Splitting:
             s = system.drift(s, d * h)
             current = None
             if spec is not None:
-                tracked = _update_neighbors(spec, tracked, s)
+                tracked = update_neighbors(spec, tracked, s)
                 current = tracked.neighbors
             f = system.forces(s, current)
             return (system.kick(s, c * h, forces=f), tracked, f), None
@@ -145,7 +137,7 @@ class NeighborStep(NamedTuple):
     largest_reach: jax.Array
 
 
-def _update_neighbors(spec, tracked: NeighborStep, state: State) -> NeighborStep:
+def update_neighbors(spec, tracked: NeighborStep, state: State) -> NeighborStep:
     """``neighbors.update`` that also counts rebuilds and keeps every overflow flag."""
     stale = nb.needs_rebuild(spec, tracked.neighbors, state.x, state.phi)
     fresh = lax.cond(stale, lambda: nb.build(spec, state.x, state.phi),
@@ -168,87 +160,11 @@ SUZUKI4 = Splitting("suzuki4", 4, (_S4, _S4, 1.0 - 4.0 * _S4, _S4, _S4))
 YOSHIDA6 = Splitting("yoshida6", 6, _Y6 + (_Y6_0,) + _Y6[::-1])
 
 
-@dataclass(frozen=True)
-class ImplicitMidpoint:
-    """Implicit midpoint rule by fixed-point iteration (see the module docstring)."""
-
-    tol: float = 1e-14
-    max_iter: int = 60
-    name: str = "implicit-midpoint"
-    order: int = 2
-
-    def step(self, system: HamiltonianSystem, state: State, h) -> State:
-        """z' solving z' = z + h f((z + z')/2); NaN where not converged in ``max_iter``."""
-        _refuse_nonholonomic(system, self.name)
-        if system.constrained:
-            raise ValueError(
-                f"integrator 'implicit-midpoint' works on GL+, GL and L, not on {system.group}: "
-                f"use a splitting integrator (strang, yoshida4, suzuki4, yoshida6)"
-            )
-        f = system.vector_field
-
-        def update(z):
-            mid = jax.tree.map(lambda a, b: 0.5 * (a + b), state, z)
-            return jax.tree.map(lambda a, v: a + h * v, state, f(mid))
-
-        def change(z_new, z):
-            diffs = jax.tree.map(lambda a, b: jnp.max(jnp.abs(a - b) / (1.0 + jnp.abs(b))),
-                                 z_new, z)
-            return jnp.max(jnp.stack(jax.tree.leaves(diffs)))
-
-        def cond(carry):
-            _, k, err = carry
-            return (err > self.tol) & (k < self.max_iter)
-
-        def body(carry):
-            z, k, _ = carry
-            z_new = update(z)
-            return z_new, k + 1, change(z_new, z)
-
-        z0 = update(state)
-        z, _, err = lax.while_loop(cond, body, (z0, 0, jnp.asarray(jnp.inf, z0.x.dtype)))
-        # round-off can stall the iteration a little above tol: accept 100 tol
-        ok = err <= 100.0 * self.tol
-        return jax.tree.map(lambda a: jnp.where(ok, a, jnp.nan), z)
-
-
-IMPLICIT_MIDPOINT = ImplicitMidpoint()
-
-
-def _refuse_nonholonomic(system, name: str) -> None:
+def refuse_nonholonomic(system, name: str) -> None:
+    """ValueError when ``system`` has a rotationless constraint that integrator ``name``
+    would ignore."""
     if getattr(system, "rotationless", None) is not None:
         raise ValueError(
             f"integrator {name!r} ignores the rotationless constraint "
             f"{system.rotationless!r}: use integrator = 'nonholonomic-rattle'"
         )
-
-#: Integrators by name (the names configs use).
-INTEGRATORS = {
-    s.name: s for s in (STRANG, YOSHIDA4, SUZUKI4, YOSHIDA6, IMPLICIT_MIDPOINT,
-                        NONHOLONOMIC_RATTLE)
-}
-
-
-def get_integrator(integrator) -> Splitting | ImplicitMidpoint | NonholonomicRattle:
-    """An integrator object from a name in INTEGRATORS (or the object itself)."""
-    if isinstance(integrator, str):
-        if integrator not in INTEGRATORS:
-            raise ValueError(
-                f"unknown integrator {integrator!r} (choose one of {', '.join(INTEGRATORS)})"
-            )
-        return INTEGRATORS[integrator]
-    if not hasattr(integrator, "step"):
-        raise ValueError(f"integrator must be a name or have a .step method (got {integrator!r})")
-    return integrator
-
-
-def step_function(system: HamiltonianSystem, integrator="strang") -> Step:
-    """``step(state, h) -> state`` for ``system`` with the chosen integrator (not jitted)."""
-    method = get_integrator(integrator)
-    if isinstance(method, ImplicitMidpoint) and (system.constrained or system.nonholonomic):
-        method.step(system, None, 0.0)  # raises the clear ValueError
-    if isinstance(method, Splitting):
-        _refuse_nonholonomic(system, method.name)
-    if isinstance(method, NonholonomicRattle) and not system.nonholonomic:
-        method.step(system, None, 0.0)  # raises the clear ValueError
-    return lambda state, h: method.step(system, state, h)

@@ -1,0 +1,56 @@
+"""What every ``affinebody`` command shares: float64, and one policy for errors and exit codes.
+
+Bad input never gives a traceback: one line on stderr naming the field and the fix, and
+
+- exit 1 (:data:`EXIT_BAD_INPUT`): a bad config, flag or file (``ValueError``, ``OSError``) and
+  any unexpected error ("internal error: ...");
+- exit 3 (:data:`EXIT_STOPPED`): a run stopped on a non-finite or singular state (frames and the
+  last checkpoint are kept);
+- exit 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C); what was written is kept.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+
+import click
+
+EXIT_BAD_INPUT = 1
+EXIT_STOPPED = 3
+EXIT_INTERRUPTED = 130
+
+
+def fail(message: str, code: int = EXIT_BAD_INPUT):
+    """Print the first line of ``message`` on stderr and exit with ``code``."""
+    click.echo(message.splitlines()[0] if message else "error", err=True)
+    sys.exit(code)
+
+
+def one_line_errors(command):
+    """Turn every exception of a command into one line on stderr and a non-zero exit."""
+    from affinebody.runner import SimulationStopped
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except SimulationStopped as err:
+            fail(f"error: {err}", EXIT_STOPPED)
+        except KeyboardInterrupt:
+            fail("interrupted: what was written so far is kept (affinebody run continues with "
+                 "--resume)", EXIT_INTERRUPTED)
+        except ValueError as err:
+            text = str(err)
+            fail(text if text.startswith(("config error", "error")) else f"error: {text}")
+        except OSError as err:
+            fail(f"error: {err.strerror or err}: {err.filename or ''}".rstrip(": "))
+        except (click.exceptions.Exit, click.ClickException, SystemExit):
+            raise
+        except Exception as err:  # noqa: BLE001 - the CLI never shows a traceback
+            fail(f"internal error: {type(err).__name__}: {err}")
+
+    return wrapper
+
+
+__all__ = ["EXIT_BAD_INPUT", "EXIT_INTERRUPTED", "EXIT_STOPPED", "fail", "one_line_errors"]

@@ -1,0 +1,113 @@
+"""``affinebody sweep``: ensembles and parameter sweeps on Dask (:mod:`affinebody.sweep` does
+the work; this module parses the command line, shows progress and prints the summary table)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import sys
+from pathlib import Path
+
+import click
+
+from affinebody._checks import enable_x64
+from affinebody.cli.common import one_line_errors
+from affinebody.sweep import json_safe, run_sweep
+
+
+def _format(value: float, digits: int = 3) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
+
+
+def summary_lines(summary: dict) -> list[str]:
+    """A plain-text table of the per-point summaries (used when rich is not a terminal)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"sweep: {summary['samples']} samples per point, horizon "
+                        f"{summary['horizon']:.6g}, bound {summary['bound']:.6g}")
+    names = list(summary["points"][0]["parameters"]) if summary["points"] else []
+    for name in [*names, "bounded", "unbounded", "failed", "fraction bounded",
+                 "|dE/E| median", "max rel. volume", "det phi range"]:
+        table.add_column(name, justify="right")
+    for point in summary["points"]:
+        fraction = (f"{_format(point['fraction_bounded'], 4)} ± "
+                    f"{_format(point['fraction_bounded_error'], 2)}")
+        table.add_row(
+            *(str(point["parameters"][k]) for k in names),
+            str(point["bounded"]), str(point["unbounded"]), str(point["failed"]), fraction,
+            _format(point["energy_error_median"], 2), _format(point["max_relative_volume"]),
+            f"{_format(point['min_det'])} .. {_format(point['max_det'])}")
+    console = Console(width=160, record=True, file=io.StringIO())
+    console.print(table)
+    lines = console.export_text().rstrip("\n").splitlines()
+    lines.append(f"fraction bounded (all points): {_format(summary['fraction_bounded'], 4)} ± "
+                 f"{_format(summary['fraction_bounded_error'], 2)} over "
+                 f"{summary['total_samples'] - summary['failed']} classified samples "
+                 f"({summary['failed']} failed), {summary['wall_seconds']:.1f} s on "
+                 f"{summary['workers']} worker(s)")
+    for point in summary["points"]:
+        for reason, count in point["failures"].items():
+            lines.append(f"point {point['index']}: {count} failed: {reason}")
+    return lines
+
+
+def _progress_bar(enabled: bool):
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    if not enabled or not console.is_terminal:
+        return contextlib.nullcontext(), None
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    bar = Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(),
+                   TextColumn("samples"), TimeElapsedColumn(), console=console)
+    task = {}
+
+    def update(done: int, total: int) -> None:
+        if "id" not in task:
+            task["id"] = bar.add_task("sweep", total=total)
+        bar.update(task["id"], completed=done)
+
+    return bar, update
+
+
+@click.command("sweep")
+@click.argument("config_file", metavar="CONFIG.toml", type=click.Path(dir_okay=False))
+@click.option("--samples", type=int, default=None, help="Samples per point (overrides "
+              "sweep.samples).")
+@click.option("--seed", type=int, default=None, help="Random seed (overrides sweep.seed).")
+@click.option("--scheduler", metavar="ADDRESS", default=None,
+              help="Dask scheduler to use, e.g. tcp://host:8786 (default: a local cluster).")
+@click.option("--workers", type=int, default=None,
+              help="Processes of the local cluster (default: all cores; 0: no Dask).")
+@click.option("-o", "--output-dir", "output_dir", type=click.Path(file_okay=False), default=None,
+              help="Folder for task files, samples.csv, summary.json (default: CONFIG_sweep).")
+@click.option("--json", "as_json", is_flag=True,
+              help="Print the summary as one JSON object on stdout.")
+@one_line_errors
+def sweep(config_file, samples, seed, scheduler, workers, output_dir, as_json):
+    """Run an ensemble / parameter sweep of CONFIG.toml ([sweep] table) on Dask."""
+    from affinebody.config import load_config
+
+    enable_x64()
+    config = load_config(config_file)
+    folder = Path(output_dir) if output_dir else Path(config_file).with_name(
+        Path(config_file).stem + "_sweep")
+    bar, update = _progress_bar(True)
+    try:
+        with bar:
+            result = run_sweep(config, samples=samples, seed=seed, scheduler=scheduler,
+                               workers=workers, output=folder, progress=update)
+    except KeyboardInterrupt:
+        click.echo(f"interrupted: the task files written so far are kept in {folder / 'tasks'}",
+                   err=True)
+        sys.exit(130)
+    if as_json:
+        click.echo(json.dumps(json_safe(result.summary)))
+    else:
+        for line in summary_lines(result.summary):
+            click.echo(line)
+        click.echo(f"results: {folder}")
