@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from affinebody import neighbors as nb
+from affinebody._checks import enable_x64
 from affinebody.checkpoint import checkpoint_path, load_checkpoint
 from affinebody.config import (
     AUTO_NEIGHBOR_LIST_BODIES,
@@ -28,7 +29,6 @@ from affinebody.config import (
 )
 from affinebody.h5md import read_trajectory
 from affinebody.integrators import INTEGRATORS
-from affinebody._checks import enable_x64
 from affinebody.state import State
 from test_cli_sim import assert_bitwise_equal, datasets, invoke
 

@@ -18,9 +18,9 @@ from click.testing import CliRunner
 from matplotlib.image import imread
 
 from affinebody.checkpoint import checkpoint_path, load_checkpoint
+from affinebody.cli.run import COMMANDS
 from affinebody.export import rotation_from_quaternion
 from affinebody.h5md import read_trajectory
-from affinebody.cli.run import COMMANDS
 
 CLI = click.Group("affinebody", commands={c.name: c for c in COMMANDS})
 TOTAL = 20000

@@ -21,8 +21,8 @@ from click.testing import CliRunner
 from scipy.linalg import expm
 from scipy.stats import binomtest
 
-from affinebody.config import ConfigError, build, check_config, parse_config
 from affinebody.cli.sweep import sweep
+from affinebody.config import ConfigError, build, check_config, parse_config
 from affinebody.sweep import (
     STATUS_CODES,
     SweepSpec,
