@@ -195,3 +195,13 @@ def test_lazy_reader_gives_the_same_frames_and_streaming_copies_them(tmp_path):
     copied = read_trajectory(target)
     np.testing.assert_array_equal(copied.phi, eager.phi[:7])
     np.testing.assert_array_equal(energies, eager.observables["total_energy"][:7])
+
+
+def test_every_recorded_observable_is_one_the_driver_computes():
+    """The file's observables and the driver's registry are one list of names (up to H5MD's
+    total_energy), so a run can record every observable the file layout promises."""
+    from affinebody.h5md import DRIVER_NAMES, OBSERVABLES
+    from affinebody.simulate import NAMED_OBSERVABLES
+
+    for name in OBSERVABLES:
+        assert DRIVER_NAMES.get(name, name) in NAMED_OBSERVABLES, name

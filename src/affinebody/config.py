@@ -35,7 +35,9 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from affinebody.groups import GROUPS
+from affinebody import integrators as _integrators
+from affinebody import kinetic as _kinetic
+from affinebody.groups import CONFIGURATION_SPACES
 
 #: Internal kinetic models, with the parameters each one uses (paper's names, section 3).
 INTERNAL_MODELS: dict[str, tuple[str, ...]] = {
@@ -48,18 +50,17 @@ INTERNAL_MODELS: dict[str, tuple[str, ...]] = {
     "is-af": ("I", "A", "B"),  # (73), (84a)
     "af-is": ("I", "A", "B"),  # (74), (85)
 }
-#: Translational kinetic models: d'Alembert (63) (alias is-af) and af-is (64), (78a).
-TRANSLATIONAL_MODELS = ("dalembert", "is-af", "af-is")
-#: Integrator names accepted by run.integrator.
-INTEGRATOR_NAMES = (
-    "strang", "yoshida4", "suzuki4", "yoshida6", "implicit-midpoint", "nonholonomic-rattle"
-)
+#: Translational kinetic models: d'Alembert (63) (alias is-af) and af-is (64), (78a); the
+#: registry is ``kinetic.TRANSLATIONAL_MODELS``.
+TRANSLATIONAL_MODELS = tuple(_kinetic.TRANSLATIONAL_MODELS)
+#: Integrator names accepted by run.integrator (the registry ``integrators.INTEGRATORS``).
+INTEGRATOR_NAMES = tuple(_integrators.INTEGRATORS)
 #: Integrators that can sum pair forces over a neighbour list (the splitting methods).
-SPLITTING_INTEGRATORS = ("strang", "yoshida4", "suzuki4", "yoshida6")
+SPLITTING_INTEGRATORS = _integrators.NEIGHBOR_LIST_INTEGRATORS
 #: run.neighbor_list = "auto" uses a list from this many bodies on (if the system allows one).
 AUTO_NEIGHBOR_LIST_BODIES = 500
 #: Configuration groups accepted by system.group (the paper's list plus all matrices "L").
-CONFIG_GROUPS = ("L",) + GROUPS
+CONFIG_GROUPS = CONFIGURATION_SPACES
 MAX_DIMENSION = 6
 
 

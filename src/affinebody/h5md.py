@@ -54,6 +54,9 @@ OBSERVABLES = {
     "affine_momentum": 2,
     "angular_momentum": 2,
 }
+#: File observables recorded under another name by the run driver
+#: (``simulate.NAMED_OBSERVABLES``); the others have the same name in both.
+DRIVER_NAMES = {"total_energy": "energy"}
 
 
 class TrajectoryFileError(ValueError):

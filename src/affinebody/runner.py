@@ -42,6 +42,7 @@ from affinebody.config import (
     build,
 )
 from affinebody.h5md import (
+    DRIVER_NAMES,
     OBSERVABLES,
     H5MDWriter,
     copy_frames_from_file,
@@ -51,16 +52,9 @@ from affinebody.state import State
 
 #: Largest number of steps integrated by one compiled call (the progress bar's resolution).
 CHUNK_TARGET_STEPS = 1000
-#: Observers recorded by the driver -> H5MD observable names.
-_OBSERVERS = {
-    "total_energy": "energy",
-    "kinetic_energy": "kinetic_energy",
-    "potential_energy": "potential_energy",
-    "linear_momentum": "linear_momentum",
-    "affine_momentum": "affine_momentum",
-    "angular_momentum": "angular_momentum",
-}
-assert set(_OBSERVERS) == set(OBSERVABLES)
+#: The driver's observers (``simulate.NAMED_OBSERVABLES``) behind the file's observables
+#: (``h5md.OBSERVABLES``): the same names, except the file's total_energy (H5MD's name).
+_OBSERVERS = {name: DRIVER_NAMES.get(name, name) for name in OBSERVABLES}
 
 
 class SimulationStopped(RuntimeError):
