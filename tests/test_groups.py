@@ -269,3 +269,36 @@ def test_logm_of_rotation_and_of_spd_matrix(data):
     spd = data.draw(matrices("GL+", n))
     spd = np.swapaxes(spd, -1, -2) @ spd
     assert_close(logm(spd), np.stack([scipy.linalg.logm(m).real for m in spd]), 1e-9)
+
+
+def test_gl_plus_membership_is_membership_not_conditioning():
+    """An isochoric shear phi = expm(t S), S symmetric traceless (det phi = 1), is in GL+ at
+    any condition number float64 resolves (here 1e10, two small singular values, n = 3), and
+    a system accepts it as a state (the check a resumed run applies); det phi < 0, and a phi
+    whose determinant float64 cannot tell from 0, are not in GL+."""
+    from affinebody import _linalg
+    from affinebody.kinetic import AffineIsotropic, DAlembertTranslational, KineticEnergy
+    from affinebody.potentials import Dilatation
+    from affinebody.state import State
+    from affinebody.system import HamiltonianSystem
+
+    s = np.diag([2.0, -1.0, -1.0]) / 3.0
+    rotation = scipy.linalg.expm(np.array([[0.0, 0.3, -0.2], [-0.3, 0.0, 0.5],
+                                           [0.2, -0.5, 0.0]]))
+    t = np.log(1e10)  # singular values e^(2t/3), e^(-t/3), e^(-t/3): cond = e^t
+    phi = rotation @ scipy.linalg.expm(t * s) @ rotation.T
+    assert np.linalg.cond(phi) == pytest.approx(1e10, rel=1e-6)
+    assert abs(float(_linalg.det(jnp.asarray(phi))) - 1.0) < 1e-5
+    is_member = groups.is_member
+    assert bool(is_member(phi, "GL+", tol=1e-9)) and bool(is_member(phi, "GL", tol=1e-9))
+    flipped = phi @ np.diag([1.0, 1.0, -1.0])
+    assert not bool(is_member(flipped, "GL+")) and bool(is_member(flipped, "GL"))
+    singular = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]])
+    assert not bool(is_member(singular, "GL"))
+    system = HamiltonianSystem(
+        KineticEnergy(DAlembertTranslational(1.0), AffineIsotropic(I=1.0, A=0.2, B=0.1)),
+        Dilatation(stiffness=10.0), group="GL+")
+    state = State(jnp.zeros((1, 3)), jnp.asarray(phi[None]), jnp.zeros((1, 3)),
+                  jnp.zeros((1, 3, 3)))
+    checked = system.check(state)
+    np.testing.assert_array_equal(np.asarray(checked.phi), phi[None])

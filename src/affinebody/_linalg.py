@@ -3,13 +3,10 @@
 
 Every configuration phi of this project is an n x n matrix with n <= 3, and so are most
 matrices built from it (Gamma = psi^-1 phi (21), the inertia J, Newton blocks of the
-constraints). For them ``det``, ``inv``, ``solve`` and ``slogdet`` here use the cofactor
-expansion and the adjugate, adj(a) a = det(a) Id:
-
-    n = 1: det = a_00,                    adj = [[1]]
-    n = 2: det = a_00 a_11 - a_01 a_10,   adj = [[a_11, -a_01], [-a_10, a_00]]
-    n = 3: adj_ij = cofactor_ji (2 x 2 minors), det = sum_j a_0j adj_j0
-    inv(a) = adj(a) / det(a),  solve(a, b) = adj(a) b / det(a).
+constraints). For them ``det``, ``slogdet``, ``inv`` and ``solve`` here use Gaussian
+elimination with partial pivoting, unrolled and branch-free (the pivot rows are chosen with
+``where``): a = P^T L U, det a = sign(P) prod_i U_ii, and solve / inv by back substitution
+(inv(a) = solve(a, Id)).
 
 Why not ``jnp.linalg``: on CPU jaxlib 0.10 runs a batched inverse or solve as LAPACK
 getrf/trsm FFI kernels that fan out over the XLA intra-op thread pool (``ParallelBatchMap``)
@@ -19,14 +16,15 @@ threads wait for sub-tasks that no free thread can run: the process deadlocks, i
 (see ``affinebody/_xla.py``). The closed forms are plain elementwise XLA arithmetic, contain no
 LAPACK custom call, fuse with their neighbours, and are faster for such tiny matrices.
 
-Numerical caveat: the adjugate formulas are not pivoted. Their relative error is bounded by
-about eps * n^(n/2) / h(a), h(a) = |det a| / prod_j |a e_j| the Hadamard ratio that
-``_checks.check_invertible`` thresholds (singular phi are refused on input). That is a few
-cond(a) * eps, as for LAPACK's pivoted LU, when at most one singular value is small, but can
-reach cond(a)^2 * eps for a 3 x 3 matrix with two small singular values (a body squashed to a
-line), where LU keeps cond(a) * eps (tests/test_linalg.py measures both). ``jnp.linalg.det``
-itself uses the same unpivoted formula for 2 x 2 and 3 x 3. Fine for the well-conditioned phi
-of this project.
+Accuracy. Partial pivoting is backward stable, so ``det``, ``inv`` and ``solve`` keep the
+forward error of LAPACK's pivoted LU, a few cond(a) * eps, also for the states that matter here:
+a body sheared along a geodesic of an isochoric motion (det phi = 1, two small singular values)
+reaches cond 1e8 and beyond, where the unpivoted cofactor formulas (adj(a) / det(a)) that this
+module used before, and that ``jnp.linalg.det`` uses for 2 x 2 and 3 x 3, lose accuracy like
+cond(a)^2 * eps: at cond 1e10 the cofactor det of a det-1 matrix came out as 16.8, enough to
+flip its sign, which the run driver watches (GL+). tests/test_linalg.py measures this against
+exact rational arithmetic. The elimination costs about 2x (n = 2) to 5x (n = 3) the cofactor
+formulas per matrix, tens of nanoseconds, once per body per force evaluation.
 
 All functions act on the last two axes, broadcast over leading (batch) axes, are jit-, vmap- and
 grad-safe (polynomials and one division), and keep the input's precision (float64 in this
@@ -50,32 +48,57 @@ def _square(a, name: str = "a") -> jax.Array:
     return a
 
 
-def _adjugate_and_det(a: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """(adj(a), det(a)) for n <= 3, with det the cofactor expansion along the first row."""
+def _eliminate(a: jax.Array, b: jax.Array | None):
+    """Gaussian elimination with partial pivoting on the rows of [a | b] (b [..., n, k] or
+    None), n <= 3, unrolled; the row exchanges are ``where`` selects, so it is branch-free and
+    differentiable. Returns (the rows of [U | L^-1 P b], the sign of the permutation)."""
     n = a.shape[-1]
-    if n == 1:
-        return jnp.ones_like(a), a[..., 0, 0]
-    if n == 2:
-        a00, a01, a10, a11 = a[..., 0, 0], a[..., 0, 1], a[..., 1, 0], a[..., 1, 1]
-        adj = jnp.stack([jnp.stack([a11, -a01], -1), jnp.stack([-a10, a00], -1)], -2)
-        return adj, a00 * a11 - a01 * a10
-    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = (
-        (a[..., i, 0], a[..., i, 1], a[..., i, 2]) for i in range(3))
-    rows = (
-        (a11 * a22 - a12 * a21, a02 * a21 - a01 * a22, a01 * a12 - a02 * a11),
-        (a12 * a20 - a10 * a22, a00 * a22 - a02 * a20, a02 * a10 - a00 * a12),
-        (a10 * a21 - a11 * a20, a01 * a20 - a00 * a21, a00 * a11 - a01 * a10),
-    )
-    adj = jnp.stack([jnp.stack(row, -1) for row in rows], -2)
-    return adj, a00 * rows[0][0] + a01 * rows[1][0] + a02 * rows[2][0]
+    batch = a.shape[:-2] if b is None else jnp.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    rows = [jnp.broadcast_to(a[..., i, :], batch + (n,)) for i in range(n)]
+    if b is not None:
+        k = b.shape[-1]
+        rows = [jnp.concatenate([r, jnp.broadcast_to(b[..., i, :], batch + (k,))], -1)
+                for i, r in enumerate(rows)]
+    sign = jnp.ones(batch, dtype=a.dtype)
+    for col in range(n - 1):
+        for i in range(col + 1, n):  # the largest |entry| of the column becomes the pivot
+            swap = jnp.abs(rows[i][..., col]) > jnp.abs(rows[col][..., col])
+            rows[col], rows[i] = (jnp.where(swap[..., None], rows[i], rows[col]),
+                                  jnp.where(swap[..., None], rows[col], rows[i]))
+            sign = jnp.where(swap, -sign, sign)
+        for i in range(col + 1, n):
+            rows[i] = rows[i] - (rows[i][..., col] / rows[col][..., col])[..., None] * rows[col]
+    return rows, sign
+
+
+def _pivoted_solve(a: jax.Array, b: jax.Array) -> jax.Array:
+    """x [..., n, k] with a x = b for a [..., n, n], b [..., n, k] (leading axes broadcast),
+    n <= 3: :func:`_eliminate`, then back substitution."""
+    n = a.shape[-1]
+    rows, _ = _eliminate(a, b)
+    x: list = [None] * n
+    for i in reversed(range(n)):
+        r = rows[i][..., n:]
+        for j in range(i + 1, n):
+            r = r - rows[i][..., j:j + 1] * x[j]
+        x[i] = r / rows[i][..., i:i + 1]
+    return jnp.stack(x, -2)
 
 
 def det(a) -> jax.Array:
-    """det(a) [...] of a [..., n, n]."""
+    """det(a) [...] of a [..., n, n]: the product of the pivots of :func:`_eliminate` and the
+    sign of its row permutation (n <= 3), accurate to a few cond(a) * eps."""
     a = _square(a)
-    if a.shape[-1] > CLOSED_FORM_MAX_N:
+    n = a.shape[-1]
+    if n > CLOSED_FORM_MAX_N:
         return jnp.linalg.det(a)
-    return _adjugate_and_det(a)[1]
+    if n == 1:
+        return a[..., 0, 0]
+    rows, sign = _eliminate(a, None)
+    out = sign
+    for i in range(n):
+        out = out * rows[i][..., i]
+    return out
 
 
 def slogdet(a) -> tuple[jax.Array, jax.Array]:
@@ -90,12 +113,14 @@ def slogdet(a) -> tuple[jax.Array, jax.Array]:
 
 
 def inv(a) -> jax.Array:
-    """a^-1 [..., n, n] of a [..., n, n] (adj(a) / det(a) for n <= 3)."""
+    """a^-1 [..., n, n] of a [..., n, n] (pivoted elimination against Id for n <= 3)."""
     a = _square(a)
-    if a.shape[-1] > CLOSED_FORM_MAX_N:
+    n = a.shape[-1]
+    if n > CLOSED_FORM_MAX_N:
         return jnp.linalg.inv(a)
-    adj, d = _adjugate_and_det(a)
-    return adj / d[..., None, None]
+    if n == 1:
+        return 1.0 / a
+    return _pivoted_solve(a, jnp.eye(n, dtype=a.dtype))
 
 
 def solve(a, b) -> jax.Array:
@@ -114,10 +139,9 @@ def solve(a, b) -> jax.Array:
     a, b = a.astype(dtype), b.astype(dtype)
     if n > CLOSED_FORM_MAX_N:
         return _lapack_solve(a, b)
-    adj, d = _adjugate_and_det(a)
     if vector:
-        return jnp.einsum("...ij,j->...i", adj, b) / d[..., None]
-    return (adj @ b) / d[..., None, None]
+        return _pivoted_solve(a, b[:, None])[..., 0]
+    return _pivoted_solve(a, b)
 
 
 def _lapack_solve(a: jax.Array, b: jax.Array) -> jax.Array:

@@ -31,8 +31,8 @@ from affinebody import _linalg as linalg
 from affinebody._checks import (
     as_matrix,
     eye_like,
-    hadamard_ratio,
     is_concrete,
+    is_invertible,
     skew,
     trace,
     transpose,
@@ -74,14 +74,17 @@ def is_member(phi, group: str, tol: float = 1e-10) -> jax.Array:
 
     Metric conditions are tested on the Green tensor G = phi^T phi (11): ``|G - Id| <= tol``
     for SO/O and ``|G - s^2 Id| <= tol s^2`` with s^2 = Tr G / n for R+SO/R+O; determinant
-    conditions as ``|det phi - 1| <= tol`` (SL) or ``||det phi| - 1| <= tol`` (UL); invertibility
-    as ``|det phi| / prod_j |phi e_j| > tol`` (scale-free, by Hadamard's inequality).
+    conditions as ``|det phi - 1| <= tol`` (SL) or ``||det phi| - 1| <= tol`` (UL). GL and GL+
+    test membership, not conditioning: phi is invertible when its reciprocal condition number
+    exceeds what float64 resolves (``_checks.is_invertible``, ``_checks.SINGULAR_RTOL``,
+    whatever ``tol``), and in GL+ when det phi > 0 besides; a strongly sheared phi with det 1 is
+    in GL+ up to condition numbers of order 1e13.
     """
     _check_group(group)
     phi = as_matrix(phi, "phi")
     n = phi.shape[-1]
     det = linalg.det(phi)
-    invertible = hadamard_ratio(phi) > tol
+    invertible = is_invertible(phi)
     if group == "L":
         return jnp.all(jnp.isfinite(phi), axis=(-2, -1))
     if group == "GL":
@@ -118,14 +121,14 @@ def project(phi, group: str) -> jax.Array:
     det phi < 0 and n even, R+SO/R+O with Tr(U^T phi) <= 0, GL with singular phi) a concrete
     input raises ValueError; traced inputs are not checked.
     """
-    from affinebody.polar import two_polar  # polar imports groups; import here to avoid a cycle
+    from affinebody.polar import two_polar
 
     _check_group(group)
     phi = as_matrix(phi, "phi")
     n = phi.shape[-1]
     det = linalg.det(phi)
     if group in ("GL", "SL", "UL"):
-        singular = hadamard_ratio(phi) <= 1e-13
+        singular = ~is_invertible(phi)
         _refuse_if(singular, f"phi is singular: it has no projection onto {group}(n)")
     if group == "GL+" or (group == "SL" and n % 2 == 0):
         _refuse_if(det <= 0, f"det phi <= 0: phi has no projection onto {group}(n) "
