@@ -233,3 +233,20 @@ def test_truncated_output_is_refused_by_plot_and_export(folder, reference):
         assert result.exit_code == 1
         line = result.stderr.strip()
         assert "\n" not in line and "Traceback" not in line and "cut.h5" in line
+
+
+def test_a_second_run_onto_an_existing_output_is_refused_unless_overwrite(folder, reference):
+    """A repeated command never destroys a trajectory: the existing file is kept byte for
+    byte, the refusal is one line naming --resume / --overwrite; --overwrite replaces it."""
+    out = folder / "kept.h5"
+    out.write_bytes(reference.read_bytes())
+    before = out.read_bytes()
+    again = invoke("run", folder / "tiny.toml", "-o", out, "--steps", 500, "--quiet")
+    assert again.exit_code == 1
+    message = again.stderr.strip()
+    assert "\n" not in message and "exists" in message and "--overwrite" in message
+    assert out.read_bytes() == before
+    replaced = invoke("run", folder / "tiny.toml", "-o", out, "--steps", 500, "--quiet",
+                      "--overwrite")
+    assert replaced.exit_code == 0, replaced.stderr
+    assert read_trajectory(out).frames == 2  # steps 0 and 500 (every = 500)

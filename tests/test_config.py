@@ -283,3 +283,59 @@ def test_bad_constraint_combinations_are_refused_in_one_line(config, fragment):
         build(config())
     message = str(err.value)
     assert fragment in message and "\n" not in message
+
+
+HUGE = """
+[system]
+n = 3
+bodies = 1000000000
+box = [1000.0, 1000.0, 1000.0]
+[body]
+mass = 1.0
+[kinetic]
+internal = "af-is"
+I = 1.0
+A = 0.2
+[[potential]]
+kind = "morse"
+r_cut = 2.0
+[initial]
+generator = "random"
+[run]
+dt = 0.01
+steps = 10
+"""
+
+
+def test_a_config_that_cannot_fit_in_memory_is_refused_before_anything_is_allocated():
+    """10^9 bodies: refused at once with the estimate and what is available, never by running
+    out of memory after minutes of set-up."""
+    import time
+
+    from affinebody.config import available_memory, estimated_memory
+
+    started = time.perf_counter()
+    config = parse_config(HUGE)
+    with pytest.raises(ConfigError) as refused:
+        check_config(config)
+    assert time.perf_counter() - started < 5  # nothing of size N was allocated
+    message = str(refused.value)
+    assert "system.bodies = 1000000000 needs about" in message and "available" in message
+    # the estimate is at least the bare state (x, p, phi, pi in float64), and more than is there
+    assert estimated_memory(config) >= 1e9 * 2 * (3 + 9) * 8 > available_memory()
+
+
+def test_a_chunk_of_frames_stays_within_its_buffer_for_large_systems():
+    """Memory per compiled call is O(N): a run that records every step gets shorter chunks as
+    N grows, within FRAME_BUFFER_BYTES, and the chunks still divide the checkpoint interval."""
+    from affinebody.config import FRAME_BUFFER_BYTES, frame_bytes
+    from affinebody.runner import CHUNK_TARGET_STEPS, chunk_steps
+
+    for bodies in (10, 10**5, 10**6):
+        text = HUGE.replace("bodies = 1000000000", f"bodies = {bodies}") + "every = 1\n"
+        config = parse_config(text)
+        chunk = chunk_steps(config)
+        assert config.checkpoint_every % chunk == 0 and 1 <= chunk <= CHUNK_TARGET_STEPS
+        assert chunk * frame_bytes(config) <= max(FRAME_BUFFER_BYTES, frame_bytes(config))
+        if bodies == 10:
+            assert chunk == config.checkpoint_every  # small systems are not split

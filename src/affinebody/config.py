@@ -26,6 +26,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import tomllib
 from dataclasses import dataclass
 from dataclasses import field as dataclass_field
@@ -681,10 +682,74 @@ def check_potentials(config: Config) -> None:
     uses_neighbor_list(config, terms)
 
 
+#: Memory of ``affinebody run`` per body with a neighbour list, measured in 3D (README: 0.69 GiB
+#: at 10^3 bodies, 6.05 GiB at 10^6, ``benchmarks/run_scale.py --memory``), scaled to n by the
+#: n + n^2 numbers of a body's configuration; and the memory of a process that does nothing.
+MEMORY_PER_BODY_3D = 5.6 * 1024
+MEMORY_BASE = 0.7 * 2**30
+#: Largest buffer of frames that one compiled call of the run driver returns (``chunk_steps``
+#: shortens its chunks for large systems to stay within it).
+FRAME_BUFFER_BYTES = 256 * 2**20
+
+
+def frame_bytes(config: Config) -> int:
+    """Bytes of one recorded frame of the state (x, p: N n; phi, pi: N n^2; float64)."""
+    n = config.n
+    return config.bodies_count * 2 * (n + n * n) * 8
+
+
+def estimated_memory(config: Config) -> float:
+    """Bytes a run of ``config`` needs, estimated before anything is allocated: the measured
+    per-body cost (:data:`MEMORY_PER_BODY_3D`, scaled to n), the frame buffer of a compiled
+    call, and without a neighbour list the pair arrays of the all-pairs sum (N(N - 1)/2 pairs,
+    each with its geometry: about 8 (2 n^2 + n + 8) bytes)."""
+    n, bodies = config.n, config.bodies_count
+    per_body = MEMORY_PER_BODY_3D * (n + n * n) / 12
+    one = frame_bytes(config)
+    frames = one + min(FRAME_BUFFER_BYTES, 1000 * one)  # chunk_steps keeps a chunk's frames in
+    pairs = bodies * (bodies - 1) / 2
+    if config.run.neighbor_list == "on" or (
+            config.run.neighbor_list == "auto" and bodies >= AUTO_NEIGHBOR_LIST_BODIES):
+        pairs = 0.0  # with a list (if the config cannot have one, check_run says so)
+    return MEMORY_BASE + bodies * per_body + frames + pairs * 8 * (2 * n * n + n + 8)
+
+
+def available_memory() -> float | None:
+    """Bytes this machine can still give a process (Linux: MemAvailable), or None if unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return float(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _gib(value: float) -> str:
+    return f"{value / 2**30:.3g} GiB" if value < 2**40 else f"{value / 2**40:.3g} TiB"
+
+
+def check_memory(config: Config) -> None:
+    """Refuse, before allocating anything, a config whose run cannot fit in memory
+    (:func:`estimated_memory` against :func:`available_memory`), with both figures."""
+    need, have = estimated_memory(config), available_memory()
+    if have is not None and need > have:
+        bodies = config.bodies_count
+        hint = ("reduce system.bodies" if config.run.neighbor_list != "off" or bodies < 500
+                else 'reduce system.bodies or use run.neighbor_list = "on"')
+        raise ConfigError(f"system.bodies = {bodies} needs about {_gib(need)} of memory, more "
+                          f"than the {_gib(have)} available: {hint}")
+
+
 def check_config(config: Config) -> Config:
     """Second pass: the meaning of every field (see the module docstring)."""
     check_system(config)
     config.bodies_count  # noqa: B018 - raises if the counts disagree
+    check_memory(config)
     body_inertia(config)
     check_kinetic(config)
     check_initial(config)

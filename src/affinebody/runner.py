@@ -37,9 +37,11 @@ from affinebody._checks import enable_x64
 from affinebody._timing import CompileClock, Phases
 from affinebody.checkpoint import Checkpoint, checkpoint_path, load_checkpoint, save_checkpoint
 from affinebody.config import (
+    FRAME_BUFFER_BYTES,
     Config,
     ConfigError,
     build,
+    frame_bytes,
 )
 from affinebody.h5md import (
     DRIVER_NAMES,
@@ -116,12 +118,14 @@ class RunSummary:
 
 def chunk_steps(config: Config) -> int:
     """Steps per compiled call: the largest multiple of run.every dividing the checkpoint
-    interval and not above CHUNK_TARGET_STEPS (at least run.every). Depends on the config only."""
+    interval, not above CHUNK_TARGET_STEPS and with its frames within FRAME_BUFFER_BYTES (at
+    least run.every: memory O(N) for any N). Depends on the config only (bit-exact resume)."""
     every, interval = config.run.every, config.checkpoint_every
     frames = interval // every
+    most_frames = max(1, FRAME_BUFFER_BYTES // frame_bytes(config))
     best = 1
     for d in range(1, frames + 1):
-        if frames % d == 0 and d * every <= max(every, CHUNK_TARGET_STEPS):
+        if frames % d == 0 and d * every <= max(every, CHUNK_TARGET_STEPS) and d <= most_frames:
             best = d
     return best * every
 
@@ -132,11 +136,15 @@ def run_simulation(
     *,
     steps: int | None = None,
     resume: bool = False,
+    overwrite: bool = False,
     progress: Callable[[int, int, float], None] | None = None,
 ) -> RunSummary:
     """Integrate ``config`` and write the trajectory to ``output`` (H5MD), with checkpoints.
 
     steps: override run.steps. resume: continue from ``checkpoint_path(output)``.
+    overwrite: replace an existing ``output`` (and its checkpoint); without it (and without
+    ``resume``) an existing output is refused before anything is computed, so a repeated
+    command never destroys a trajectory.
     progress(step, total, relative_energy_error) is called after every chunk.
     Raises ConfigError / CheckpointError / TrajectoryFileError (ValueErrors) for bad input and
     :class:`SimulationStopped` when the motion breaks down.
@@ -150,6 +158,9 @@ def run_simulation(
     total = config.run.steps if steps is None else int(steps)
     if total < 1:
         raise ConfigError(f"--steps must be >= 1 (got {total})")
+    if not (resume or overwrite) and (output.exists() or checkpoint_path(output).exists()):
+        raise ConfigError(f"{output} exists: continue it with --resume, replace it with "
+                          f"--overwrite, or write elsewhere with -o")
     built = build(config)
     phases = Phases()
     for name, seconds in built.timings.items():

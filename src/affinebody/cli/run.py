@@ -74,12 +74,14 @@ def _progress_callback(quiet: bool):
     return bar, update
 
 
-def _run_with_progress(config: Config, output: Path, steps, resume: bool, quiet: bool):
+def _run_with_progress(config: Config, output: Path, steps, resume: bool, quiet: bool,
+                       overwrite: bool = False):
     bar, update = _progress_callback(quiet)
+    options = dict(steps=steps, resume=resume, overwrite=overwrite)
     if bar is None:
-        return run_simulation(config, output, steps=steps, resume=resume)
+        return run_simulation(config, output, **options)
     with bar:
-        return run_simulation(config, output, steps=steps, resume=resume, progress=update)
+        return run_simulation(config, output, progress=update, **options)
 
 
 @click.command("run")
@@ -88,19 +90,23 @@ def _run_with_progress(config: Config, output: Path, steps, resume: bool, quiet:
               help="Output H5MD file (default: CONFIG with suffix .h5).")
 @click.option("--steps", type=int, default=None, help="Number of steps (overrides run.steps).")
 @click.option("--resume", is_flag=True, help="Continue from the last checkpoint of OUTPUT.")
+@click.option("--overwrite", is_flag=True,
+              help="Replace OUTPUT if it exists (without it an existing OUTPUT is refused).")
 @click.option("--quiet", is_flag=True, help="No progress bar and no summary.")
 @click.option("--verbose", is_flag=True,
               help="Also print the seconds spent in each phase (set-up stages, neighbour lists, "
                    "integration with its compilation, output).")
 @one_line_errors
-def run(config_file, output, steps, resume, quiet, verbose):
+def run(config_file, output, steps, resume, overwrite, quiet, verbose):
     """Integrate the system of CONFIG.toml and write an H5MD trajectory."""
     started = time.perf_counter()
     enable_x64()
     config = load_config(config_file)
     loaded = time.perf_counter() - started
     output = Path(output) if output else Path(config_file).with_suffix(".h5")
-    summary = _run_with_progress(config, output, steps, resume, quiet)
+    if resume and overwrite:
+        raise click.UsageError("--resume continues OUTPUT and --overwrite replaces it: give one")
+    summary = _run_with_progress(config, output, steps, resume, quiet, overwrite)
     if not quiet:
         for line in summary.lines():
             click.echo(line)
@@ -129,7 +135,8 @@ def demo(output_dir, steps, quiet):
     (folder / "demo.toml").write_text(text, encoding="utf-8")
     config = check_config(parse_config(text, "demo.toml"))
     output = folder / "demo.h5"
-    summary = _run_with_progress(config, output, steps, False, quiet)
+    # the demo's folder is its own: a repeated `make demo` replaces its trajectory
+    summary = _run_with_progress(config, output, steps, False, quiet, overwrite=True)
     trajectory = read_trajectory(output)
     images = plot_all(trajectory, folder)
     xyz = folder / "demo.xyz"
