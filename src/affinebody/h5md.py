@@ -13,6 +13,7 @@ The layout is a public contract::
     /observables/affine_momentum/...      value [T, n, n]   sum_K (x_K p_K^T + phi_K pi_K)  (109)
     /observables/angular_momentum/...     value [T, n, n]   J - J^T of the affine momentum J
     /parameters/{config, seed, version, dt, steps, config_hash}
+    /parameters/frames_committed  [1] int64: frames whose every element is on disk
 
 ``phi_momentum`` keeps the paper's placement pi[a, i] = pi^a_i, so that Sigma = phi @ pi and
 Sigma_hat = pi @ phi (45).
@@ -22,11 +23,18 @@ single-writer/multiple-reader (SWMR) mode, in which the library orders its metad
 that the file on disk stays readable when the writing process is killed. After such a kill HDF5
 refuses an ordinary open ("file is already open for write"); :func:`open_h5` falls back to a SWMR
 read, which is why every reader here goes through it. Frames are flushed as they are written.
+Each append writes and flushes its frames, then raises ``/parameters/frames_committed`` and
+flushes again; readers cut every element to that count, so frames a kill caught half-written
+(an element extended but its data not yet on disk) are never read. The file is laid out under
+a temporary name and renamed into place only once it is a complete SWMR file (before SWMR mode
+is on, HDF5 gives no such guarantee), so a kill at any instant leaves either no output, the
+previous one, or a readable trajectory.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -42,6 +50,8 @@ H5MD_VERSION = (1, 1)
 MODULE_NAME = "affine_bodies"
 MODULE_VERSION = (1, 0)
 PARTICLE_GROUP = "bodies"
+#: /parameters dataset holding the number of frames completely written (see the docstring).
+COMMITTED = "frames_committed"
 
 #: State fields -> H5MD element names under /particles/bodies.
 STATE_ELEMENTS = {"x": "position", "p": "momentum", "phi": "phi", "pi": "phi_momentum"}
@@ -61,6 +71,28 @@ DRIVER_NAMES = {"total_energy": "energy"}
 
 class TrajectoryFileError(ValueError):
     """An output file that cannot be read as an affinebody H5MD trajectory."""
+
+
+class NoRoomError(OSError):
+    """The disk (or the process's file-size limit) has no room for the next block of frames;
+    nothing of the block was written, so the file stays complete up to the frames before it."""
+
+
+#: Room kept free beyond a block's own bytes, for HDF5's metadata (chunk indices, heaps).
+METADATA_MARGIN = 1 << 16
+
+
+def room_for(path: Path) -> float:
+    """Bytes that can still be written to ``path``: the free space of its file system and, when
+    the process has a file-size limit (``ulimit -f``), what that limit leaves."""
+    import resource
+    import shutil
+
+    room = float(shutil.disk_usage(path.parent).free)
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if limit != resource.RLIM_INFINITY:
+        room = min(room, limit - (path.stat().st_size if path.exists() else 0))
+    return room
 
 
 def open_h5(path: str | Path) -> h5py.File:
@@ -198,6 +230,9 @@ def open_trajectory(path: str | Path) -> Iterator[Trajectory]:
             lengths = [len(g["step"]) for g in elements.values()]
             lengths += [len(g["value"]) for g in elements.values()]
             lengths += [len(obs_group[k]["value"]) for k in obs_group]
+            params = f["parameters"] if "parameters" in f else {}
+            if COMMITTED in params:  # files of earlier versions have no commit count
+                lengths.append(int(params[COMMITTED][0]))
             count = min(lengths) if lengths else 0
             arrays = {k: _Frames(g["value"], count) for k, g in elements.items()}
             step = np.asarray(elements["x"]["step"][:count])
@@ -206,7 +241,6 @@ def open_trajectory(path: str | Path) -> Iterator[Trajectory]:
             box = None
             if "box" in bodies and "edges" in bodies["box"]:
                 box = np.asarray(bodies["box"]["edges"][()])
-            params = f["parameters"] if "parameters" in f else {}
             trajectory = Trajectory(
                 step=step,
                 time=time,
@@ -272,44 +306,57 @@ class H5MDWriter:
         bodies = mass.shape[0]
         self.n, self.bodies = int(n), int(bodies)
         chunk = max(1, min(256, 2**16 // max(1, bodies * n * n)))
-        self.file = h5py.File(self.path, "w", libver="latest")
-        f = self.file
-        h5md = f.create_group("h5md")
-        h5md.attrs["version"] = np.asarray(H5MD_VERSION, dtype=np.int32)
-        h5md.create_group("author").attrs["name"] = author
-        creator = h5md.create_group("creator")
-        creator.attrs["name"] = "affinebody"
-        creator.attrs["version"] = __version__
-        module = h5md.create_group("modules").create_group(MODULE_NAME)
-        module.attrs["version"] = np.asarray(MODULE_VERSION, dtype=np.int32)
+        # Built under a temporary name and renamed into place once it is a complete, empty
+        # SWMR trajectory: a crash while it is being laid out leaves no half-made file (and an
+        # existing file at ``path``, which --overwrite replaces, intact until then).
+        building = self.path.with_name(f".{self.path.name}.{os.getpid()}.creating")
+        try:
+            self.file = h5py.File(building, "w", libver="latest")
+            f = self.file
+            h5md = f.create_group("h5md")
+            h5md.attrs["version"] = np.asarray(H5MD_VERSION, dtype=np.int32)
+            h5md.create_group("author").attrs["name"] = author
+            creator = h5md.create_group("creator")
+            creator.attrs["name"] = "affinebody"
+            creator.attrs["version"] = __version__
+            module = h5md.create_group("modules").create_group(MODULE_NAME)
+            module.attrs["version"] = np.asarray(MODULE_VERSION, dtype=np.int32)
 
-        particles = f.create_group("particles").create_group(PARTICLE_GROUP)
-        for name, element in STATE_ELEMENTS.items():
-            shape = (bodies, n) if name in ("x", "p") else (bodies, n, n)
-            _time_series(particles, element, shape, chunk)
-        particles.create_dataset("mass", data=mass)
-        particles.create_dataset("radius", data=np.asarray(radius, dtype=np.float64))
-        box_group = particles.create_group("box")
-        box_group.attrs["dimension"] = np.int32(n)
-        periodic = box is not None
-        boundary = "periodic" if periodic else "none"
-        box_group.attrs.create("boundary", [boundary] * n, dtype=h5py.string_dtype())
-        if periodic:
-            box_group.create_dataset("edges", data=np.asarray(box, dtype=np.float64))
+            particles = f.create_group("particles").create_group(PARTICLE_GROUP)
+            for name, element in STATE_ELEMENTS.items():
+                shape = (bodies, n) if name in ("x", "p") else (bodies, n, n)
+                _time_series(particles, element, shape, chunk)
+            particles.create_dataset("mass", data=mass)
+            particles.create_dataset("radius", data=np.asarray(radius, dtype=np.float64))
+            box_group = particles.create_group("box")
+            box_group.attrs["dimension"] = np.int32(n)
+            periodic = box is not None
+            boundary = "periodic" if periodic else "none"
+            box_group.attrs.create("boundary", [boundary] * n, dtype=h5py.string_dtype())
+            if periodic:
+                box_group.create_dataset("edges", data=np.asarray(box, dtype=np.float64))
 
-        observables = f.create_group("observables")
-        for name, rank in OBSERVABLES.items():
-            _time_series(observables, name, (n,) * rank, max(chunk, 64))
+            observables = f.create_group("observables")
+            for name, rank in OBSERVABLES.items():
+                _time_series(observables, name, (n,) * rank, max(chunk, 64))
 
-        params = f.create_group("parameters")
-        params.create_dataset("version", data=__version__, dtype=h5py.string_dtype())
-        for key, value in (parameters or {}).items():
-            if isinstance(value, str):
-                params.create_dataset(key, data=value, dtype=h5py.string_dtype())
-            else:
-                params.create_dataset(key, data=np.asarray(value))
-        f.flush()
-        self.file.swmr_mode = True
+            params = f.create_group("parameters")
+            params.create_dataset("version", data=__version__, dtype=h5py.string_dtype())
+            for key, value in (parameters or {}).items():
+                if isinstance(value, str):
+                    params.create_dataset(key, data=value, dtype=h5py.string_dtype())
+                else:
+                    params.create_dataset(key, data=np.asarray(value))
+            params.create_dataset(COMMITTED, data=np.zeros(1, dtype=np.int64), maxshape=(1,),
+                                  chunks=(1,))
+            f.flush()
+            self.file.swmr_mode = True
+            os.replace(building, self.path)  # the open file keeps writing to the renamed inode
+        except BaseException:
+            if getattr(self, "file", None) is not None:
+                self.file.close()
+            building.unlink(missing_ok=True)
+            raise
         self.frames = 0
 
     def append(
@@ -326,6 +373,7 @@ class H5MDWriter:
         if count == 0:
             return
         start, stop = self.frames, self.frames + count
+        self._require_room(count)
         groups = [
             (self.file["particles"][PARTICLE_GROUP][element], getattr(state, name))
             for name, element in STATE_ELEMENTS.items()
@@ -339,8 +387,32 @@ class H5MDWriter:
                 dataset = group[key]
                 dataset.resize(stop, axis=0)
                 dataset[start:stop] = data
+        self.flush()  # the frames are on disk ...
+        self.file["parameters"][COMMITTED][0] = stop
+        self.flush()  # ... before the count that makes readers see them
         self.frames = stop
-        self.flush()
+
+    def _require_room(self, count: int) -> None:
+        """:class:`NoRoomError` unless ``count`` frames fit: their bytes, one new chunk of
+        every dataset (HDF5 allocates whole chunks), and :data:`METADATA_MARGIN`. Checked
+        before anything of the block is written: a write that fails half-way leaves an HDF5
+        file whose superblock points past its end, which no reader opens."""
+        if not hasattr(self, "_bytes"):
+            datasets = []
+            self.file.visititems(lambda _, obj: datasets.append(obj)
+                                 if isinstance(obj, h5py.Dataset) and obj.chunks else None)
+            self._bytes = (
+                sum(int(np.prod(d.shape[1:])) * d.dtype.itemsize for d in datasets),
+                sum(int(np.prod(d.chunks)) * d.dtype.itemsize for d in datasets))
+        per_frame, chunks = self._bytes
+        need = count * per_frame + chunks + METADATA_MARGIN
+        room = room_for(self.path)
+        if room < need:
+            raise NoRoomError(
+                f"no room to write to {self.path}: {room / 2**20:.3g} MiB left on its disk or "
+                f"under the file-size limit, the next {count} frames need about "
+                f"{need / 2**20:.3g} MiB; the {self.frames} frames written and the last "
+                f"checkpoint (if any) are kept: free space, then continue with --resume")
 
     def flush(self) -> None:
         self.file.flush()
