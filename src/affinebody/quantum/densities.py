@@ -31,7 +31,7 @@ variable and the nested coarser rule of 2N/3 nodes (N raised until the error is 
 ``tolerance`` times the peak of the density, else the density is flagged ``converged: false``);
 this is the quadrature error of the marginal of the computed eigenfunction (the eigenfunction's
 own discretisation error is the level's ``error``). ``integral`` is int p dy by Gauss-Legendre
-panels split at y = 0.
+panels graded towards y = 0.
 
 Orientations: a sector state e^{i(s alpha + k beta)} f (n = 2) has |Psi|^2 independent of the
 angles alpha, beta of L and R, so both orientation densities are exactly uniform, 1/(2 pi) on
@@ -107,9 +107,9 @@ class Joint:
         out = np.empty(len(flat))
         for i in range(0, len(flat), 16384):
             part = flat[i:i + 16384]
-            amp = np.asarray(self.amplitude(part))
-            out[i:i + 16384] = np.sum(amp.reshape(len(part), -1) ** 2, axis=-1) * measure(
-                self.model, part)
+            amp2 = np.sum(np.asarray(self.amplitude(part)).reshape(len(part), -1) ** 2, -1)
+            with np.errstate(over="ignore", invalid="ignore"):  # far out: 0 x (overflow)
+                out[i:i + 16384] = np.where(amp2 > 0, amp2 * measure(self.model, part), 0.0)
         return out.reshape(x.shape[:-1])
 
 
@@ -467,11 +467,33 @@ def _trimmed(fn, lo: float, hi: float, n: int, geometric: bool) -> tuple[float, 
     return float(a), float(b)
 
 
-def density_at(joint: Joint, name: str, y, nodes: int) -> np.ndarray:
-    """The marginal density of ``name`` (as in :func:`densities`) at the points ``y`` with an
-    ``nodes``-point Gauss rule per integrated variable."""
+def _rules(joint: Joint) -> dict:
+    """name -> (the invariant as a function of the reduced coordinates, p(y, N)), p set to 0
+    below the range of the invariant (Q1, Tr G, and Q2 for n = 3, are >= 0 for d'Alembert;
+    det and Tr G > 0 for the affine models)."""
     rules = _marginals2(joint) if joint.model.endswith("2") else _marginals3(joint)
-    return rules[name][1](np.atleast_1d(np.asarray(y, float)), nodes)
+    if joint.model.startswith("lebesgue"):
+        positive = ("Q1", "trG") + (("Q2",) if joint.model == "lebesgue3" else ())
+        strict = False
+    else:
+        positive, strict = ("det", "trG"), True
+
+    def restricted(fn):
+        def p(y, n):
+            inside = y > 0 if strict else y >= 0
+            out = np.zeros(len(y))
+            if np.any(inside):
+                out[inside] = fn(y[inside], n)
+            return out
+        return p
+    return {name: (f, restricted(fn) if name in positive else fn)
+            for name, (f, fn) in rules.items()}
+
+
+def density_at(joint: Joint, name: str, y, nodes: int) -> np.ndarray:
+    """The marginal density of ``name`` (as in :func:`densities`) at the points ``y`` (inside
+    the support box of ``joint``) with an ``nodes``-point Gauss rule per integrated variable."""
+    return _rules(joint)[name][1](np.atleast_1d(np.asarray(y, float)), nodes)
 
 
 def densities(spectrum: Spectrum, state: int, points: int | None = None,
@@ -493,9 +515,8 @@ def marginal_densities(spectrum: Spectrum, level: Level, points: int | None = No
     points = points or POINTS[n]
     joint = joint_density(spectrum, level)
     mass = joint.weights * joint(joint.nodes)
-    rules = _marginals2(joint) if n == 2 else _marginals3(joint)
     details, warnings = {}, []
-    for name, (f, fn) in rules.items():
+    for name, (f, fn) in _rules(joint).items():
         lo, hi = _support(f(joint.nodes), mass)
         if joint.model.startswith("lebesgue") and name in ("Q1", "trG") + (("Q2",) * (n == 3)):
             lo = 0.0  # nonnegative: the density is resolved down to its end point
