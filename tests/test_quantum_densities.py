@@ -235,3 +235,21 @@ def test_n3_spin1_multiplet_trG_matches_the_weighted_chi_squared(sectors):
     assert np.max(np.abs(p - ref)) < 1e-8
     x, p = d["marginals"]["det"]
     assert np.max(np.abs(p - p[::-1])) < 1e-13 * np.max(p)
+
+
+def test_n3_polynomial_form_is_used_only_when_exact():
+    """The fast n = 3 evaluation (front x polynomial of degree <= d, fitted at the nodes) must
+    reproduce the amplitude off the nodes; a non-polynomial amplitude is kept as it is."""
+    from affinebody.quantum.channels3 import ChamberQuadrature
+    from affinebody.quantum.densities import _front3, _polynomial_form
+
+    quad = ChamberQuadrature.build(6.0, 24, 12)
+    x, w = quad.nodes, np.ones(len(quad.nodes))
+    front = lambda p: _front3("lebesgue3", p, 0.9, 1.0, 0.0)  # noqa: E731
+    poly = lambda p: front(p) * (p[:, 0] ** 3 * p[:, 2] - 2 * p[:, 1] ** 2 + 0.5)  # noqa: E731
+    fast = _polynomial_form("lebesgue3", poly, x, w, 4, 0.9, 1.0, 0.0)
+    assert fast is not poly
+    p = np.random.default_rng(3).normal(size=(50, 3))
+    assert np.max(np.abs(fast(p)[:, 0] - poly(p))) < 1e-12
+    wavy = lambda p: front(p) * np.sin(p[:, 0])  # noqa: E731
+    assert _polynomial_form("lebesgue3", wavy, x, w, 4, 0.9, 1.0, 0.0) is wavy

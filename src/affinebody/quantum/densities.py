@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 from scipy import linalg
 
-from affinebody.quantum.spectra import Level, Spectrum
+from affinebody.quantum.spectra import Level, Spectrum, sqrt_x_over_sinh
 
 #: node counts tried per integrated variable (n = 2: one variable; n = 3: two, so fewer)
 NODES = {2: (48, 96, 192), 3: (24, 36, 54, 81)}
@@ -211,6 +211,7 @@ def _joint3(model: str, amplitude, degree: int, scale: float, scale_sigma: float
     else:
         grid = haar3_grid(scale, scale_sigma, centre, 48, 20, 48)
         x, w = grid.nodes, grid.weights / measure(model, grid.nodes)
+    amplitude = _polynomial_form(model, amplitude, x, w, degree, scale, scale_sigma, centre)
     mass = w * Joint(model, amplitude, np.zeros((3, 2)), x, w)(x)
     inside = x[mass > 1e-20 * np.max(mass)]  # the nodes where rho is not negligible
     if model == "lebesgue3":
@@ -219,6 +220,51 @@ def _joint3(model: str, amplitude, degree: int, scale: float, scale_sigma: float
     else:  # the q-cube holding them
         box = np.tile([np.min(inside), np.max(inside)], (3, 1))
     return Joint(model, amplitude, box, x, w)
+
+
+def _front3(model: str, x: np.ndarray, scale: float, scale_sigma: float, centre: float
+            ) -> np.ndarray:
+    """The non-polynomial factor shared by every n = 3 basis function (channels3, n3):
+    e^{-|Q|^2/2b^2} (d'Alembert); prod sqrt((q_a - q_b)/sinh(q_a - q_b)) e^{-(|y|^2 + t^2)/2}
+    with y = (q - mean q)/b, t = (sum q - centre)/b_sigma (affine)."""
+    if model == "lebesgue3":
+        return np.exp(-0.5 * np.sum(x * x, -1) / scale**2)
+    y = (x - x.mean(-1, keepdims=True)) / scale
+    t = (x.sum(-1) - centre) / scale_sigma
+    g = np.prod([sqrt_x_over_sinh(x[:, a] - x[:, b]) for a, b in ((0, 1), (0, 2), (1, 2))], 0)
+    return g * np.exp(-0.5 * (np.sum(y * y, -1) + t * t))
+
+
+def _polynomial_form(model: str, amplitude, x: np.ndarray, w: np.ndarray, degree: int,
+                     scale: float, scale_sigma: float, centre: float):
+    """The n = 3 amplitude as front(x) x (polynomials of total degree <= ``degree`` in
+    z = (x - centre/3)/b): every basis function of channels3 and n3 has that form, so it is
+    exact, and it is far cheaper to evaluate than the candidates (which carry gradients). The
+    coefficients in products of Hermite polynomials H_i(z_1) H_j(z_2) H_k(z_3) are fitted by
+    least squares at the quadrature nodes and checked against ``amplitude`` at points off the
+    nodes; if the check fails (relative 1e-10), ``amplitude`` itself is returned."""
+    from numpy.polynomial.hermite import hermvander
+
+    shift = 0.0 if model == "lebesgue3" else centre / 3
+    exps = np.array([(i, j, k) for i in range(degree + 1) for j in range(degree + 1 - i)
+                     for k in range(degree + 1 - i - j)])
+
+    def design(p):
+        z = (p - shift) / scale
+        H = [hermvander(z[:, a], degree) for a in range(3)]
+        front = _front3(model, p, scale, scale_sigma, centre)
+        return front[:, None] * H[0][:, exps[:, 0]] * H[1][:, exps[:, 1]] * H[2][:, exps[:, 2]]
+
+    rng = np.random.default_rng(0)
+    fit = x[:: max(1, len(x) // 20000)]
+    sw = np.sqrt(w[:: max(1, len(x) // 20000)])[:, None]
+    values = np.asarray(amplitude(fit)).reshape(len(fit), -1)
+    coeff = linalg.lstsq(sw * design(fit), sw * values)[0]
+    test = x[rng.choice(len(x), 1000, replace=False)] + 0.05 * scale * rng.normal(size=(1000, 3))
+    direct = np.asarray(amplitude(test)).reshape(len(test), -1)
+    if np.max(np.abs(design(test) @ coeff - direct)) > 1e-10 * np.max(np.abs(values)):
+        return amplitude
+    return lambda p: design(p) @ coeff
 
 
 # ------------------------------------------------------------------------- marginals
