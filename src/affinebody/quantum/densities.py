@@ -54,11 +54,19 @@ from scipy import linalg
 
 from affinebody.quantum.spectra import Level, Spectrum, sqrt_x_over_sinh
 
-#: node counts tried per integrated variable (n = 2: one variable; n = 3: two, so fewer)
-NODES = {2: (48, 96, 192), 3: (24, 36, 54, 81)}
+#: node counts tried per integrated variable (n = 2: one variable; n = 3: two, so fewer),
+#: each 3/2 of the one before: the nested check rule of 2N/3 nodes is the previous count
+NODES = {2: (48, 72, 108, 162, 243), 3: (24, 36, 54, 81)}
 #: default number of output points of each density
 POINTS = {2: 301, 3: 101}
 DEFAULT_TOLERANCE = 1e-8
+#: what the invariants named Q_a / q_a are (the JSON's ``variables_note``)
+VARIABLES = {
+    "Q": "d'Alembert: signed singular values Q1 >= ... >= |Qn| of phi, Qn with the sign of det "
+         "phi; densities per unit of the variable on the x axis",
+    "q": "affine models (GL+(n)): q_a = ln Q_a, q1 >= ... >= qn; det phi = exp(sum q) > 0; "
+         "densities per unit of the variable on the x axis",
+}
 #: the reduced coordinates of a basis are kept while |Psi|^2 (times the measure) is above this
 #: fraction of its largest value at the nodes of the normalisation quadrature
 SUPPORT = 1e-14
@@ -455,13 +463,15 @@ class Marginal:
 
 
 def _converged(fn, y: np.ndarray, sizes: tuple[int, ...], tolerance: float):
+    """p with N in ``sizes`` (each 3/2 of the one before, so the nested rule of 2N/3 nodes is the
+    previous N and is not evaluated again) until |p_N - p_{2N/3}| <= tolerance x peak."""
+    coarse = fn(y, (2 * sizes[0]) // 3)
     for n in sizes:
         p = fn(y, n)
-        coarse = fn(y, max(4, (2 * n) // 3))
-        err = float(np.max(np.abs(p - coarse))) if len(y) else 0.0
-        peak = float(np.max(np.abs(p))) if len(y) else 0.0
+        err, peak = float(np.max(np.abs(p - coarse))), float(np.max(np.abs(p)))
         if err <= tolerance * peak:
             break
+        coarse = p
     return p, err, n, err <= tolerance * peak
 
 
@@ -483,7 +493,7 @@ def _grid(lo: float, hi: float, points: int, geometric: bool = False) -> np.ndar
 
 
 def _integral(fn, lo: float, hi: float, n: int) -> float:
-    """int_lo^hi p by 12-node Gauss-Legendre panels: graded geometrically towards 0 on each side
+    """int_lo^hi p by 16-node Gauss-Legendre panels: graded geometrically towards 0 on each side
     of 0 when 0 is an end point or inside (where det and Q_n have their cusp and Tr G, Q_a a
     power-law end point), geometric in y when 0 < lo (det, Tr G of the affine models)."""
     total = 0.0
@@ -514,9 +524,10 @@ def _trimmed(fn, lo: float, hi: float, n: int, geometric: bool) -> tuple[float, 
 
 
 def _rules(joint: Joint) -> dict:
-    """name -> (the invariant as a function of the reduced coordinates, p(y, N)), p set to 0
-    below the range of the invariant (Q1, Tr G, and Q2 for n = 3, are >= 0 for d'Alembert;
-    det and Tr G > 0 for the affine models)."""
+    """name -> (the invariant as a function of the reduced coordinates, p(y, N), floor): p is
+    0 below the range of a nonnegative invariant; ``floor`` = 0 where the output grid starts
+    at that end point (d'Alembert Q1, Tr G, and Q2 for n = 3), None elsewhere (the affine det
+    and Tr G > 0 start at their support)."""
     rules = _marginals2(joint) if joint.model.endswith("2") else _marginals3(joint)
     if joint.model.startswith("lebesgue"):
         positive = ("Q1", "trG") + (("Q2",) if joint.model == "lebesgue3" else ())
@@ -532,8 +543,8 @@ def _rules(joint: Joint) -> dict:
                 out[inside] = fn(y[inside], n)
             return out
         return p
-    return {name: (f, restricted(fn) if name in positive else fn)
-            for name, (f, fn) in rules.items()}
+    return {name: (f, restricted(fn), None if strict else 0.0) if name in positive
+            else (f, fn, None) for name, (f, fn) in rules.items()}
 
 
 def density_at(joint: Joint, name: str, y, nodes: int) -> np.ndarray:
@@ -562,10 +573,9 @@ def marginal_densities(spectrum: Spectrum, level: Level, points: int | None = No
     joint = joint_density(spectrum, level)
     mass = joint.weights * joint(joint.nodes)
     details, warnings = {}, []
-    for name, (f, fn) in _rules(joint).items():
+    for name, (f, fn, floor) in _rules(joint).items():
         lo, hi = _support(f(joint.nodes), mass)
-        if joint.model.startswith("lebesgue") and name in ("Q1", "trG") + (("Q2",) * (n == 3)):
-            lo = 0.0  # nonnegative: the density is resolved down to its end point
+        lo = lo if floor is None else floor  # resolved down to its end point
         geometric = name in ("det", "trG") and joint.model.startswith("haar")
         y = _grid(*_trimmed(fn, lo, hi, NODES[n][0], geometric), points, geometric)
         p, err, nodes, ok = _converged(fn, y, NODES[n], tolerance)
@@ -605,7 +615,8 @@ def write_densities(spectrum: Spectrum, state: int, directory: str | Path,
     directory.mkdir(parents=True, exist_ok=True)
     data = densities(spectrum, state, points, tolerance)
     payload = {"state": state, "energy": data["energy"], "sector": data["sector"],
-               "variables": data["variables"], "level_error": data["level_error"],
+               "variables": data["variables"], "variables_note": VARIABLES[data["variables"]],
+               "level_error": data["level_error"],
                "normalisation": data["normalisation"], "tolerance": tolerance,
                "densities": {}, "integrals": {}, "warnings": data["warnings"]}
     arrays = {}
