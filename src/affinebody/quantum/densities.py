@@ -23,7 +23,11 @@ integrates to 1; docs/theory/two-polar.md):
 * affine n = 3, variables q on q1 > q2 > q3: rho = sum_a f_a(q)^2 prod_{a<b} sinh(q_a - q_b).
 
 For a multiplet (n = 3, dimension > 1) the f_a are the M-fixed coordinates and rho is the
-density of the multiplet summed over its states (its orientation density is uniform).
+density of the multiplet summed over its states (its orientation density is uniform). The n = 3
+bases are known on the solver's grid (channels3: values, n3: a recipe over candidates); every
+one of their functions is front(x) x polynomial of degree <= basis_size, so the amplitude is
+re-expressed exactly in that form (fitted at the nodes, checked off them) for fast evaluation
+at the quadrature points of the marginals.
 
 Marginals reported: Q_a (d'Alembert) or q_a (affine), det phi, Tr G. Each carries ``error``,
 the largest change over the output points between the Gauss rule of N nodes per integrated
