@@ -49,21 +49,40 @@ def test_spectrum_table_and_config_error(tmp_path):
 
 
 def test_density_command_writes_normalised_densities(tmp_path):
+    """density --json: the JSON on stdout and in densities.json carries every array with its
+    error; npz and PNGs as before; the N = 1 level obeys the virial theorem; a tolerance no
+    quadrature meets is flagged (converged false, a warning, exit status 3)."""
     path = tmp_path / "osc.toml"
     path.write_text(OSCILLATOR)
     out = tmp_path / "dens"
-    result = CliRunner().invoke(density, [str(path), "--state", "2", "-o", str(out)])
+    result = CliRunner().invoke(density, [str(path), "--state", "2", "-o", str(out), "--json"])
     assert result.exit_code == 0, result.output
+    printed = json.loads(result.output)
     summary = json.loads((out / "densities.json").read_text())
-    assert abs(summary["normalisation"] - 1) < 1e-8
+    assert printed == summary
+    assert abs(summary["normalisation"] - 1) < 1e-8 and summary["variables"] == "Q"
     assert all(abs(v - 1) < 1e-9 for v in summary["integrals"].values())
     for name in ("Q1", "Q2", "det", "trG", "orientation"):
         assert (out / f"density_{name}.png").stat().st_size > 1000
     arrays = np.load(out / "densities.npz")
+    for name in ("Q1", "Q2", "det", "trG"):
+        entry = summary["densities"][name]
+        assert entry["converged"] and entry["error"] <= 1e-8 * max(entry["density"])
+        assert np.array_equal(arrays[f"{name}_x"], entry["x"])
+        assert np.array_equal(arrays[f"{name}_density"], entry["density"])
     x, p = arrays["trG_x"], arrays["trG_density"]
-    # virial theorem for the oscillator: <V> = E/2, so <Tr G> = E / k = 3 omega / k (N = 1 level)
+    # virial theorem for the oscillator: <V> = E/2, so <Tr G> = E / k = 3 omega / k (N = 1
+    # level); the mean by the rectangle rule on the 301 points (its own error ~ 1e-7)
     mean = np.sum(x * p) * (x[1] - x[0])
-    assert abs(mean - 3 * np.sqrt(8.0 / 2.0) / 8.0) < 2e-3
+    assert abs(mean - 3 * np.sqrt(8.0 / 2.0) / 8.0) < 1e-6
+    table = CliRunner().invoke(density, [str(path), "--state", "0", "-o", str(out)])
+    assert table.exit_code == 0 and "integral" in table.output
+    strict = tmp_path / "strict.toml"
+    strict.write_text(OSCILLATOR + "density_tolerance = 1e-30\n")
+    result = CliRunner().invoke(density, [str(strict), "--state", "0", "-o", str(out), "--json"])
+    assert result.exit_code == 3
+    flagged = json.loads((out / "densities.json").read_text())
+    assert not flagged["densities"]["det"]["converged"] and flagged["warnings"]
 
 
 N3_SPIN1 = """

@@ -141,9 +141,9 @@ def test_density_marginals_integrate_to_one():
     for state in (0, 3):
         d = densities(s, state)
         assert abs(d["normalisation"] - 1) < 1e-8
-        for x, p in d["marginals"].values():
-            assert abs(np.sum(p) * (x[1] - x[0]) - 1) < 1e-10
-            assert np.all(p >= 0)
+        for m in d["details"].values():
+            assert abs(m.integral - 1) < 1e-10
+            assert np.all(m.density >= 0)
         o = d["orientation"]
         assert abs(np.trapezoid(o["L_angle"], o["angle"]) - 1) < 1e-12
 

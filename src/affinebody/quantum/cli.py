@@ -8,8 +8,12 @@ continuous spectrum or an insufficient basis; never listed as levels), ``sectors
 for n = 3 also "scalar", "spin1", "scalar+spin1"), ``bounded_below`` (false for af-af, whose
 sector sum is unbounded below) and ``warnings`` (af-af; n = 3 spectra that hold only some
 sectors; a sector search stopped by max_spin), also printed under the table.
-``affinebody density CONFIG.toml --state k -o DIR``: densities of the
-invariants and orientations for the k-th state (0-based), as npz, json and png.
+``affinebody density CONFIG.toml --state k -o DIR [--json]``: the exact marginal densities of
+the invariants (Q_a or q_a, det phi, Tr G) and of the orientations for the k-th state (0-based),
+each with a quadrature error estimate, written as densities.npz, densities.json and one PNG per
+density; with --json the same JSON object (arrays included) on stdout, else a table. Densities
+whose error exceeds quantum.density_tolerance x their peak are flagged (``converged: false``,
+a warning) and the command exits with status 3.
 """
 
 from __future__ import annotations
@@ -119,13 +123,39 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
 @click.option("--state", "state", type=int, required=True, help="state index (0-based)")
 @click.option("-o", "--output", "output", type=click.Path(file_okay=False), required=True)
-def density(config: str, state: int, output: str) -> None:
-    """Probability densities of q (or Q), det phi, Tr G and orientations for one state."""
+@click.option("--json", "as_json", is_flag=True, help="print the JSON object (with the arrays)")
+def density(config: str, state: int, output: str, as_json: bool) -> None:
+    """Exact marginal densities of q (or Q), det phi, Tr G and orientations for one state."""
     _enable_x64()
+    from affinebody.quantum import config as qconfig
     from affinebody.quantum.densities import write_densities
 
     if state < 0:
         raise click.UsageError(f"--state must be >= 0 (got {state})")
+    qc = _run(lambda: qconfig.load(config)).quantum
     result, _ = _run(lambda: _solve(config, state + 1))
-    summary = _run(lambda: write_densities(result, state, output))
-    click.echo(json.dumps(summary))
+    payload = _run(lambda: write_densities(result, state, output, qc.density_points,
+                                           qc.density_tolerance))
+    if as_json:
+        click.echo(json.dumps(payload))
+    else:
+        from rich.console import Console
+        from rich.table import Table
+
+        table = Table(title=f"state {state}, E = {payload['energy']:.12g}, variables "
+                            f"{payload['variables']} ({output})")
+        for col in ("density", "from", "to", "peak", "error", "integral"):
+            table.add_column(col, justify="right")
+        for name, d in payload["densities"].items():
+            table.add_row(name, f"{d['x'][0]:.4g}", f"{d['x'][-1]:.4g}",
+                          f"{max(d['density']):.6g}", f"{d['error']:.1e}",
+                          f"{d['integral']:.12f}")
+        console = Console()
+        console.print(table)
+        for text in payload["warnings"]:
+            console.print(f"[bold red]warning:[/] {text}")
+    if payload["warnings"]:
+        if as_json:
+            for text in payload["warnings"]:
+                click.echo(f"warning: {text}", err=True)
+        sys.exit(3)

@@ -17,7 +17,9 @@ the sign of det phi), trG = Tr G, K1..Kn (K_a = Tr G^a, eq. (17)) and det = det 
 
 Discretisation settings, all optional: ``levels`` (default 10), ``sectors`` ("auto", "all" for
 n = 2 and 3; for n = 3 also "scalar", "spin1", "scalar+spin1"; "auto" is "all"),
-``basis_size``, ``scale``, ``scale_sigma``, ``centre``, ``tolerance``, ``max_spin``.
+``basis_size``, ``scale``, ``scale_sigma``, ``centre``, ``tolerance``, ``max_spin``; for
+``affinebody density`` also ``density_points`` and ``density_tolerance`` (1e-8, relative to the
+peak of each density).
 Every error is one line naming the field, e.g.
 ``config error: quantum.hbar must be > 0 (got -1.0)``.
 """
@@ -61,6 +63,10 @@ class QuantumSection(_Section):
     centre: float | None = None
     tolerance: float = 1e-7
     max_spin: int = 40
+    #: ``affinebody density``: output points per density (default 301 for n = 2, 151 for n = 3)
+    #: and the quadrature error allowed, relative to each density's peak
+    density_points: int | None = None
+    density_tolerance: float = 1e-8
 
 
 class QuantumConfig(_Section):
@@ -87,7 +93,7 @@ def check(config: QuantumConfig) -> QuantumConfig:
     if n not in (2, 3):
         raise ConfigError(f"system.n must be 2 or 3 for quantum spectra (got {n})")
     _positive(qc.hbar, "hbar")
-    for name in ("scale", "scale_sigma", "tolerance"):
+    for name in ("scale", "scale_sigma", "tolerance", "density_tolerance"):
         _positive(getattr(qc, name), name)
     if qc.kinetic not in KINETIC_NAMES:
         raise ConfigError(f"quantum.kinetic must be one of {', '.join(KINETIC_NAMES)} "
@@ -98,6 +104,9 @@ def check(config: QuantumConfig) -> QuantumConfig:
     if qc.basis_size is not None and not low <= qc.basis_size <= high:
         raise ConfigError(f"quantum.basis_size must be between {low} and {high} for n = {n} "
                           f"(got {qc.basis_size})")
+    if qc.density_points is not None and not 11 <= qc.density_points <= 100001:
+        raise ConfigError(f"quantum.density_points must be between 11 and 100001 (got "
+                          f"{qc.density_points})")
     if qc.max_spin < 0:
         raise ConfigError(f"quantum.max_spin must be >= 0 (got {qc.max_spin})")
     if qc.kinetic == "dalembert":

@@ -2,126 +2,614 @@
 (paper, last section: "Performing some partial integrations one can obtain from Psi-bar Psi
 probability distributions for ... deformation invariants, orientations of the main axes").
 
-For a level of :class:`~affinebody.quantum.spectra.Spectrum` the reduced eigenfunction f is
-orthonormal under the reduced measure, so the joint density of the invariants is
-f^2 x (measure): d'Alembert n = 2: f(r1, r2)^2 r1 r2 dr1 dr2 (r1 = |z| = (Q1 + Q2)/2,
-r2 = |w| = (Q1 - Q2)/2, i.e. prod|Q_a^2 - Q_b^2| dQ up to the constant); affine n = 2:
-f(x, sigma)^2 sinh x dx dsigma (x = q1 - q2, sigma = q1 + q2 = ln det phi); n = 3 scalar:
-f(Q)^2 prod(Q_a^2 - Q_b^2) dQ on the chamber; n = 3 spin = vorticity = 1 (and the affine n = 3
-sectors): sum_a f_a^2 J on the solver's quadrature grid (the density of a 9-state multiplet,
-summed over its states; its orientation density is uniform). Marginals of Q_a (or q_a),
-det phi and Tr G are integrated from the joint density; each integrates to 1 (checked and reported).
+Every density is an exact marginal of the joint density of the reduced variables, evaluated
+point by point (docs/theory/densities.md): at each output value y,
 
-Orientations: a sector state e^{i(s alpha + k beta)} (alpha, beta the angles of L and R) has
-|Psi|^2 independent of the orientation of the principal axes; the densities returned are those
-of the real standing wave cos(s alpha + k beta) spanned by the (s, k) and (-s, -k) copies,
-p(alpha) = int cos^2(s alpha + k beta) dbeta / (2 pi^2) and likewise for beta.
+    p_f(y) = int delta(f(x) - y) rho(x) dx,
+
+done by a change of variables that puts the level set {f = y} on a fixed parameter domain
+(with the Jacobian 1/|grad f| and the end points that depend on y, so the cusps at det = 0 and
+Q_n = 0 and the walls Q_a = Q_b are end points of the rule, never inside it) and Gauss-Legendre
+quadrature over the remaining variables. No histogram.
+
+Joint densities (the reduced eigenfunction is orthonormal under the reduced measure, so each
+integrates to 1; docs/theory/two-polar.md):
+
+* d'Alembert n = 2, variables Q: in r1 = |z| = (Q1 + Q2)/2, r2 = |w| = (Q1 - Q2)/2,
+  rho = f(r1, r2)^2 r1 r2 dr1 dr2 (= f^2 (Q1^2 - Q2^2)/8 dQ1 dQ2).
+* affine n = 2 (GL+(2)), variables q: in x = q1 - q2 >= 0, sigma = q1 + q2 = ln det phi,
+  rho = F(x, sigma)^2 sinh x = (sum c u_j(x) h_l(sigma))^2 x dx dsigma (g^2 sinh x = x).
+* d'Alembert n = 3, variables Q on Q1 > Q2 > |Q3|: rho = sum_a f_a(Q)^2 prod_{a<b}(Q_a^2 - Q_b^2).
+* affine n = 3, variables q on q1 > q2 > q3: rho = sum_a f_a(q)^2 prod_{a<b} sinh(q_a - q_b).
+
+For a multiplet (n = 3, dimension > 1) the f_a are the M-fixed coordinates and rho is the
+density of the multiplet summed over its states (its orientation density is uniform). The n = 3
+bases are known on the solver's grid (channels3: values, n3: a recipe over candidates); every
+one of their functions is front(x) x polynomial of degree <= basis_size, so the amplitude is
+re-expressed exactly in that form (fitted at the nodes, checked off them) for fast evaluation
+at the quadrature points of the marginals.
+
+Marginals reported: Q_a (d'Alembert) or q_a (affine), det phi, Tr G. Each carries ``error``,
+the largest change over the output points between the Gauss rule of N nodes per integrated
+variable and the nested coarser rule of 2N/3 nodes (N raised until the error is at most
+``tolerance`` times the peak of the density, else the density is flagged ``converged: false``);
+this is the quadrature error of the marginal of the computed eigenfunction (the eigenfunction's
+own discretisation error is the level's ``error``). ``integral`` is int p dy by Gauss-Legendre
+panels graded towards y = 0.
+
+Orientations: a sector state e^{i(s alpha + k beta)} f (n = 2) has |Psi|^2 independent of the
+angles alpha, beta of L and R, so both orientation densities are exactly uniform, 1/(2 pi) on
+[0, 2 pi) (a real standing wave cos(s alpha + k beta) would not be; the sector labels fix the
+complex state). n = 3: the multiplet sum is invariant under L -> U L, R -> V R, so L and R are
+Haar-distributed on SO(3); the density of the rotation angle omega in [0, pi] of L (and of R) is
+exactly (1 - cos omega)/pi.
 """
 
 from __future__ import annotations
 
 import json
+import math
+from dataclasses import dataclass, replace
+from functools import cache
 from pathlib import Path
 
 import numpy as np
+from scipy import linalg
 
-from affinebody.quantum.channels3 import ChamberQuadrature
 from affinebody.quantum.spectra import Level, Spectrum, sqrt_x_over_sinh
 
-
-def _hist(values: np.ndarray, weights: np.ndarray, bins: int = 120):
-    support = values[weights > 1e-14 * weights.max()]
-    lo, hi = float(np.min(support)), float(np.max(support))
-    edges = np.linspace(lo, hi + 1e-12 * max(1.0, abs(hi)), bins + 1)
-    mass, _ = np.histogram(values, edges, weights=weights)
-    centres = 0.5 * (edges[1:] + edges[:-1])
-    return centres, mass / np.diff(edges)
-
-
-def _legendre(lo: float, hi: float, points: int) -> tuple[np.ndarray, np.ndarray]:
-    x, w = np.polynomial.legendre.leggauss(points)
-    return lo + (hi - lo) * (x + 1) / 2, (hi - lo) * w / 2
-
-
-def _orientation(sector, n: int = 2) -> dict[str, np.ndarray]:
-    s, k = sector.spin, sector.vorticity
-    if n == 3:  # an SO(3) multiplet averaged over its states: uniform orientation density
-        s = k = 0
-    ang = np.linspace(0, 2 * np.pi, 361)
-    beta = np.linspace(0, 2 * np.pi, 721)[:-1]
-    dens_a = np.mean(np.cos(s * ang[:, None] + k * beta[None, :]) ** 2, axis=1)
-    dens_b = np.mean(np.cos(s * beta[None, :] + k * ang[:, None]) ** 2, axis=1)
-    norm = np.trapezoid(dens_a, ang)
-    return {"angle": ang, "L_angle": dens_a / norm, "R_angle": dens_b / np.trapezoid(dens_b, ang)}
+#: node counts tried per integrated variable (n = 2: one variable; n = 3: two, so fewer),
+#: each 3/2 of the one before: the nested check rule of 2N/3 nodes is the previous count
+NODES = {2: (48, 72, 108, 162, 243), 3: (24, 36, 54, 81)}
+#: default number of output points of each density
+POINTS = {2: 301, 3: 101}
+DEFAULT_TOLERANCE = 1e-8
+#: what the invariants named Q_a / q_a are (the JSON's ``variables_note``)
+VARIABLES = {
+    "Q": "d'Alembert: signed singular values Q1 >= ... >= |Qn| of phi, Qn with the sign of det "
+         "phi; densities per unit of the variable on the x axis",
+    "q": "affine models (GL+(n)): q_a = ln Q_a, q1 >= ... >= qn; det phi = exp(sum q) > 0; "
+         "densities per unit of the variable on the x axis",
+}
+#: the reduced coordinates of a basis are kept while |Psi|^2 (times the measure) is above this
+#: fraction of its largest value at the nodes of the normalisation quadrature
+SUPPORT = 1e-14
 
 
-def densities(spectrum: Spectrum, state: int, points: int = 300) -> dict:
-    """Marginal densities (dict of arrays) for the ``state``-th entry of ``energies()``."""
-    level: Level = spectrum.level_of_state(state)
+@cache
+def _unit_rule(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Legendre nodes and weights on [0, 1]."""
+    x, w = np.polynomial.legendre.leggauss(n)
+    return (x + 1) / 2, w / 2
+
+
+def _on(lo, hi, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes [..., n] and weights [..., n] of the n-point Gauss rule on [lo, hi] (arrays)."""
+    s, w = _unit_rule(n)
+    lo, hi = np.asarray(lo, float)[..., None], np.asarray(hi, float)[..., None]
+    return lo + (hi - lo) * s, (hi - lo) * w
+
+
+def _square(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tensor Gauss rule on [0, 1]^2: s [n*n], t [n*n], weights [n*n]."""
+    s, w = _unit_rule(n)
+    S, T = np.meshgrid(s, s, indexing="ij")
+    return S.ravel(), T.ravel(), np.outer(w, w).ravel()
+
+
+# ------------------------------------------------------------------- joint densities
+@dataclass(frozen=True)
+class Joint:
+    """The joint density of the reduced variables of one eigenvector (measure included).
+
+    ``model``: "lebesgue2" (coordinates (r1, r2)), "haar2" ((x, sigma)), "lebesgue3" (Q),
+    "haar3" (q). ``box``: per coordinate [lo, hi] beyond which |Psi|^2 is negligible (the
+    cut-off of the infinite integrals). ``nodes``/``weights``: a quadrature of the reduced
+    domain (for the normalisation and the support of each invariant)."""
+
+    model: str
+    amplitude: object  # callable: coordinates [..., d] -> values [..., r] of the f_a
+    box: np.ndarray  # [d, 2]
+    nodes: np.ndarray  # [P, d]
+    weights: np.ndarray  # [P]
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, float)
+        flat = x.reshape(-1, x.shape[-1])
+        out = np.empty(len(flat))
+        for i in range(0, len(flat), 16384):
+            part = flat[i:i + 16384]
+            amp2 = np.sum(np.asarray(self.amplitude(part)).reshape(len(part), -1) ** 2, -1)
+            with np.errstate(over="ignore", invalid="ignore"):  # far out: 0 x (overflow)
+                out[i:i + 16384] = np.where(amp2 > 0, amp2 * measure(self.model, part), 0.0)
+        return out.reshape(x.shape[:-1])
+
+
+def measure(model: str, x: np.ndarray) -> np.ndarray:
+    """The reduced measure (docs/theory/two-polar.md): r1 r2; x (= g^2 sinh x); prod (Q_a^2 -
+    Q_b^2); prod sinh(q_a - q_b) (each >= 0 on its chamber)."""
+    if model == "lebesgue2":
+        return x[..., 0] * x[..., 1]
+    if model == "haar2":
+        return x[..., 0]
+    pairs = ((0, 1), (0, 2), (1, 2))
+    if model == "lebesgue3":
+        return np.prod([x[..., a] ** 2 - x[..., b] ** 2 for a, b in pairs], axis=0)
+    return np.prod([np.sinh(x[..., a] - x[..., b]) for a, b in pairs], axis=0)
+
+
+def joint_density(spectrum: Spectrum, level: Level) -> Joint:
+    """The :class:`Joint` of a level's eigenvector (the first of its sectors)."""
     block = spectrum.blocks[level.block]
     coeff = block.vectors[:, level.index]
     basis = block.basis
-    out: dict = {"energy": level.energy, "sector": level.sectors[0].as_dict()}
     if basis.kind == "lebesgue2":
-        span = [f.scale * np.sqrt(4 * f.size + 2 * f.m + 30) for f in basis.factors]
-        (r1, g1), (r2, g2) = _legendre(0, span[0], points), _legendre(0, span[1], points)
-        f1 = basis.factors[0].evaluate(r1)
-        f2 = basis.factors[1].evaluate(r2)
-        C = coeff.reshape(f1.shape[1], f2.shape[1])
-        psi = f1 @ C @ f2.T
-        joint = psi**2 * r1[:, None] * r2[None, :]
-        w = np.outer(g1, g2) * joint
-        R1, R2 = np.meshgrid(r1, r2, indexing="ij")
-        coords = {"Q1": R1 + R2, "Q2": R1 - R2, "det": R1**2 - R2**2,
-                  "trG": 2 * (R1**2 + R2**2)}
-    elif basis.kind == "haar2":
+        f1, f2 = basis.factors
+        C = coeff.reshape(f1.size, f2.size)
+        T = 4 * max(f1.size, f2.size) + 2 * (f1.m + f2.m) + 40  # |r|^2 / b^2 cut-off
+        R = f1.scale * math.sqrt(T / 2)
+        r, w = _on(0.0, R, 96)
+        R1, R2 = np.meshgrid(r, r, indexing="ij")
+        nodes = np.stack([R1.ravel(), R2.ravel()], -1)
+        return Joint("lebesgue2",
+                     lambda x: np.einsum("pi,ij,pj->p", f1.evaluate(x[:, 0]), C,
+                                         f2.evaluate(x[:, 1]), optimize=True),
+                     np.array([[0.0, R], [0.0, R]]), nodes, np.outer(w, w).ravel())
+    if basis.kind == "haar2":
         fx, fs = basis.factors
-        x, gx = _legendre(0, fx.scale * np.sqrt(4 * fx.size + 2 * fx.m + 30), points)
-        half = fs.scale * np.sqrt(2 * fs.size + 30)
-        sig, gs = _legendre(fs.centre - half, fs.centre + half, points)
-        u = fx.evaluate(x) * sqrt_x_over_sinh(x)[:, None]
-        h = fs.evaluate(sig)
-        psi = u @ coeff.reshape(u.shape[1], h.shape[1]) @ h.T
-        joint = psi**2 * np.sinh(x)[:, None]
-        w = np.outer(gx, gs) * joint
-        X, S = np.meshgrid(x, sig, indexing="ij")
-        q1, q2 = (S + X) / 2, (S - X) / 2
-        coords = {"q1": q1, "q2": q2, "det": np.exp(S),
-                  "trG": np.exp(2 * q1) + np.exp(2 * q2)}
-    elif basis.kind == "grid3":
-        kind, grid, values, _parity, _spin1 = basis.factors
-        if callable(values):  # n3.SectorBasis.values: evaluated on demand
-            values = values()
-        psi = values @ coeff  # [P, d]: the radial functions f_a on the quadrature grid
-        w = grid.weights * np.sum(psi**2, axis=-1)
-        x = grid.nodes
-        if kind == "lebesgue3":
-            coords = {"Q1": x[:, 0], "Q2": x[:, 1], "Q3": x[:, 2], "det": np.prod(x, -1),
-                      "trG": np.sum(x * x, -1)}
-        else:
-            coords = {"q1": x[:, 0], "q2": x[:, 1], "q3": x[:, 2],
-                      "det": np.exp(np.sum(x, -1)), "trG": np.sum(np.exp(2 * x), -1)}
-    else:
+        C = coeff.reshape(fx.size, fs.size)
+        X = fx.scale * math.sqrt(4 * fx.size + 2 * fx.m + 80)
+        S = fs.scale * math.sqrt(2 * fs.size + 80)
+        x, wx = _on(0.0, X, 96)
+        s, ws = _on(fs.centre - S, fs.centre + S, 96)
+        XX, SS = np.meshgrid(x, s, indexing="ij")
+        return Joint("haar2",
+                     lambda p: np.einsum("pi,ij,pj->p", fx.evaluate(p[:, 0]), C,
+                                         fs.evaluate(p[:, 1]), optimize=True),
+                     np.array([[0.0, X], [fs.centre - S, fs.centre + S]]),
+                     np.stack([XX.ravel(), SS.ravel()], -1), np.outer(wx, ws).ravel())
+    if basis.kind == "scalar3":
         sb = basis.factors[0]
-        quad = ChamberQuadrature.build(sb.scale * 10.0, 120, 60)
-        psi = sb.evaluate(quad.nodes) @ coeff
-        w = quad.weights * psi**2
-        Q = quad.nodes
-        coords = {"Q1": Q[:, 0], "Q2": Q[:, 1], "Q3": Q[:, 2], "det": np.prod(Q, -1),
-                  "trG": np.sum(Q * Q, -1)}
-    total = float(np.sum(w))
-    out["normalisation"] = total
-    marginals = {}
-    for name, values in coords.items():
-        centres, dens = _hist(np.ravel(values), np.ravel(w) / total)
-        marginals[name] = (centres, dens)
-    out["marginals"] = marginals
-    out["orientation"] = _orientation(level.sectors[0], spectrum.n)
-    return out
+        return _joint3("lebesgue3", lambda Q: sb.evaluate(Q) @ coeff, sb.degree, sb.scale, 1.0,
+                       0.0)
+    if basis.kind == "grid3":
+        return _grid3_joint(spectrum, basis, coeff)
+    raise ValueError(f"densities: unknown basis kind {basis.kind!r}")
 
 
-def write_densities(spectrum: Spectrum, state: int, directory: str | Path) -> dict:
-    """Write densities.npz, densities.json (normalisations) and one PNG per density."""
+def _grid3_joint(spectrum: Spectrum, basis, coeff: np.ndarray) -> Joint:
+    """n = 3 bases stored by their values on the solver's grid: n3.SectorBasis (a recipe over
+    the candidates, re-evaluated at any points) or channels3.channel3_block (values only; the
+    combination of its candidates is recovered by least squares on the grid and checked)."""
+    kind, grid, values, _parity, spin1 = basis.factors
+    x = grid.nodes
+    if callable(values):  # n3.SectorBasis.values: a recipe
+        sb = values.__self__
+
+        def amplitude(p):
+            return np.einsum("prk,k->pr", replace(sb, nodes=p).values(), coeff)
+        degree, scale, scale_sigma, centre = sb.candidate_args
+    else:
+        from affinebody.quantum.channels3 import _channel_candidates
+
+        settings = spectrum.settings
+        degree, scale = settings["basis_size"], settings["scale"]
+        scale_sigma, centre = settings.get("scale_sigma", 1.0), settings.get("centre", 0.0)
+        cand = _channel_candidates(kind, x, degree, scale, scale_sigma, centre, spin1)[0]
+        P, d, K = cand.shape
+        sw = np.sqrt(grid.weights)[:, None, None]
+        target = (values @ coeff)[:, :, None]
+        mix = linalg.lstsq((sw * cand).reshape(P * d, K), (sw * target).reshape(P * d, 1))[0]
+        error = np.max(np.abs(np.einsum("pdk,k->pd", cand, mix[:, 0]) - target[..., 0]))
+        if error > 1e-9 * np.max(np.abs(target)):
+            raise ValueError(f"densities: the n = 3 channel basis could not be re-evaluated "
+                             f"off its grid (residual {error:.1e})")
+
+        def amplitude(p):
+            c = _channel_candidates(kind, p, degree, scale, scale_sigma, centre, spin1)[0]
+            return np.einsum("pdk,k->pd", c, mix[:, 0])
+    return _joint3(kind, amplitude, degree, scale, scale_sigma, centre)
+
+
+def _joint3(model: str, amplitude, degree: int, scale: float, scale_sigma: float,
+            centre: float) -> Joint:
+    """n = 3: the box and a quadrature of the chamber of our own, wider than the solver's
+    (Gauss-Hermite in sigma reaching +-8 scale_sigma; Q up to scale sqrt(3 degree + 40))."""
+    from affinebody.quantum.channels3 import ChamberQuadrature, haar3_grid
+
+    if model == "lebesgue3":
+        quad = ChamberQuadrature.build(scale * math.sqrt(3 * degree + 40), 96, 40)
+        x, w = quad.nodes, quad.weights / measure(model, quad.nodes)
+    else:
+        grid = haar3_grid(scale, scale_sigma, centre, 48, 20, 48)
+        x, w = grid.nodes, grid.weights / measure(model, grid.nodes)
+    amplitude = _polynomial_form(model, amplitude, x, w, degree, scale, scale_sigma, centre)
+    mass = w * Joint(model, amplitude, np.zeros((3, 2)), x, w)(x)
+    inside = x[mass > 1e-20 * np.max(mass)]  # the nodes where rho is not negligible
+    if model == "lebesgue3":
+        Qmax = float(np.max(np.linalg.norm(inside, axis=-1)))
+        box = np.array([[0.0, Qmax], [0.0, Qmax], [-Qmax, Qmax]])
+    else:  # the q-cube holding them
+        box = np.tile([np.min(inside), np.max(inside)], (3, 1))
+    return Joint(model, amplitude, box, x, w)
+
+
+def _front3(model: str, x: np.ndarray, scale: float, scale_sigma: float, centre: float
+            ) -> np.ndarray:
+    """The non-polynomial factor shared by every n = 3 basis function (channels3, n3):
+    e^{-|Q|^2/2b^2} (d'Alembert); prod sqrt((q_a - q_b)/sinh(q_a - q_b)) e^{-(|y|^2 + t^2)/2}
+    with y = (q - mean q)/b, t = (sum q - centre)/b_sigma (affine)."""
+    if model == "lebesgue3":
+        return np.exp(-0.5 * np.sum(x * x, -1) / scale**2)
+    y = (x - x.mean(-1, keepdims=True)) / scale
+    t = (x.sum(-1) - centre) / scale_sigma
+    g = np.prod([sqrt_x_over_sinh(x[:, a] - x[:, b]) for a, b in ((0, 1), (0, 2), (1, 2))], 0)
+    return g * np.exp(-0.5 * (np.sum(y * y, -1) + t * t))
+
+
+def _polynomial_form(model: str, amplitude, x: np.ndarray, w: np.ndarray, degree: int,
+                     scale: float, scale_sigma: float, centre: float):
+    """The n = 3 amplitude as front(x) x (polynomials of total degree <= ``degree`` in
+    z = (x - centre/3)/b): every basis function of channels3 and n3 has that form, so it is
+    exact, and it is far cheaper to evaluate than the candidates (which carry gradients). The
+    coefficients in products of Hermite polynomials H_i(z_1) H_j(z_2) H_k(z_3) are fitted by
+    least squares at the quadrature nodes and checked against ``amplitude`` at points off the
+    nodes; if the check fails (relative 1e-10), ``amplitude`` itself is returned."""
+    from numpy.polynomial.hermite import hermvander
+
+    shift = 0.0 if model == "lebesgue3" else centre / 3
+    exps = np.array([(i, j, k) for i in range(degree + 1) for j in range(degree + 1 - i)
+                     for k in range(degree + 1 - i - j)])
+
+    def design(p):
+        z = (p - shift) / scale
+        H = [hermvander(z[:, a], degree) for a in range(3)]
+        front = _front3(model, p, scale, scale_sigma, centre)
+        return front[:, None] * H[0][:, exps[:, 0]] * H[1][:, exps[:, 1]] * H[2][:, exps[:, 2]]
+
+    rng = np.random.default_rng(0)
+    fit = x[:: max(1, len(x) // 20000)]
+    sw = np.sqrt(w[:: max(1, len(x) // 20000)])[:, None]
+    values = np.asarray(amplitude(fit)).reshape(len(fit), -1)
+    coeff = linalg.lstsq(sw * design(fit), sw * values)[0]
+    test = x[rng.choice(len(x), 1000, replace=False)] + 0.05 * scale * rng.normal(size=(1000, 3))
+    direct = np.asarray(amplitude(test)).reshape(len(test), -1)
+    if np.max(np.abs(design(test) @ coeff - direct)) > 1e-10 * np.max(np.abs(values)):
+        return amplitude
+    return lambda p: design(p) @ coeff
+
+
+# ------------------------------------------------------------------------- marginals
+def _marginals2(joint: Joint) -> dict:
+    """name -> (function of the output variable, p(y, N) with N nodes): n = 2."""
+    J = joint
+    if J.model == "lebesgue2":
+        R = J.box[0, 1]
+
+        def q1(y, n):  # Q2 = u in [-y, y]; r = ((y + u)/2, (y - u)/2); dQ1 dQ2 = 2 dr1 dr2
+            u, w = _on(-y, y, n)
+            return 0.5 * np.sum(w * J(np.stack([(y[:, None] + u) / 2, (y[:, None] - u) / 2],
+                                                -1)), -1)
+
+        def q2(y, n):  # Q1 = u in [|y|, 2R]
+            u, w = _on(np.abs(y), 2 * R, n)
+            return 0.5 * np.sum(w * J(np.stack([(u + y[:, None]) / 2, (u - y[:, None]) / 2],
+                                                -1)), -1)
+
+        def det(y, n):  # v = r1^2 + r2^2 in [|y|, 2R^2]: p = (1/8) int f^2 dv (8 r1 r2 cancels)
+            v, w = _on(np.abs(y), 2 * R * R, n)
+            r = np.sqrt(np.maximum(np.stack([(v + y[:, None]) / 2, (v - y[:, None]) / 2], -1),
+                                   0.0))
+            return np.sum(w * np.asarray(J.amplitude(r.reshape(-1, 2))).reshape(v.shape) ** 2,
+                          -1) / 8
+
+        def trg(y, n):  # r = rho (cos t, sin t), rho^2 = y/2: p = (1/4) int rho dt
+            t, w = _on(np.zeros_like(y), np.full_like(y, np.pi / 2), n)
+            rho = np.sqrt(np.maximum(y, 0) / 2)[:, None]
+            return 0.25 * np.sum(w * J(np.stack([rho * np.cos(t), rho * np.sin(t)], -1)), -1)
+
+        return {"Q1": (lambda r: r[:, 0] + r[:, 1], q1), "Q2": (lambda r: r[:, 0] - r[:, 1], q2),
+                "det": (lambda r: r[:, 0] ** 2 - r[:, 1] ** 2, det),
+                "trG": (lambda r: 2 * (r[:, 0] ** 2 + r[:, 1] ** 2), trg)}
+    X = J.box[0, 1]
+
+    def along(y, n, sigma_of, factor):  # int_0^X P(x, sigma(y, x)) dx * factor(y)
+        x, w = _on(np.zeros_like(y), np.full_like(y, X), n)
+        return factor(y) * np.sum(w * J(np.stack([x, sigma_of(y[:, None], x)], -1)), -1)
+
+    return {
+        # q1 = (sigma + x)/2: sigma = 2 q1 - x, d sigma = 2 d q1
+        "q1": (lambda p: (p[:, 1] + p[:, 0]) / 2,
+               lambda y, n: along(y, n, lambda y, x: 2 * y - x, lambda y: 2.0)),
+        "q2": (lambda p: (p[:, 1] - p[:, 0]) / 2,
+               lambda y, n: along(y, n, lambda y, x: 2 * y + x, lambda y: 2.0)),
+        # det = e^sigma: p_det(y) = p_sigma(ln y) / y
+        "det": (lambda p: np.exp(p[:, 1]),
+                lambda y, n: along(y, n, lambda y, x: np.log(y) + 0 * x, lambda y: 1 / y)),
+        # Tr G = 2 e^sigma cosh x: sigma = ln(y / (2 cosh x)), d sigma = dy / y
+        "trG": (lambda p: 2 * np.exp(p[:, 1]) * np.cosh(p[:, 0]),
+                lambda y, n: along(y, n, lambda y, x: np.log(y / (2 * np.cosh(x))),
+                                   lambda y: 1 / y)),
+    }
+
+
+def _marginals3(joint: Joint) -> dict:
+    """name -> (function of the output variable, p(y, N)): n = 3, double integrals over
+    [0, 1]^2 with an N x N Gauss rule."""
+    J = joint
+
+    def integrate(y, n, mapping):
+        s, t, w = _square(n)
+        pts, jac = mapping(y[:, None], s[None, :], t[None, :])
+        return np.sum(w * jac * J(pts), -1)
+
+    if J.model == "lebesgue3":
+        Qmax = J.box[0, 1]
+
+        def q1(Y, s, t):  # Q2 = y s, Q3 = y s (2t - 1): triangle y > Q2 > |Q3|
+            Q2 = Y * s
+            return _stack(Y + 0 * s, Q2, Q2 * (2 * t - 1)), 2 * Y * Y * s
+
+        def q2(Y, s, t):  # Q1 in [y, Qmax], Q3 in [-y, y]
+            return _stack(Y + (Qmax - Y) * s, Y + 0 * s, Y * (2 * t - 1)), 2 * Y * (Qmax - Y)
+
+        def q3(Y, s, t):  # Q2 in [|y|, Qmax], Q1 in [Q2, Qmax]
+            a = np.abs(Y)
+            Q2 = a + (Qmax - a) * s
+            return _stack(Q2 + (Qmax - Q2) * t, Q2, Y + 0 * s), (Qmax - a) * (Qmax - Q2)
+
+        def det(Y, s, t):
+            # y != 0: Q1 = e^v, Q2 = e^u, Q3 = y e^{-u-v}, dQ1 dQ2 / |Q1 Q2| = du dv on
+            # ln|y|/3 < v < ln Qmax, (ln|y| - v)/2 < u < v (Q2 > |Q3|, Q1 > Q2);
+            # y = 0: Q3 = 0, Q2 = Q1 t, Q1 = Qmax s, Jacobian 1/(Q1 Q2) * Q1 Qmax
+            a = np.abs(Y)
+            zero = a == 0
+            la = np.log(np.where(zero, 1.0, a))
+            v = la / 3 + (math.log(Qmax) - la / 3) * s
+            u = (la - v) / 2 + (v - (la - v) / 2) * t
+            jac = (math.log(Qmax) - la / 3) * (1.5 * v - la / 2)
+            Q1, Q2 = np.exp(v), np.exp(u)
+            Q3 = Y * np.exp(-u - v)
+            Q1z = Qmax * s
+            Q2z = Q1z * t
+            with np.errstate(divide="ignore", invalid="ignore"):
+                jz = np.where(t > 0, Qmax / np.where(t > 0, Q2z, 1.0), 0.0)
+            return (_stack(np.where(zero, Q1z, Q1), np.where(zero, Q2z, Q2),
+                           np.where(zero, 0.0, Q3)), np.where(zero, jz, jac))
+
+        def trg(Y, s, t):
+            # sphere |Q|^2 = y through the chamber: Q = rho Z/|Z|, Z on the flat triangle
+            # e1, (1,1,1), (1,1,-1) (area coordinates a = s, b = (1 - s) t), d omega =
+            # 2 da db / |Z|^3; p = (rho / 2) int p(rho omega) d omega
+            Z, dom = _triangle(s, t, np.array([[1.0, 0, 0], [1, 1, 1], [1, 1, -1]]), 2.0)
+            rho = np.sqrt(np.maximum(Y, 0.0))
+            return rho[..., None] * Z, rho / 2 * dom
+
+        rules = {"Q1": (lambda Q: Q[:, 0], q1), "Q2": (lambda Q: Q[:, 1], q2),
+                 "Q3": (lambda Q: Q[:, 2], q3), "det": (lambda Q: np.prod(Q, -1), det),
+                 "trG": (lambda Q: np.sum(Q * Q, -1), trg)}
+    else:
+        lo, hi = J.box[0]
+
+        def q1(Y, s, t):  # q2 in [lo, y], q3 in [lo, q2]
+            q2 = lo + (Y - lo) * s
+            return _stack(Y + 0 * s, q2, lo + (q2 - lo) * t), (Y - lo) * (q2 - lo)
+
+        def q2(Y, s, t):  # q1 in [y, hi], q3 in [lo, y]
+            return _stack(Y + (hi - Y) * s, Y + 0 * s, lo + (Y - lo) * t), (hi - Y) * (Y - lo)
+
+        def q3(Y, s, t):  # q2 in [y, hi], q1 in [q2, hi]
+            q2 = Y + (hi - Y) * s
+            return _stack(q2 + (hi - q2) * t, q2, Y + 0 * s), (hi - Y) * (hi - q2)
+
+        R = (hi - lo) * math.sqrt(2 / 3)  # the traceless radius that leaves the box
+        eu = np.array([1.0, -1.0, 0.0]) / math.sqrt(2)
+        ev = np.array([1.0, 1.0, -2.0]) / math.sqrt(6)
+
+        def det(Y, s, t):
+            # det = e^sigma; q = (sigma/3)(1,1,1) + r (cos th e_u + sin th e_v), th in
+            # (pi/6, pi/2), dq = r dr dth dsigma / sqrt3: p_det(y) = p_sigma(ln y) / y
+            r, th = R * s, np.pi / 6 + (np.pi / 3) * t
+            sig = np.log(Y)
+            q = (sig[..., None] / 3 + r[..., None] * (np.cos(th)[..., None] * eu
+                                                      + np.sin(th)[..., None] * ev))
+            return q, (R * np.pi / 3) * r / (math.sqrt(3) * Y) + 0 * s
+
+        def trg(Y, s, t):
+            # Q = e^q on Q1 > Q2 > Q3 > 0: Q = rho Z/|Z| on the flat triangle e1, (1,1,0),
+            # (1,1,1) (d omega = da db / |Z|^3), dq = dQ / (Q1 Q2 Q3), |Q|^2 = y
+            Z, dom = _triangle(s, t, np.array([[1.0, 0, 0], [1, 1, 0], [1, 1, 1]]), 1.0)
+            rho = np.sqrt(Y)
+            Q = rho[..., None] * Z
+            with np.errstate(divide="ignore"):
+                q = np.log(np.maximum(Q, 1e-300))
+            return q, rho / 2 * dom / np.prod(Q, -1)
+
+        rules = {"q1": (lambda q: q[:, 0], q1), "q2": (lambda q: q[:, 1], q2),
+                 "q3": (lambda q: q[:, 2], q3), "det": (lambda q: np.exp(np.sum(q, -1)), det),
+                 "trG": (lambda q: np.sum(np.exp(2 * q), -1), trg)}
+    return {name: (f, (lambda y, n, m=m: integrate(y, n, m))) for name, (f, m) in rules.items()}
+
+
+def _stack(a, b, c):
+    a, b, c = np.broadcast_arrays(a, b, c)
+    return np.stack([a, b, c], -1)
+
+
+def _triangle(s, t, vertices: np.ndarray, volume: float):
+    """Unit vectors over the central projection of the flat triangle ``vertices`` (Duffy map:
+    area coordinates a = s, b = (1 - s) t) and the solid-angle Jacobian volume (1 - s) / |Z|^3
+    (``volume`` = |det vertices|)."""
+    a, b = s, (1 - s) * t
+    Z = (a[..., None] * vertices[0] + b[..., None] * vertices[1]
+         + (1 - a - b)[..., None] * vertices[2])
+    norm = np.linalg.norm(Z, axis=-1)
+    return Z / norm[..., None], volume * (1 - s) / norm**3
+
+
+# ---------------------------------------------------------------------------- driver
+@dataclass(frozen=True)
+class Marginal:
+    """One density: output points ``x``, values ``density``, the quadrature error estimate
+    (max over x of |p_N - p_{2N/3}|), its integral over x, the node count N used and whether
+    the error is within the tolerance (relative to the peak)."""
+
+    x: np.ndarray
+    density: np.ndarray
+    error: float
+    integral: float
+    nodes: int
+    converged: bool
+
+    def as_dict(self) -> dict:
+        return {"x": self.x.tolist(), "density": self.density.tolist(), "error": self.error,
+                "integral": self.integral, "nodes": self.nodes, "converged": self.converged}
+
+
+def _converged(fn, y: np.ndarray, sizes: tuple[int, ...], tolerance: float):
+    """p with N in ``sizes`` (each 3/2 of the one before, so the nested rule of 2N/3 nodes is the
+    previous N and is not evaluated again) until |p_N - p_{2N/3}| <= tolerance x peak."""
+    coarse = fn(y, (2 * sizes[0]) // 3)
+    for n in sizes:
+        p = fn(y, n)
+        err, peak = float(np.max(np.abs(p - coarse))), float(np.max(np.abs(p)))
+        if err <= tolerance * peak:
+            break
+        coarse = p
+    return p, err, n, err <= tolerance * peak
+
+
+def _support(values: np.ndarray, mass: np.ndarray) -> tuple[float, float]:
+    keep = mass > SUPPORT * np.max(mass)
+    return float(np.min(values[keep])), float(np.max(values[keep]))
+
+
+def _grid(lo: float, hi: float, points: int, geometric: bool = False) -> np.ndarray:
+    """Output points: an odd symmetric grid through 0 when [lo, hi] contains 0 inside (0 is
+    where det and Q_n have their cusp), else uniform on [lo, hi] (``geometric``: uniform in
+    ln y, for det and Tr G of the affine models, which spread over decades)."""
+    if geometric and lo > 0:
+        return np.geomspace(lo, hi, points)
+    if lo < 0 < hi:
+        x = max(-lo, hi) * np.linspace(-1.0, 1.0, points + (1 - points % 2))
+        return (x - x[::-1]) / 2  # exactly antisymmetric, exactly 0 in the middle
+    return np.linspace(lo, hi, points)
+
+
+def _integral(fn, lo: float, hi: float, n: int) -> float:
+    """int_lo^hi p by 16-node Gauss-Legendre panels: graded geometrically towards 0 on each side
+    of 0 when 0 is an end point or inside (where det and Q_n have their cusp and Tr G, Q_a a
+    power-law end point), geometric in y when 0 < lo (det, Tr G of the affine models)."""
+    total = 0.0
+    for a, b in ([(lo, 0.0), (0.0, hi)] if lo < 0 < hi else [(lo, hi)]):
+        if a == 0.0 or b == 0.0:
+            end = b if a == 0.0 else a
+            edges = np.sort(end * np.concatenate([[0.0], 2.0 ** -np.arange(9, -1, -1)]))
+        elif a > 0:
+            edges = np.geomspace(a, b, 9)
+        else:
+            edges = np.linspace(a, b, 9)
+        y, w = _on(edges[:-1], edges[1:], 16)
+        total += float(np.sum(w.ravel() * fn(y.ravel(), n)))
+    return total
+
+
+def _trimmed(fn, lo: float, hi: float, n: int, geometric: bool) -> tuple[float, float]:
+    """[lo, hi] shrunk to where a coarse evaluation of p (y p for a geometric grid) exceeds
+    1e-12 of its peak (the output points cover the density, not the far tails of the
+    support)."""
+    y = _grid(lo, hi, 61, geometric)
+    p = fn(y, n) * (y if geometric else 1.0)
+    keep = np.flatnonzero(p > 1e-12 * np.max(p))
+    a, b = y[max(keep[0] - 1, 0)], y[min(keep[-1] + 1, len(y) - 1)]
+    if lo < 0 < hi and a < 0 < b:
+        a, b = -max(-a, b), max(-a, b)
+    return float(a), float(b)
+
+
+def _rules(joint: Joint) -> dict:
+    """name -> (the invariant as a function of the reduced coordinates, p(y, N), floor): p is
+    0 below the range of a nonnegative invariant; ``floor`` = 0 where the output grid starts
+    at that end point (d'Alembert Q1, Tr G, and Q2 for n = 3), None elsewhere (the affine det
+    and Tr G > 0 start at their support)."""
+    rules = _marginals2(joint) if joint.model.endswith("2") else _marginals3(joint)
+    if joint.model.startswith("lebesgue"):
+        positive = ("Q1", "trG") + (("Q2",) if joint.model == "lebesgue3" else ())
+        strict = False
+    else:
+        positive, strict = ("det", "trG"), True
+
+    def restricted(fn):
+        def p(y, n):
+            inside = y > 0 if strict else y >= 0
+            out = np.zeros(len(y))
+            if np.any(inside):
+                out[inside] = fn(y[inside], n)
+            return out
+        return p
+    return {name: (f, restricted(fn), None if strict else 0.0) if name in positive
+            else (f, fn, None) for name, (f, fn) in rules.items()}
+
+
+def density_at(joint: Joint, name: str, y, nodes: int) -> np.ndarray:
+    """The marginal density of ``name`` (as in :func:`densities`) at the points ``y`` (inside
+    the support box of ``joint``) with an ``nodes``-point Gauss rule per integrated variable."""
+    return _rules(joint)[name][1](np.atleast_1d(np.asarray(y, float)), nodes)
+
+
+def densities(spectrum: Spectrum, state: int, points: int | None = None,
+              tolerance: float = DEFAULT_TOLERANCE) -> dict:
+    """Exact marginal densities for the ``state``-th entry of ``energies()`` (module docstring).
+
+    Returns a dict: ``energy``, ``sector``, ``variables`` ("Q" for d'Alembert, "q" for the
+    affine models), ``normalisation`` (int rho over the reduced domain), ``marginals``
+    (name -> (x, density)), ``details`` (name -> :class:`Marginal`), ``orientation``,
+    ``warnings`` (densities whose error exceeds ``tolerance`` x their peak)."""
+    level: Level = spectrum.level_of_state(state)
+    return marginal_densities(spectrum, level, points, tolerance)
+
+
+def marginal_densities(spectrum: Spectrum, level: Level, points: int | None = None,
+                       tolerance: float = DEFAULT_TOLERANCE) -> dict:
+    """:func:`densities` for one :class:`Level` (any block and index of ``spectrum``)."""
+    n = spectrum.n
+    points = points or POINTS[n]
+    joint = joint_density(spectrum, level)
+    mass = joint.weights * joint(joint.nodes)
+    details, warnings = {}, []
+    for name, (f, fn, floor) in _rules(joint).items():
+        lo, hi = _support(f(joint.nodes), mass)
+        lo = lo if floor is None else floor  # resolved down to its end point
+        geometric = name in ("det", "trG") and joint.model.startswith("haar")
+        y = _grid(*_trimmed(fn, lo, hi, NODES[n][0], geometric), points, geometric)
+        p, err, nodes, ok = _converged(fn, y, NODES[n], tolerance)
+        details[name] = Marginal(y, p, err, _integral(fn, lo, hi, nodes), nodes, ok)
+        if not ok:
+            warnings.append(f"density of {name}: quadrature error {err:.1e} above tolerance "
+                            f"{tolerance:g} x peak {np.max(np.abs(p)):.3g}")
+    return {"energy": level.energy, "sector": level.sectors[0].as_dict(),
+            "variables": "Q" if joint.model.startswith("lebesgue") else "q",
+            "normalisation": float(np.sum(mass)), "level_error": level.error,
+            "marginals": {k: (m.x, m.density) for k, m in details.items()},
+            "details": details, "orientation": orientation(n), "warnings": warnings}
+
+
+def orientation(n: int) -> dict[str, np.ndarray]:
+    """Exact orientation densities (module docstring): n = 2 uniform 1/(2 pi) in the angles of L
+    and R on [0, 2 pi]; n = 3 the Haar density (1 - cos omega)/pi of the rotation angle."""
+    if n == 2:
+        ang = np.linspace(0, 2 * np.pi, 361)
+        dens = np.full_like(ang, 1 / (2 * np.pi))
+    else:
+        ang = np.linspace(0, np.pi, 361)
+        dens = (1 - np.cos(ang)) / np.pi
+    return {"angle": ang, "L_angle": dens, "R_angle": dens.copy()}
+
+
+def write_densities(spectrum: Spectrum, state: int, directory: str | Path,
+                    points: int | None = None, tolerance: float = DEFAULT_TOLERANCE) -> dict:
+    """Write densities.npz, densities.json (every array, error and integral) and one PNG per
+    density; returns the JSON payload."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -129,32 +617,44 @@ def write_densities(spectrum: Spectrum, state: int, directory: str | Path) -> di
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    data = densities(spectrum, state)
-    arrays, summary = {}, {"state": state, "energy": data["energy"], "sector": data["sector"],
-                           "normalisation": data["normalisation"], "integrals": {}}
-    for name, (x, p) in data["marginals"].items():
-        arrays[f"{name}_x"], arrays[f"{name}_density"] = x, p
-        summary["integrals"][name] = float(np.sum(p) * (x[1] - x[0]))
+    data = densities(spectrum, state, points, tolerance)
+    payload = {"state": state, "energy": data["energy"], "sector": data["sector"],
+               "variables": data["variables"], "variables_note": VARIABLES[data["variables"]],
+               "level_error": data["level_error"],
+               "normalisation": data["normalisation"], "tolerance": tolerance,
+               "densities": {}, "integrals": {}, "warnings": data["warnings"]}
+    arrays = {}
+    for name, m in data["details"].items():
+        arrays[f"{name}_x"], arrays[f"{name}_density"] = m.x, m.density
+        payload["densities"][name] = m.as_dict()
+        payload["integrals"][name] = m.integral
         fig, ax = plt.subplots(figsize=(5, 3.5))
-        ax.plot(x, p)
+        ax.plot(m.x, m.density)
         ax.set_xlabel(name)
         ax.set_ylabel("probability density")
-        ax.set_title(f"state {state}, E = {data['energy']:.6g}")
+        ax.set_title(f"state {state}, E = {data['energy']:.6g} (error {m.error:.1e})")
         fig.tight_layout()
         fig.savefig(directory / f"density_{name}.png", dpi=100)
         plt.close(fig)
     orient = data["orientation"]
     arrays["angle"] = orient["angle"]
+    label = ("angle of L, R (rad): uniform" if spectrum.n == 2
+             else "rotation angle of L, R (rad): Haar")
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for key in ("L_angle", "R_angle"):
         arrays[key + "_density"] = orient[key]
-        summary["integrals"][key] = float(np.trapezoid(orient[key], orient["angle"]))
+        payload["densities"][key] = {
+            "x": orient["angle"].tolist(), "density": orient[key].tolist(), "error": 0.0,
+            "integral": 1.0, "converged": True,
+            "exact": ("uniform 1/(2 pi): |Psi|^2 of a sector state does not depend on the angle"
+                      if spectrum.n == 2 else "(1 - cos omega)/pi: Haar measure of SO(3)")}
+        payload["integrals"][key] = 1.0
         ax.plot(orient["angle"], orient[key], label=key.replace("_", " "))
-    ax.set_xlabel("angle of the principal axes (rad)")
+    ax.set_xlabel(label)
     ax.legend()
     fig.tight_layout()
     fig.savefig(directory / "density_orientation.png", dpi=100)
     plt.close(fig)
     np.savez(directory / "densities.npz", **arrays)
-    (directory / "densities.json").write_text(json.dumps(summary, indent=2))
-    return summary
+    (directory / "densities.json").write_text(json.dumps(payload))
+    return payload
