@@ -25,7 +25,7 @@ LAYERS = {
     "mechanics": ("constraints", "nonholonomic", "system", "integrators", "simulate"),
     "quantum": ("quantum",),
     "application": ("_timing", "config", "runner", "sweep", "studies", "h5md", "checkpoint",
-                    "plotting", "export", "examples", "quantum.config"),
+                    "plotting", "export", "examples", "quantum.config", "quantum.density_files"),
     "cli": ("cli", "quantum.cli", "demo_kinematics"),
 }
 #: What each layer may import (besides itself).

@@ -128,7 +128,7 @@ def density(config: str, state: int, output: str, as_json: bool) -> None:
     """Exact marginal densities of q (or Q), det phi, Tr G and orientations for one state."""
     _enable_x64()
     from affinebody.quantum import config as qconfig
-    from affinebody.quantum.densities import write_densities
+    from affinebody.quantum.density_files import write_densities
 
     if state < 0:
         raise click.UsageError(f"--state must be >= 0 (got {state})")
