@@ -51,7 +51,6 @@ gives an explicit symplectic 2nd-order drift (McLachlan's Lie-Poisson splitting 
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import jax
@@ -59,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from affinebody import _linalg as linalg
+from affinebody import _pytree as pytree
 from affinebody._checks import (
     as_float64,
     check_symmetric_positive_definite,
@@ -128,16 +128,12 @@ def _frob(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.sum(a * b, axis=(-2, -1))
 
 
-def _register(cls):
-    return jax.tree_util.register_dataclass(dataclasses.dataclass(frozen=True)(cls))
-
-
 # --------------------------------------------------------------------------------------------
 # Translational kinetic energies
 # --------------------------------------------------------------------------------------------
 
 
-@_register
+@pytree.dataclass
 class DAlembertTranslational:
     """d'Alembert translational kinetic energy, also the is-af model (6), (63), (77a).
 
@@ -173,7 +169,7 @@ class DAlembertTranslational:
         _check_mass(self.mass)
 
 
-@_register
+@pytree.dataclass
 class AffineTranslational:
     """Spatially affine, materially isotropic translational energy af-is (64), (78a).
 
@@ -321,7 +317,7 @@ def _principal_directions(metric: jax.Array):
 # --------------------------------------------------------------------------------------------
 
 
-@_register
+@pytree.dataclass
 class DAlembert:
     """d'Alembert internal kinetic energy with a general inertia J (6), (52), (76a).
 
@@ -364,7 +360,7 @@ class DAlembert:
         check_symmetric_positive_definite(self._j(), "kinetic.J")
 
 
-@_register
+@pytree.dataclass
 class AffineJ(_LeftInvariantModel):
     """af-J: spatially affine, materially O(n, J)-invariant energy (65), (79a).
 
@@ -408,7 +404,7 @@ class AffineJ(_LeftInvariantModel):
         check_symmetric_positive_definite(self._j(), "kinetic.J")
 
 
-@_register
+@pytree.dataclass
 class HAffine(_RightInvariantModel):
     """H-af: materially affine energy with a constant spatial inertia H (67), (68), (81a).
 
@@ -504,7 +500,7 @@ class _BiTensorModel:
         )
 
 
-@_register
+@pytree.dataclass
 class LeftInvariant(_BiTensorModel, _LeftInvariantModel):
     """l-af: the general spatially affine (left-invariant) energy (70), (82a).
 
@@ -525,7 +521,7 @@ class LeftInvariant(_BiTensorModel, _LeftInvariantModel):
         return rank_one_splitting(state, w, rates, h, "left")
 
 
-@_register
+@pytree.dataclass
 class RightInvariant(_BiTensorModel, _RightInvariantModel):
     """r-af: the general materially affine (right-invariant) energy (71), (83a).
 
@@ -638,7 +634,7 @@ _REGION_DOC = """
 """
 
 
-@_register
+@pytree.dataclass
 class AffineIsotropic(_IsotropicAffineFamily, _LeftInvariantModel):
     """af-is: spatially affine, materially isotropic internal energy (74), (85), (86).
 
@@ -664,7 +660,7 @@ class AffineIsotropic(_IsotropicAffineFamily, _LeftInvariantModel):
         self._check_region("af-is", n)
 
 
-@_register
+@pytree.dataclass
 class IsotropicAffine(_IsotropicAffineFamily, _RightInvariantModel):
     """is-af: spatially isotropic, materially affine internal energy (73), (84a), (86).
 
@@ -694,7 +690,7 @@ AffineIsotropic.__doc__ += _REGION_DOC
 IsotropicAffine.__doc__ += _REGION_DOC
 
 
-@_register
+@pytree.dataclass
 class AffineAffine(_IsotropicAffineFamily, _LeftInvariantModel):
     """af-af: the doubly affine internal energy (72); (84a)/(85) with I = 0.
 
@@ -750,7 +746,7 @@ class AffineAffine(_IsotropicAffineFamily, _LeftInvariantModel):
 # --------------------------------------------------------------------------------------------
 
 
-@_register
+@pytree.dataclass
 class KineticEnergy:
     """Total kinetic energy of N bodies, T = sum_A (T_tr)_A + (T_int)_A (10), (55).
 

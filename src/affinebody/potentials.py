@@ -94,6 +94,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from affinebody import _linalg as linalg
+from affinebody import _pytree as pytree
 from affinebody._checks import as_matrix, as_vector
 from affinebody.deformation import (
     characteristic_from_traces,
@@ -295,7 +296,7 @@ def switching(s: jax.Array, r_on: float, r_cut: float) -> jax.Array:
     return 1.0 - t**3 * (10.0 - 15.0 * t + 6.0 * t**2)
 
 
-@dataclass(frozen=True)
+@pytree.dataclass(static=True)
 class Cutoff:
     """Smooth cut-off of a pair potential in ``variable`` (``"r"`` or ``"D"``).
 
@@ -303,21 +304,19 @@ class Cutoff:
     to ``0.9 * r_cut``. Energy and forces are exactly zero for ``variable >= r_cut``.
     """
 
-    r_cut: float
-    r_on: float | None = None
+    r_cut: float = pytree.field(converter=lambda v: _positive(v, "cutoff.r_cut"))
+    r_on: float | None = pytree.field(
+        default=None, converter=lambda v: None if v is None else _real(v, "cutoff.r_on"))
     variable: str = "r"
 
     def __post_init__(self):
-        r_cut = _real(self.r_cut, "cutoff.r_cut")
-        r_on = 0.9 * r_cut if self.r_on is None else _real(self.r_on, "cutoff.r_on")
-        if not r_cut > 0:
-            raise ValueError(f"cutoff.r_cut must be > 0 (got {r_cut})")
-        if not 0 <= r_on < r_cut:
-            raise ValueError(f"cutoff.r_on must satisfy 0 <= r_on < r_cut (got {r_on}, {r_cut})")
+        if self.r_on is None:
+            pytree.initialize(self, r_on=0.9 * self.r_cut)
+        if not 0 <= self.r_on < self.r_cut:
+            raise ValueError(f"cutoff.r_on must satisfy 0 <= r_on < r_cut "
+                             f"(got {self.r_on}, {self.r_cut})")
         if self.variable not in ("r", "D"):
             raise ValueError(f"cutoff.variable must be 'r' or 'D' (got {self.variable!r})")
-        object.__setattr__(self, "r_cut", r_cut)
-        object.__setattr__(self, "r_on", r_on)
 
 
 def _real(value: Any, name: str) -> float:
@@ -411,18 +410,11 @@ class PairTerm(abc.ABC):
         """The space of the centres: free, or the periodic box ``box`` (module docstring)."""
         return as_space(self.box)
 
-    def _check_geometry(self) -> None:
+    def __post_init__(self):
+        """A periodic box needs a cut-off on r within half its perpendicular width."""
         owner = type(self).__name__
-        if self.cutoff is not None and not isinstance(self.cutoff, Cutoff):
-            raise ValueError(f"{owner}.cutoff must be a Cutoff (got {self.cutoff!r})")
         if self.box is None:
             return
-        box = self.box
-        if isinstance(box, Sequence) and all(not isinstance(b, Sequence) for b in box):
-            box = tuple(_positive(b, f"{owner}.box[{i}]") for i, b in enumerate(box))
-        else:  # a Space or an n x n cell matrix (triclinic)
-            box = as_space(box)
-        object.__setattr__(self, "box", box)
         if self.cutoff is None or self.cutoff.variable != "r":
             raise ValueError(
                 f"{owner}: a periodic box needs a cut-off on r (set r_cut <= half the box)"
@@ -537,37 +529,82 @@ class PairTerm(abc.ABC):
         return pair_symmetry(self._needed, periodic=self.box is not None)
 
 
-def _m_names(names: Iterable[str]) -> set[str]:
-    return {name for name in names if _indexed([name], "M")}
+def _argument(owner: str) -> Any:
+    """The field ``argument`` ('r' or 'D') of a pair family named ``owner``."""
+
+    def convert(value):
+        if value not in ("r", "D"):
+            raise ValueError(f"{owner}.argument must be 'r' or 'D' (got {value!r})")
+        return value
+
+    return pytree.field(default="r", converter=convert)
 
 
-def _argument(value: str, owner: str) -> str:
-    if value not in ("r", "D"):
-        raise ValueError(f"{owner}.argument must be 'r' or 'D' (got {value!r})")
-    return value
+def _cutoff_field(owner: str) -> Any:
+    def convert(value):
+        if value is not None and not isinstance(value, Cutoff):
+            raise ValueError(f"{owner}.cutoff must be a Cutoff (got {value!r})")
+        return value
+
+    return pytree.field(default=None, converter=convert)
+
+
+def _box_field(owner: str) -> Any:
+    """The field ``box``: None, n positive edges (orthorhombic), a cell matrix or a Space."""
+
+    def convert(box):
+        if box is None:
+            return None
+        if isinstance(box, Sequence) and all(not isinstance(b, Sequence) for b in box):
+            return tuple(_positive(b, f"{owner}.box[{i}]") for i, b in enumerate(box))
+        return as_space(box)  # a Space or an n x n cell matrix (triclinic)
+
+    return pytree.field(default=None, converter=convert)
+
+
+def _number(check, name: str) -> Any:
+    """A required field converted by ``check(value, name)`` (_real, _positive, _real_tuple)."""
+    return pytree.field(converter=lambda value: check(value, name))
+
+
+def _optional(check, name: str, default=None) -> Any:
+    """An optional field converted by ``check(value, name)`` unless it is None."""
+    return pytree.field(
+        default=default, converter=lambda v: None if v is None else check(v, name))
 
 
 # --------------------------------------------------------------------------------------------
 # Generic potentials (any JAX function or a config expression)
 
 
-@dataclass(frozen=True)
+def _callable(owner: str):
+    def convert(function):
+        if not callable(function):
+            raise ValueError(f"{owner}.function must be callable")
+        return function
+
+    return convert
+
+
+def _names(owner: str, *, pair: bool):
+    def convert(names):
+        names = (names,) if isinstance(names, str) else names
+        return _check_names(tuple(names), owner, pair=pair)
+
+    return convert
+
+
+@pytree.dataclass(static=True)
 class OneBodyPotential(OneBodyTerm):
     """``V = sum_K f(**variables_K)``: any one-body potential V(x, phi) (57), e.g. an elastic
     energy in the invariants K_a, I_a or E, a dilatation potential of ``det`` (80), (81), an
     external field in ``x``. ``function`` takes the named variables as keyword arguments
     (arrays with a leading body axis) and must be JAX-traceable."""
 
-    function: Callable[..., jax.Array]
-    variables: tuple[str, ...]
+    function: Callable[..., jax.Array] = pytree.field(converter=_callable("OneBodyPotential"))
+    variables: tuple[str, ...] = pytree.field(
+        converter=_names("OneBodyPotential", pair=False))
 
-    def __post_init__(self):
-        if not callable(self.function):
-            raise ValueError("OneBodyPotential.function must be callable")
-        names = (self.variables,) if isinstance(self.variables, str) else self.variables
-        object.__setattr__(
-            self, "variables", _check_names(tuple(names), "OneBodyPotential", pair=False)
-        )
 
     def term(self, values):
         return self.function(**{name: values[name] for name in self.variables})
@@ -579,25 +616,17 @@ class OneBodyPotential(OneBodyTerm):
         return cls(expression, expression.used)
 
 
-@dataclass(frozen=True)
+@pytree.dataclass(static=True)
 class PairPotential(PairTerm):
     """``V = sum_{K<L} f(**variables_KL)``: any binary potential (61), (62), (77), (78), e.g.
     ``f(r, D, K1, ..., M1, ..., det)``. ``function`` takes the named variables as keyword
     arguments (arrays with a leading pair axis) and must be JAX-traceable."""
 
-    function: Callable[..., jax.Array]
-    variables: tuple[str, ...]
-    cutoff: Cutoff | None = None
-    box: tuple[float, ...] | Space | None = None
+    function: Callable[..., jax.Array] = pytree.field(converter=_callable("PairPotential"))
+    variables: tuple[str, ...] = pytree.field(converter=_names("PairPotential", pair=True))
+    cutoff: Cutoff | None = _cutoff_field("PairPotential")
+    box: tuple[float, ...] | Space | None = _box_field("PairPotential")
 
-    def __post_init__(self):
-        if not callable(self.function):
-            raise ValueError("PairPotential.function must be callable")
-        names = (self.variables,) if isinstance(self.variables, str) else self.variables
-        object.__setattr__(
-            self, "variables", _check_names(tuple(names), "PairPotential", pair=True)
-        )
-        self._check_geometry()
 
     def term(self, values):
         return self.function(**{name: values[name] for name in self.variables})
@@ -623,7 +652,7 @@ class PairPotential(PairTerm):
 # Built-in one-body families
 
 
-@dataclass(frozen=True)
+@pytree.dataclass(static=True)
 class Dilatation(OneBodyTerm):
     """Dilatation-stabilising potential V = sum_K f(det phi_K), eqs. (80), (81).
 
@@ -632,14 +661,12 @@ class Dilatation(OneBodyTerm):
     f'(det) det(phi) phi^-T (docs/theory/exact-flows.md, "Gradients of the invariants").
     """
 
-    stiffness: float
-    volume: float = 1.0
+    stiffness: float = _number(_positive, "dilatation.stiffness")
+    volume: float = _optional(_positive, "dilatation.volume", 1.0)
     form: str = "log"
     variables = ("det",)
 
     def __post_init__(self):
-        object.__setattr__(self, "stiffness", _positive(self.stiffness, "dilatation.stiffness"))
-        object.__setattr__(self, "volume", _positive(self.volume, "dilatation.volume"))
         if self.form not in ("log", "harmonic"):
             raise ValueError(f"dilatation.form must be 'log' or 'harmonic' (got {self.form!r})")
 
@@ -650,18 +677,14 @@ class Dilatation(OneBodyTerm):
         return 0.5 * self.stiffness * (det - self.volume) ** 2
 
 
-@dataclass(frozen=True)
+@pytree.dataclass(static=True)
 class StVenantKirchhoff(OneBodyTerm):
     """Elastic energy in the Lagrange strain E = (G - Id)/2 (32):
     V = sum_K [lam/2 (Tr E)^2 + mu Tr(E^2)], positive definite for mu > 0, lam + 2 mu / n > 0."""
 
-    lam: float
-    mu: float
+    lam: float = _number(_real, "elastic.lam")
+    mu: float = _number(_positive, "elastic.mu")
     variables = ("E1", "E2")
-
-    def __post_init__(self):
-        object.__setattr__(self, "lam", _real(self.lam, "elastic.lam"))
-        object.__setattr__(self, "mu", _positive(self.mu, "elastic.mu"))
 
     def check_dimension(self, n: int) -> None:
         if not self.lam + 2.0 * self.mu / n > 0:  # E = eps Id must cost energy
@@ -673,20 +696,13 @@ class StVenantKirchhoff(OneBodyTerm):
         return 0.5 * self.lam * values["E1"] ** 2 + self.mu * values["E2"]
 
 
-@dataclass(frozen=True)
+@pytree.dataclass(static=True)
 class ExternalHarmonic(OneBodyTerm):
     """External harmonic trap V = sum_K (k/2) |x_K - c|^2 (a translational term of (58))."""
 
-    stiffness: float
-    centre: tuple[float, ...] | None = None
+    stiffness: float = _number(_positive, "external-harmonic.stiffness")
+    centre: tuple[float, ...] | None = _optional(_real_tuple, "external-harmonic.centre")
     variables = ("x",)
-
-    def __post_init__(self):
-        object.__setattr__(
-            self, "stiffness", _positive(self.stiffness, "external-harmonic.stiffness")
-        )
-        if self.centre is not None:
-            object.__setattr__(self, "centre", _real_tuple(self.centre, "external-harmonic.centre"))
 
     def check_dimension(self, n: int) -> None:
         if self.centre is not None and len(self.centre) != n:
@@ -698,15 +714,12 @@ class ExternalHarmonic(OneBodyTerm):
         return 0.5 * self.stiffness * jnp.sum((x - centre) ** 2, axis=-1)
 
 
-@dataclass(frozen=True)
+@pytree.dataclass(static=True)
 class ExternalLinear(OneBodyTerm):
     """Uniform external force F on every centre: V = -sum_K F . x_K (e.g. gravity)."""
 
-    force: tuple[float, ...]
+    force: tuple[float, ...] = _number(_real_tuple, "external-linear.force")
     variables = ("x",)
-
-    def __post_init__(self):
-        object.__setattr__(self, "force", _real_tuple(self.force, "external-linear.force"))
 
     def check_dimension(self, n: int) -> None:
         if len(self.force) != n:
@@ -721,22 +734,16 @@ class ExternalLinear(OneBodyTerm):
 # Built-in pair families
 
 
-@dataclass(frozen=True)
+@pytree.dataclass(static=True)
 class LennardJones(PairTerm):
     """V_KL = 4 eps ((sigma/s)^12 - (sigma/s)^6), s = r or the affine distance D (75);
     minimum -eps at s = 2^(1/6) sigma."""
 
-    epsilon: float
-    sigma: float
-    argument: str = "r"
-    cutoff: Cutoff | None = None
-    box: tuple[float, ...] | Space | None = None
-
-    def __post_init__(self):
-        object.__setattr__(self, "epsilon", _positive(self.epsilon, "lennard-jones.epsilon"))
-        object.__setattr__(self, "sigma", _positive(self.sigma, "lennard-jones.sigma"))
-        _argument(self.argument, "lennard-jones")
-        self._check_geometry()
+    epsilon: float = _number(_positive, "lennard-jones.epsilon")
+    sigma: float = _number(_positive, "lennard-jones.sigma")
+    argument: str = _argument("lennard-jones")
+    cutoff: Cutoff | None = _cutoff_field("LennardJones")
+    box: tuple[float, ...] | Space | None = _box_field("LennardJones")
 
     @property
     def variables(self) -> tuple[str, ...]:
@@ -747,23 +754,16 @@ class LennardJones(PairTerm):
         return 4.0 * self.epsilon * (q6 * q6 - q6)
 
 
-@dataclass(frozen=True)
+@pytree.dataclass(static=True)
 class Morse(PairTerm):
     """V_KL = depth ((1 - exp(-alpha (s - r0)))^2 - 1), s = r or D; minimum -depth at s = r0."""
 
-    depth: float
-    alpha: float
-    r0: float
-    argument: str = "r"
-    cutoff: Cutoff | None = None
-    box: tuple[float, ...] | Space | None = None
-
-    def __post_init__(self):
-        object.__setattr__(self, "depth", _positive(self.depth, "morse.depth"))
-        object.__setattr__(self, "alpha", _positive(self.alpha, "morse.alpha"))
-        object.__setattr__(self, "r0", _positive(self.r0, "morse.r0"))
-        _argument(self.argument, "morse")
-        self._check_geometry()
+    depth: float = _number(_positive, "morse.depth")
+    alpha: float = _number(_positive, "morse.alpha")
+    r0: float = _number(_positive, "morse.r0")
+    argument: str = _argument("morse")
+    cutoff: Cutoff | None = _cutoff_field("Morse")
+    box: tuple[float, ...] | Space | None = _box_field("Morse")
 
     @property
     def variables(self) -> tuple[str, ...]:
@@ -774,21 +774,15 @@ class Morse(PairTerm):
         return self.depth * ((1.0 - decay) ** 2 - 1.0)
 
 
-@dataclass(frozen=True)
+@pytree.dataclass(static=True)
 class Gaussian(PairTerm):
     """V_KL = amplitude exp(-s^2 / (2 width^2)), s = r or D (amplitude < 0: attraction)."""
 
-    amplitude: float
-    width: float
-    argument: str = "r"
-    cutoff: Cutoff | None = None
-    box: tuple[float, ...] | Space | None = None
-
-    def __post_init__(self):
-        object.__setattr__(self, "amplitude", _real(self.amplitude, "gaussian.amplitude"))
-        object.__setattr__(self, "width", _positive(self.width, "gaussian.width"))
-        _argument(self.argument, "gaussian")
-        self._check_geometry()
+    amplitude: float = _number(_real, "gaussian.amplitude")
+    width: float = _number(_positive, "gaussian.width")
+    argument: str = _argument("gaussian")
+    cutoff: Cutoff | None = _cutoff_field("Gaussian")
+    box: tuple[float, ...] | Space | None = _box_field("Gaussian")
 
     @property
     def variables(self) -> tuple[str, ...]:
@@ -799,31 +793,24 @@ class Gaussian(PairTerm):
         return self.amplitude * jnp.exp(-(s**2) / (2.0 * self.width**2))
 
 
-@dataclass(frozen=True)
+def _invariants(value: str) -> str:
+    if value not in ("M", "K"):
+        raise ValueError(f"harmonic-invariants.invariants must be 'M' or 'K' (got {value!r})")
+    return value
+
+
+@pytree.dataclass(static=True)
 class HarmonicInvariants(PairTerm):
     """Internal binary term (60): V_KL = (k/2) sum_a (X_a - X0_a)^2 with X = M[phi_K, phi_L]
     (30) (affine, ``invariants="M"``) or X = K[phi_K, phi_L] (28) (Euclidean, ``"K"``);
     ``reference`` X0 defaults to n for every a (the value at phi_K = phi_L = Id). Distance
     enters only through an optional cut-off."""
 
-    stiffness: float
-    invariants: str = "M"
-    reference: tuple[float, ...] | None = None
-    cutoff: Cutoff | None = None
-    box: tuple[float, ...] | Space | None = None
-
-    def __post_init__(self):
-        object.__setattr__(
-            self, "stiffness", _positive(self.stiffness, "harmonic-invariants.stiffness")
-        )
-        if self.invariants not in ("M", "K"):
-            raise ValueError(
-                f"harmonic-invariants.invariants must be 'M' or 'K' (got {self.invariants!r})"
-            )
-        if self.reference is not None:
-            ref = _real_tuple(self.reference, "harmonic-invariants.reference")
-            object.__setattr__(self, "reference", ref)
-        self._check_geometry()
+    stiffness: float = _number(_positive, "harmonic-invariants.stiffness")
+    invariants: str = pytree.field(default="M", converter=_invariants)
+    reference: tuple[float, ...] | None = _optional(_real_tuple, "harmonic-invariants.reference")
+    cutoff: Cutoff | None = _cutoff_field("HarmonicInvariants")
+    box: tuple[float, ...] | Space | None = _box_field("HarmonicInvariants")
 
     @property
     def variables(self) -> tuple[str, ...]:
@@ -845,7 +832,7 @@ class HarmonicInvariants(PairTerm):
 # Sums and forces
 
 
-@dataclass(frozen=True)
+@pytree.dataclass(static=True)
 class TotalPotential:
     """Sum of potentials, eq. (56); its symmetry is the intersection of the terms'."""
 

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import jax
@@ -45,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from affinebody import _linalg as linalg
+from affinebody import _pytree as pytree
 from affinebody import constraints, nonholonomic
 from affinebody._checks import as_matrix, as_vector, is_concrete, transpose
 from affinebody.constraints import CONSTRAINED_GROUPS
@@ -83,7 +83,7 @@ def project_momentum(phi: jax.Array, pi: jax.Array, group: str) -> jax.Array:
     return pi - transpose(linalg.solve(transpose(phi), transpose(removed)))
 
 
-@dataclass(frozen=True)
+@pytree.dataclass
 class HamiltonianSystem:
     """H(x, phi, p, pi) = T(kinetic) + V(potential) on the configuration space ``group``.
 
@@ -92,10 +92,13 @@ class HamiltonianSystem:
     group: one of SYSTEM_GROUPS.
     """
 
+    # kinetic parameters are array leaves (traced under jit: one compilation serves every
+    # inertia); potentials are hashable static objects and enter compiled functions as data of
+    # the treedef, with the group and the constraint.
     kinetic: Any
-    potential: Any = None
-    group: str = "GL+"
-    rotationless: str | None = None
+    potential: Any = pytree.static_field(default=None)
+    group: str = pytree.static_field(default="GL+")
+    rotationless: str | None = pytree.static_field(default=None)
 
     def __post_init__(self):
         if self.group not in SYSTEM_GROUPS:
@@ -319,9 +322,3 @@ class HamiltonianSystem:
         """A copy with some fields changed."""
         return dataclasses.replace(self, **changes)
 
-
-# kinetic parameters are array leaves (traced under jit); potentials are hashable frozen
-# dataclasses and enter compiled functions as static data.
-jax.tree_util.register_dataclass(
-    HamiltonianSystem, data_fields=["kinetic"], meta_fields=["potential", "group", "rotationless"]
-)
