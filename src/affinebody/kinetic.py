@@ -51,7 +51,8 @@ gives an explicit symplectic 2nd-order drift (McLachlan's Lie-Poisson splitting 
 
 from __future__ import annotations
 
-from typing import Any
+import abc
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -129,12 +130,78 @@ def _frob(a: jax.Array, b: jax.Array) -> jax.Array:
 
 
 # --------------------------------------------------------------------------------------------
+# The interface of a kinetic term
+# --------------------------------------------------------------------------------------------
+
+
+class AbstractKineticTerm(abc.ABC):
+    """The kinetic energy of one body, translational (acting on x, p) or internal (phi, pi).
+
+    A model is a ``_pytree.dataclass`` whose fields are its inertial parameters (scalars or
+    arrays with a leading body axis) and which declares, as class attributes, what the rest of
+    the library needs to know about it (no caller decides by the model's type):
+
+    - ``parameters``: the names of its fields, the parameters a config gives it;
+    - ``exact_flow``: whether ``flow`` is the exact flow of ``hamiltonian``;
+    - ``flow_moves_only_x``: whether ``flow`` moves the centre x only (then it commutes with
+      every internal flow and the drift of ``KineticEnergy`` is their plain composition);
+    - ``constrained_drift``: how it drifts on a constrained group (``affinebody.constraints``):
+      ``"exact"`` (its own flow keeps the group: phi fixed, or g mapped into g), ``"lie-group"``
+      (a left/right-invariant term restricted to G: rank-one splitting in g) or ``"rattle"``
+      (d'Alembert's constant inertia);
+    - ``invariance_side``: ``"left"`` when T depends on xi through Omega_hat = phi^-1 xi (34)
+      (spatially affine), ``"right"`` through Omega = xi phi^-1 (materially affine), else None;
+    - ``symmetry``: its invariance groups, labels of ``SYMMETRIES`` closed under inclusion.
+
+    The methods are per body: ``lagrangian``/``hamiltonian`` [..., N] and the Legendre map
+    p = dT/dv (pi = (dT/dxi)^T, (50)) with its inverse, on the translational or the internal
+    variables; ``flow(state, h)`` moves a whole ``State``; ``check(n)`` raises a one-line
+    ValueError naming the parameter when the model is degenerate.
+    """
+
+    parameters: ClassVar[tuple[str, ...]]
+    exact_flow: ClassVar[bool]
+    flow_moves_only_x: ClassVar[bool] = False
+    constrained_drift: ClassVar[str]
+    invariance_side: ClassVar[str | None] = None
+
+    @property
+    @abc.abstractmethod
+    def symmetry(self) -> frozenset[str]:
+        """The invariance groups (``SYMMETRIES`` labels, closed under inclusion)."""
+
+    @abc.abstractmethod
+    def lagrangian(self, q, velocity) -> jax.Array:
+        """T per body [..., N] at configuration phi and velocity v (or xi)."""
+
+    @abc.abstractmethod
+    def hamiltonian(self, q, momentum) -> jax.Array:
+        """The Legendre transform of T per body [..., N] at phi and momentum p (or pi)."""
+
+    @abc.abstractmethod
+    def legendre(self, q, velocity) -> jax.Array:
+        """Momentum p = dT/dv, or pi = (dT/dxi)^T (50), from the velocity."""
+
+    @abc.abstractmethod
+    def inverse_legendre(self, q, momentum) -> jax.Array:
+        """Velocity from momentum, the inverse of :meth:`legendre`."""
+
+    @abc.abstractmethod
+    def flow(self, state: State, h) -> State:
+        """The drift: flow of this Hamiltonian (summed over bodies) for time h."""
+
+    @abc.abstractmethod
+    def check(self, n: int | None = None) -> None:
+        """ValueError with the fix when the parameters are degenerate (in dimension n)."""
+
+
+# --------------------------------------------------------------------------------------------
 # Translational kinetic energies
 # --------------------------------------------------------------------------------------------
 
 
 @pytree.dataclass
-class DAlembertTranslational:
+class DAlembertTranslational(AbstractKineticTerm):
     """d'Alembert translational kinetic energy, also the is-af model (6), (63), (77a).
 
     T = M/2 v^T v = M/2 v_hat^T G[phi] v_hat,  p = M v,
@@ -144,7 +211,10 @@ class DAlembertTranslational:
 
     mass: Any
 
+    parameters = ("mass",)
     exact_flow = True
+    flow_moves_only_x = True
+    constrained_drift = "exact"  # phi is fixed: the projected momentum change is exact
     symmetry = _closed({"spatial-euclidean", "material-affine"})
 
     def _m(self) -> jax.Array:
@@ -170,7 +240,7 @@ class DAlembertTranslational:
 
 
 @pytree.dataclass
-class AffineTranslational:
+class AffineTranslational(AbstractKineticTerm):
     """Spatially affine, materially isotropic translational energy af-is (64), (78a).
 
     The Cauchy tensor C[phi] = phi^-T phi^-1 (11) is the metric of the physical space:
@@ -182,7 +252,9 @@ class AffineTranslational:
 
     mass: Any
 
+    parameters = ("mass",)
     exact_flow = True
+    constrained_drift = "exact"  # phi is fixed: the projected momentum change is exact
     symmetry = _closed({"spatial-affine", "material-euclidean"})
 
     def _m(self) -> jax.Array:
@@ -229,13 +301,15 @@ def _check_mass(mass) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-class _LeftInvariantModel:
+class _LeftInvariantModel(AbstractKineticTerm):
     """T depends on xi only through Omega_hat = phi^-1 xi; H only through Sigma_hat = pi phi.
 
     Subclasses give ``_energy_of_velocity(Omega_hat)``, ``_spin_of_velocity(Omega_hat)``
     (Sigma_hat = (dT/dOmega_hat)^T), ``_velocity_of_spin(Sigma_hat)`` (its inverse, = W with
     dH = Tr(W dSigma_hat)) and ``_energy_of_spin(Sigma_hat)``.
     """
+
+    invariance_side = "left"
 
     def lagrangian(self, phi, xi):
         return self._energy_of_velocity(linalg.solve(phi, xi))
@@ -250,8 +324,10 @@ class _LeftInvariantModel:
         return phi @ self._velocity_of_spin(pi @ phi)
 
 
-class _RightInvariantModel:
+class _RightInvariantModel(AbstractKineticTerm):
     """T depends on xi only through Omega = xi phi^-1; H only through Sigma = phi pi."""
+
+    invariance_side = "right"
 
     def lagrangian(self, phi, xi):
         return self._energy_of_velocity(xi @ linalg.inv(phi))
@@ -318,7 +394,7 @@ def _principal_directions(metric: jax.Array):
 
 
 @pytree.dataclass
-class DAlembert:
+class DAlembert(AbstractKineticTerm):
     """d'Alembert internal kinetic energy with a general inertia J (6), (52), (76a).
 
     T = 1/2 Tr(xi J xi^T),  pi = J xi^T (51),  H = 1/2 Tr(pi^T J^-1 pi).
@@ -329,7 +405,9 @@ class DAlembert:
 
     J: Any
 
+    parameters = ("J",)
     exact_flow = True
+    constrained_drift = "rattle"  # its straight-line drift leaves every subgroup
 
     @property
     def symmetry(self) -> frozenset[str]:
@@ -372,7 +450,9 @@ class AffineJ(_LeftInvariantModel):
 
     J: Any
 
+    parameters = ("J",)
     exact_flow = False
+    constrained_drift = "lie-group"
 
     @property
     def symmetry(self) -> frozenset[str]:
@@ -415,7 +495,9 @@ class HAffine(_RightInvariantModel):
 
     H: Any
 
+    parameters = ("H",)
     exact_flow = False
+    constrained_drift = "lie-group"
 
     @property
     def symmetry(self) -> frozenset[str]:
@@ -512,7 +594,9 @@ class LeftInvariant(_BiTensorModel, _LeftInvariantModel):
 
     L: Any
 
+    parameters = ("L",)
     exact_flow = False
+    constrained_drift = "lie-group"
     _name = "L"
     symmetry = _closed({"spatial-affine"})
 
@@ -531,7 +615,9 @@ class RightInvariant(_BiTensorModel, _RightInvariantModel):
 
     R: Any
 
+    parameters = ("R",)
     exact_flow = False
+    constrained_drift = "lie-group"
     _name = "R"
     symmetry = _closed({"material-affine"})
 
@@ -647,7 +733,9 @@ class AffineIsotropic(_IsotropicAffineFamily, _LeftInvariantModel):
     A: Any = 0.0
     B: Any = 0.0
 
+    parameters = ("I", "A", "B")
     exact_flow = True
+    constrained_drift = "exact"  # the inertia maps every subalgebra g into itself
     symmetry = _closed({"spatial-affine", "material-euclidean"})
 
     def _iab(self):
@@ -673,7 +761,9 @@ class IsotropicAffine(_IsotropicAffineFamily, _RightInvariantModel):
     A: Any = 0.0
     B: Any = 0.0
 
+    parameters = ("I", "A", "B")
     exact_flow = True
+    constrained_drift = "exact"  # the inertia maps every subalgebra g into itself
     symmetry = _closed({"spatial-euclidean", "material-affine"})
 
     def _iab(self):
@@ -704,7 +794,9 @@ class AffineAffine(_IsotropicAffineFamily, _LeftInvariantModel):
     A: Any
     B: Any = 0.0
 
+    parameters = ("A", "B")
     exact_flow = True
+    constrained_drift = "exact"  # the inertia maps every subalgebra g into itself
     symmetry = _closed({"spatial-affine", "material-affine"})
 
     def _iab(self):
@@ -766,7 +858,7 @@ class KineticEnergy:
 
     @property
     def exact_flow(self) -> bool:
-        commuting = isinstance(self.translational, DAlembertTranslational)
+        commuting = self.translational.flow_moves_only_x
         return commuting and self.translational.exact_flow and self.internal.exact_flow
 
     @property
@@ -793,7 +885,7 @@ class KineticEnergy:
         return VelocityState(state.x, state.phi, v, xi)
 
     def flow(self, state: State, h) -> State:
-        if isinstance(self.translational, DAlembertTranslational):
+        if self.translational.flow_moves_only_x:  # commutes with every internal flow
             return self.internal.flow(self.translational.flow(state, h), h)
         state = self.translational.flow(state, 0.5 * h)
         state = self.internal.flow(state, h)
@@ -805,7 +897,7 @@ class KineticEnergy:
 
 
 #: Internal kinetic models by configuration name.
-MODELS: dict[str, type] = {
+MODELS: dict[str, type[AbstractKineticTerm]] = {
     "dalembert": DAlembert,
     "is-af": IsotropicAffine,
     "af-is": AffineIsotropic,
@@ -817,7 +909,7 @@ MODELS: dict[str, type] = {
 }
 
 #: Translational kinetic models by configuration name ((63) is d'Alembert's (6)).
-TRANSLATIONAL_MODELS: dict[str, type] = {
+TRANSLATIONAL_MODELS: dict[str, type[AbstractKineticTerm]] = {
     "dalembert": DAlembertTranslational,
     "is-af": DAlembertTranslational,
     "af-is": AffineTranslational,
