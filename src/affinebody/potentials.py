@@ -355,19 +355,39 @@ def _coordinates(x, phi) -> tuple[jax.Array, jax.Array]:
     return x, phi
 
 
-class OneBodyTerm(abc.ABC):
-    """Mixin: ``energy = sum_K f(variables of body K)``, eq. (57). Subclasses define
-    ``variables`` (names) and ``term(values) -> [..., N]``."""
+class AbstractPotentialTerm(abc.ABC):
+    """One term of the potential V (56): a function of named variables (module docstring).
+
+    A term is a static ``_pytree.dataclass`` (hashable: it enters compiled functions as data
+    of the treedef) that declares ``variables``, the names its function ``term`` takes; its
+    ``symmetry`` follows from them (:func:`one_body_symmetry`, :func:`pair_symmetry`), so a
+    declaration cannot be wrong. ``energy(x [..., N, n], phi [..., N, n, n]) -> [...]`` is the
+    total over bodies (one-body terms) or unordered pairs (pair terms).
+    """
 
     variables: tuple[str, ...]
 
     @abc.abstractmethod
     def term(self, values: Mapping[str, jax.Array]) -> jax.Array:
-        """f of each body from its named variables (arrays [..., N])."""
+        """f of each body (or pair) from its named variables (arrays [..., N] or [..., P])."""
+
+    @abc.abstractmethod
+    def energy(self, x, phi) -> jax.Array:
+        """Total energy of the term, shape [...]."""
+
+    @property
+    @abc.abstractmethod
+    def symmetry(self) -> frozenset[str]:
+        """The symmetries (``SYMMETRIES`` labels) the term has, inferred from its variables."""
 
     def check_dimension(self, n: int) -> None:
         """ValueError if the parameters do not fit dimension n (overridden where needed)."""
-        return None  # a hook: most one-body families fit every n
+        return None  # a hook: most families fit every n
+
+
+class OneBodyTerm(AbstractPotentialTerm):
+    """``energy = sum_K f(variables of body K)``, eq. (57). Subclasses define
+    ``variables`` (names) and ``term(values) -> [..., N]``."""
 
     def body_energies(self, x, phi) -> jax.Array:
         """Energy of each body, shape [..., N]."""
@@ -386,17 +406,17 @@ class OneBodyTerm(abc.ABC):
         return one_body_symmetry(self.variables)
 
 
-class PairTerm(abc.ABC):
-    """Mixin: ``energy = sum_{K<L} V_KL``, eq. (59), with optional cut-off and periodic box.
-    Subclasses define ``variables``, ``cutoff``, ``box`` and ``term(values) -> [..., P]``."""
+class PairTerm(AbstractPotentialTerm):
+    """``energy = sum_{K<L} V_KL``, eq. (59), with optional cut-off and periodic box.
+    Subclasses define ``variables``, ``cutoff``, ``box`` and ``term(values) -> [..., P]``.
 
-    variables: tuple[str, ...]
+    The contract with :mod:`affinebody.pair_kernels`: :meth:`scalar_requirements` (which
+    scalar pair variables f needs), :attr:`asymmetric` (whether f is averaged over both
+    orders of a pair) and :meth:`energy_from_scalars` (the pair energies from those scalars,
+    elementwise, so that its gradient gives the per-pair partial derivatives)."""
+
     cutoff: Cutoff | None
     box: tuple[float, ...] | Space | None
-
-    @abc.abstractmethod
-    def term(self, values: Mapping[str, jax.Array]) -> jax.Array:
-        """V_KL of each pair from its named variables (arrays [..., P])."""
 
     def check_dimension(self, n: int) -> None:
         """ValueError if the parameters do not fit dimension n (overridden where needed)."""
@@ -432,7 +452,9 @@ class PairTerm(abc.ABC):
         return frozenset(self.variables) | extra
 
     @property
-    def _asymmetric(self) -> bool:
+    def asymmetric(self) -> bool:
+        """True when f uses det Gamma (79) or M_a (30), which change under K <-> L
+        (Gamma[phi_L, phi_K] = Gamma[phi_K, phi_L]^-1): f is then averaged over both orders."""
         return "det" in self.variables or _indexed(self.variables, "M")
 
     def scalar_requirements(self, n: int) -> tuple[frozenset[str], int, int]:
@@ -463,7 +485,7 @@ class PairTerm(abc.ABC):
                 for a in range(array.shape[-1]):
                     values[f"{letter}{a + 1}"] = array[..., a]
         orders = [values]
-        if self._asymmetric:  # average f over (K, L) and (L, K): eq. (59) with a single f
+        if self.asymmetric:  # average f over (K, L) and (L, K): eq. (59) with a single f
             swapped = dict(values)
             if "det" in values:
                 swapped["det"] = 1.0 / values["det"]
@@ -506,7 +528,7 @@ class PairTerm(abc.ABC):
             base["K"] = values["K"][..., :k_powers]
         if m_powers:
             base["M"] = values["M"][..., :m_powers]
-            if self._asymmetric:
+            if self.asymmetric:
                 base["Ms"] = affine_invariants(phi_l, phi_k)[..., :m_powers]
         return self.energy_from_scalars(base, n)
 
