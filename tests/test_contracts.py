@@ -13,7 +13,6 @@ import pytest
 
 from affinebody import config, runner, simulate
 
-
 # --------------------------------------------------------------------------------------------
 # One compiled loop per system structure
 
