@@ -13,7 +13,11 @@ state ``[..., N, n]`` / ``[..., N, n, n]``. Every model offers
                                   for time h, exact where ``exact_flow`` is True, otherwise an
                                   explicit symplectic palindromic splitting (2nd order),
 - ``check(n=None)``              ValueError with the fix when the model is degenerate,
-- ``symmetry``                   the invariance groups, as strings (see ``SYMMETRIES``).
+- ``symmetry``                   the invariance groups, as strings (see ``SYMMETRIES``),
+
+and declares ``parameters``, ``exact_flow``, ``constrained_drift``, ``invariance_side`` and
+``flow_moves_only_x`` (``AbstractKineticTerm``). ``MODELS`` and ``TRANSLATIONAL_MODELS`` are the
+registries (config name -> class).
 
 Conventions (docs/theory/conventions.md): ``xi = dphi/dt``; Omega = xi phi^-1,
 Omega_hat = phi^-1 xi (34); Sigma = phi pi, Sigma_hat = pi phi (45);
@@ -914,3 +918,11 @@ TRANSLATIONAL_MODELS: dict[str, type[AbstractKineticTerm]] = {
     "is-af": DAlembertTranslational,
     "af-is": AffineTranslational,
 }
+
+
+__all__ = [
+    "MODELS", "SYMMETRIES", "TRANSLATIONAL_MODELS", "AbstractKineticTerm", "AffineAffine",
+    "AffineIsotropic", "AffineJ", "AffineTranslational", "DAlembert", "DAlembertTranslational",
+    "HAffine", "IsotropicAffine", "KineticEnergy", "LeftInvariant", "RightInvariant",
+    "rank_one_splitting",
+]

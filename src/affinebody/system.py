@@ -322,3 +322,8 @@ class HamiltonianSystem:
         """A copy with some fields changed."""
         return dataclasses.replace(self, **changes)
 
+
+
+__all__ = [
+    "OPEN_GROUPS", "SYSTEM_GROUPS", "HamiltonianSystem", "kinetic_terms", "project_momentum",
+]

@@ -77,6 +77,12 @@ without a list the sum runs over all N(N-1)/2 pairs.
 NaN-free gradients: ``r`` and ``D`` use the double-``where`` square root (gradient 0 at 0), pairs
 beyond the cut-off are evaluated at a harmless reference point (identity configurations at the
 cut-off distance) before masking, and the diagonal K = L is never formed (pairs K < L only).
+
+Layout: :mod:`~affinebody.potentials.variables` (variable names, values and the symmetry they
+imply), :mod:`~affinebody.potentials.terms` (``AbstractPotentialTerm``, ``OneBodyTerm``,
+``PairTerm`` and its contract with ``pair_kernels``, the cut-off, sums and forces),
+:mod:`~affinebody.potentials.library` (the built-in models) and
+:mod:`~affinebody.potentials.registry` (the kinds a config file names, ``POTENTIALS``).
 """
 
 from affinebody.potentials.library import (
