@@ -444,12 +444,15 @@ class DAlembert(AbstractKineticTerm):
 
 @pytree.dataclass
 class AffineJ(_LeftInvariantModel):
-    """af-J: spatially affine, materially O(n, J)-invariant energy (65), (79a).
+    """af-J: spatially affine internal energy with a material inertia J (65), (79a).
 
     T = 1/2 Tr(C[phi] xi J xi^T) = 1/2 Tr(Omega_hat J Omega_hat^T),
     Sigma_hat = J Omega_hat^T, H = 1/2 Tr(Sigma_hat^T J^-1 Sigma_hat) = 1/2 Tr(C^-1 pi^T J^-1 pi).
     J = I Id gives (66), (80a) (the same as ``AffineIsotropic(I, 0, 0)``).
     Drift: palindromic rank-one splitting in J's principal frame (``exact_flow`` False).
+    Material symmetry: O(n, J) only when J is spherical (then O(n)); otherwise the subgroup
+    the intersection of O(n, J) and O(n), which has no label (not all of O(n, J) as printed;
+    see docs/theory/paper-typos.md).
     """
 
     J: Any
@@ -460,9 +463,11 @@ class AffineJ(_LeftInvariantModel):
 
     @property
     def symmetry(self) -> frozenset[str]:
-        labels = {"spatial-affine", "material-J"}
+        # phi -> phi B moves Omega_hat to B^-1 Omega_hat B: T is invariant when B J B^T = J
+        # and B B^T = Id, i.e. on O(n, J) only for spherical J (docs/theory/paper-typos.md)
+        labels = {"spatial-affine"}
         if _is_spherical(self.J):
-            labels.add("material-euclidean")
+            labels |= {"material-euclidean", "material-J"}
         return _closed(labels)
 
     def _j(self):
