@@ -22,10 +22,11 @@ represent it by the unique pi whose co-moving affine spin Sigma_hat = pi phi lie
 
 A kick then projects its momentum increment, ``pi -= h P_g((dV/dphi)^T phi) phi^-1``, which is the
 exact flow of V restricted to G (phi is fixed during a kick). Each kinetic term drifts on G in the
-way ``constraints.drift_mode`` picks: its own exact flow where that stays on G (isotropic af-is,
-is-af, af-af; translational terms), a Lie-group splitting in g for the other left/right-invariant
-models (af-J, H-af, l-af, r-af), RATTLE for d'Alembert. The kinetic energy on G is the restricted
-one, H evaluated at the metric lift of pi (``constraints.metric_lift``).
+way it declares (``constrained_drift`` of ``kinetic.AbstractKineticTerm``): its own exact flow
+where that stays on G (isotropic af-is, is-af, af-af; translational terms), a Lie-group splitting
+in g for the other left/right-invariant models (af-J, H-af, l-af, r-af), RATTLE for d'Alembert.
+The kinetic energy on G is the restricted one, H evaluated at the metric lift of pi
+(``constraints.metric_lift``).
 
 Non-holonomic constraints. ``rotationless="spatial"`` imposes (40), Omega = Omega^T;
 ``rotationless="material"`` imposes (41), Omega_hat = Omega_hat^T (``affinebody.nonholonomic``).
