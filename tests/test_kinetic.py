@@ -18,8 +18,7 @@ from scipy.integrate import solve_ivp
 
 from affinebody import kinetic as K
 from affinebody.state import State, VelocityState
-
-BODIES = 2
+from samples import BODIES, TRANSLATIONAL, bitensor, kinetic_sample, spd
 
 
 def tr(a):
@@ -30,48 +29,21 @@ def t(a):
     return jnp.swapaxes(a, -1, -2)
 
 
-def spd(rng, n, shape=()):
-    a = rng.standard_normal(shape + (n, n))
-    return a @ np.swapaxes(a, -1, -2) / n + 0.5 * np.eye(n)
-
-
-def bitensor(rng, n, shape=()):
-    m = rng.standard_normal(shape + (n * n, n * n))
-    big = m @ np.swapaxes(m, -1, -2) / (n * n) + 0.5 * np.eye(n * n)
-    return big.reshape(shape + (n, n, n, n))
-
-
 def internal_model(name, n, rng):
-    """A model with per-body parameters where the model allows them (BODIES bodies)."""
-    if name == "dalembert":
-        return K.DAlembert(spd(rng, n, (BODIES,)))
-    if name == "af-J":
-        return K.AffineJ(spd(rng, n, (BODIES,)))
+    """The registered model ``name`` with per-body parameters (``samples.kinetic_sample``)."""
     if name == "af-J-spherical":
         return K.AffineJ(1.3 * np.eye(n))
-    if name == "H-af":
-        return K.HAffine(spd(rng, n))
-    if name == "l-af":
-        return K.LeftInvariant(bitensor(rng, n))
-    if name == "r-af":
-        return K.RightInvariant(bitensor(rng, n, (BODIES,)))
-    if name == "af-af":
-        return K.AffineAffine(0.7, 0.4)
-    if name == "is-af":
-        return K.IsotropicAffine(1.0, 0.3, 0.5)
-    if name == "af-is":
-        return K.AffineIsotropic(np.array([1.0, 1.4]), np.array([0.3, -0.2]), np.array([0.5, -0.1]))
-    raise KeyError(name)
+    return kinetic_sample(K.MODELS[name], n, rng)
 
 
-INTERNAL = ["dalembert", "af-J", "af-J-spherical", "H-af", "l-af", "r-af", "af-af", "is-af",
-            "af-is"]
-EXACT = ["dalembert", "af-af", "is-af", "af-is"]
-SPLIT = ["af-J", "H-af", "l-af", "r-af"]
-TRANSLATIONAL = {
-    "dalembert": lambda: K.DAlembertTranslational(np.array([1.0, 2.5])),
-    "af-is": lambda: K.AffineTranslational(np.array([1.5, 0.8])),
-}
+def translational_model(name, n=2, rng=None):
+    return kinetic_sample(TRANSLATIONAL[name], n, rng)
+
+
+# the batteries below run over the registries: a registered model gets them all
+INTERNAL = [*K.MODELS, "af-J-spherical"]
+EXACT = [name for name, cls in K.MODELS.items() if cls.exact_flow]
+SPLIT = [name for name, cls in K.MODELS.items() if not cls.exact_flow]
 
 
 def random_state(rng, n, scale=0.5):
@@ -147,7 +119,7 @@ def internal_legendre_pairs(model, phi, xi, pi_any):
 @pytest.mark.parametrize("name", sorted(TRANSLATIONAL))
 def test_translational_legendre_is_autodiff_and_invertible(name, n):
     rng = np.random.default_rng(7 + n)
-    model = TRANSLATIONAL[name]()
+    model = translational_model(name, n, rng)
     model.check(n)
     s = random_state(rng, n)
     v = jnp.asarray(rng.standard_normal((BODIES, n)))
@@ -363,7 +335,7 @@ def test_check_rejects_degenerate_inertia():
 
 def total_hamiltonian(term, state):
     """Total energy of a translational (p) or internal (pi) term, summed over bodies."""
-    if isinstance(term, (K.DAlembertTranslational, K.AffineTranslational)):
+    if type(term) in K.TRANSLATIONAL_MODELS.values():
         return jnp.sum(term.hamiltonian(state.phi, state.p))
     if isinstance(term, K.KineticEnergy):
         return term.hamiltonian(state)
@@ -399,11 +371,11 @@ def states_close(a, b, tol):
 
 
 @pytest.mark.parametrize("n", [1, 2, 3])
-@pytest.mark.parametrize("name", EXACT + ["tr-dalembert", "tr-af-is"])
+@pytest.mark.parametrize("name", EXACT + [f"tr-{name}" for name in TRANSLATIONAL])
 def test_exact_flow_solves_hamilton_equations(name, n):
     rng = np.random.default_rng(200 + n)
     if name.startswith("tr-"):
-        term = TRANSLATIONAL[name[3:]]()
+        term = translational_model(name[3:], n, rng)
     else:
         term = internal_model(name, n, rng)
     assert term.exact_flow
@@ -430,7 +402,7 @@ def conserved_quantities(term, state):
             out["spin"] = sig - t(sig)  # (49)
         if "material-euclidean" in term.symmetry:
             out["vorticity"] = sig_hat - t(sig_hat)  # (49)
-        if isinstance(term, K.DAlembert):  # material O(n, J) generator: skew(J^-1 Sigma_hat)
+        if hasattr(term, "J"):  # material O(n, J) generator: skew(J^-1 Sigma_hat)
             jinv_s = jnp.linalg.solve(jnp.asarray(term.J), sig_hat)
             out["J-vorticity"] = jinv_s - t(jinv_s)
     return out
@@ -540,7 +512,7 @@ def test_dalembert_kinetic_energy_is_the_constituents_kinetic_energy():
 def test_system_energy_is_the_sum_over_bodies(translational):
     rng = np.random.default_rng(12)
     n = 2
-    energy = K.KineticEnergy(TRANSLATIONAL[translational](), internal_model("af-is", n, rng))
+    energy = K.KineticEnergy(translational_model(translational), internal_model("af-is", n, rng))
     energy.check(n)
     s = random_state(rng, n)
     vs = energy.inverse_legendre(s)
@@ -567,12 +539,12 @@ def test_system_energy_is_the_sum_over_bodies(translational):
 def test_system_flow_exact_with_dalembert_translation():
     rng = np.random.default_rng(13)
     n = 3
-    energy = K.KineticEnergy(TRANSLATIONAL["dalembert"](), internal_model("af-is", n, rng))
+    energy = K.KineticEnergy(translational_model("dalembert"), internal_model("af-is", n, rng))
     assert energy.exact_flow
     assert energy.symmetry == frozenset({"spatial-euclidean", "material-euclidean"})
     s0 = random_state(rng, n)
     assert states_close(flow(energy, s0, 0.6), integrate(energy, s0, 0.6), 1e-9)
-    assert not K.KineticEnergy(TRANSLATIONAL["dalembert"](), K.AffineJ(np.eye(n))).exact_flow
+    assert not K.KineticEnergy(translational_model("dalembert"), K.AffineJ(np.eye(n))).exact_flow
 
 
 def test_af_is_with_spherical_inertia_is_af_J():

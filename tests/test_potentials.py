@@ -12,7 +12,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from affinebody.potentials import (
-    POTENTIALS,
     SYMMETRIES,
     Cutoff,
     Dilatation,
@@ -30,6 +29,7 @@ from affinebody.potentials import (
     switching,
     total_potential,
 )
+from samples import configuration, random_rotation, transform
 
 
 def catalogue(n: int) -> list:
@@ -60,53 +60,6 @@ def catalogue(n: int) -> list:
 
 
 WEIGHTS = {n: jnp.arange(1.0, n * n + 1).reshape(n, n) for n in (2, 3)}
-
-
-def configuration(rng, bodies: int, n: int, spread: float = 0.8):
-    """Random centres (compact, at least 0.3 apart) and configurations near the identity with
-    det > 0."""
-    while True:
-        x = rng.uniform(-spread, spread, size=(bodies, n))
-        gaps = np.linalg.norm(x[:, None] - x[None], axis=-1) + np.eye(bodies)
-        if np.min(gaps) > 0.3:
-            break
-    phi = np.eye(n) + 0.3 * rng.normal(size=(bodies, n, n))
-    phi[np.linalg.det(phi) < 0, 0] *= -1
-    return jnp.asarray(x), jnp.asarray(phi)
-
-
-def random_rotation(rng, n: int) -> np.ndarray:
-    q, r = np.linalg.qr(rng.normal(size=(n, n)))
-    q = q * np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] *= -1
-    return q
-
-
-def random_linear(rng, n: int) -> np.ndarray:
-    """A generic element of GL(n): well conditioned, det far from +-1, either sign."""
-    while True:
-        a = rng.normal(size=(n, n))
-        s = np.linalg.svd(a, compute_uv=False)
-        if s[-1] > 0.3 and s[0] < 3 and abs(abs(np.linalg.det(a)) - 1) > 0.2:
-            return a
-
-
-def transform(symmetry: str, rng, x, phi):
-    n = phi.shape[-1]
-    if symmetry == "translation":
-        return x + rng.normal(size=n), phi
-    if symmetry == "spatial-euclidean":
-        r = random_rotation(rng, n)
-        return x @ r.T, r @ phi
-    if symmetry == "spatial-affine":
-        a = random_linear(rng, n)
-        return x @ a.T, a @ phi
-    if symmetry == "material-euclidean":
-        return x, phi @ random_rotation(rng, n)
-    if symmetry == "material-affine":
-        return x, phi @ random_linear(rng, n)
-    raise AssertionError(symmetry)
 
 
 def gradient(pot, x, phi):
@@ -570,38 +523,6 @@ def test_box_requires_cut_off_within_half_the_box():
 
 # --------------------------------------------------------------------------------------------
 # registry
-
-
-EXAMPLE_PARAMETERS = {
-    "lennard-jones": {"epsilon": 0.7, "sigma": 0.6, "r_cut": 1.9, "r_on": 1.5},
-    "morse": {"depth": 1.3, "alpha": 1.7, "r0": 1.1, "argument": "D"},
-    "gaussian": {"amplitude": -1.1, "width": 0.9, "r_cut": 1.9},
-    "harmonic-invariants": {"stiffness": 0.8, "invariants": "K", "reference": [2.0, 3.0]},
-    "pair": {"expr": "exp(-D**2) * (M1 - 2)**2", "r_cut": 1.9, "cutoff_on": "D"},
-    "dilatation": {"stiffness": 2.0, "volume": 1.2, "form": "harmonic"},
-    "elastic": {"lam": 0.4, "mu": 1.1},
-    "external-harmonic": {"stiffness": 1.2, "centre": [0.3, -0.3]},
-    "external-linear": {"force": [0.0, -9.81]},
-    "one-body": {"expr": "10*(det - 1)**2"},
-}
-
-
-def test_every_registered_family_builds_from_its_documented_parameters():
-    assert set(POTENTIALS) == set(EXAMPLE_PARAMETERS)
-    x, phi = configuration(np.random.default_rng(60), BODIES, 2)
-    for name, family in POTENTIALS.items():
-        params = EXAMPLE_PARAMETERS[name]
-        assert set(params) <= set(family.parameters)
-        assert set(family.required) <= set(params)
-        pot = build_potential(name, params, n=2, field="potential.0")
-        energy = float(pot.energy(x, phi))
-        assert np.isfinite(energy) and energy != 0.0
-        kind = "pair" if hasattr(pot, "pair_energies") else "one-body"
-        assert kind == family.kind
-    periodic = build_potential(
-        "lennard-jones", EXAMPLE_PARAMETERS["lennard-jones"], n=2, box=[4.0, 4.0]
-    )
-    assert periodic == LennardJones(0.7, 0.6, cutoff=Cutoff(1.9, 1.5), box=(4.0, 4.0))
 
 
 @pytest.mark.parametrize(

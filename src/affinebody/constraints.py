@@ -17,7 +17,8 @@ are used:
   H on the fibre pi + N_phi (its minimum for a positive definite T). This is the RATTLE velocity
   projection.
 
-Drifts (flows of the kinetic energy on T*G), chosen per kinetic term by ``drift_mode``:
+Drifts (flows of the kinetic energy on T*G), declared by each kinetic term as its
+``constrained_drift`` (``kinetic.AbstractKineticTerm``; read by ``drift_mode``):
 
 - ``"exact"``: the term's own exact flow stays on G, because its inertia maps g into g
   (isotropic af-is (74), is-af (73), af-af (72)) or because it keeps phi fixed (translational
@@ -51,7 +52,6 @@ import numpy as np
 from jax import lax
 
 from affinebody import _linalg as linalg
-from affinebody import kinetic as kin
 from affinebody._checks import transpose
 from affinebody.groups import lie_algebra, project_algebra
 from affinebody.kinetic import rank_one_splitting
@@ -59,10 +59,8 @@ from affinebody.state import State
 
 #: Groups on which the momentum is a covector of a proper subgroup.
 CONSTRAINED_GROUPS = ("SL", "UL", "SO", "O", "R+SO", "R+O")
-#: Kinetic terms whose exact flow maps Sigma_hat in g to Sigma_hat in g on every subgroup.
-ALGEBRA_PRESERVING = (kin.AffineIsotropic, kin.IsotropicAffine, kin.AffineAffine)
-#: Kinetic terms whose flow keeps phi fixed (only the momentum moves; its projection is exact).
-PHI_FIXED = (kin.DAlembertTranslational, kin.AffineTranslational)
+#: The constrained drifts a kinetic term may declare (``constrained_drift``, module docstring).
+DRIFT_MODES = ("exact", "lie-group", "rattle")
 
 NEWTON_TOL = 1e-14
 NEWTON_MAX_ITER = 30
@@ -189,25 +187,15 @@ def metric_lift(kinetic_hamiltonian, state: State, group: str) -> State:
 
 
 # ------------------------------------------------------------------------------- drifts
-def invariance_side(term) -> str | None:
-    """'left' for spatially affine (T of Omega_hat), 'right' for materially affine (T of Omega)."""
-    labels = getattr(term, "symmetry", frozenset())
-    if "spatial-affine" in labels:
-        return "left"
-    if "material-affine" in labels:
-        return "right"
-    return None
-
-
 def drift_mode(term) -> str | None:
-    """How the kinetic ``term`` drifts on a constrained group (module docstring), None: refused."""
-    if isinstance(term, PHI_FIXED + ALGEBRA_PRESERVING):
-        return "exact"
-    if isinstance(term, kin.DAlembert):
-        return "rattle"
-    if invariance_side(term) is not None and hasattr(term, "legendre"):
-        return "lie-group"
-    return None
+    """How the kinetic ``term`` drifts on a constrained group: the ``constrained_drift`` it
+    declares (one of DRIFT_MODES, module docstring); None for a term that declares none
+    (``HamiltonianSystem.check`` then probes whether its own flow keeps the group)."""
+    mode = getattr(term, "constrained_drift", None)
+    if mode is not None and mode not in DRIFT_MODES:
+        raise ValueError(f"kinetic term {type(term).__name__} declares constrained_drift = "
+                         f"{mode!r}; choose from {', '.join(DRIFT_MODES)}")
+    return mode
 
 
 def restricted_directions(term, group: str, n: int) -> tuple[jax.Array, jax.Array]:
@@ -226,9 +214,10 @@ def restricted_directions(term, group: str, n: int) -> tuple[jax.Array, jax.Arra
 
 
 def lie_group_drift(term, state: State, h, group: str) -> State:
-    """Second-order explicit symplectic drift of a left/right-invariant term restricted to G."""
+    """Second-order explicit symplectic drift of a left/right-invariant term restricted to G
+    (the side is the term's declared ``invariance_side``)."""
     directions, rates = restricted_directions(term, group, state.phi.shape[-1])
-    return rank_one_splitting(state, directions, rates, h, invariance_side(term))
+    return rank_one_splitting(state, directions, rates, h, term.invariance_side)
 
 
 def rattle_drift(term, state: State, h, group: str) -> State:
@@ -270,8 +259,8 @@ def constrained_flow(term, state: State, h, group: str) -> State:
 
 
 __all__ = [
-    "ALGEBRA_PRESERVING", "CONSTRAINED_GROUPS", "algebra_basis", "complement_basis",
-    "constrained_flow", "constraint_residual", "drift_mode", "invariance_side",
+    "CONSTRAINED_GROUPS", "DRIFT_MODES", "algebra_basis", "complement_basis",
+    "constrained_flow", "constraint_residual", "drift_mode",
     "lie_group_drift", "metric_lift", "newton_blockwise", "rattle_drift",
     "restricted_directions", "solve_linear_blockwise",
 ]

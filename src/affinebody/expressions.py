@@ -339,3 +339,9 @@ def expression_variables(text: str, *, field: str = "expr") -> tuple[str, ...]:
     except RecursionError:
         raise compiler.fail("expression is nested too deeply") from None
     return tuple(compiler.used)
+
+
+__all__ = [
+    "MAX_DEPTH", "MAX_LENGTH", "MAX_LITERAL_EXPONENT", "CompiledExpression",
+    "compile_expression", "expression_variables",
+]

@@ -13,7 +13,11 @@ state ``[..., N, n]`` / ``[..., N, n, n]``. Every model offers
                                   for time h, exact where ``exact_flow`` is True, otherwise an
                                   explicit symplectic palindromic splitting (2nd order),
 - ``check(n=None)``              ValueError with the fix when the model is degenerate,
-- ``symmetry``                   the invariance groups, as strings (see ``SYMMETRIES``).
+- ``symmetry``                   the invariance groups, as strings (see ``SYMMETRIES``),
+
+and declares ``parameters``, ``exact_flow``, ``constrained_drift``, ``invariance_side`` and
+``flow_moves_only_x`` (``AbstractKineticTerm``). ``MODELS`` and ``TRANSLATIONAL_MODELS`` are the
+registries (config name -> class).
 
 Conventions (docs/theory/conventions.md): ``xi = dphi/dt``; Omega = xi phi^-1,
 Omega_hat = phi^-1 xi (34); Sigma = phi pi, Sigma_hat = pi phi (45);
@@ -51,14 +55,15 @@ gives an explicit symplectic 2nd-order drift (McLachlan's Lie-Poisson splitting 
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Any
+import abc
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from affinebody import _linalg as linalg
+from affinebody import _pytree as pytree
 from affinebody._checks import (
     as_float64,
     check_symmetric_positive_definite,
@@ -128,8 +133,70 @@ def _frob(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.sum(a * b, axis=(-2, -1))
 
 
-def _register(cls):
-    return jax.tree_util.register_dataclass(dataclasses.dataclass(frozen=True)(cls))
+# --------------------------------------------------------------------------------------------
+# The interface of a kinetic term
+# --------------------------------------------------------------------------------------------
+
+
+class AbstractKineticTerm(abc.ABC):
+    """The kinetic energy of one body, translational (acting on x, p) or internal (phi, pi).
+
+    A model is a ``_pytree.dataclass`` whose fields are its inertial parameters (scalars or
+    arrays with a leading body axis) and which declares, as class attributes, what the rest of
+    the library needs to know about it (no caller decides by the model's type):
+
+    - ``parameters``: the names of its fields, the parameters a config gives it;
+    - ``exact_flow``: whether ``flow`` is the exact flow of ``hamiltonian``;
+    - ``flow_moves_only_x``: whether ``flow`` moves the centre x only (then it commutes with
+      every internal flow and the drift of ``KineticEnergy`` is their plain composition);
+    - ``constrained_drift``: how it drifts on a constrained group (``affinebody.constraints``):
+      ``"exact"`` (its own flow keeps the group: phi fixed, or g mapped into g), ``"lie-group"``
+      (a left/right-invariant term restricted to G: rank-one splitting in g) or ``"rattle"``
+      (d'Alembert's constant inertia);
+    - ``invariance_side``: ``"left"`` when T depends on xi through Omega_hat = phi^-1 xi (34)
+      (spatially affine), ``"right"`` through Omega = xi phi^-1 (materially affine), else None;
+    - ``symmetry``: its invariance groups, labels of ``SYMMETRIES`` closed under inclusion.
+
+    The methods are per body: ``lagrangian``/``hamiltonian`` [..., N] and the Legendre map
+    p = dT/dv (pi = (dT/dxi)^T, (50)) with its inverse, on the translational or the internal
+    variables; ``flow(state, h)`` moves a whole ``State``; ``check(n)`` raises a one-line
+    ValueError naming the parameter when the model is degenerate.
+    """
+
+    parameters: ClassVar[tuple[str, ...]]
+    exact_flow: ClassVar[bool]
+    flow_moves_only_x: ClassVar[bool] = False
+    constrained_drift: ClassVar[str]
+    invariance_side: ClassVar[str | None] = None
+
+    @property
+    @abc.abstractmethod
+    def symmetry(self) -> frozenset[str]:
+        """The invariance groups (``SYMMETRIES`` labels, closed under inclusion)."""
+
+    @abc.abstractmethod
+    def lagrangian(self, q, velocity) -> jax.Array:
+        """T per body [..., N] at configuration phi and velocity v (or xi)."""
+
+    @abc.abstractmethod
+    def hamiltonian(self, q, momentum) -> jax.Array:
+        """The Legendre transform of T per body [..., N] at phi and momentum p (or pi)."""
+
+    @abc.abstractmethod
+    def legendre(self, q, velocity) -> jax.Array:
+        """Momentum p = dT/dv, or pi = (dT/dxi)^T (50), from the velocity."""
+
+    @abc.abstractmethod
+    def inverse_legendre(self, q, momentum) -> jax.Array:
+        """Velocity from momentum, the inverse of :meth:`legendre`."""
+
+    @abc.abstractmethod
+    def flow(self, state: State, h) -> State:
+        """The drift: flow of this Hamiltonian (summed over bodies) for time h."""
+
+    @abc.abstractmethod
+    def check(self, n: int | None = None) -> None:
+        """ValueError with the fix when the parameters are degenerate (in dimension n)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -137,8 +204,8 @@ def _register(cls):
 # --------------------------------------------------------------------------------------------
 
 
-@_register
-class DAlembertTranslational:
+@pytree.dataclass
+class DAlembertTranslational(AbstractKineticTerm):
     """d'Alembert translational kinetic energy, also the is-af model (6), (63), (77a).
 
     T = M/2 v^T v = M/2 v_hat^T G[phi] v_hat,  p = M v,
@@ -148,7 +215,10 @@ class DAlembertTranslational:
 
     mass: Any
 
+    parameters = ("mass",)
     exact_flow = True
+    flow_moves_only_x = True
+    constrained_drift = "exact"  # phi is fixed: the projected momentum change is exact
     symmetry = _closed({"spatial-euclidean", "material-affine"})
 
     def _m(self) -> jax.Array:
@@ -173,8 +243,8 @@ class DAlembertTranslational:
         _check_mass(self.mass)
 
 
-@_register
-class AffineTranslational:
+@pytree.dataclass
+class AffineTranslational(AbstractKineticTerm):
     """Spatially affine, materially isotropic translational energy af-is (64), (78a).
 
     The Cauchy tensor C[phi] = phi^-T phi^-1 (11) is the metric of the physical space:
@@ -186,7 +256,9 @@ class AffineTranslational:
 
     mass: Any
 
+    parameters = ("mass",)
     exact_flow = True
+    constrained_drift = "exact"  # phi is fixed: the projected momentum change is exact
     symmetry = _closed({"spatial-affine", "material-euclidean"})
 
     def _m(self) -> jax.Array:
@@ -233,13 +305,15 @@ def _check_mass(mass) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-class _LeftInvariantModel:
+class _LeftInvariantModel(AbstractKineticTerm):
     """T depends on xi only through Omega_hat = phi^-1 xi; H only through Sigma_hat = pi phi.
 
     Subclasses give ``_energy_of_velocity(Omega_hat)``, ``_spin_of_velocity(Omega_hat)``
     (Sigma_hat = (dT/dOmega_hat)^T), ``_velocity_of_spin(Sigma_hat)`` (its inverse, = W with
     dH = Tr(W dSigma_hat)) and ``_energy_of_spin(Sigma_hat)``.
     """
+
+    invariance_side = "left"
 
     def lagrangian(self, phi, xi):
         return self._energy_of_velocity(linalg.solve(phi, xi))
@@ -254,8 +328,10 @@ class _LeftInvariantModel:
         return phi @ self._velocity_of_spin(pi @ phi)
 
 
-class _RightInvariantModel:
+class _RightInvariantModel(AbstractKineticTerm):
     """T depends on xi only through Omega = xi phi^-1; H only through Sigma = phi pi."""
+
+    invariance_side = "right"
 
     def lagrangian(self, phi, xi):
         return self._energy_of_velocity(xi @ linalg.inv(phi))
@@ -321,8 +397,8 @@ def _principal_directions(metric: jax.Array):
 # --------------------------------------------------------------------------------------------
 
 
-@_register
-class DAlembert:
+@pytree.dataclass
+class DAlembert(AbstractKineticTerm):
     """d'Alembert internal kinetic energy with a general inertia J (6), (52), (76a).
 
     T = 1/2 Tr(xi J xi^T),  pi = J xi^T (51),  H = 1/2 Tr(pi^T J^-1 pi).
@@ -333,7 +409,9 @@ class DAlembert:
 
     J: Any
 
+    parameters = ("J",)
     exact_flow = True
+    constrained_drift = "rattle"  # its straight-line drift leaves every subgroup
 
     @property
     def symmetry(self) -> frozenset[str]:
@@ -364,25 +442,32 @@ class DAlembert:
         check_symmetric_positive_definite(self._j(), "kinetic.J")
 
 
-@_register
+@pytree.dataclass
 class AffineJ(_LeftInvariantModel):
-    """af-J: spatially affine, materially O(n, J)-invariant energy (65), (79a).
+    """af-J: spatially affine internal energy with a material inertia J (65), (79a).
 
     T = 1/2 Tr(C[phi] xi J xi^T) = 1/2 Tr(Omega_hat J Omega_hat^T),
     Sigma_hat = J Omega_hat^T, H = 1/2 Tr(Sigma_hat^T J^-1 Sigma_hat) = 1/2 Tr(C^-1 pi^T J^-1 pi).
     J = I Id gives (66), (80a) (the same as ``AffineIsotropic(I, 0, 0)``).
     Drift: palindromic rank-one splitting in J's principal frame (``exact_flow`` False).
+    Material symmetry: O(n, J) only when J is spherical (then O(n)); otherwise the subgroup
+    the intersection of O(n, J) and O(n), which has no label (not all of O(n, J) as printed;
+    see docs/theory/paper-typos.md).
     """
 
     J: Any
 
+    parameters = ("J",)
     exact_flow = False
+    constrained_drift = "lie-group"
 
     @property
     def symmetry(self) -> frozenset[str]:
-        labels = {"spatial-affine", "material-J"}
+        # phi -> phi B moves Omega_hat to B^-1 Omega_hat B: T is invariant when B J B^T = J
+        # and B B^T = Id, i.e. on O(n, J) only for spherical J (docs/theory/paper-typos.md)
+        labels = {"spatial-affine"}
         if _is_spherical(self.J):
-            labels.add("material-euclidean")
+            labels |= {"material-euclidean", "material-J"}
         return _closed(labels)
 
     def _j(self):
@@ -408,7 +493,7 @@ class AffineJ(_LeftInvariantModel):
         check_symmetric_positive_definite(self._j(), "kinetic.J")
 
 
-@_register
+@pytree.dataclass
 class HAffine(_RightInvariantModel):
     """H-af: materially affine energy with a constant spatial inertia H (67), (68), (81a).
 
@@ -419,7 +504,9 @@ class HAffine(_RightInvariantModel):
 
     H: Any
 
+    parameters = ("H",)
     exact_flow = False
+    constrained_drift = "lie-group"
 
     @property
     def symmetry(self) -> frozenset[str]:
@@ -504,7 +591,7 @@ class _BiTensorModel:
         )
 
 
-@_register
+@pytree.dataclass
 class LeftInvariant(_BiTensorModel, _LeftInvariantModel):
     """l-af: the general spatially affine (left-invariant) energy (70), (82a).
 
@@ -516,7 +603,9 @@ class LeftInvariant(_BiTensorModel, _LeftInvariantModel):
 
     L: Any
 
+    parameters = ("L",)
     exact_flow = False
+    constrained_drift = "lie-group"
     _name = "L"
     symmetry = _closed({"spatial-affine"})
 
@@ -525,7 +614,7 @@ class LeftInvariant(_BiTensorModel, _LeftInvariantModel):
         return rank_one_splitting(state, w, rates, h, "left")
 
 
-@_register
+@pytree.dataclass
 class RightInvariant(_BiTensorModel, _RightInvariantModel):
     """r-af: the general materially affine (right-invariant) energy (71), (83a).
 
@@ -535,7 +624,9 @@ class RightInvariant(_BiTensorModel, _RightInvariantModel):
 
     R: Any
 
+    parameters = ("R",)
     exact_flow = False
+    constrained_drift = "lie-group"
     _name = "R"
     symmetry = _closed({"material-affine"})
 
@@ -638,7 +729,7 @@ _REGION_DOC = """
 """
 
 
-@_register
+@pytree.dataclass
 class AffineIsotropic(_IsotropicAffineFamily, _LeftInvariantModel):
     """af-is: spatially affine, materially isotropic internal energy (74), (85), (86).
 
@@ -651,7 +742,9 @@ class AffineIsotropic(_IsotropicAffineFamily, _LeftInvariantModel):
     A: Any = 0.0
     B: Any = 0.0
 
+    parameters = ("I", "A", "B")
     exact_flow = True
+    constrained_drift = "exact"  # the inertia maps every subalgebra g into itself
     symmetry = _closed({"spatial-affine", "material-euclidean"})
 
     def _iab(self):
@@ -664,7 +757,7 @@ class AffineIsotropic(_IsotropicAffineFamily, _LeftInvariantModel):
         self._check_region("af-is", n)
 
 
-@_register
+@pytree.dataclass
 class IsotropicAffine(_IsotropicAffineFamily, _RightInvariantModel):
     """is-af: spatially isotropic, materially affine internal energy (73), (84a), (86).
 
@@ -677,7 +770,9 @@ class IsotropicAffine(_IsotropicAffineFamily, _RightInvariantModel):
     A: Any = 0.0
     B: Any = 0.0
 
+    parameters = ("I", "A", "B")
     exact_flow = True
+    constrained_drift = "exact"  # the inertia maps every subalgebra g into itself
     symmetry = _closed({"spatial-euclidean", "material-affine"})
 
     def _iab(self):
@@ -694,7 +789,7 @@ AffineIsotropic.__doc__ += _REGION_DOC
 IsotropicAffine.__doc__ += _REGION_DOC
 
 
-@_register
+@pytree.dataclass
 class AffineAffine(_IsotropicAffineFamily, _LeftInvariantModel):
     """af-af: the doubly affine internal energy (72); (84a)/(85) with I = 0.
 
@@ -708,7 +803,9 @@ class AffineAffine(_IsotropicAffineFamily, _LeftInvariantModel):
     A: Any
     B: Any = 0.0
 
+    parameters = ("A", "B")
     exact_flow = True
+    constrained_drift = "exact"  # the inertia maps every subalgebra g into itself
     symmetry = _closed({"spatial-affine", "material-affine"})
 
     def _iab(self):
@@ -750,7 +847,7 @@ class AffineAffine(_IsotropicAffineFamily, _LeftInvariantModel):
 # --------------------------------------------------------------------------------------------
 
 
-@_register
+@pytree.dataclass
 class KineticEnergy:
     """Total kinetic energy of N bodies, T = sum_A (T_tr)_A + (T_int)_A (10), (55).
 
@@ -770,7 +867,7 @@ class KineticEnergy:
 
     @property
     def exact_flow(self) -> bool:
-        commuting = isinstance(self.translational, DAlembertTranslational)
+        commuting = self.translational.flow_moves_only_x
         return commuting and self.translational.exact_flow and self.internal.exact_flow
 
     @property
@@ -797,7 +894,7 @@ class KineticEnergy:
         return VelocityState(state.x, state.phi, v, xi)
 
     def flow(self, state: State, h) -> State:
-        if isinstance(self.translational, DAlembertTranslational):
+        if self.translational.flow_moves_only_x:  # commutes with every internal flow
             return self.internal.flow(self.translational.flow(state, h), h)
         state = self.translational.flow(state, 0.5 * h)
         state = self.internal.flow(state, h)
@@ -809,7 +906,7 @@ class KineticEnergy:
 
 
 #: Internal kinetic models by configuration name.
-MODELS: dict[str, type] = {
+MODELS: dict[str, type[AbstractKineticTerm]] = {
     "dalembert": DAlembert,
     "is-af": IsotropicAffine,
     "af-is": AffineIsotropic,
@@ -821,8 +918,16 @@ MODELS: dict[str, type] = {
 }
 
 #: Translational kinetic models by configuration name ((63) is d'Alembert's (6)).
-TRANSLATIONAL_MODELS: dict[str, type] = {
+TRANSLATIONAL_MODELS: dict[str, type[AbstractKineticTerm]] = {
     "dalembert": DAlembertTranslational,
     "is-af": DAlembertTranslational,
     "af-is": AffineTranslational,
 }
+
+
+__all__ = [
+    "MODELS", "SYMMETRIES", "TRANSLATIONAL_MODELS", "AbstractKineticTerm", "AffineAffine",
+    "AffineIsotropic", "AffineJ", "AffineTranslational", "DAlembert", "DAlembertTranslational",
+    "HAffine", "IsotropicAffine", "KineticEnergy", "LeftInvariant", "RightInvariant",
+    "rank_one_splitting",
+]

@@ -82,7 +82,7 @@ HOST_THREAD_MIN_ROWS = 4096
 
 def _requirements(pot, n: int):
     plain, k_powers, m_powers = pot.scalar_requirements(n)
-    return plain, k_powers, m_powers, bool(pot._asymmetric) and m_powers > 0
+    return plain, k_powers, m_powers, bool(pot.asymmetric) and m_powers > 0
 
 
 def padding_value(name: str, n: int, r_cut: float) -> float:

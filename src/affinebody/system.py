@@ -22,10 +22,11 @@ represent it by the unique pi whose co-moving affine spin Sigma_hat = pi phi lie
 
 A kick then projects its momentum increment, ``pi -= h P_g((dV/dphi)^T phi) phi^-1``, which is the
 exact flow of V restricted to G (phi is fixed during a kick). Each kinetic term drifts on G in the
-way ``constraints.drift_mode`` picks: its own exact flow where that stays on G (isotropic af-is,
-is-af, af-af; translational terms), a Lie-group splitting in g for the other left/right-invariant
-models (af-J, H-af, l-af, r-af), RATTLE for d'Alembert. The kinetic energy on G is the restricted
-one, H evaluated at the metric lift of pi (``constraints.metric_lift``).
+way it declares (``constrained_drift`` of ``kinetic.AbstractKineticTerm``): its own exact flow
+where that stays on G (isotropic af-is, is-af, af-af; translational terms), a Lie-group splitting
+in g for the other left/right-invariant models (af-J, H-af, l-af, r-af), RATTLE for d'Alembert.
+The kinetic energy on G is the restricted one, H evaluated at the metric lift of pi
+(``constraints.metric_lift``).
 
 Non-holonomic constraints. ``rotationless="spatial"`` imposes (40), Omega = Omega^T;
 ``rotationless="material"`` imposes (41), Omega_hat = Omega_hat^T (``affinebody.nonholonomic``).
@@ -37,7 +38,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import jax
@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from affinebody import _linalg as linalg
+from affinebody import _pytree as pytree
 from affinebody import constraints, nonholonomic
 from affinebody._checks import as_matrix, as_vector, is_concrete, transpose
 from affinebody.constraints import CONSTRAINED_GROUPS
@@ -83,7 +84,7 @@ def project_momentum(phi: jax.Array, pi: jax.Array, group: str) -> jax.Array:
     return pi - transpose(linalg.solve(transpose(phi), transpose(removed)))
 
 
-@dataclass(frozen=True)
+@pytree.dataclass
 class HamiltonianSystem:
     """H(x, phi, p, pi) = T(kinetic) + V(potential) on the configuration space ``group``.
 
@@ -92,10 +93,13 @@ class HamiltonianSystem:
     group: one of SYSTEM_GROUPS.
     """
 
+    # kinetic parameters are array leaves (traced under jit: one compilation serves every
+    # inertia); potentials are hashable static objects and enter compiled functions as data of
+    # the treedef, with the group and the constraint.
     kinetic: Any
-    potential: Any = None
-    group: str = "GL+"
-    rotationless: str | None = None
+    potential: Any = pytree.static_field(default=None)
+    group: str = pytree.static_field(default="GL+")
+    rotationless: str | None = pytree.static_field(default=None)
 
     def __post_init__(self):
         if self.group not in SYSTEM_GROUPS:
@@ -320,8 +324,7 @@ class HamiltonianSystem:
         return dataclasses.replace(self, **changes)
 
 
-# kinetic parameters are array leaves (traced under jit); potentials are hashable frozen
-# dataclasses and enter compiled functions as static data.
-jax.tree_util.register_dataclass(
-    HamiltonianSystem, data_fields=["kinetic"], meta_fields=["potential", "group", "rotationless"]
-)
+
+__all__ = [
+    "OPEN_GROUPS", "SYSTEM_GROUPS", "HamiltonianSystem", "kinetic_terms", "project_momentum",
+]

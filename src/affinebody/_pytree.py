@@ -1,0 +1,85 @@
+"""One pytree convention for the models: frozen dataclasses registered with JAX.
+
+``@dataclass`` makes a class a frozen dataclass and registers it as a JAX pytree (as jax-md's
+``dataclasses.py``): fields are leaves (traced under ``jax.jit``, mapped by ``jax.tree.map``)
+unless marked ``static_field()`` / ``field(static=True)``, in which case their values go into
+the treedef (so they must be hashable, and a change of value means a new compilation).
+
+A field may carry a ``converter``: a one-argument function applied to the value given to the
+constructor (validation and normalisation, e.g. ``float`` with a range check). Converters run
+before the class's own ``__post_init__`` (for checks across fields); they run again when JAX
+rebuilds an instance from its treedef, so they must be idempotent. This module is the one place
+that writes to a frozen instance (:func:`initialize`, for values derived from several fields).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+import jax
+
+_STATIC = "static"
+_CONVERTER = "converter"
+
+
+def field(*, static: bool = False, converter: Callable[[Any], Any] | None = None,
+          **kwargs) -> Any:
+    """A dataclass field; ``static=True`` puts it in the treedef, ``converter`` normalises it."""
+    metadata = dict(kwargs.pop("metadata", None) or {})
+    metadata[_STATIC] = static
+    if converter is not None:
+        metadata[_CONVERTER] = converter
+    return dataclasses.field(metadata=metadata, **kwargs)
+
+
+def static_field(**kwargs) -> Any:
+    """A field whose (hashable) value is part of the treedef: ``field(static=True, ...)``."""
+    return field(static=True, **kwargs)
+
+
+def is_static(f: dataclasses.Field) -> bool:
+    """True for a field declared with ``static_field()`` / ``field(static=True)``."""
+    return bool(f.metadata.get(_STATIC, False))
+
+
+def initialize(obj: Any, **values: Any) -> None:
+    """Set fields of a frozen dataclass while it is being constructed (``__post_init__`` only),
+    for values that depend on several fields (e.g. a default computed from another field)."""
+    for name, value in values.items():
+        object.__setattr__(obj, name, value)
+
+
+def dataclass(cls: type | None = None, *, static: bool = False):
+    """Frozen dataclass registered as a JAX pytree; ``static=True`` makes every field static.
+
+    Fields marked static (or all fields, with ``static=True``) are metadata of the treedef;
+    the others are children. Field converters (:func:`field`) run first in ``__post_init__``.
+    """
+
+    def wrap(cls: type) -> type:
+        post = cls.__dict__.get("__post_init__")
+        if post is None:  # inherited: the user's hook of a decorated base, or a mixin's
+            post = getattr(cls, "__pytree_post_init__", None) or getattr(cls, "__post_init__", None)
+        cls.__pytree_post_init__ = post
+
+        def __post_init__(self):
+            for f in dataclasses.fields(self):
+                converter = f.metadata.get(_CONVERTER)
+                if converter is not None:
+                    initialize(self, **{f.name: converter(getattr(self, f.name))})
+            if post is not None:
+                post(self)
+
+        cls.__post_init__ = __post_init__
+        dc = dataclasses.dataclass(frozen=True)(cls)
+        fields = [f for f in dataclasses.fields(dc) if f.init]
+        meta = [f.name for f in fields if static or is_static(f)]
+        data = [f.name for f in fields if f.name not in meta]
+        return jax.tree_util.register_dataclass(dc, data_fields=data, meta_fields=meta)
+
+    return wrap if cls is None else wrap(cls)
+
+
+__all__ = ["dataclass", "field", "initialize", "is_static", "static_field"]
