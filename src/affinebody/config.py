@@ -40,17 +40,10 @@ from affinebody import integrators as _integrators
 from affinebody import kinetic as _kinetic
 from affinebody.groups import CONFIGURATION_SPACES
 
-#: Internal kinetic models, with the parameters each one uses (paper's names, section 3).
+#: Internal kinetic models and the parameters each one takes (paper's names, section 3: the
+#: registry ``kinetic.MODELS``, each model class declaring its ``parameters``).
 INTERNAL_MODELS: dict[str, tuple[str, ...]] = {
-    "dalembert": ("J",),  # (6), (76a)
-    "af-J": ("J",),  # (65), (79a)
-    "H-af": ("H",),  # (67), (81a)
-    "l-af": ("L",),  # (70), (82a)
-    "r-af": ("R",),  # (71), (83a)
-    "af-af": ("A", "B"),  # (72)
-    "is-af": ("I", "A", "B"),  # (73), (84a)
-    "af-is": ("I", "A", "B"),  # (74), (85)
-}
+    name: model.parameters for name, model in _kinetic.MODELS.items()}
 #: Translational kinetic models: d'Alembert (63) (alias is-af) and af-is (64), (78a); the
 #: registry is ``kinetic.TRANSLATIONAL_MODELS``.
 TRANSLATIONAL_MODELS = tuple(_kinetic.TRANSLATIONAL_MODELS)
@@ -541,7 +534,7 @@ def _neighbor_list_obstacle(config: Config, terms) -> str | None:
     "needs <what> (got <what>)", or None: a periodic box, pair terms that all have a cut-off
     on r with r_cut + run.neighbor_skin <= half the shortest box edge, a splitting integrator.
     ``terms``: the built [[potential]] entries."""
-    from affinebody.potentials import PairTerm
+    from affinebody.potentials import NoNeighborRange, neighbor_range
     from affinebody.space import as_space
 
     r = config.run
@@ -550,14 +543,15 @@ def _neighbor_list_obstacle(config: Config, terms) -> str | None:
                 f"{', '.join(SPLITTING_INTEGRATORS)} (got {r.integrator!r})")
     if config.system.box is None:
         return "a periodic box: set system.box (got no box)"
-    pairs = [(k, t) for k, t in enumerate(terms) if isinstance(t, PairTerm)]
-    if not pairs:
-        return "pair potentials with a cut-off (got no pair term in [[potential]])"
-    for k, term in pairs:
-        if term.cutoff is None or term.cutoff.variable != "r":
-            return (f"a cut-off on r in every pair term: set potential.{k}.r_cut (got "
-                    f"{'none' if term.cutoff is None else 'a cut-off on D'})")
-    r_cut = max(float(t.cutoff.r_cut) for _, t in pairs)
+    try:
+        _, r_cut, variable = neighbor_range(list(terms))
+    except NoNeighborRange as err:
+        if err.index is None:
+            return "pair potentials with a cut-off (got no pair term in [[potential]])"
+        got = "none" if terms[err.index].cutoff is None else "cut-offs that differ"
+        return f"a cut-off on r in every pair term: set potential.{err.index}.r_cut (got {got})"
+    if variable != "r":
+        return "a cut-off on r in every pair term (got a cut-off on D)"
     half = as_space(tuple(config.system.box)).max_cutoff
     if r_cut + r.neighbor_skin > half * (1 + 1e-12):
         return (f"r_cut + run.neighbor_skin <= half the shortest box edge: reduce "
@@ -773,6 +767,20 @@ class Built:
     timings: dict = dataclass_field(default_factory=dict)
 
 
+def _kinetic_parameter(name: str, config: Config, inertia: Inertia):
+    """The value of ``kinetic.<name>`` for the model (each model declares the names it takes):
+    J defaults to the body's inertia (8), B to 0; matrices and tensors are checked."""
+    k, n = config.kinetic, config.n
+    if name == "J":
+        return inertia.J if k.J is None else _spd(k.J, "kinetic.J", n)
+    if name == "H":
+        return _spd(k.H, "kinetic.H", n)
+    if name in ("L", "R"):
+        return _array(getattr(k, name), f"kinetic.{name}", (n, n, n, n))
+    value = getattr(k, name)
+    return 0.0 if value is None and name == "B" else float(value)
+
+
 def build_kinetic(config: Config, inertia: Inertia):
     """The :class:`~affinebody.kinetic.KineticEnergy` of ``[kinetic]`` (positive definiteness
     checked here and again by the model's own ``check``)."""
@@ -780,20 +788,9 @@ def build_kinetic(config: Config, inertia: Inertia):
 
     k, n = config.kinetic, config.n
     translational = models.TRANSLATIONAL_MODELS[k.translational](mass=inertia.mass)
-    name = k.internal
-    if name in ("dalembert", "af-J"):
-        J = inertia.J if k.J is None else _spd(k.J, "kinetic.J", n)
-        internal = models.MODELS[name](J=J)
-    elif name == "H-af":
-        internal = models.MODELS[name](H=_spd(k.H, "kinetic.H", n))
-    elif name in ("l-af", "r-af"):
-        param = "L" if name == "l-af" else "R"
-        tensor = _array(getattr(k, param), f"kinetic.{param}", (n, n, n, n))
-        internal = models.MODELS[name](**{param: tensor})
-    elif name == "af-af":
-        internal = models.MODELS[name](A=float(k.A), B=float(k.B or 0.0))
-    else:
-        internal = models.MODELS[name](I=float(k.I), A=float(k.A), B=float(k.B or 0.0))
+    model = models.MODELS[k.internal]
+    internal = model(**{name: _kinetic_parameter(name, config, inertia)
+                        for name in model.parameters})
     energy = models.KineticEnergy(translational, internal)
     try:
         energy.check(n)
@@ -881,7 +878,7 @@ def build(config: Config) -> Built:
 
     from affinebody._checks import require_x64
     from affinebody.potentials import total_potential
-    from affinebody.system import SYSTEM_GROUPS, HamiltonianSystem
+    from affinebody.system import HamiltonianSystem
 
     require_x64()
     timings: dict[str, float] = {}
@@ -898,9 +895,9 @@ def build(config: Config) -> Built:
     terms = [build_potential_entry(e, k, config) for k, e in enumerate(config.potential)]
     potential = total_potential(terms) if terms else None
     group = config.system.group
-    if group not in SYSTEM_GROUPS:
+    if group not in CONFIG_GROUPS:
         raise ConfigError(f"system.group {group!r} is not supported by the integrators "
-                          f"(choose one of {', '.join(SYSTEM_GROUPS)})")
+                          f"(choose one of {', '.join(CONFIG_GROUPS)})")
     try:
         system = HamiltonianSystem(kinetic, potential, group,
                                    rotationless=config.constraints.rotationless)

@@ -49,11 +49,11 @@ from affinebody import _pytree as pytree
 from affinebody import constraints, nonholonomic
 from affinebody._checks import as_matrix, as_vector, is_concrete, transpose
 from affinebody.constraints import CONSTRAINED_GROUPS
-from affinebody.groups import is_member, project_algebra
+from affinebody.groups import CONFIGURATION_SPACES, is_member, project_algebra
 from affinebody.state import State
 
-#: Configuration spaces a HamiltonianSystem accepts.
-SYSTEM_GROUPS = ("GL+", "GL", "L", "SL", "UL", "SO", "O", "R+SO", "R+O")
+#: Configuration spaces a HamiltonianSystem accepts (the one list: groups.CONFIGURATION_SPACES).
+SYSTEM_GROUPS = CONFIGURATION_SPACES
 #: Groups whose boundary det phi = 0 the run driver watches.
 OPEN_GROUPS = ("GL+", "GL")
 
@@ -234,36 +234,13 @@ class HamiltonianSystem:
 
     # ----------------------------------------------------------------- neighbour lists
     def neighbor_range(self):
-        """(space, cutoff, variable) that one neighbour list must cover for this potential.
+        """(space, cutoff, variable) that one neighbour list must cover for this potential
+        (:func:`affinebody.potentials.neighbor_range`: every pair term needs a cut-off on the
+        same variable in the same space); ValueError otherwise, saying why (the run then has
+        to sum over all pairs)."""
+        from affinebody.potentials import neighbor_range
 
-        The pair terms (``potentials.PairTerm``, alone or in a ``TotalPotential``) must all have
-        a cut-off on the same variable ("r", or "D" of eq. (75)) and the same space (free or
-        one periodic box); the list covers the largest cut-off. ValueError otherwise, saying why
-        (the run then has to sum over all pairs).
-        """
-        from affinebody.potentials import PairTerm, TotalPotential
-
-        if isinstance(self.potential, TotalPotential):
-            terms = self.potential.terms
-        else:
-            terms = (self.potential,) if isinstance(self.potential, PairTerm) else ()
-        pairs = [t for t in terms if isinstance(t, PairTerm)]
-        if not pairs:
-            raise ValueError("a neighbour list needs pair potentials of affinebody.potentials "
-                             "(PairTerm, alone or in a TotalPotential); this system has none: "
-                             "run without neighbors")
-        if any(t.cutoff is None for t in pairs):
-            names = ", ".join(type(t).__name__ for t in pairs if t.cutoff is None)
-            raise ValueError(f"a neighbour list needs a cut-off on every pair term ({names} has "
-                             f"none): give it cutoff=potentials.Cutoff(r_cut) or run without "
-                             f"neighbors")
-        variables = {t.cutoff.variable for t in pairs}
-        spaces = {t.space for t in pairs}
-        if len(variables) > 1 or len(spaces) > 1:
-            raise ValueError("one neighbour list serves pair terms with cut-offs on the same "
-                             "variable (r or D) in the same space; these differ: run without "
-                             "neighbors")
-        return spaces.pop(), max(float(t.cutoff.r_cut) for t in pairs), variables.pop()
+        return neighbor_range(() if self.potential is None else self.potential)
 
     # ----------------------------------------------------------------- validation
     def check(self, state: State) -> State:

@@ -101,10 +101,12 @@ from affinebody.potentials.registry import POTENTIALS, PotentialFamily, build_po
 from affinebody.potentials.terms import (
     AbstractPotentialTerm,
     Cutoff,
+    NoNeighborRange,
     OneBodyTerm,
     PairTerm,
     TotalPotential,
     generalized_forces,
+    neighbor_range,
     switching,
     total_potential,
 )
@@ -130,6 +132,7 @@ __all__ = [
     "HarmonicInvariants",
     "LennardJones",
     "Morse",
+    "NoNeighborRange",
     "OneBodyPotential",
     "OneBodyTerm",
     "PairPotential",
@@ -138,6 +141,7 @@ __all__ = [
     "StVenantKirchhoff",
     "TotalPotential",
     "build_potential",
+    "neighbor_range",
     "generalized_forces",
     "one_body_symmetry",
     "one_body_variable_names",

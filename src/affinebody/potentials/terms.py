@@ -382,6 +382,45 @@ def total_potential(potentials: Iterable[Any]) -> TotalPotential:
     return TotalPotential(tuple(terms))
 
 
+class NoNeighborRange(ValueError):
+    """The pair terms cannot share one neighbour list; ``index`` is the offending term's
+    position in the sequence given to :func:`neighbor_range` (None: no pair term at all)."""
+
+    def __init__(self, message: str, index: int | None):
+        super().__init__(message)
+        self.index = index
+
+
+def neighbor_range(terms) -> tuple[Any, float, str]:
+    """(space, cutoff, variable) that one neighbour list must cover for the pair terms among
+    ``terms`` (a potential, or a sequence of terms): all pair terms need a cut-off on the same
+    variable ("r", or "D" of eq. (75)) in the same space (free or one periodic box), and the
+    list covers the largest cut-off. The one rule for "can this system use a list?" (the
+    system's ``neighbor_range`` and the config's checks apply it); :class:`NoNeighborRange`
+    says why not."""
+    if isinstance(terms, TotalPotential):
+        terms = terms.terms
+    elif not isinstance(terms, list | tuple):
+        terms = (terms,)
+    pairs = [(k, t) for k, t in enumerate(terms) if isinstance(t, PairTerm)]
+    if not pairs:
+        raise NoNeighborRange("a neighbour list needs pair potentials of affinebody.potentials "
+                              "(PairTerm, alone or in a TotalPotential); this system has none: "
+                              "run without neighbors", None)
+    for k, t in pairs:
+        if t.cutoff is None:
+            raise NoNeighborRange(
+                f"a neighbour list needs a cut-off on every pair term ({type(t).__name__} has "
+                f"none): give it cutoff=potentials.Cutoff(r_cut) or run without neighbors", k)
+    variables = {t.cutoff.variable for _, t in pairs}
+    spaces = {t.space for _, t in pairs}
+    if len(variables) > 1 or len(spaces) > 1:
+        raise NoNeighborRange("one neighbour list serves pair terms with cut-offs on the same "
+                              "variable (r or D) in the same space; these differ: run without "
+                              "neighbors", pairs[-1][0])
+    return spaces.pop(), max(float(t.cutoff.r_cut) for _, t in pairs), variables.pop()
+
+
 def generalized_forces(potential, x, phi) -> tuple[jax.Array, jax.Array]:
     """(-dV/dx, -dV/dphi), shaped like x and phi (summed energy over leading batch axes,
     which are independent systems). The momentum equations are dp/dt = -dV/dx and
@@ -392,7 +431,8 @@ def generalized_forces(potential, x, phi) -> tuple[jax.Array, jax.Array]:
 
 
 __all__ = [
-    "AbstractPotentialTerm", "Cutoff", "OneBodyTerm", "PairTerm", "TotalPotential",
-    "box_field", "cutoff_field", "generalized_forces", "positive_parameter", "real_parameter",
-    "real_tuple_parameter", "switching", "total_potential",
+    "AbstractPotentialTerm", "Cutoff", "NoNeighborRange", "OneBodyTerm", "PairTerm",
+    "TotalPotential", "box_field", "cutoff_field", "generalized_forces", "neighbor_range",
+    "positive_parameter", "real_parameter", "real_tuple_parameter", "switching",
+    "total_potential",
 ]
