@@ -1,12 +1,27 @@
-"""Compiled host (CPU) code: whether the product runs it.
+"""Compiled host (CPU) code: whether the product runs it, and its kernels cached on disk.
 
 On a CPU backend with Numba installed, the pair kernel (``pair_kernels``) and the neighbour
 list build (``neighbors``) run compiled CPU loops reached through ``jax.pure_callback``; on
 a GPU (or without Numba) they run their JAX versions, so nothing leaves the device inside the
 time loop. Both versions of each are tested against each other and against all-pairs sums.
+
+The kernels live in :mod:`affinebody._host_kernels` as modules whose dimension (and box kind)
+are module constants, which Numba compiles as constants so that the small loops unroll.
+:func:`specialized` writes such a module once per set of constants into a cache folder and
+imports it from there; Numba's ``cache=True`` then keeps the machine code beside it, so only the
+first process on a machine compiles (about 5 s for the n = 3 pair kernel), the others load.
 """
 
 from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import re
+import sys
+import types
+from importlib import resources
+from pathlib import Path
 
 import jax
 
@@ -15,7 +30,52 @@ try:  # optional at import: the JAX paths work without it (pyproject installs it
 except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
 
+_CONSTANTS = re.compile(r"# --- constants.*?\n(.*?)# --- end of constants", re.S)
+
 
 def in_use() -> bool:
     """True when compiled host code runs: a CPU backend and Numba installed."""
     return numba is not None and jax.default_backend() == "cpu"
+
+
+def cache_folder() -> Path:
+    """Where specialized kernels and their compiled code are kept: $AFFINEBODY_CACHE_DIR, else
+    $XDG_CACHE_HOME/affinebody/kernels, else ~/.cache/affinebody/kernels."""
+    if os.environ.get("AFFINEBODY_CACHE_DIR"):
+        return Path(os.environ["AFFINEBODY_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "affinebody" / "kernels"
+
+
+def specialized(kernel: str, **constants) -> types.ModuleType:
+    """The module ``affinebody._host_kernels.<kernel>`` with its block of constants set to
+    ``constants`` (and ``CACHE`` on), loaded from a file in :func:`cache_folder` named by a hash
+    of its text and of the Numba and Python versions, so a changed kernel never meets a stale
+    cache. Where the folder cannot be written, the module is compiled in memory, uncached."""
+    template = resources.files("affinebody._host_kernels").joinpath(f"{kernel}.py").read_text(
+        encoding="utf-8")
+    block = "".join(f"{name} = {value!r}\n" for name, value in {**constants, "CACHE": True}.items())
+    text, count = _CONSTANTS.subn(lambda m: m.group(0).replace(m.group(1), block), template)
+    if count != 1:
+        raise RuntimeError(f"_host_kernels/{kernel}.py has no block of constants")
+    key = hashlib.sha256(f"{text}{numba.__version__}{sys.version}".encode()).hexdigest()[:16]
+    name = f"affinebody_kernel_{kernel}_{key}"
+    if name in sys.modules:
+        return sys.modules[name]
+    path = cache_folder() / f"{name}.py"
+    try:
+        if not path.exists():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            partial = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+            partial.write_text(text, encoding="utf-8")
+            os.replace(partial, path)  # concurrent processes each write the same text
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    except OSError:  # no writable cache: compile in memory (each process compiles)
+        module = types.ModuleType(name)
+        exec(compile(text.replace("CACHE = True", "CACHE = False"), f"<{name}>", "exec"),
+             module.__dict__)
+        sys.modules[name] = module
+    return module

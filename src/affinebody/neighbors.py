@@ -255,75 +255,9 @@ build_jit = jax.jit(build, static_argnums=0)
 
 @functools.cache
 def _host_kernel(n: int, periodic: bool):
-    """The compiled build for dimension n (a compile-time constant, so loops unroll)."""
-    jit = _host.numba.njit(boundscheck=False, nogil=True)
-
-    @jit
-    def pairs(flat, coords, x, grid, strides, stencil, mode, h, h_inv, edges, radius2,
-              capacity, pairs_i, pairs_j):
-        bodies = x.shape[0]
-        cells = 1
-        for d in range(n):
-            cells *= grid[d]
-        start = np.zeros(cells + 1, np.int64)  # counting sort: bodies by cell, then index
-        for k in range(bodies):
-            start[flat[k] + 1] += 1
-        for c in range(cells):
-            start[c + 1] += start[c]
-        order = np.empty(bodies, np.int64)
-        fill = start[:-1].copy()
-        for k in range(bodies):
-            order[fill[flat[k]]] = k
-            fill[flat[k]] += 1
-        u = np.empty(n)
-        s = np.empty(n)
-        total = 0
-        for k in range(bodies):
-            for o in range(stencil.shape[0]):
-                cell = 0
-                inside = True
-                for d in range(n):
-                    c = coords[k, d] + stencil[o, d]
-                    if periodic:
-                        c %= grid[d]
-                    elif c < 0 or c >= grid[d]:
-                        inside = False
-                    cell += c * strides[d]
-                if not inside:
-                    continue
-                for slot in range(start[cell], start[cell + 1]):
-                    other = order[slot]
-                    if other <= k:
-                        continue
-                    # minimum image, as space.Space.displacement, written out as in the pair
-                    # kernels (an inlined Numba helper made those ~30 % slower, measured)
-                    for d in range(n):
-                        u[d] = x[k, d] - x[other, d]
-                    if mode == 1:
-                        for d in range(n):
-                            u[d] -= edges[d] * np.round(u[d] / edges[d])
-                    elif mode == 2:
-                        for d in range(n):
-                            acc = 0.0
-                            for e in range(n):
-                                acc += h_inv[d, e] * u[e]
-                            s[d] = acc - np.round(acc)
-                        for d in range(n):
-                            acc = 0.0
-                            for e in range(n):
-                                acc += h[d, e] * s[e]
-                            u[d] = acc
-                    r2 = 0.0
-                    for d in range(n):
-                        r2 += u[d] * u[d]
-                    if r2 < radius2:
-                        if total < capacity:
-                            pairs_i[total] = k
-                            pairs_j[total] = other
-                        total += 1
-        return total
-
-    return pairs
+    """The compiled build for dimension n (:mod:`affinebody._host_kernels.cells`, specialized
+    and cached on disk by :func:`affinebody._host.specialized`)."""
+    return _host.specialized("cells", N=n, PERIODIC=bool(periodic)).pairs
 
 
 def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array) -> NeighborList:

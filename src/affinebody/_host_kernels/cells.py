@@ -1,0 +1,84 @@
+"""Numba kernel of the host neighbour-list build (:mod:`affinebody.neighbors`): a counting sort
+of the bodies by cell, then for each body the cells of the stencil and their bodies of larger
+index, in the same order as the JAX build.
+
+``N`` (the dimension) and ``PERIODIC`` are module constants, compiled as constants so the loops
+unroll; :func:`affinebody._host.specialized` writes this module once per (N, PERIODIC) to a
+cache folder and imports it from there, so that Numba's disk cache (``CACHE``) spares later
+processes the compilation. Imported directly it is the 3D periodic version without a cache.
+"""
+
+import numba
+import numpy as np
+
+# --- constants (written by affinebody._host.specialized)
+N = 3
+PERIODIC = True
+CACHE = False
+# --- end of constants
+
+
+@numba.njit(boundscheck=False, nogil=True, cache=CACHE)
+def pairs(flat, coords, x, grid, strides, stencil, mode, h, h_inv, edges, radius2,
+          capacity, pairs_i, pairs_j):
+    bodies = x.shape[0]
+    cells = 1
+    for d in range(N):
+        cells *= grid[d]
+    start = np.zeros(cells + 1, np.int64)  # counting sort: bodies by cell, then index
+    for k in range(bodies):
+        start[flat[k] + 1] += 1
+    for c in range(cells):
+        start[c + 1] += start[c]
+    order = np.empty(bodies, np.int64)
+    fill = start[:-1].copy()
+    for k in range(bodies):
+        order[fill[flat[k]]] = k
+        fill[flat[k]] += 1
+    u = np.empty(N)
+    s = np.empty(N)
+    total = 0
+    for k in range(bodies):
+        for o in range(stencil.shape[0]):
+            cell = 0
+            inside = True
+            for d in range(N):
+                c = coords[k, d] + stencil[o, d]
+                if PERIODIC:
+                    c %= grid[d]
+                elif c < 0 or c >= grid[d]:
+                    inside = False
+                cell += c * strides[d]
+            if not inside:
+                continue
+            for slot in range(start[cell], start[cell + 1]):
+                other = order[slot]
+                if other <= k:
+                    continue
+                # minimum image, as space.Space.displacement, written out as in the pair
+                # kernels (an inlined Numba helper made those ~30 % slower, measured)
+                for d in range(N):
+                    u[d] = x[k, d] - x[other, d]
+                if mode == 1:
+                    for d in range(N):
+                        u[d] -= edges[d] * np.round(u[d] / edges[d])
+                elif mode == 2:
+                    for d in range(N):
+                        acc = 0.0
+                        for e in range(N):
+                            acc += h_inv[d, e] * u[e]
+                        s[d] = acc - np.round(acc)
+                    for d in range(N):
+                        acc = 0.0
+                        for e in range(N):
+                            acc += h[d, e] * s[e]
+                        u[d] = acc
+                r2 = 0.0
+                for d in range(N):
+                    r2 += u[d] * u[d]
+                if r2 < radius2:
+                    if total < capacity:
+                        pairs_i[total] = k
+                        pairs_j[total] = other
+                    total += 1
+    return total
