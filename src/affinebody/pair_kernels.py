@@ -499,3 +499,9 @@ def pair_sum(pot, space: Space, x, phi, i, j, count):
     if host_kernel_in_use():
         return _host_pair_sum(pot, space, x, phi, i, j, count)
     return energy_and_gradients(pot, space, x, phi, i, j, count)
+
+
+__all__ = [
+    "PAIR_CHUNK", "energy_and_gradients", "energy_and_gradients_host", "host_kernel_in_use",
+    "host_threads", "neighbor_energy", "padding_value", "pair_sum", "scalar_columns",
+]

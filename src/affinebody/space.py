@@ -27,15 +27,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from affinebody import _pytree
 
-@dataclass(frozen=True)
+
+@_pytree.dataclass(static=True)
 class Space:
     """Free space (``cell=None``) or the periodic lattice with cell matrix ``cell`` (columns are
     the lattice vectors). Build with :func:`free_space`, :func:`orthorhombic`,
@@ -58,8 +59,8 @@ class Space:
                 f"space.cell must have det > 0 (right-handed lattice vectors as columns; "
                 f"got det = {det:.6g})"
             )
-        object.__setattr__(self, "cell", tuple(tuple(float(v) for v in row) for row in h))
-        object.__setattr__(self, "dimension", h.shape[0])
+        _pytree.initialize(self, cell=tuple(tuple(float(v) for v in row) for row in h),
+                           dimension=h.shape[0])
 
     # ------------------------------------------------------------------ geometry
     @property
