@@ -222,6 +222,7 @@ def test_cli_on_a_running_cluster_prints_one_json_object(client, two_workers, tm
     text = CliRunner().invoke(CLI, ["sweep", str(config), "--scheduler", address,
                                     "--samples", str(BATCH), "-o", str(tmp_path / "t")])
     assert text.exit_code == 0 and "fraction bounded" in text.output
+    assert f"on 2 worker(s) ({address})" in text.output
     bad = CliRunner().invoke(CLI, ["sweep", str(config), "--scheduler", address,
                                    "--workers", "2"])
     assert bad.exit_code != 0 and "--workers" in bad.output + bad.stderr
