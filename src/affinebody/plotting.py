@@ -188,16 +188,21 @@ def _axis_segments(x, phi, radius):
     return np.stack([x, tip], axis=1)
 
 
-def _limits(trajectory: Trajectory, frames, drawn):
-    low = np.full(2, np.inf)
-    high = np.full(2, -np.inf)
+def _limits(trajectory: Trajectory, frames, drawn, cube: bool = False):
+    """Axis limits (low, high) [n] around the drawn bodies of ``frames``, padded by 5%; with
+    ``cube`` the same span on every axis (3D axes have no equal aspect of their own)."""
+    low = np.full(trajectory.n, np.inf)
+    high = np.full(trajectory.n, -np.inf)
     for k in frames:
         x, phi = np.asarray(trajectory.x[k])[drawn], np.asarray(trajectory.phi[k])[drawn]
         reach = np.linalg.norm(phi, ord=2, axis=(-2, -1)) * trajectory.radius[drawn]
         low = np.minimum(low, np.min(x - reach[:, None], axis=0))
         high = np.maximum(high, np.max(x + reach[:, None], axis=0))
-    pad = 0.05 * max(float(np.max(high - low)), 1e-9)
-    return low - pad, high + pad
+    span = max(float(np.max(high - low)), 1e-9)
+    if cube:
+        centre = (low + high) / 2
+        return centre - 0.525 * span, centre + 0.525 * span
+    return low - 0.05 * span, high + 0.05 * span
 
 
 def _draw(ax, trajectory: Trajectory, frame: int, low, high, drawn):
@@ -248,19 +253,6 @@ def ellipsoid_surface(x: np.ndarray, phi: np.ndarray, radius: np.ndarray, points
             * radius[:, None, None, None])
 
 
-def _box_limits(trajectory: Trajectory, frames, drawn):
-    """Cubic limits [3] (low, high) around the drawn bodies of ``frames`` (equal aspect)."""
-    low = np.full(3, np.inf)
-    high = np.full(3, -np.inf)
-    for k in frames:
-        x, phi = np.asarray(trajectory.x[k])[drawn], np.asarray(trajectory.phi[k])[drawn]
-        reach = np.linalg.norm(phi, ord=2, axis=(-2, -1)) * trajectory.radius[drawn]
-        low = np.minimum(low, np.min(x - reach[:, None], axis=0))
-        high = np.maximum(high, np.max(x + reach[:, None], axis=0))
-    centre, half = (low + high) / 2, max(float(np.max(high - low)) / 2, 1e-9) * 1.05
-    return centre - half, centre + half
-
-
 def plot_ellipsoids(trajectory: Trajectory, path: str | Path) -> Path:
     """First and last frame of a 3D trajectory, each body the shaded ellipsoid
     {x + phi a : |a| <= r} (matplotlib's 3D axes; n = 3 only)."""
@@ -270,7 +262,7 @@ def plot_ellipsoids(trajectory: Trajectory, path: str | Path) -> Path:
 
     drawn = _sample(trajectory.bodies, DRAWN_ELLIPSOIDS)
     frames = (0, trajectory.frames - 1)
-    low, high = _box_limits(trajectory, frames, drawn)
+    low, high = _limits(trajectory, frames, drawn, cube=True)
     light = LightSource(azdeg=315, altdeg=45)
     length = _unit(trajectory, "length")
     fig = plt.figure(figsize=(11, 5.4))
