@@ -250,3 +250,35 @@ def test_a_second_run_onto_an_existing_output_is_refused_unless_overwrite(folder
                       "--overwrite")
     assert replaced.exit_code == 0, replaced.stderr
     assert read_trajectory(out).frames == 2  # steps 0 and 500 (every = 500)
+
+
+def test_progress_says_compiling_first_and_the_summary_keeps_compilation_apart(folder, monkeypatch):
+    """Issue 18 item 6: the bar exists (phase "compiling") before the first, compiling chunk
+    and shows a rate only once integrating; the summary gives compilation and integration
+    apart, the rate over integration alone."""
+    from rich.console import Console
+
+    from affinebody.cli import run as run_cli
+    from affinebody.config import load_config
+    from affinebody.runner import run_simulation
+
+    monkeypatch.setattr(Console, "is_terminal", property(lambda self: True))
+    bar, update = run_cli._progress_callback(quiet=False)
+    seen = []
+
+    def watch(step, total, drift):
+        update(step, total, drift)
+        task = bar.tasks[0]
+        seen.append((step, task.fields["phase"], task.fields["rate"], time.perf_counter()))
+
+    summary = run_simulation(load_config(folder / "tiny.toml"), folder / "progress.h5",
+                             steps=6000, progress=watch)
+    assert seen[0][:3] == (0, "compiling", "-")  # shown before anything is integrated
+    # "compiling" stood on the bar while the first chunk compiled
+    assert seen[1][3] - seen[0][3] >= 0.9 * summary.compile_seconds
+    assert [phase for _, phase, _, _ in seen[1:]] == ["integrating"] * (len(seen) - 1)
+    assert seen[-1][0] == 6000 and seen[-1][2] != "-"
+    line = summary.lines()[1]
+    assert f"compiling {summary.compile_seconds:.2f} s" in line
+    assert f"integrating {summary.integrate_seconds:.2f} s" in line
+    assert summary.steps_per_second == pytest.approx(6000 / summary.integrate_seconds)

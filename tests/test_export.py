@@ -111,5 +111,5 @@ def test_written_file_parses_with_the_declared_columns(tmp_path):
         b = traj.radius[:, None, None] ** 2 * traj.phi[f] @ np.swapaxes(traj.phi[f], -1, -2)
         np.testing.assert_allclose(np.einsum("kij,kj,klj->kil", rotation, semi**2, rotation), b,
                                    rtol=1e-12, atol=1e-13)
-        deform = values[:, 10:].reshape(bodies, 3, 3)
+        deform = values[:, 10:].reshape(bodies, 3, 3).swapaxes(1, 2)  # column by column
         np.testing.assert_array_equal(deform[:, :2, :2], traj.phi[f])

@@ -52,7 +52,7 @@ def test_layout_follows_the_contract(tmp_path):
     write(path, frames=4, blocks=2, box=[5.0, 6.0])
     with h5py.File(path, "r") as f:
         assert list(f["h5md"].attrs["version"]) == [1, 1]
-        assert f["h5md/creator"].attrs["name"] == "affinebody"
+        assert f["h5md/creator"].attrs["name"] == b"affinebody"  # fixed-length (H5MD 1.1)
         assert "affine_bodies" in f["h5md/modules"]
         shapes = {"position": (8, 3, 2), "momentum": (8, 3, 2), "phi": (8, 3, 2, 2),
                   "phi_momentum": (8, 3, 2, 2)}
@@ -66,7 +66,10 @@ def test_layout_follows_the_contract(tmp_path):
         assert box.attrs["dimension"] == 2
         assert [b.decode() if isinstance(b, bytes) else b for b in box.attrs["boundary"]] == [
             "periodic", "periodic"]
-        np.testing.assert_array_equal(box["edges"][()], [5.0, 6.0])
+        # per frame (what MDAnalysis reads), its step and time those of position
+        np.testing.assert_array_equal(box["edges/value"][()], np.tile([5.0, 6.0], (8, 1)))
+        assert box["edges/step"] == f["particles/bodies/position/step"]  # the same dataset
+        assert box["edges/time"] == f["particles/bodies/position/time"]
         obs_shapes = {"total_energy": (8,), "kinetic_energy": (8,), "potential_energy": (8,),
                       "linear_momentum": (8, 2), "affine_momentum": (8, 2, 2),
                       "angular_momentum": (8, 2, 2)}

@@ -152,6 +152,7 @@ def test_one_worker_and_two_workers_give_identical_results(two_workers, tmp_path
     assert result.exit_code == 0, result.output
     summary = json.loads(result.output)  # stdout is exactly one JSON object
     assert summary["workers"] == 1 and two_workers.summary["workers"] == 2
+    assert summary["scheduler"].startswith("tcp://")  # the local cluster it started, not null
     for name in ("fraction_bounded", "samples", "total_samples", "failed"):
         assert summary[name] == two_workers.summary[name]
     rows = {}
@@ -209,12 +210,19 @@ def test_cli_on_a_running_cluster_prints_one_json_object(client, two_workers, tm
     assert result.exit_code == 0, result.output
     summary = json.loads(result.output)
     assert summary["fraction_bounded"] == two_workers.summary["fraction_bounded"]
+    # provenance: the cluster it ran on (not null), its workers (not its process ids)
+    written = json.loads((tmp_path / "o" / "summary.json").read_text())
+    for record in (summary, written):
+        assert record["scheduler"] == address
+        assert record["workers"] == len(client.scheduler_info()["workers"]) == 2
+        assert 1 <= record["worker_processes"] <= 2
     assert [p["parameters"] for p in summary["points"]] == [
         {"kinetic.A": 1.0}, {"kinetic.A": 2.0}, {"kinetic.A": 0.0}]
     assert summary["points"][2]["config_error"].startswith("config error: kinetic.A")
     text = CliRunner().invoke(CLI, ["sweep", str(config), "--scheduler", address,
                                     "--samples", str(BATCH), "-o", str(tmp_path / "t")])
     assert text.exit_code == 0 and "fraction bounded" in text.output
+    assert f"on 2 worker(s) ({address})" in text.output
     bad = CliRunner().invoke(CLI, ["sweep", str(config), "--scheduler", address,
                                    "--workers", "2"])
     assert bad.exit_code != 0 and "--workers" in bad.output + bad.stderr

@@ -84,6 +84,9 @@ class SystemSection(_Section):
     group: str = Field("GL+", description="configuration group of each phi")
     bodies: int | list[str] | None = Field(None, description="number of bodies or their labels")
     box: Vector | None = Field(None, description="edges of a periodic orthorhombic box")
+    units: Literal["reduced", "gromacs"] = Field(
+        "reduced", description="unit system of every number: reduced (sigma, m, tau, epsilon) "
+                               "or gromacs (nm, u, ps, kJ/mol); written to the H5MD file")
 
 
 class Constituents(_Section):
@@ -240,6 +243,8 @@ class Config(_Section):
         for key, default in (("neighbor_list", "auto"), ("neighbor_skin", 0.3)):
             if data["run"][key] == default:  # hashes of configs written before these keys
                 del data["run"][key]
+        if data["system"]["units"] == "reduced":  # the same, for system.units
+            del data["system"]["units"]
         canonical = json.dumps(data, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()
 

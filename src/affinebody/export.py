@@ -9,10 +9,15 @@ So each frame line carries
 - ``pos:R:3``               x (2D: z = 0),
 - ``aspherical_shape:R:3``  r * singular values of phi (2D: a thin third axis ``thickness * r``),
 - ``orientation:R:4``       the unit quaternion (x, y, z, w) of L, det L = +1, w >= 0,
-- ``deform:R:9``            phi embedded in 3x3 (2D: phi (+) 1), row-major: phi[0,0], phi[0,1], ...
+- ``deform:R:9``            phi embedded in 3x3 (2D: phi (+) 1), column by column:
+                            phi[0,0], phi[1,0], phi[2,0], phi[0,1], ...
 
-which OVITO's extended-XYZ reader maps to Position, Aspherical Shape, Orientation and a
-user property ``deform``. A periodic box becomes ``Lattice=`` with ``pbc=``.
+which OVITO's extended-XYZ reader maps to Position, Aspherical Shape, Orientation and
+Deformation Gradient. OVITO orders the nine components of a Deformation Gradient column by
+column (XX, YX, ZX, XY, YY, ZY, XZ, YZ, ZZ; component "YX" is row y, column x), hence the
+column order here: OVITO's Deformation Gradient of a body is its phi (files exported by
+earlier versions had phi row by row, which OVITO read as phi^T). A periodic box becomes
+``Lattice=`` with ``pbc=``, per frame.
 """
 
 from __future__ import annotations
@@ -104,6 +109,13 @@ def ellipsoids(phi: np.ndarray, radius: np.ndarray, thickness: float = 0.05):
     return axes, quaternion_from_rotation(embed3(rotation)), embed3(phi)
 
 
+def deform_columns(deform: np.ndarray) -> np.ndarray:
+    """3x3 matrices [..., 3, 3] as the nine ``deform`` columns [..., 9], column by column (the
+    component order of OVITO's Deformation Gradient)."""
+    deform = np.asarray(deform, dtype=np.float64)
+    return np.swapaxes(deform, -1, -2).reshape(deform.shape[:-2] + (9,))
+
+
 def _lattice(box: np.ndarray | None, n: int) -> str:
     if box is None:
         return ""
@@ -129,9 +141,10 @@ def write_xyz(
         raise ValueError(f"--every must be >= 1 (got {every})")
     n = trajectory.n
     frames = range(0, trajectory.frames, every)
-    lattice = _lattice(trajectory.box, n)
+    boxes = trajectory.boxes
     with open(path, "w", encoding="ascii") as out:
         for frame in frames:  # one frame in memory at a time (open_trajectory reads lazily)
+            lattice = _lattice(trajectory.box if boxes is None else boxes[frame], n)
             axes, quat, deform = ellipsoids(trajectory.phi[frame], trajectory.radius, thickness)
             position = np.zeros((trajectory.bodies, 3))
             position[:, :n] = trajectory.x[frame]
@@ -141,7 +154,7 @@ def write_xyz(
                 f"Time={trajectory.time[frame]:.17g} Step={int(trajectory.step[frame])}\n"
             )
             rows = np.concatenate(
-                [position, axes, quat, deform.reshape(trajectory.bodies, 9)], axis=-1)
+                [position, axes, quat, deform_columns(deform)], axis=-1)
             fmt = species + " " + " ".join(["%.17g"] * rows.shape[1])
             np.savetxt(out, rows, fmt=fmt)
     return len(frames)

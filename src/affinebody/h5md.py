@@ -7,13 +7,31 @@ The layout is a public contract::
     /particles/bodies/momentum/{step, time, value}      value [T, N, n]      (p)
     /particles/bodies/phi/{step, time, value}           value [T, N, n, n]   (phi[i, a] = phi^i_a)
     /particles/bodies/phi_momentum/{step, time, value}  value [T, N, n, n]   (pi[a, i] = pi^a_i)
-    /particles/bodies/mass  [N];  /particles/bodies/radius [N];  /particles/bodies/box (group)
+    /particles/bodies/mass  [N];  /particles/bodies/radius [N]
+    /particles/bodies/box                 attrs dimension=n, boundary=["periodic" | "none"] * n
+    /particles/bodies/box/edges/{step, time, value}     value [T, n]  (periodic runs only; step
+                                          and time are hard links to position's step and time)
     /observables/{total_energy, kinetic_energy, potential_energy}/{step, time, value}   [T]
     /observables/linear_momentum/...      value [T, n]      sum_K p_K              (103)
     /observables/affine_momentum/...      value [T, n, n]   sum_K (x_K p_K^T + phi_K pi_K)  (109)
     /observables/angular_momentum/...     value [T, n, n]   J - J^T of the affine momentum J
     /parameters/{config, seed, version, dt, steps, config_hash}
     /parameters/frames_committed  [1] int64: frames whose every element is on disk
+    /h5md/modules/units                   attrs version=[1, 0], system="reduced" | "gromacs"
+
+The box is stored once per frame (an H5MD time-dependent element), the form MDAnalysis reads;
+files of earlier versions stored ``box/edges`` once, as a dataset, and are still read here.
+The string attributes of H5MD 1.1 proper (author and creator names, creator version, box
+boundary) are fixed-length ASCII strings; the ``unit`` attributes of the units module are
+variable-length (:func:`_set_unit` says why). The file is written with
+HDF5's latest format (superblock version 3, needed for SWMR), so readers need HDF5 >= 1.10.
+
+Units (:data:`UNIT_SYSTEMS`): in the default ``reduced`` system every number is a ratio to the
+run's reference length, mass, time and energy (sigma, m, tau = sigma sqrt(m / epsilon),
+epsilon), that is dimensionless, so no ``unit`` attribute is written and the units module
+names the system. With ``system.units = "gromacs"`` the same numbers are read as nm, u (g/mol),
+ps and kJ/mol, a consistent set (1 kJ/mol = 1 u nm^2 ps^-2), and every dimensionful dataset
+carries its H5MD ``unit`` string ("nm", "ps", "u nm ps-1", ...), as MDAnalysis expects.
 
 ``phi_momentum`` keeps the paper's placement pi[a, i] = pi^a_i, so that Sigma = phi @ pi and
 Sigma_hat = pi @ phi (45).
@@ -52,6 +70,34 @@ MODULE_VERSION = (1, 0)
 PARTICLE_GROUP = "bodies"
 #: /parameters dataset holding the number of frames completely written (see the docstring).
 COMMITTED = "frames_committed"
+UNITS_MODULE_VERSION = (1, 0)
+
+#: Unit systems a config may name (``system.units``): quantity kind -> H5MD unit string.
+#: ``reduced`` has none: its numbers are dimensionless ratios (see the module docstring).
+UNIT_SYSTEMS: dict[str, dict[str, str]] = {
+    "reduced": {},
+    "gromacs": {
+        "length": "nm",
+        "time": "ps",
+        "mass": "u",
+        "energy": "kJ mol-1",
+        "momentum": "u nm ps-1",
+        "action": "u nm+2 ps-1",  # pi (conjugate to the dimensionless phi), J, J - J^T
+    },
+}
+#: Axis-label names of the units of each system (plots), by quantity kind.
+UNIT_LABELS: dict[str, dict[str, str]] = {
+    "reduced": {"length": "σ", "time": "τ", "mass": "m", "energy": "ε",
+                "momentum": "m σ/τ", "action": "m σ²/τ"},
+    "gromacs": {"length": "nm", "time": "ps", "mass": "u", "energy": "kJ/mol",
+                "momentum": "u nm/ps", "action": "u nm²/ps"},
+}
+#: H5MD element -> quantity kind of its values (None: dimensionless).
+ELEMENT_UNITS = {"position": "length", "momentum": "momentum", "phi": None,
+                 "phi_momentum": "action", "total_energy": "energy",
+                 "kinetic_energy": "energy", "potential_energy": "energy",
+                 "linear_momentum": "momentum", "affine_momentum": "action",
+                 "angular_momentum": "action"}
 
 #: State fields -> H5MD element names under /particles/bodies.
 STATE_ELEMENTS = {"x": "position", "p": "momentum", "phi": "phi", "pi": "phi_momentum"}
@@ -140,6 +186,10 @@ class Trajectory:
     seed: int = 0
     version: str = ""
     dt: float = float("nan")
+    #: box edges of every frame [T, n] (None without a periodic box); ``box`` is frame 0's
+    boxes: np.ndarray | None = None
+    #: the unit system (a key of :data:`UNIT_SYSTEMS`; files without one are "reduced")
+    units: str = "reduced"
 
     @property
     def state(self) -> State:
@@ -230,6 +280,10 @@ def open_trajectory(path: str | Path) -> Iterator[Trajectory]:
             lengths = [len(g["step"]) for g in elements.values()]
             lengths += [len(g["value"]) for g in elements.values()]
             lengths += [len(obs_group[k]["value"]) for k in obs_group]
+            edges = bodies["box"].get("edges") if "box" in bodies else None
+            per_frame = isinstance(edges, h5py.Group)
+            if per_frame:
+                lengths.append(len(edges["value"]))
             params = f["parameters"] if "parameters" in f else {}
             if COMMITTED in params:  # files of earlier versions have no commit count
                 lengths.append(int(params[COMMITTED][0]))
@@ -238,9 +292,15 @@ def open_trajectory(path: str | Path) -> Iterator[Trajectory]:
             step = np.asarray(elements["x"]["step"][:count])
             time = np.asarray(elements["x"]["time"][:count])
             observables = {k: np.asarray(obs_group[k]["value"][:count]) for k in obs_group}
-            box = None
-            if "box" in bodies and "edges" in bodies["box"]:
-                box = np.asarray(bodies["box"]["edges"][()])
+            box = boxes = None
+            if per_frame:  # this version: a time-dependent element
+                boxes = np.asarray(edges["value"][:count])
+                box = boxes[0] if count else None
+            elif edges is not None:  # files of earlier versions: the edges stored once
+                box = np.asarray(edges[()])
+                boxes = np.broadcast_to(box, (count, *box.shape))
+            units = f["h5md"]["modules"].get("units") if "modules" in f["h5md"] else None
+            system = _attribute_string(units, "system") if units is not None else "reduced"
             trajectory = Trajectory(
                 step=step,
                 time=time,
@@ -248,6 +308,8 @@ def open_trajectory(path: str | Path) -> Iterator[Trajectory]:
                 radius=np.asarray(bodies["radius"][()]) if "radius" in bodies
                 else np.full(elements["phi"]["value"].shape[-3], 0.5),
                 box=box,
+                boxes=boxes,
+                units=system or "reduced",
                 observables=observables,
                 config_text=_read_string(params, "config"),
                 seed=int(params["seed"][()]) if "seed" in params else 0,
@@ -273,21 +335,48 @@ def _read_string(group, name: str) -> str:
     return value.decode() if isinstance(value, bytes) else str(value)
 
 
-def _time_series(parent: h5py.Group, name: str, shape: tuple[int, ...], chunk: int) -> None:
+def _attribute_string(obj, name: str) -> str:
+    value = obj.attrs.get(name, "")
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def fixed_string(text: str | list[str]) -> np.ndarray:
+    """``text`` (or a list of strings) as a fixed-length ASCII HDF5 string, the type H5MD 1.1
+    requires for its string attributes (h5py writes ``str`` as variable-length)."""
+    data = np.asarray(text, dtype=np.bytes_)
+    return data if data.ndim else data[()]
+
+
+def _set_unit(dataset: h5py.Dataset, kind: str | None, units: Mapping[str, str]) -> None:
+    """The H5MD ``unit`` attribute of ``dataset``, a variable-length ASCII string: the units
+    module asks for a fixed-length one, but MDAnalysis (2.8) recognises a unit only when h5py
+    reads it as ``str``, which it does for variable-length strings only (fixed-length ones come
+    back as bytes); a working reader is worth more than that letter of the module."""
+    if kind is not None and kind in units:
+        dataset.attrs.create("unit", units[kind], dtype=h5py.string_dtype("ascii"))
+
+
+def _time_series(parent: h5py.Group, name: str, shape: tuple[int, ...], chunk: int,
+                 units: Mapping[str, str]) -> h5py.Group:
     """Create an H5MD time-dependent element ``name`` with empty, growable step/time/value."""
     group = parent.create_group(name)
     group.create_dataset("step", shape=(0,), maxshape=(None,), dtype="i8", chunks=(chunk,))
-    group.create_dataset("time", shape=(0,), maxshape=(None,), dtype="f8", chunks=(chunk,))
-    group.create_dataset(
+    time = group.create_dataset("time", shape=(0,), maxshape=(None,), dtype="f8",
+                                chunks=(chunk,))
+    value = group.create_dataset(
         "value", shape=(0, *shape), maxshape=(None, *shape), dtype="f8", chunks=(chunk, *shape)
     )
+    _set_unit(time, "time", units)
+    _set_unit(value, ELEMENT_UNITS.get(name), units)
+    return group
 
 
 class H5MDWriter:
     """Append-only writer of an affinebody trajectory in the H5MD layout of this module.
 
     Use as a context manager. ``append`` writes a block of frames and flushes them to disk.
-    ``parameters`` are stored under /parameters (strings and numbers only).
+    ``parameters`` are stored under /parameters (strings and numbers only). ``units`` names
+    the unit system (a key of :data:`UNIT_SYSTEMS`).
     """
 
     def __init__(
@@ -300,8 +389,13 @@ class H5MDWriter:
         box: np.ndarray | None = None,
         parameters: Mapping[str, object] | None = None,
         author: str = "affinebody user",
+        units: str = "reduced",
     ):
         self.path = Path(path)
+        if units not in UNIT_SYSTEMS:
+            raise ValueError(f"units must be one of {sorted(UNIT_SYSTEMS)} (got {units!r})")
+        unit = UNIT_SYSTEMS[units]
+        self.box = None if box is None else np.asarray(box, dtype=np.float64)
         mass = np.asarray(mass, dtype=np.float64)
         bodies = mass.shape[0]
         self.n, self.bodies = int(n), int(bodies)
@@ -315,30 +409,42 @@ class H5MDWriter:
             f = self.file
             h5md = f.create_group("h5md")
             h5md.attrs["version"] = np.asarray(H5MD_VERSION, dtype=np.int32)
-            h5md.create_group("author").attrs["name"] = author
+            h5md.create_group("author").attrs["name"] = fixed_string(author.encode(
+                "ascii", "replace").decode())
             creator = h5md.create_group("creator")
-            creator.attrs["name"] = "affinebody"
-            creator.attrs["version"] = __version__
-            module = h5md.create_group("modules").create_group(MODULE_NAME)
+            creator.attrs["name"] = fixed_string("affinebody")
+            creator.attrs["version"] = fixed_string(__version__)
+            modules = h5md.create_group("modules")
+            module = modules.create_group(MODULE_NAME)
             module.attrs["version"] = np.asarray(MODULE_VERSION, dtype=np.int32)
+            units_module = modules.create_group("units")
+            units_module.attrs["version"] = np.asarray(UNITS_MODULE_VERSION, dtype=np.int32)
+            units_module.attrs["system"] = fixed_string(units)
 
             particles = f.create_group("particles").create_group(PARTICLE_GROUP)
             for name, element in STATE_ELEMENTS.items():
                 shape = (bodies, n) if name in ("x", "p") else (bodies, n, n)
-                _time_series(particles, element, shape, chunk)
-            particles.create_dataset("mass", data=mass)
-            particles.create_dataset("radius", data=np.asarray(radius, dtype=np.float64))
+                _time_series(particles, element, shape, chunk, unit)
+            _set_unit(particles.create_dataset("mass", data=mass), "mass", unit)
+            _set_unit(particles.create_dataset("radius",
+                                               data=np.asarray(radius, dtype=np.float64)),
+                      "length", unit)
             box_group = particles.create_group("box")
             box_group.attrs["dimension"] = np.int32(n)
             periodic = box is not None
             boundary = "periodic" if periodic else "none"
-            box_group.attrs.create("boundary", [boundary] * n, dtype=h5py.string_dtype())
-            if periodic:
-                box_group.create_dataset("edges", data=np.asarray(box, dtype=np.float64))
+            box_group.attrs["boundary"] = fixed_string([boundary] * n)
+            if periodic:  # per frame, as MDAnalysis reads it; step and time are position's
+                edges = box_group.create_group("edges")
+                edges["step"] = particles["position"]["step"]
+                edges["time"] = particles["position"]["time"]
+                _set_unit(edges.create_dataset("value", shape=(0, n), maxshape=(None, n),
+                                               dtype="f8", chunks=(max(chunk, 64), n)),
+                          "length", unit)
 
             observables = f.create_group("observables")
             for name, rank in OBSERVABLES.items():
-                _time_series(observables, name, (n,) * rank, max(chunk, 64))
+                _time_series(observables, name, (n,) * rank, max(chunk, 64), unit)
 
             params = f.create_group("parameters")
             params.create_dataset("version", data=__version__, dtype=h5py.string_dtype())
@@ -347,6 +453,8 @@ class H5MDWriter:
                     params.create_dataset(key, data=value, dtype=h5py.string_dtype())
                 else:
                     params.create_dataset(key, data=np.asarray(value))
+            if "dt" in params:
+                _set_unit(params["dt"], "time", unit)
             params.create_dataset(COMMITTED, data=np.zeros(1, dtype=np.int64), maxshape=(1,),
                                   chunks=(1,))
             f.flush()
@@ -387,6 +495,10 @@ class H5MDWriter:
                 dataset = group[key]
                 dataset.resize(stop, axis=0)
                 dataset[start:stop] = data
+        if self.box is not None:  # step and time are position's (hard links): written above
+            edges = self.file["particles"][PARTICLE_GROUP]["box"]["edges"]["value"]
+            edges.resize(stop, axis=0)
+            edges[start:stop] = np.broadcast_to(self.box, (count, self.n))
         self.flush()  # the frames are on disk ...
         self.file["parameters"][COMMITTED][0] = stop
         self.flush()  # ... before the count that makes readers see them

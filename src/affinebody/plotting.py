@@ -1,18 +1,23 @@
 """Plots of a trajectory (matplotlib, Agg backend): energy, momentum maps, deformation, bodies.
 
 - ``energy.png``: total, kinetic and potential energy, and the relative error |E - E0| / |E0|;
-- ``momenta.png``: the momentum maps (103), (108), (109) minus their initial values: total linear
-  momentum, affine momentum J = sum_K (x_K p_K^T + phi_K pi_K), angular momentum J - J^T;
-- ``deformation.png``: trace invariants K_a = Tr(G^a) (17), volumes det phi_K and relative
-  volumes det phi_L / det phi_1 (79), one line per body for at most :data:`TRACED_BODIES`
-  bodies (evenly sampled) and the band between the smallest and largest value over all bodies;
-- ``bodies.png`` (n = 2): first and last frame, each body drawn as the image of the disc of its
-  drawing radius under phi (an ellipse) with the image of the material axis e_1 as a line (at
-  most :data:`DRAWN_BODIES` bodies, evenly sampled, for large systems);
+- ``momenta.png``: the momentum maps minus their initial values, component by component:
+  total linear momentum P = sum_K p_K, affine momentum J = sum_K (x_K p_K^T + phi_K pi_K) and
+  angular momentum J - J^T (paper eqs. (103), (108), (109)); in a periodic box the box breaks
+  the rotation symmetry, so J - J^T changes physically and the figure says so;
+- ``deformation.png``: trace invariants K_a = Tr(G^a) of the Green tensor G = phi^T phi (17),
+  volumes det phi_K and relative volumes det phi_K / det phi_1 (79), one labelled line per body
+  for at most :data:`TRACED_BODIES` bodies (evenly sampled) and the band between the smallest
+  and largest value over all bodies;
+- ``bodies.png``: first and last frame, each body drawn as the image of the ball of its drawing
+  radius under phi: for n = 2 an ellipse with the image of the material axis e_1 as a line,
+  for n = 3 a shaded ellipsoid {x + phi a : |a| <= r} (at most :data:`DRAWN_BODIES` bodies in
+  2D and :data:`DRAWN_ELLIPSOIDS` in 3D, evenly sampled, for large systems);
 - optionally ``bodies.gif`` / ``bodies.mp4``: the animation of the n = 2 bodies.
 
-Every plot reads the trajectory one frame at a time (``h5md.open_trajectory``), so memory is
-O(N) for any number of frames.
+Every axis names its quantity and its unit, in the file's unit system (``h5md.UNIT_LABELS``:
+sigma, tau, m, epsilon for reduced units). Every plot reads the trajectory one frame at a time
+(``h5md.open_trajectory``), so memory is O(N) for any number of frames.
 """
 
 from __future__ import annotations
@@ -27,13 +32,34 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection, PolyCollection  # noqa: E402
 
-from affinebody.h5md import Trajectory  # noqa: E402
+from affinebody.h5md import UNIT_LABELS, Trajectory  # noqa: E402
 
 DPI = 110
 #: Bodies drawn as individual lines in deformation.png (the band covers all of them).
 TRACED_BODIES = 16
 #: Bodies drawn as ellipses in bodies.png and the animation.
 DRAWN_BODIES = 5000
+#: Bodies drawn as ellipsoids in the 3D bodies.png.
+DRAWN_ELLIPSOIDS = 400
+#: Names of the axes of components (n <= 3); larger n numbers them from 1.
+AXES = "xyz"
+
+
+def _unit(trajectory: Trajectory, kind: str) -> str:
+    """" [unit]" of a quantity kind in the trajectory's unit system ("" if unknown)."""
+    label = UNIT_LABELS.get(trajectory.units, {}).get(kind)
+    return f" [{label}]" if label else ""
+
+
+def _time(trajectory: Trajectory, frame: int) -> str:
+    """"t = 2.5 τ (step 250)" of a frame, for titles."""
+    label = UNIT_LABELS.get(trajectory.units, {}).get("time", "")
+    return (f"t = {trajectory.time[frame]:.4g}{' ' + label if label else ''} "
+            f"(step {int(trajectory.step[frame])})")
+
+
+def _axis(n: int, a: int) -> str:
+    return AXES[a] if n <= len(AXES) else str(a + 1)
 
 
 def _sample(bodies: int, most: int) -> np.ndarray:
@@ -55,48 +81,57 @@ def plot_energy(trajectory: Trajectory, path: str | Path) -> Path:
     top.plot(t, obs["total_energy"], label="total E", color="k")
     top.plot(t, obs["kinetic_energy"], label="kinetic T", alpha=0.8)
     top.plot(t, obs["potential_energy"], label="potential V", alpha=0.8)
-    top.set_ylabel("energy")
+    top.set_ylabel(f"energy{_unit(trajectory, 'energy')}")
     top.legend(loc="best")
     e = obs["total_energy"]
     scale = max(abs(float(e[0])), np.finfo(float).tiny)
     error = np.abs(e - e[0]) / scale
     bottom.semilogy(t[1:], np.maximum(error[1:], 1e-17), color="C3")
     bottom.set_ylabel("|E - E(0)| / |E(0)|")
-    bottom.set_xlabel("time")
-    top.set_title("energy (75a)")
+    bottom.set_xlabel(f"time{_unit(trajectory, 'time')}")
+    top.set_title("energy: E = T + V and its relative error")
     fig.tight_layout()
     return _save(fig, Path(path))
 
 
-def _components(values: np.ndarray, skew: bool = False):
-    """(label, series) of the entries of [T, n] or [T, n, n] arrays (upper triangle if skew)."""
-    if values.ndim == 2:
-        return [(f"[{a}]", values[:, a]) for a in range(values.shape[1])]
+def _components(values: np.ndarray, symbol: str, skew: bool = False):
+    """(label, series) of the entries of [T, n] or [T, n, n] arrays (upper triangle if skew),
+    labelled by the symbol and axis names, e.g. P_x, J_xy."""
     n = values.shape[-1]
-    return [(f"[{a},{b}]", values[:, a, b]) for a in range(n) for b in range(n)
-            if not skew or a < b]
+    if values.ndim == 2:
+        return [(f"${symbol}_{{{_axis(n, a)}}}$", values[:, a]) for a in range(n)]
+    return [(f"${symbol}_{{{_axis(n, a)}{_axis(n, b)}}}$", values[:, a, b])
+            for a in range(n) for b in range(n) if not skew or a < b]
 
 
 def plot_momenta(trajectory: Trajectory, path: str | Path) -> Path:
     """Changes of the momentum maps since t = 0 (conserved when V has the symmetry)."""
     t = trajectory.time
     obs = trajectory.observables
+    periodic = trajectory.box is not None
     panels = [
-        ("linear momentum p (103)", obs["linear_momentum"], False),
-        ("affine momentum J (109)", obs["affine_momentum"], False),
-        ("angular momentum J - J^T", obs["angular_momentum"], True),
+        ("total linear momentum P = Σ p_K", "P", "ΔP", obs["linear_momentum"], False,
+         "momentum"),
+        ("affine momentum J = Σ (x_K p_Kᵀ + φ_K π_K)", "J", "ΔJ", obs["affine_momentum"], False,
+         "action"),
+        ("angular momentum L = J − Jᵀ", "L", "ΔL", obs["angular_momentum"], True, "action"),
     ]
-    fig, axes = plt.subplots(len(panels), 1, figsize=(7, 8), sharex=True)
-    for ax, (title, values, skew) in zip(axes, panels, strict=True):
+    fig, axes = plt.subplots(len(panels), 1, figsize=(7.5, 8.5), sharex=True)
+    for ax, (title, symbol, ylabel, values, skew, kind) in zip(axes, panels, strict=True):
         values = np.asarray(values)
         change = values - values[:1]
-        for label, series in _components(change, skew):
+        for label, series in _components(change, symbol, skew):
             ax.plot(t, series, label=label, lw=1)
         worst = float(np.max(np.abs(change))) if change.size else 0.0
-        ax.set_title(f"{title}: change since t = 0 (max {worst:.2e})", fontsize=9)
+        title = f"{title}: change since t = 0 (max {worst:.2e})"
+        if skew and periodic:
+            title += ("\nnot conserved in a periodic box, which breaks the rotation symmetry: "
+                      "this change is physical, not an error")
+        ax.set_title(title, fontsize=8.5)
+        ax.set_ylabel(f"{ylabel}{_unit(trajectory, kind)}", fontsize=9)
         if values.shape[-1] <= 3:
             ax.legend(fontsize=7, ncol=3, loc="best")
-    axes[-1].set_xlabel("time")
+    axes[-1].set_xlabel(f"time{_unit(trajectory, 'time')}")
     fig.tight_layout()
     return _save(fig, Path(path))
 
@@ -119,21 +154,25 @@ def plot_deformation(trajectory: Trajectory, path: str | Path) -> Path:
                        np.stack([(np.min(c), np.max(c)) for c in columns])))
     lines = np.stack([s[0] for s in series])  # [T, n + 2, traced]
     bands = np.stack([s[1] for s in series])  # [T, n + 2, 2]
-    labels = [f"K{a + 1} = Tr G^{a + 1}" for a in range(n)] + ["det phi_K",
-                                                              "det phi_K / det phi_1"]
-    fig, axes = plt.subplots(n + 2, 1, figsize=(7, 2.2 * (n + 2)), sharex=True)
+    labels = ([f"$K_{a + 1} = \\mathrm{{Tr}}\\,G^{{{a + 1}}}$" for a in range(n)]
+              + [r"$\det\varphi_K$", r"$\det\varphi_K / \det\varphi_1$"])
+    fig, axes = plt.subplots(n + 2, 1, figsize=(7.5, 2.1 * (n + 2) + 0.6), sharex=True)
+    colors = [f"C{i % 10}" for i in range(len(traced))]
     for row, ax in enumerate(axes):
         if bodies > len(traced):
             ax.fill_between(t, bands[:, row, 0], bands[:, row, 1], color="0.85",
                             label=f"range over all {bodies} bodies")
-        ax.plot(t, lines[:, row, :], lw=0.8)
+        for i, body in enumerate(traced):
+            ax.plot(t, lines[:, row, i], lw=0.9, color=colors[i], label=f"body {body + 1}")
         ax.set_ylabel(labels[row])
-    axes[-1].set_xlabel("time")
+    axes[-1].set_xlabel(f"time{_unit(trajectory, 'time')}")
     shown = f"{len(traced)} of {bodies} bodies" if bodies > len(traced) else f"{bodies} bodies"
-    axes[0].set_title(f"deformation invariants and volumes ({shown})")
-    if bodies > len(traced):
-        axes[0].legend(fontsize=7, loc="best")
-    fig.tight_layout()
+    axes[0].set_title(f"deformation of each body ({shown}): invariants of the Green tensor "
+                      f"G = φᵀφ, volumes", fontsize=9)
+    handles, names = axes[0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="lower center", ncol=min(len(names), 6), fontsize=7,
+               frameon=False)
+    fig.tight_layout(rect=(0, 0.035 * (1 + (len(names) - 1) // 6), 1, 1))
     return _save(fig, Path(path))
 
 
@@ -149,16 +188,21 @@ def _axis_segments(x, phi, radius):
     return np.stack([x, tip], axis=1)
 
 
-def _limits(trajectory: Trajectory, frames, drawn):
-    low = np.full(2, np.inf)
-    high = np.full(2, -np.inf)
+def _limits(trajectory: Trajectory, frames, drawn, cube: bool = False):
+    """Axis limits (low, high) [n] around the drawn bodies of ``frames``, padded by 5%; with
+    ``cube`` the same span on every axis (3D axes have no equal aspect of their own)."""
+    low = np.full(trajectory.n, np.inf)
+    high = np.full(trajectory.n, -np.inf)
     for k in frames:
         x, phi = np.asarray(trajectory.x[k])[drawn], np.asarray(trajectory.phi[k])[drawn]
         reach = np.linalg.norm(phi, ord=2, axis=(-2, -1)) * trajectory.radius[drawn]
         low = np.minimum(low, np.min(x - reach[:, None], axis=0))
         high = np.maximum(high, np.max(x + reach[:, None], axis=0))
-    pad = 0.05 * max(float(np.max(high - low)), 1e-9)
-    return low - pad, high + pad
+    span = max(float(np.max(high - low)), 1e-9)
+    if cube:
+        centre = (low + high) / 2
+        return centre - 0.525 * span, centre + 0.525 * span
+    return low - 0.05 * span, high + 0.05 * span
 
 
 def _draw(ax, trajectory: Trajectory, frame: int, low, high, drawn):
@@ -172,8 +216,10 @@ def _draw(ax, trajectory: Trajectory, frame: int, low, high, drawn):
     ax.set_xlim(low[0], high[0])
     ax.set_ylim(low[1], high[1])
     ax.set_aspect("equal")
-    ax.set_title(f"t = {trajectory.time[frame]:.4g} (step {int(trajectory.step[frame])})",
-                 fontsize=9)
+    length = _unit(trajectory, "length")
+    ax.set_xlabel(f"x{length}")
+    ax.set_ylabel(f"y{length}")
+    ax.set_title(_time(trajectory, frame), fontsize=9)
     return shapes, axes
 
 
@@ -189,7 +235,53 @@ def plot_bodies(trajectory: Trajectory, path: str | Path) -> Path:
         _draw(ax, trajectory, frame, low, high, drawn)
     sample = (f" ({len(drawn)} of {trajectory.bodies} bodies)"
               if len(drawn) < trajectory.bodies else "")
-    fig.suptitle(f"bodies: images of their discs under phi; red: phi e_1{sample}")
+    fig.suptitle(f"bodies: the ellipses x + φa, |a| ≤ r; red: the image φe₁ of the material "
+                 f"axis e₁{sample}", fontsize=10)
+    fig.tight_layout()
+    return _save(fig, Path(path))
+
+
+def ellipsoid_surface(x: np.ndarray, phi: np.ndarray, radius: np.ndarray, points: int = 16):
+    """Surfaces x_K + phi_K (r_K u), |u| = 1, as grids [N, 3, points, 2 * points] (n = 3): the
+    boundary of the ellipsoid {x + phi a : |a| <= r} that each body occupies."""
+    polar = np.linspace(0.0, np.pi, points)
+    azimuth = np.linspace(0.0, 2 * np.pi, 2 * points)
+    sphere = np.stack([np.outer(np.sin(polar), np.cos(azimuth)),
+                       np.outer(np.sin(polar), np.sin(azimuth)),
+                       np.outer(np.cos(polar), np.ones_like(azimuth))])  # [3, P, 2P]
+    return (x[:, :, None, None] + np.einsum("kia,apq->kipq", phi, sphere)
+            * radius[:, None, None, None])
+
+
+def plot_ellipsoids(trajectory: Trajectory, path: str | Path) -> Path:
+    """First and last frame of a 3D trajectory, each body the shaded ellipsoid
+    {x + phi a : |a| <= r} (matplotlib's 3D axes; n = 3 only)."""
+    if trajectory.n != 3:
+        raise ValueError(f"ellipsoids are drawn for n = 3 only (got n = {trajectory.n})")
+    from matplotlib.colors import LightSource
+
+    drawn = _sample(trajectory.bodies, DRAWN_ELLIPSOIDS)
+    frames = (0, trajectory.frames - 1)
+    low, high = _limits(trajectory, frames, drawn, cube=True)
+    light = LightSource(azdeg=315, altdeg=45)
+    length = _unit(trajectory, "length")
+    fig = plt.figure(figsize=(11, 5.4))
+    for column, frame in enumerate(frames):
+        ax = fig.add_subplot(1, 2, column + 1, projection="3d")
+        x, phi = np.asarray(trajectory.x[frame])[drawn], np.asarray(trajectory.phi[frame])[drawn]
+        surfaces = ellipsoid_surface(x, phi, trajectory.radius[drawn])
+        for i, surface in enumerate(surfaces):
+            ax.plot_surface(*surface, color=f"C{i % 10}", lightsource=light, shade=True,
+                            linewidth=0, antialiased=False, rstride=1, cstride=1)
+        ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), zlim=(low[2], high[2]))
+        ax.set_box_aspect((1, 1, 1))
+        ax.set_xlabel(f"x{length}")
+        ax.set_ylabel(f"y{length}")
+        ax.set_zlabel(f"z{length}")
+        ax.set_title(_time(trajectory, frame), fontsize=9)
+    sample = (f" ({len(drawn)} of {trajectory.bodies} bodies)"
+              if len(drawn) < trajectory.bodies else "")
+    fig.suptitle(f"bodies: each the ellipsoid {{x + φa : |a| ≤ r}}{sample}")
     fig.tight_layout()
     return _save(fig, Path(path))
 
@@ -236,6 +328,8 @@ def plot_all(trajectory: Trajectory, folder: str | Path, *, animate: str | None 
     folder.mkdir(parents=True, exist_ok=True)
     if trajectory.frames == 0:
         raise ValueError("the trajectory has no frames to plot")
+    if animate and trajectory.n != 2:
+        raise ValueError(f"--animate needs n = 2 (got n = {trajectory.n})")
     paths = [
         plot_energy(trajectory, folder / "energy.png"),
         plot_momenta(trajectory, folder / "momenta.png"),
@@ -245,6 +339,6 @@ def plot_all(trajectory: Trajectory, folder: str | Path, *, animate: str | None 
         paths.append(plot_bodies(trajectory, folder / "bodies.png"))
         if animate:
             paths.append(animate_bodies(trajectory, folder / f"bodies.{animate}", fps=fps))
-    elif animate:
-        raise ValueError(f"--animate needs n = 2 (got n = {trajectory.n})")
+    elif trajectory.n == 3:
+        paths.append(plot_ellipsoids(trajectory, folder / "bodies.png"))
     return paths

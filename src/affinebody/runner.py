@@ -184,7 +184,8 @@ def run_simulation(
         parameters["neighbor_skin"] = config.run.neighbor_skin
         base_spec = built.neighbors[0]
     writer_args = dict(mass=built.inertia.mass, radius=built.inertia.radius, n=config.n,
-                       box=config.system.box, parameters=parameters)
+                       box=config.system.box, parameters=parameters,
+                       units=config.system.units)
     if resume:
         checkpoint = load_checkpoint(ckpt_file, config_hash)
         if checkpoint.step > total:

@@ -57,7 +57,11 @@ Output (``-o OUT_DIR``): ``tasks/point-PPPP-batch-BBBBB.json``, one file per tas
 the task completes (its samples, their results, and the worker's float64 and thread settings);
 then ``samples.csv`` (one row per sample) and ``summary.json``: ``fraction_bounded`` (bounded /
 classified samples, failed ones excluded) with its binomial standard error and 95% Wilson
-interval, counts, energy errors, volumes, failure reasons, per parameter point and pooled.
+interval, counts, energy errors, volumes, failure reasons, per parameter point and pooled;
+and its provenance: ``scheduler`` (the Dask scheduler's address, or "in-process"),
+``workers`` (the cluster's workers at the end of the sweep, 1 in-process) and
+``worker_processes`` (the distinct processes that ran tasks: more than ``workers`` when a
+worker was restarted).
 """
 
 from __future__ import annotations
@@ -635,6 +639,14 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
         cluster.close()
 
 
+def _cluster_info(client) -> dict[str, Any]:
+    """Provenance of a Dask cluster: its scheduler's address and its number of workers (a
+    worker restarted during the sweep is still one worker, though its process id changed)."""
+    info = client.scheduler_info()
+    return {"scheduler": info.get("address") or client.scheduler.address,
+            "workers": len(info.get("workers", {}))}
+
+
 def _execute(tasks: list[Task], client, on_done: Callable[[Task, dict], None]) -> None:
     """Run the tasks (on the client's cluster, or here when client is None), calling
     ``on_done(task, result)`` as each completes; a raising task gives failed samples."""
@@ -821,7 +833,7 @@ def run_sweep(
         if progress is not None:
             progress(done, total)
 
-    used_client = client
+    cluster = {"scheduler": "in-process", "workers": 1}
     if workers == 0 and client is None and scheduler is None:
         from affinebody._checks import require_x64
 
@@ -829,10 +841,11 @@ def run_sweep(
         _execute(tasks, None, on_done)
     elif client is not None:
         _execute(tasks, client, on_done)
+        cluster = _cluster_info(client)
     else:
         with dask_client(scheduler, workers) as own:
-            used_client = own
             _execute(tasks, own, on_done)
+            cluster = _cluster_info(own)  # while the client is open (closed, it has none)
 
     summaries = []
     for point in points:
@@ -855,9 +868,9 @@ def run_sweep(
         "seed": spec.seed,
         "initial_velocity": spec.initial_velocity,
         "velocity_scale": spec.velocity_scale,
-        "scheduler": ("in-process" if used_client is None else
-                      getattr(getattr(used_client, "scheduler", None), "address", None)),
-        "workers": len(worker_info),
+        "scheduler": cluster["scheduler"],
+        "workers": cluster["workers"],
+        "worker_processes": len(worker_info),
         "wall_seconds": time.perf_counter() - clock,
     }
     if folder is not None:

@@ -47,7 +47,7 @@ def summary_lines(summary: dict) -> list[str]:
                  f"{_format(summary['fraction_bounded_error'], 2)} over "
                  f"{summary['total_samples'] - summary['failed']} classified samples "
                  f"({summary['failed']} failed), {summary['wall_seconds']:.1f} s on "
-                 f"{summary['workers']} worker(s)")
+                 f"{summary['workers']} worker(s) ({summary['scheduler']})")
     for point in summary["points"]:
         for reason, count in point["failures"].items():
             lines.append(f"point {point['index']}: {count} failed: {reason}")
