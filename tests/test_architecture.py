@@ -26,7 +26,8 @@ LAYERS = {
     "mechanics": ("constraints", "nonholonomic", "system", "integrators", "simulate"),
     "quantum": ("quantum",),
     "application": ("_timing", "config", "runner", "sweep", "studies", "h5md", "checkpoint",
-                    "plotting", "export", "examples", "quantum.config", "quantum.density_files"),
+                    "plotting", "export", "examples", "units", "quantum.config",
+                    "quantum.density_files"),
     "cli": ("cli", "quantum.cli", "demo_kinematics"),
 }
 #: What each layer may import (besides itself).

@@ -339,3 +339,13 @@ def test_a_chunk_of_frames_stays_within_its_buffer_for_large_systems():
         assert chunk * frame_bytes(config) <= max(FRAME_BUFFER_BYTES, frame_bytes(config))
         if bodies == 10:
             assert chunk == config.checkpoint_every  # small systems are not split
+
+
+def test_an_inertia_beyond_float64_is_refused_in_one_line():
+    """J = M r^2 / (n + 2) of a radius near sqrt(max float) overflows: a config error naming
+    the field, not an OverflowError (found by the config fuzz test)."""
+    from affinebody.runner import demo_config_text
+
+    text = demo_config_text().replace("radius = 0.35", "radius = 1.5e154")
+    with pytest.raises(ConfigError, match=r"body\.radius = 1\.5e\+154 .* beyond float64"):
+        check_config(parse_config(text))

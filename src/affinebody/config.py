@@ -39,6 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from affinebody import integrators as _integrators
 from affinebody import kinetic as _kinetic
 from affinebody.groups import CONFIGURATION_SPACES
+from affinebody.units import UNIT_SYSTEMS
 
 #: Internal kinetic models and the parameters each one takes (paper's names, section 3: the
 #: registry ``kinetic.MODELS``, each model class declaring its ``parameters``).
@@ -56,6 +57,8 @@ AUTO_NEIGHBOR_LIST_BODIES = 500
 #: Configuration groups accepted by system.group (the paper's list plus all matrices "L").
 CONFIG_GROUPS = CONFIGURATION_SPACES
 MAX_DIMENSION = 6
+#: The names ``system.units`` accepts (``units.UNIT_SYSTEMS``).
+UnitSystem = Literal[tuple(UNIT_SYSTEMS)]
 
 
 class ConfigError(ValueError):
@@ -84,7 +87,7 @@ class SystemSection(_Section):
     group: str = Field("GL+", description="configuration group of each phi")
     bodies: int | list[str] | None = Field(None, description="number of bodies or their labels")
     box: Vector | None = Field(None, description="edges of a periodic orthorhombic box")
-    units: Literal["reduced", "gromacs"] = Field(
+    units: UnitSystem = Field(
         "reduced", description="unit system of every number: reduced (sigma, m, tau, epsilon) "
                                "or gromacs (nm, u, ps, kJ/mol); written to the H5MD file")
 
@@ -438,7 +441,12 @@ def _one_body_inertia(field: str, body, n: int) -> tuple[float, np.ndarray, floa
         J = _spd(body.inertia, f"{field}.inertia", n)
     mass = 1.0 if mass is None else mass
     if J is None:  # a uniform ball of the drawing radius, J = M r^2 / (n + 2) Id
-        J = mass * body.radius**2 / (n + 2) * np.eye(n)
+        with np.errstate(all="ignore"):  # inf * 0 off the diagonal: refused below
+            J = np.float64(mass) * np.float64(body.radius) ** 2 / (n + 2) * np.eye(n)
+        if not np.all(np.isfinite(J)):
+            raise ConfigError(f"{field}.radius = {body.radius} with mass {mass} gives an inertia "
+                              f"M r^2 / (n + 2) beyond float64: give {field}.inertia or a "
+                              f"smaller radius")
     return mass, J, body.radius
 
 

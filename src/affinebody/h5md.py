@@ -63,6 +63,7 @@ import numpy as np
 
 from affinebody import __version__
 from affinebody.state import State
+from affinebody.units import UNIT_SYSTEMS
 
 H5MD_VERSION = (1, 1)
 MODULE_NAME = "affine_bodies"
@@ -72,26 +73,6 @@ PARTICLE_GROUP = "bodies"
 COMMITTED = "frames_committed"
 UNITS_MODULE_VERSION = (1, 0)
 
-#: Unit systems a config may name (``system.units``): quantity kind -> H5MD unit string.
-#: ``reduced`` has none: its numbers are dimensionless ratios (see the module docstring).
-UNIT_SYSTEMS: dict[str, dict[str, str]] = {
-    "reduced": {},
-    "gromacs": {
-        "length": "nm",
-        "time": "ps",
-        "mass": "u",
-        "energy": "kJ mol-1",
-        "momentum": "u nm ps-1",
-        "action": "u nm+2 ps-1",  # pi (conjugate to the dimensionless phi), J, J - J^T
-    },
-}
-#: Axis-label names of the units of each system (plots), by quantity kind.
-UNIT_LABELS: dict[str, dict[str, str]] = {
-    "reduced": {"length": "σ", "time": "τ", "mass": "m", "energy": "ε",
-                "momentum": "m σ/τ", "action": "m σ²/τ"},
-    "gromacs": {"length": "nm", "time": "ps", "mass": "u", "energy": "kJ/mol",
-                "momentum": "u nm/ps", "action": "u nm²/ps"},
-}
 #: H5MD element -> quantity kind of its values (None: dimensionless).
 ELEMENT_UNITS = {"position": "length", "momentum": "momentum", "phi": None,
                  "phi_momentum": "action", "total_energy": "energy",

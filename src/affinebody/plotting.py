@@ -15,7 +15,7 @@
   2D and :data:`DRAWN_ELLIPSOIDS` in 3D, evenly sampled, for large systems);
 - optionally ``bodies.gif`` / ``bodies.mp4``: the animation of the n = 2 bodies.
 
-Every axis names its quantity and its unit, in the file's unit system (``h5md.UNIT_LABELS``:
+Every axis names its quantity and its unit, in the file's unit system (``units.UNIT_LABELS``:
 sigma, tau, m, epsilon for reduced units). Every plot reads the trajectory one frame at a time
 (``h5md.open_trajectory``), so memory is O(N) for any number of frames.
 """
@@ -32,7 +32,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection, PolyCollection  # noqa: E402
 
-from affinebody.h5md import UNIT_LABELS, Trajectory  # noqa: E402
+from affinebody.h5md import Trajectory  # noqa: E402
+from affinebody.units import UNIT_LABELS  # noqa: E402
 
 DPI = 110
 #: Bodies drawn as individual lines in deformation.png (the band covers all of them).
