@@ -17,6 +17,7 @@ from affinebody.quantum import channels3 as ch3
 from affinebody.quantum import reduction as rd
 from affinebody.quantum import spectra as sp
 from affinebody.quantum import thermal as th
+from affinebody.quantum.levels import AffineInertia
 
 I, A, B = 1.0, 0.2, 0.1  # noqa: E741  (positive-definite region: I > |A|, I + A + n B > 0)
 
@@ -179,7 +180,7 @@ def test_spin1_weak_form_matches_reduced_operator(model):
             return jnp.exp(-0.5 * jnp.sum(x**2)) * v
     else:
         red = rd.TwoPolarReduction(model, 3, 1.3, 0.4, 0.25, hbar)
-        inertia = sp.AffineInertia(model, 1.3, 0.4, 0.25)
+        inertia = AffineInertia(model, 1.3, 0.4, 0.25)
         grid = ch3.haar3_grid(0.6, 0.6, 0.1, 30, 16, 12)
         kind = "haar3"
 

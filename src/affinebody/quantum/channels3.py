@@ -30,17 +30,20 @@ from itertools import product
 import numpy as np
 from scipy import linalg, special
 
-from affinebody.quantum.spectra import (
-    AffineInertia,
+from affinebody.quantum.bases import (
     Basis,
+    solve_block,
+    sqrt_x_over_sinh,
+    sqrt_x_over_sinh_derivative_ratio,
+    variational_parameters,
+)
+from affinebody.quantum.levels import (
+    AffineInertia,
     LevelCollector,
     Potential,
     Sector,
     Settings,
     Spectrum,
-    solve_block,
-    sqrt_x_over_sinh,
-    variational_parameters,
 )
 
 _N3_PARTIAL = ("n = 3: only the (spin, vorticity) sectors {sectors} are computed; states of the "
@@ -237,13 +240,6 @@ class ScalarBasis3:
         return cls(degree, scale, tuple(recipe), np.array(parity), norm0)
 
 
-def _sqrt_x_over_sinh_derivative_ratio(x: np.ndarray) -> np.ndarray:
-    """d/dx log sqrt(x / sinh x) = (1/x - coth x)/2, smooth (-> -x/6 at 0)."""
-    small = np.abs(x) < 1e-3
-    safe = np.where(small, 1.0, x)
-    return np.where(small, -x / 6, 0.5 * (1 / safe - 1 / np.tanh(safe)))
-
-
 # ----------------------------- dedicated channels: scalar (0, 0) and spin = vorticity = 1
 def scalar3_block(potential: Potential, hbar: float, inertia: float, degree: int, scale: float,
                   quad: ChamberQuadrature | None = None) -> tuple[np.ndarray, Basis]:
@@ -299,7 +295,7 @@ def _channel_candidates(kind: str, x: np.ndarray, degree: int, scale: float,
         for a, b in ((0, 1), (0, 2), (1, 2)):
             diff = jets[a] - jets[b]
             g = g * diff.apply(sqrt_x_over_sinh, lambda v: sqrt_x_over_sinh(v)
-                               * _sqrt_x_over_sinh_derivative_ratio(v))
+                               * sqrt_x_over_sinh_derivative_ratio(v))
         front = g * gexp
         inv = {"t": (t, 1), "p2": (p2, 2),
                "p3": (y[0] * y[0] * y[0] + y[1] * y[1] * y[1] + y[2] * y[2] * y[2], 3)}

@@ -129,3 +129,6 @@ def density(config: str, state: int, output: str) -> None:
     result, _ = _run(lambda: _solve(config, state + 1))
     summary = _run(lambda: write_densities(result, state, output))
     click.echo(json.dumps(summary))
+
+
+__all__ = ["spectrum", "density"]

@@ -32,7 +32,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from affinebody.config import ConfigError, load_toml, one_line_error
-from affinebody.quantum.spectra import Settings
+from affinebody.quantum.levels import Settings
 
 KINETIC_NAMES = ("dalembert", "af-is", "is-af", "af-af", "af-J")
 
@@ -205,3 +205,9 @@ def solver_arguments(config: QuantumConfig) -> dict:
         centre=qc.centre, tolerance=qc.tolerance, max_spin=qc.max_spin,
         check_shrink=4 if n == 2 else 2)
     return kwargs
+
+
+__all__ = [
+    "KINETIC_NAMES", "QuantumSystem", "QuantumSection", "QuantumConfig", "VARIABLES_DOC",
+    "invariant_names", "check", "compile_potential", "parse", "load", "solver_arguments"
+]

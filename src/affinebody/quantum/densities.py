@@ -25,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from affinebody.quantum.bases import sqrt_x_over_sinh
 from affinebody.quantum.channels3 import ChamberQuadrature
-from affinebody.quantum.spectra import Level, Spectrum, sqrt_x_over_sinh
+from affinebody.quantum.levels import Level, Spectrum
 
 
 def _hist(values: np.ndarray, weights: np.ndarray, bins: int = 120):

@@ -37,6 +37,11 @@ Models (generators and coefficient tensors; indices as in operators.py):
 in the Lebesgue measure for d'Alembert; ``"lebesgue"`` for the affine models substitutes (107),
 ``"haar"`` for d'Alembert the Haar-Hermitian pi. The results are unitarily equivalent via
 multiplication by |det phi|^(n/2).
+
+Role: this module is part of the independent reference (autodiff on Cartesian wave functions,
+no reduction) that the reduced solvers of :mod:`affinebody.quantum.spectra` are tested
+against (tests/test_quantum_operators.py, tests/test_quantum_reduction.py); no solver
+imports it.
 """
 
 from __future__ import annotations
@@ -296,3 +301,12 @@ def hamiltonian_op(
         return out
 
     return apply_full
+
+
+__all__ = [
+    "GENERATORS", "TRANSLATIONAL", "QuadraticKineticOperator", "dalembert_kinetic",
+    "dalembert_translational_kinetic", "affine_translational_kinetic", "affine_J_kinetic",
+    "H_affine_kinetic", "left_invariant_kinetic", "right_invariant_kinetic", "tilde_constants",
+    "affine_isotropic_kinetic", "isotropic_affine_kinetic", "affine_affine_kinetic",
+    "kinetic_operator_from_hamiltonian", "hamiltonian_op"
+]

@@ -47,16 +47,14 @@ import numpy as np
 from scipy import linalg
 
 from affinebody.quantum import covariants3 as cov
-from affinebody.quantum.channels3 import _sqrt_x_over_sinh_derivative_ratio, setup3
-from affinebody.quantum.spectra import (
+from affinebody.quantum.bases import (
     Basis,
-    LevelCollector,
-    Sector,
-    Spectrum,
-    shell_complete,
     solve_block,
     sqrt_x_over_sinh,
+    sqrt_x_over_sinh_derivative_ratio,
 )
+from affinebody.quantum.channels3 import setup3
+from affinebody.quantum.levels import LevelCollector, Sector, Spectrum, shell_complete
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 #: shells max(j, j') explored by default for n = 3 (the generators of (6, 6) have degree 18)
@@ -219,7 +217,7 @@ def scalar_factors(kind: str, x: np.ndarray, scale: float, scale_sigma: float, c
     for a, b in PAIRS:
         d = x[:, a] - x[:, b]
         g = sqrt_x_over_sinh(d)
-        dlog = _sqrt_x_over_sinh_derivative_ratio(d)
+        dlog = sqrt_x_over_sinh_derivative_ratio(d)
         grad = np.zeros((P, 3))
         grad[:, a], grad[:, b] = dlog, -dlog
         dfront = dfront * g[:, None] + front[:, None] * g[:, None] * grad

@@ -80,6 +80,11 @@ Verification: tests/test_quantum_reduction.py builds Psi(phi) from F through an 
 (:func:`two_polar_section`), applies the full operator of hamiltonians.py on R^{n^2} by
 autodiff and compares with :meth:`TwoPolarReduction.apply` (asserted to 1e-8 relative; the
 observed agreement is ~1e-13).
+
+Role: this module is part of the independent reference (autodiff on Cartesian wave functions,
+no reduction) that the reduced solvers of :mod:`affinebody.quantum.spectra` are tested
+against (tests/test_quantum_operators.py, tests/test_quantum_reduction.py); no solver
+imports it.
 """
 
 from __future__ import annotations
@@ -338,3 +343,10 @@ class TwoPolarReduction:
         if potential is not None:
             out = out + potential(x) * F(x)
         return out
+
+
+__all__ = [
+    "MODELS", "pairs", "rotation_generator", "Channel", "so2_character_channel",
+    "so2_sector_allowed", "cartesian_channel", "identification_group", "identification_projector",
+    "cartesian_wave_function", "so2_angle", "two_polar_section", "TwoPolarReduction"
+]

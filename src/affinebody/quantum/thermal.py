@@ -28,13 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import linalg
 
-from affinebody.quantum.spectra import (
-    AffineInertia,
-    Hermite1D,
-    Potential,
-    Radial2D,
-    inv_x2_minus_inv_sinh2,
-)
+from affinebody.quantum.bases import Hermite1D, Radial2D, inv_x2_minus_inv_sinh2
+from affinebody.quantum.levels import AffineInertia, Potential
 
 
 def affine_metric_determinant(model: str, n: int, I: float, A: float,  # noqa: E741
@@ -226,3 +221,9 @@ def partition_function_affine2(model: str, potential_x: Callable[[np.ndarray], n
             error = max(error, abs(evaluate(*args)[0] - z))
     factor = math.exp(beta * shift)
     return PartitionFunction(z * factor, error * factor, count, ms, mk)
+
+
+__all__ = [
+    "affine_metric_determinant", "classical_partition_function_affine2", "PartitionFunction",
+    "partition_function_affine2"
+]
