@@ -7,6 +7,10 @@ Layers, bottom to top (no module imports one above it; only core and kinematics 
                        merging and counting of levels (LevelCollector).
 - :mod:`.bases`        Gauss / Laguerre / Hermite bases, the Haar conjugation g = sqrt(x/sinh x),
                        the dense block solver with its error estimate.
+- :mod:`.intervals`    interval arithmetic on potential expressions (certified inf V on cells);
+                       :class:`~.intervals.ExpressionPotential`, a potential that keeps its text.
+- :mod:`.bounds`       certified lower bounds of each n = 2 sector's lowest level: the stopping
+                       rule of the sector search (docs/theory/two-polar.md).
 - :mod:`.n2`           n = 2: the reduced blocks of every sector (s, k) and the sector search.
 - :mod:`.covariants3`, :mod:`.channels3`, :mod:`.n3`: n = 3, every SO(3) x SO(3) sector (j, j')
                        (covariants restricted to diagonal matrices, chamber quadratures,

@@ -527,7 +527,9 @@ def solve_dalembert_scalar(potential: Potential, hbar: float, inertia: float, le
                       basis, E, vec, err, basis.factors[0].parity)
     merged, unconverged = found.levels(None)  # one block: every level it resolves
     return Spectrum(merged, unconverged, found.blocks, "dalembert", 3, "scalar",
-                    setup.info(settings), True, [_N3_PARTIAL.format(sectors="(0, 0)")])
+                    setup.info(settings), True, [_N3_PARTIAL.format(sectors="(0, 0)")],
+                    certified=False, certificate="partial: the (0, 0) sector only",
+                    requested=levels)
 
 
 def solve_channels(model: str, potential: Potential, hbar: float, inertia_scalar: float,
@@ -560,7 +562,8 @@ def solve_channels(model: str, potential: Potential, hbar: float, inertia_scalar
                         "with the spin)")
     merged, unconverged = found.levels(levels)
     return Spectrum(merged, unconverged, found.blocks, model, 3, sectors,
-                    setup.info(settings), bounded, warnings)
+                    setup.info(settings), bounded, warnings, certified=False,
+                    certificate=f"partial: the sectors {sectors} only", requested=levels)
 
 
 __all__ = ["ChamberQuadrature", "Grid3", "haar3_grid", "Jet", "ScalarBasis3", "scalar3_block",

@@ -1,10 +1,16 @@
 """``affinebody spectrum`` and ``affinebody density``: click commands for the main group.
 
 ``affinebody spectrum CONFIG.toml [--levels K] [--json]``: the lowest K states; with --json one
-JSON object with ``energies`` (ascending, each repeated by its multiplicity) and ``states``
-(``energy``, ``multiplicity``, ``spin``, ``vorticity``, ``parity``, all ``sectors``, ``error``),
-plus ``unconverged`` (candidates whose estimate exceeds the tolerance: pseudo-levels of a
-continuous spectrum or an insufficient basis; never listed as levels), ``sectors`` ("all";
+JSON object with ``energies`` (the K lowest states ascending, each repeated by its
+multiplicity; ``null`` where the state is an unconverged candidate: it keeps its place and no
+higher level replaces it), ``unknown_states`` (the indices of those nulls), ``complete`` (true
+only when every one of the K states is converged and the sector search is certified to hold the
+K lowest), ``certified`` and ``certificate`` (the stopping proof, or why the list is
+conditional: docs/theory/two-polar.md, "Lower bounds of a sector"), ``states`` (the converged
+levels: ``energy``, ``multiplicity``, ``spin``, ``vorticity``, ``parity``, all ``sectors``,
+``error``, ``converged``), ``unconverged`` (the candidates among the K states whose estimate
+exceeds the tolerance: pseudo-levels of a continuous spectrum or an insufficient basis, with
+their estimate and error; never listed as levels), ``sectors`` ("all";
 for n = 3 also "scalar", "spin1", "scalar+spin1"), ``bounded_below`` (false for af-af, whose
 sector sum is unbounded below) and ``warnings`` (af-af; n = 3 spectra that hold only some
 sectors; a sector search stopped by max_spin), also printed under the table.
@@ -68,9 +74,15 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
     _enable_x64()
     result, count = _run(lambda: _solve(config, levels))
     energies = result.energies(count)
+    unknown = result.unknown_states(count)
+    complete = result.complete(count)
     if as_json:
         payload = {
-            "energies": energies,
+            "energies": [None if i in unknown else e for i, e in enumerate(energies)],
+            "unknown_states": unknown,
+            "complete": complete,
+            "certified": result.certified,
+            "certificate": result.certificate,
             "states": [lv.as_dict() for lv in result.levels],
             "unconverged": [lv.as_dict() for lv in result.unconverged],
             "sectors": result.sectors,
@@ -89,14 +101,22 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
     table = Table(title=title)
     for col in ("#", "energy", "mult.", "spin", "vorticity", "parity", "error"):
         table.add_column(col, justify="right")
-    for i, lv in enumerate(result.levels):
+    first = 0
+    for lv in result.states():
         d = lv.as_dict()
-        table.add_row(str(i), f"{lv.energy:.12g}", str(lv.multiplicity), str(d["spin"]),
+        energy = f"{lv.energy:.12g}" if lv.converged else f"unconverged (~{lv.energy:.6g})"
+        table.add_row(str(first), energy, str(lv.multiplicity), str(d["spin"]),
                       str(d["vorticity"]), str(d["parity"]), f"{lv.error:.1e}")
+        first += lv.multiplicity
     console = Console()
     console.print(table)
     if len(energies) < count:
-        console.print(f"only {len(energies)} of {count} states converged")
+        console.print(f"only {len(energies)} of {count} states found")
+    if unknown:
+        console.print(f"only {len(energies) - len(unknown)} of {count} states converged: states "
+                      f"{unknown} are unconverged candidates (their energies are estimates)")
+    console.print(("the list is complete: " if complete else "the list is NOT certified "
+                   "complete: ") + result.certificate)
     for text in result.warnings:
         console.print(f"[bold red]warning:[/] {text}")
     if result.unconverged:
@@ -128,6 +148,9 @@ def density(config: str, state: int, output: str) -> None:
         raise click.UsageError(f"--state must be >= 0 (got {state})")
     result, _ = _run(lambda: _solve(config, state + 1))
     summary = _run(lambda: write_densities(result, state, output))
+    if not result.complete(state + 1):
+        click.echo(f"warning: state {state} is indexed in a list that is not certified "
+                   f"complete: {result.certificate}", err=True)
     click.echo(json.dumps(summary))
 
 

@@ -8,6 +8,7 @@ convergence, merging of degenerate levels and the counting of states (:class:`Le
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -47,7 +48,8 @@ def state_count(sectors: tuple[Sector, ...]) -> int:
 @dataclass(frozen=True)
 class Level:
     """One energy level: value, multiplicity (= sum of the dimensions of the sectors listed),
-    convergence."""
+    convergence. ``converged`` False: a candidate whose error estimate exceeds the tolerance
+    (its energy is only an estimate; it still holds its place among the states)."""
 
     energy: float
     multiplicity: int
@@ -55,6 +57,7 @@ class Level:
     error: float
     block: tuple  # key of the reduced block the eigenvector lives in
     index: int  # index of the eigenvector within that block
+    converged: bool = True
 
     def as_dict(self) -> dict:
         first = self.sectors[0]
@@ -66,6 +69,7 @@ class Level:
             "parity": first.parity,
             "sectors": [s.as_dict() for s in self.sectors],
             "error": self.error,
+            "converged": self.converged,
         }
 
 
@@ -83,7 +87,13 @@ class Block:
 
 @dataclass
 class Spectrum:
-    """Converged levels (ascending), unconverged candidates, and the solved blocks."""
+    """The lowest ``requested`` states: converged levels and unconverged candidates (each list
+    ascending; together, in energy order, they are the states), and the solved blocks.
+
+    ``certified``: the sector search provably holds the ``requested`` lowest states (every
+    sector not searched has a certified lower bound above the last of them,
+    :mod:`affinebody.quantum.bounds`); ``certificate`` says how, or why the list is conditional.
+    """
 
     levels: list[Level]
     unconverged: list[Level]
@@ -96,20 +106,47 @@ class Spectrum:
     #: the sectors explored (|s|, |k| <= max_spin) and not the lowest of the body
     bounded_below: bool = True
     warnings: list[str] = field(default_factory=list)
+    certified: bool = False
+    certificate: str = ""
+    requested: int | None = None
+
+    def states(self) -> list[Level]:
+        """Converged levels and unconverged candidates in energy order (a level once, with its
+        multiplicity)."""
+        return sorted(self.levels + self.unconverged, key=lambda lv: (lv.energy, not lv.converged))
 
     def energies(self, count: int | None = None) -> list[float]:
-        """Energies in ascending order, each repeated by its multiplicity (first ``count``)."""
-        values = [lv.energy for lv in self.levels for _ in range(lv.multiplicity)]
+        """Energies of the states in ascending order, each repeated by its multiplicity (first
+        ``count``); an unconverged state is NaN in its place, never replaced by a higher level."""
+        values = [lv.energy if lv.converged else math.nan
+                  for lv in self.states() for _ in range(lv.multiplicity)]
         return values if count is None else values[:count]
+
+    def unknown_states(self, count: int | None = None) -> list[int]:
+        """Indices (0-based, into :meth:`energies`) of the unconverged states."""
+        return [i for i, v in enumerate(self.energies(count)) if math.isnan(v)]
+
+    def complete(self, count: int | None = None) -> bool:
+        """The first ``count`` (default ``requested``) states are all known: the search is
+        certified, the body bounded below, and each of them converged."""
+        count = count if count is not None else self.requested
+        values = self.energies(count)
+        return bool(self.certified and self.bounded_below and count is not None
+                    and len(values) >= count and not any(math.isnan(v) for v in values))
 
     def level_of_state(self, k: int) -> Level:
         """The level holding the k-th entry (0-based) of :meth:`energies`."""
         seen = 0
-        for lv in self.levels:
+        for lv in self.states():
             seen += lv.multiplicity
             if k < seen:
+                if not lv.converged:
+                    raise ValueError(
+                        f"--state {k} is not converged: its candidate at {lv.energy:.9g} has the "
+                        f"error estimate {lv.error:.1e} above quantum.tolerance (raise "
+                        f"quantum.basis_size)")
                 return lv
-        raise ValueError(f"--state {k} is beyond the {seen} converged states computed")
+        raise ValueError(f"--state {k} is beyond the {seen} states computed")
 
 
 # ------------------------------------------------------------------------- solver
@@ -124,7 +161,7 @@ class Settings:
     tolerance: float = 1e-7  # absolute error allowed per level (relative to max(1, |E|))
     check_shrink: int = 4  # the nested check basis has basis_size - check_shrink functions
     check_widen: float = 1.3  # the widened check basis has scale x check_widen
-    max_spin: int = 40  # largest |m1|, |m2| (n = 2) explored
+    max_spin: int = 40  # last shell searched: n = 2 |m1| + |m2| (d'Alembert), max(|s|, |k|)
     merge: float = 1e-8  # levels closer than merge * max(1,|E|) are one degenerate level
 
 @dataclass(frozen=True)
@@ -182,9 +219,9 @@ def kth_energy(entries, count: int) -> float:
 
 
 def shell_complete(known: list, levels: int, shell_min: float) -> bool:
-    """The sector search may stop: the candidates found (converged or not; an unconverged one
-    still bounds what a higher shell could add) hold ``levels`` states, all below the lowest
-    level ``shell_min`` of the shell just solved."""
+    """Heuristic stop of a sector search (n = 3; not a proof: it assumes the lowest level per
+    shell rises with the shell): the candidates found (converged or not) hold ``levels``
+    states, all below the lowest level ``shell_min`` of the shell just solved."""
     return (sum(state_count(e[2]) for e in known) >= levels
             and shell_min > kth_energy(known, levels))
 
@@ -222,7 +259,7 @@ class LevelCollector:
             self.entries.append((float(E), float(err), sectors, key, index))
         else:
             self.unconverged.append(Level(float(E), state_count(sectors), sectors, float(err),
-                                          key, index))
+                                          key, index, converged=False))
 
     def record(self, key: tuple, sectors: tuple, basis, E, vec, err) -> None:
         """One block whose eigenvectors all belong to ``sectors`` (level i: index i)."""
@@ -245,18 +282,25 @@ class LevelCollector:
         return self.entries + [(lv.energy, lv.error, lv.sectors, lv.block, 0)
                                for lv in self.unconverged]
 
+    def state_count(self) -> int:
+        """Number of states of every candidate found, converged or not."""
+        return sum(state_count(e[2]) for e in self.known())
+
+    def kth_energy(self, count: int) -> float:
+        """The ``count``-th lowest candidate energy, counted with multiplicity (inf if fewer)."""
+        return kth_energy(self.known(), count)
+
     def levels(self, count: int | None) -> tuple[list[Level], list[Level]]:
-        """(the lowest ``count`` states as merged levels, the unconverged candidates up to the
-        highest of them, ascending); ``count`` None: every level and candidate found."""
+        """(converged levels, unconverged candidates), each ascending, that together hold the
+        lowest ``count`` states of every candidate found: an unconverged candidate keeps its
+        place, so no level above it replaces it; ``count`` None: every level and candidate."""
         merged = merge_levels(self.entries, self.settings)
+        pending = sorted(self.unconverged, key=lambda lv: lv.energy)
         if count is None:
-            return merged, sorted(self.unconverged, key=lambda lv: lv.energy)
-        merged = truncate_levels(merged, count)
-        top = (merged[-1].energy if merged and sum(lv.multiplicity for lv in merged) >= count
-               else np.inf)
-        limit = top + self.settings.merge * max(1.0, abs(top))
-        return merged, sorted((lv for lv in self.unconverged if lv.energy <= limit),
-                              key=lambda lv: lv.energy)
+            return merged, pending
+        kept = truncate_levels(sorted(merged + pending, key=lambda lv: (lv.energy,
+                                                                        not lv.converged)), count)
+        return [lv for lv in kept if lv.converged], [lv for lv in kept if not lv.converged]
 
 
 __all__ = [

@@ -37,6 +37,8 @@ from affinebody.quantum.bases import (
     solve_block,
     variational_parameters,
 )
+from affinebody.quantum.bounds import haar2_shell_bounds, lebesgue2_shell_bounds
+from affinebody.quantum.intervals import Unsupported
 from affinebody.quantum.levels import (
     AffineInertia,
     LevelCollector,
@@ -44,7 +46,6 @@ from affinebody.quantum.levels import (
     Sector,
     Settings,
     Spectrum,
-    shell_complete,
 )
 
 
@@ -138,8 +139,16 @@ def n2_sectors(key: tuple, model: str) -> tuple[Sector, ...]:
 def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
              affine: AffineInertia, levels: int, settings: Settings) -> Spectrum:
     """The lowest ``levels`` states of the n = 2 body over the sectors (s, k), shell by shell
-    (d'Alembert: shell |m1| + |m2|; affine: max(|s|, |k|)); arguments as in
-    :func:`affinebody.quantum.spectra.solve` (``affine``: the constants of the affine models)."""
+    (d'Alembert: shell |m1| + |m2|; affine: max(|s|, |k|)) up to ``settings.max_spin``;
+    arguments as in :func:`affinebody.quantum.spectra.solve` (``affine``: the constants of the
+    affine models).
+
+    Stopping rule (docs/theory/two-polar.md, "Lower bounds of a sector"): with E_K the
+    ``levels``-th lowest candidate found, a block whose certified lower bound
+    (:mod:`affinebody.quantum.bounds`) exceeds E_K is not solved, and the search stops after the
+    shell L when every sector of the shells above L has its bound above E_K (``certified``).
+    Without a bound (a Python callable, af-af, a bound that stays below E_K) every shell up to
+    max_spin is searched and the result is conditional (``certificate`` says why)."""
     found = LevelCollector(settings)
     info: dict = {"basis_size": settings.basis_size}
     count = levels + 4
@@ -149,8 +158,7 @@ def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
 
         def build_for(a, c):
             return lambda size, s: lebesgue2_block(potential, hbar, inertia, a, c, size, s)
-        shells = ((a, L - a) for L in range(2 * settings.max_spin + 1) for a in range(L + 1)
-                  if a <= settings.max_spin and L - a <= settings.max_spin)
+        shells = ((a, L - a) for L in range(settings.max_spin + 1) for a in range(L + 1))
         shell_of = lambda key: key[0] + key[1]
     else:
         inert = affine
@@ -169,32 +177,60 @@ def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
                   and (s > 0 or k >= 0))
         shell_of = lambda key: max(abs(key[0]), abs(key[1]))
 
-    current_shell, shell_min = 0, np.inf
-    shell_minima: list[float] = []
+    bounds, reason = None, ""
+    try:
+        if model == "dalembert":
+            bounds = lebesgue2_shell_bounds(potential, hbar, inertia, settings.max_spin, b)
+        else:
+            bounds = haar2_shell_bounds(potential, hbar, affine, settings.max_spin, c0, bs)
+    except Unsupported as err:
+        reason = str(err)
+    by_shell: dict[int, list] = {}
     for key in shells:
-        shell = shell_of(key)
-        if shell != current_shell:
-            shell_minima.append(shell_min)
-            if shell_complete(found.known(), levels, shell_min):
-                break
-            current_shell, shell_min = shell, np.inf
-        E, vec, err, basis = solve_block(build_for(*key), settings.basis_size,
-                                         info["scale"], count, settings)
-        shell_min = min(shell_min, float(E[0]))
-        found.record(key, n2_sectors(key, model), basis, E, vec, err)
-    else:
+        by_shell.setdefault(shell_of(key), []).append(key)
+    shell_minima: list[float] = []
+    certified, searched, pruned = False, -1, 0
+    for shell in range(settings.max_spin + 1):
+        shell_min = np.inf
+        for key in by_shell.get(shell, []):
+            if bounds is not None and found.state_count() >= levels and (
+                    bounds.of(key) > found.kth_energy(levels)):
+                pruned += 1  # no level of this block can be among the lowest: not solved
+                continue
+            E, vec, err, basis = solve_block(build_for(*key), settings.basis_size,
+                                             info["scale"], count, settings)
+            shell_min = min(shell_min, float(E[0]))
+            found.record(key, n2_sectors(key, model), basis, E, vec, err)
         shell_minima.append(shell_min)
-        info["max_spin_reached"] = True
+        searched = shell
+        if bounds is not None and found.state_count() >= levels and (
+                bounds.beyond(shell) > found.kth_energy(levels)):
+            certified = True
+            break
+    info["shells_searched"] = searched
+    info["sectors_pruned"] = pruned
     warnings = []
     bounded = True
     if model == "af-af":
         bounded = False
         warnings.append(afaf_warning(hbar, affine.A, settings.max_spin, shell_minima))
-    elif info.get("max_spin_reached"):
-        warnings.append(f"the sector search stopped at max_spin = {settings.max_spin} before the "
-                        f"{levels} lowest states were certain: raise quantum.max_spin")
+        certificate = "none: af-af is unbounded below"
+    elif certified:
+        certificate = (f"{bounds.method}; every sector beyond shell {searched} has no level "
+                       f"below {bounds.beyond(searched):.6g} > the {levels}-th candidate "
+                       f"{found.kth_energy(levels):.6g}")
+    else:
+        beyond = "" if bounds is None else (
+            f" (certified lower bound beyond shell {searched}: {bounds.beyond(searched):.6g})")
+        why = reason or "the bound of the sectors not searched does not exceed the K-th level"
+        certificate = (f"conditional: {why}; searched every sector up to max_spin = "
+                       f"{settings.max_spin}{beyond}")
+        warnings.append(f"the {levels} lowest states are conditional: {why}; only sectors up "
+                        f"to max_spin = {settings.max_spin} were searched (raise "
+                        f"quantum.max_spin or give the potential as an expression)")
     merged, unconverged = found.levels(levels)
-    return Spectrum(merged, unconverged, found.blocks, model, 2, "all", info, bounded, warnings)
+    return Spectrum(merged, unconverged, found.blocks, model, 2, "all", info, bounded, warnings,
+                    certified=certified, certificate=certificate, requested=levels)
 
 
 def afaf_warning(hbar: float, A: float, max_spin: int, shell_minima: list[float]) -> str:

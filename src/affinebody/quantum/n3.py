@@ -453,8 +453,14 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
                         f"{levels} lowest states were certain: raise quantum.max_spin "
                         f"(at most {MAX_SHELL} for n = 3)")
     merged, unconverged = found.levels(levels)
+    certificate = ("conditional: no lower bound of the (j, j') blocks is implemented for n = 3; "
+                   + (f"the search stopped after shell {shell}, whose lowest level lies above "
+                      f"the {levels}-th candidate (a heuristic: it assumes the lowest level per "
+                      f"shell rises with the shell)" if finished else
+                      f"searched every sector up to max(j, j') = {max_shell}"))
     return Spectrum(merged, unconverged, found.blocks, model, 3, "all", setup.info(settings),
-                    bounded, warnings)
+                    bounded, warnings, certified=False, certificate=certificate,
+                    requested=levels)
 
 
 
