@@ -112,7 +112,9 @@ def test_af_is_shear_well_k_lowest_states_are_exact_and_complete():
 def test_dalembert_shear_well_agrees_with_separated_solvers():
     """d'Alembert, J = Id: V = Tr G / 2 + 0.05 (Q1 - Q2)^4 - 0.8 (Q1 - Q2)^2 separates in the
     conformal / anticonformal radii (Q1 - Q2 = 2|w|): a 2D oscillator in z (levels
-    2 n + |m1| + 1) plus a ring well in w (finite volumes per m2); sectors (+-m1, +-m2)."""
+    2 n + |m1| + 1) plus a ring well in w (finite volumes per m2); sectors (+-m1, +-m2).
+    (For n = 2 d'Alembert the lowest level per shell |m1| + |m2| is monotone whatever V: the
+    centrifugal terms hbar^2 m_i^2 / (4 I r_i^2) grow with each |m_i| on one Hilbert space.)"""
     K = 16
     V = compile_potential("0.5*trG + 0.05*(Q1 - Q2)**4 - 0.8*(Q1 - Q2)**2", 2)
     s = sp.solve("dalembert", 2, V, 1.0, inertia=1.0, levels=K, settings=Settings(basis_size=20))
@@ -126,7 +128,10 @@ def test_dalembert_shear_well_agrees_with_separated_solvers():
             mult = (1 if m1 == 0 else 2) * (1 if m2 == 0 else 2)
             levels += [2 * n1 + m1 + 1 + w for n1 in range(4) for w in ring] * mult
     reference = np.sort(levels)[:K]
-    assert np.max(np.abs(np.array(s.energies(K)) - reference)) < 1e-6
+    got = np.array(s.energies(K))
+    assert np.max(np.abs(got - reference)) < 1e-6
+    for threshold in (0.5, 1.0, 1.5, 2.0):
+        assert np.sum(got < threshold) == np.sum(np.sort(levels) < threshold)
 
 
 def test_interval_bounds_hold_on_random_points():
