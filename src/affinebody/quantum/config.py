@@ -17,7 +17,10 @@ the sign of det phi), trG = Tr G, K1..Kn (K_a = Tr G^a, eq. (17)) and det = det 
 
 Discretisation settings, all optional: ``levels`` (default 10), ``sectors`` ("auto", "all" for
 n = 2 and 3; for n = 3 also "scalar", "spin1", "scalar+spin1"; "auto" is "all"),
-``basis_size``, ``scale``, ``scale_sigma``, ``centre``, ``tolerance``, ``max_spin``.
+``basis_size``, ``scale``, ``scale_sigma``, ``centre``, ``tolerance``, ``max_spin`` (the last
+shell the sector search may reach: n = 2 |m1| + |m2| for d'Alembert, max(|s|, |k|) for the
+affine models, max(j, j') for n = 3; an n = 2 search stops earlier once certified complete,
+docs/theory/two-polar.md, "Lower bounds of a sector").
 Every error is one line naming the field, e.g.
 ``config error: quantum.hbar must be > 0 (got -1.0)``.
 """
