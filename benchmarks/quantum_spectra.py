@@ -12,13 +12,19 @@ Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/quantum_spectra.py
 
 from __future__ import annotations
 
+import sys
 import time
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 
 from affinebody.quantum import spectra as sp
 from affinebody.quantum import thermal as th
+from affinebody.quantum.n2 import auto_scale_lebesgue2
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from oracles import cartesian_n2_levels  # noqa: E402  (the test oracle, not library code)
 
 COUNT = 30
 
@@ -39,14 +45,14 @@ def measure(fn):
 
 def main() -> None:
     reduced, cartesian = {}, {}
-    scale = sp.auto_scale_lebesgue2(potential, 1.0, 1.0)
+    scale = auto_scale_lebesgue2(potential, 1.0, 1.0)
     for size in (12, 16, 20, 28):
         settings = sp.Settings(basis_size=size, scale=scale)
         result, t, mem = measure(lambda s=settings: sp.solve(
             "dalembert", 2, potential, 1.0, inertia=1.0, levels=COUNT, settings=s))
         reduced[size] = (np.array(result.energies(COUNT)), t, mem)
     for size in (12, 16, 20, 24):
-        values, t, mem = measure(lambda s=size: sp.cartesian_n2_levels(
+        values, t, mem = measure(lambda s=size: cartesian_n2_levels(
             potential, 1.0, 1.0, COUNT, size=s, scale=scale))
         cartesian[size] = (values, t, mem)
     ref_r = reduced[max(reduced)][0]

@@ -44,7 +44,7 @@ def test_spectrum_table_and_config_error(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text(OSCILLATOR.replace("hbar = 1.0", "hbar = -1.0"))
     result = CliRunner().invoke(spectrum, [str(bad)])
-    assert result.exit_code == 2
+    assert result.exit_code == 1
     assert "quantum.hbar must be > 0" in result.output
 
 

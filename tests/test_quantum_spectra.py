@@ -11,6 +11,9 @@ import pytest
 from affinebody.quantum import spectra as sp
 from affinebody.quantum.config import ConfigError, compile_potential, parse
 from affinebody.quantum.densities import densities
+from affinebody.quantum.levels import AffineInertia
+from affinebody.quantum.n2 import haar2_block
+from oracles import cartesian_n2_levels
 
 K_SPRING, INERTIA, HBAR = 1.3, 0.7, 0.9
 OMEGA = np.sqrt(K_SPRING / INERTIA)
@@ -20,14 +23,15 @@ def oscillator(Q):
     return 0.5 * K_SPRING * np.sum(Q**2, axis=-1)
 
 
-def anharmonic(Q):
-    return 0.5 * np.sum(Q**2, axis=-1) + 0.1 * (np.prod(Q, axis=-1) - 1) ** 2
+#: n = 2 potentials as expressions, so that the sector search can certify its stop
+oscillator2 = compile_potential(f"0.5*{K_SPRING}*trG", 2)
+anharmonic = compile_potential("0.5*trG + 0.1*(det - 1)**2", 2)
 
 
 def test_n2_oscillator_levels_and_degeneracies_exact():
     """d'Alembert, J = I Id, V = k/2 Tr(phi^T phi): E = hbar w (N + 2), multiplicity C(N+3, 3)
     (the R^4 oscillator), assembled from the (spin, vorticity) sectors."""
-    s = sp.solve("dalembert", 2, oscillator, HBAR, inertia=INERTIA, levels=35,
+    s = sp.solve("dalembert", 2, oscillator2, HBAR, inertia=INERTIA, levels=35,
                  settings=sp.Settings(basis_size=14))
     assert [lv.multiplicity for lv in s.levels] == [comb(N + 3, 3) for N in range(4)]
     for N, lv in enumerate(s.levels):
@@ -100,7 +104,7 @@ def test_reduced_solver_agrees_with_cartesian_solver_anharmonic():
     s = sp.solve("dalembert", 2, anharmonic, 1.0, inertia=1.0, levels=count,
                  settings=sp.Settings(basis_size=18))
     reduced = np.array(s.energies(count))
-    cartesian = sp.cartesian_n2_levels(anharmonic, 1.0, 1.0, count, size=16,
+    cartesian = cartesian_n2_levels(anharmonic, 1.0, 1.0, count, size=16,
                                        scale=s.settings["scale"])
     assert len(reduced) == count
     assert np.max(np.abs(reduced - cartesian)) < 1e-8
@@ -124,10 +128,10 @@ def test_confined_affine_model_converges_and_respects_dilatation_separation():
     quantum."""
     I, A, B, c = 1.0, 0.2, 0.3, 1.5
     V = lambda Q: c * np.sum(np.log(np.abs(Q)) ** 2, axis=-1)
-    inert = sp.AffineInertia("af-is", I, A, B)
+    inert = AffineInertia("af-is", I, A, B)
     mass = inert.dilatation / 2
     length = (1 / (mass * c)) ** 0.25  # oscillator length of the sigma mode: exact in sigma
-    H, _ = sp.haar2_block(V, 1.0, inert, 0, 0, (20, 12), (0.6, length), 0.0)
+    H, _ = haar2_block(V, 1.0, inert, 0, 0, (20, 12), (0.6, length), 0.0)
     E = np.linalg.eigvalsh(H)
     # sigma part: -(hbar^2/(M + 2B)) d^2/dsigma^2 + (c/2) sigma^2, i.e. mass (M + 2B)/2 and
     # spring c: hbar w with w = sqrt(2 c / (M + 2B))

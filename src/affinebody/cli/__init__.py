@@ -8,13 +8,42 @@ command turns JAX's float64 mode on for its own process and reports errors as on
 
 from __future__ import annotations
 
+import importlib
+
 import click
 
 from affinebody import __version__
 from affinebody._checks import enable_x64
 
+#: Subcommand -> "module:attribute" of its click command, imported when the command is used
+#: (so that ``affinebody run`` does not import the quantum solvers, and no command module
+#: is imported by importing this package: they import ``cli.common`` themselves).
+COMMANDS = {
+    "run": "affinebody.cli.run:run",
+    "demo": "affinebody.cli.run:demo",
+    "plot": "affinebody.cli.run:plot",
+    "export": "affinebody.cli.run:export",
+    "validate": "affinebody.cli.run:validate",
+    "sweep": "affinebody.cli.sweep:sweep",
+    "spectrum": "affinebody.quantum.cli:spectrum",
+    "density": "affinebody.quantum.cli:density",
+}
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+
+class _LazyGroup(click.Group):
+    """A click group whose subcommands of :data:`COMMANDS` are imported on first use."""
+
+    def list_commands(self, ctx):
+        return sorted({*super().list_commands(ctx), *COMMANDS})
+
+    def get_command(self, ctx, name):
+        if name in COMMANDS:
+            module, attribute = COMMANDS[name].split(":")
+            return getattr(importlib.import_module(module), attribute)
+        return super().get_command(ctx, name)
+
+
+@click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="affinebody")
 def main() -> None:
     """Classical and quantum mechanics of affinely-rigid bodies (Slawianowski's affine models)."""
@@ -29,15 +58,4 @@ def kinematics_demo() -> None:
     print_worked_example()
 
 
-def _register_commands() -> None:
-    from affinebody.cli.run import COMMANDS  # run, demo, plot, export, validate
-    from affinebody.cli.sweep import sweep
-    from affinebody.quantum.cli import density, spectrum
-
-    for command in (*COMMANDS, spectrum, density, sweep):
-        main.add_command(command)
-
-
-_register_commands()
-
-__all__ = ["main"]
+__all__ = ["COMMANDS", "main"]

@@ -4,8 +4,9 @@ Bad input never gives a traceback: one line on stderr naming the field and the f
 
 - exit 1 (:data:`EXIT_BAD_INPUT`): a bad config, flag or file (``ValueError``, ``OSError``) and
   any unexpected error ("internal error: ...");
-- exit 3 (:data:`EXIT_STOPPED`): a run stopped on a non-finite or singular state (frames and the
-  last checkpoint are kept);
+- exit 3 (:data:`EXIT_STOPPED`): a computation that stopped or did not converge, with what it
+  produced kept: a run stopped on a non-finite or singular state (frames and the last
+  checkpoint are kept), densities above their tolerance (written and flagged);
 - exit 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C); what was written is kept.
 """
 

@@ -30,17 +30,20 @@ from itertools import product
 import numpy as np
 from scipy import linalg, special
 
-from affinebody.quantum.spectra import (
-    AffineInertia,
+from affinebody.quantum.bases import (
     Basis,
+    solve_block,
+    sqrt_x_over_sinh,
+    sqrt_x_over_sinh_derivative_ratio,
+    variational_parameters,
+)
+from affinebody.quantum.levels import (
+    AffineInertia,
     LevelCollector,
     Potential,
     Sector,
     Settings,
     Spectrum,
-    solve_block,
-    sqrt_x_over_sinh,
-    variational_parameters,
 )
 
 _N3_PARTIAL = ("n = 3: only the (spin, vorticity) sectors {sectors} are computed; states of the "
@@ -237,13 +240,6 @@ class ScalarBasis3:
         return cls(degree, scale, tuple(recipe), np.array(parity), norm0)
 
 
-def _sqrt_x_over_sinh_derivative_ratio(x: np.ndarray) -> np.ndarray:
-    """d/dx log sqrt(x / sinh x) = (1/x - coth x)/2, smooth (-> -x/6 at 0)."""
-    small = np.abs(x) < 1e-3
-    safe = np.where(small, 1.0, x)
-    return np.where(small, -x / 6, 0.5 * (1 / safe - 1 / np.tanh(safe)))
-
-
 # ----------------------------- dedicated channels: scalar (0, 0) and spin = vorticity = 1
 def scalar3_block(potential: Potential, hbar: float, inertia: float, degree: int, scale: float,
                   quad: ChamberQuadrature | None = None) -> tuple[np.ndarray, Basis]:
@@ -261,7 +257,7 @@ def scalar3_block(potential: Potential, hbar: float, inertia: float, degree: int
     return 0.5 * (H + H.T), Basis("scalar3", (basis,))
 
 
-def _channel_candidates(kind: str, x: np.ndarray, degree: int, scale: float,
+def channel_candidates(kind: str, x: np.ndarray, degree: int, scale: float,
                         scale_sigma: float, centre: float, spin1: bool
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Candidate basis functions on the grid: values [P, d, K], gradients [P, d, 3, K] and the
@@ -299,7 +295,7 @@ def _channel_candidates(kind: str, x: np.ndarray, degree: int, scale: float,
         for a, b in ((0, 1), (0, 2), (1, 2)):
             diff = jets[a] - jets[b]
             g = g * diff.apply(sqrt_x_over_sinh, lambda v: sqrt_x_over_sinh(v)
-                               * _sqrt_x_over_sinh_derivative_ratio(v))
+                               * sqrt_x_over_sinh_derivative_ratio(v))
         front = g * gexp
         inv = {"t": (t, 1), "p2": (p2, 2),
                "p3": (y[0] * y[0] * y[0] + y[1] * y[1] * y[1] + y[2] * y[2] * y[2], 3)}
@@ -359,10 +355,10 @@ def channel3_block(kind: str, potential: Potential, hbar: float, inertia: Affine
     c_+ = 1/(4 I (Q_a - Q_b)^2), c_- = 1/(4 I (Q_a + Q_b)^2), no constant. Affine ("haar3"):
     G = Id/M - B/(M (M + 3B)), c_+ = 1/(16 M sinh^2((q_a - q_b)/2)),
     c_- = -1/(16 M cosh^2(...)), 2 (c_rho + c_tau) = 1/I~ (af-is, is-af) or 0 (af-af).
-    The candidates of :func:`_channel_candidates` are orthonormalised (QR) under the measure.
+    The candidates of :func:`channel_candidates` are orthonormalised (QR) under the measure.
     """
     x, w = grid.nodes, grid.weights
-    vals, grads, parity = _channel_candidates(kind, x, degree, scale, scale_sigma, centre, spin1)
+    vals, grads, parity = channel_candidates(kind, x, degree, scale, scale_sigma, centre, spin1)
     order = np.argsort(-parity, kind="stable")  # even first: odd ones orthogonalised to them
     vals, grads, parity = vals[..., order], grads[..., order], parity[order]
     P, d, K = vals.shape
@@ -531,7 +527,9 @@ def solve_dalembert_scalar(potential: Potential, hbar: float, inertia: float, le
                       basis, E, vec, err, basis.factors[0].parity)
     merged, unconverged = found.levels(None)  # one block: every level it resolves
     return Spectrum(merged, unconverged, found.blocks, "dalembert", 3, "scalar",
-                    setup.info(settings), True, [_N3_PARTIAL.format(sectors="(0, 0)")])
+                    setup.info(settings), True, [_N3_PARTIAL.format(sectors="(0, 0)")],
+                    certified=False, certificate="partial: the (0, 0) sector only",
+                    requested=levels)
 
 
 def solve_channels(model: str, potential: Potential, hbar: float, inertia_scalar: float,
@@ -564,7 +562,8 @@ def solve_channels(model: str, potential: Potential, hbar: float, inertia_scalar
                         "with the spin)")
     merged, unconverged = found.levels(levels)
     return Spectrum(merged, unconverged, found.blocks, model, 3, sectors,
-                    setup.info(settings), bounded, warnings)
+                    setup.info(settings), bounded, warnings, certified=False,
+                    certificate=f"partial: the sectors {sectors} only", requested=levels)
 
 
 __all__ = ["ChamberQuadrature", "Grid3", "haar3_grid", "Jet", "ScalarBasis3", "scalar3_block",

@@ -1,10 +1,16 @@
 """``affinebody spectrum`` and ``affinebody density``: click commands for the main group.
 
 ``affinebody spectrum CONFIG.toml [--levels K] [--json]``: the lowest K states; with --json one
-JSON object with ``energies`` (ascending, each repeated by its multiplicity) and ``states``
-(``energy``, ``multiplicity``, ``spin``, ``vorticity``, ``parity``, all ``sectors``, ``error``),
-plus ``unconverged`` (candidates whose estimate exceeds the tolerance: pseudo-levels of a
-continuous spectrum or an insufficient basis; never listed as levels), ``sectors`` ("all";
+JSON object with ``energies`` (the K lowest states ascending, each repeated by its
+multiplicity; ``null`` where the state is an unconverged candidate: it keeps its place and no
+higher level replaces it), ``unknown_states`` (the indices of those nulls), ``complete`` (true
+only when every one of the K states is converged and the sector search is certified to hold the
+K lowest), ``certified`` and ``certificate`` (the stopping proof, or why the list is
+conditional: docs/theory/two-polar.md, "Lower bounds of a sector"), ``states`` (the converged
+levels: ``energy``, ``multiplicity``, ``spin``, ``vorticity``, ``parity``, all ``sectors``,
+``error``, ``converged``), ``unconverged`` (the candidates among the K states whose estimate
+exceeds the tolerance: pseudo-levels of a continuous spectrum or an insufficient basis, with
+their estimate and error; never listed as levels), ``sectors`` ("all";
 for n = 3 also "scalar", "spin1", "scalar+spin1"), ``bounded_below`` (false for af-af, whose
 sector sum is unbounded below) and ``warnings`` (af-af; n = 3 spectra that hold only some
 sectors; a sector search stopped by max_spin), also printed under the table.
@@ -23,11 +29,8 @@ import sys
 
 import click
 
-
-def _enable_x64() -> None:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
+from affinebody._checks import enable_x64
+from affinebody.cli.common import EXIT_STOPPED, one_line_errors
 
 
 def _solve(config_path: str, levels: int | None):
@@ -55,26 +58,25 @@ def _solve(config_path: str, levels: int | None):
         return solve(**kwargs), kwargs["levels"]
 
 
-def _run(fn):
-    try:
-        return fn()
-    except ValueError as err:
-        click.echo(str(err).splitlines()[0] if str(err) else repr(err), err=True)
-        sys.exit(2)
-
-
 @click.command("spectrum")
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
 @click.option("--levels", "levels", type=int, default=None, help="number of states K")
 @click.option("--json", "as_json", is_flag=True, help="print one JSON object")
+@one_line_errors
 def spectrum(config: str, levels: int | None, as_json: bool) -> None:
     """Lowest energy levels of the quantum affine body described by CONFIG."""
-    _enable_x64()
-    result, count = _run(lambda: _solve(config, levels))
+    enable_x64()
+    result, count = _solve(config, levels)
     energies = result.energies(count)
+    unknown = result.unknown_states(count)
+    complete = result.complete(count)
     if as_json:
         payload = {
-            "energies": energies,
+            "energies": [None if i in unknown else e for i, e in enumerate(energies)],
+            "unknown_states": unknown,
+            "complete": complete,
+            "certified": result.certified,
+            "certificate": result.certificate,
             "states": [lv.as_dict() for lv in result.levels],
             "unconverged": [lv.as_dict() for lv in result.unconverged],
             "sectors": result.sectors,
@@ -93,14 +95,22 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
     table = Table(title=title)
     for col in ("#", "energy", "mult.", "spin", "vorticity", "parity", "error"):
         table.add_column(col, justify="right")
-    for i, lv in enumerate(result.levels):
+    first = 0
+    for lv in result.states():
         d = lv.as_dict()
-        table.add_row(str(i), f"{lv.energy:.12g}", str(lv.multiplicity), str(d["spin"]),
+        energy = f"{lv.energy:.12g}" if lv.converged else f"unconverged (~{lv.energy:.6g})"
+        table.add_row(str(first), energy, str(lv.multiplicity), str(d["spin"]),
                       str(d["vorticity"]), str(d["parity"]), f"{lv.error:.1e}")
+        first += lv.multiplicity
     console = Console()
     console.print(table)
     if len(energies) < count:
-        console.print(f"only {len(energies)} of {count} states converged")
+        console.print(f"only {len(energies)} of {count} states found")
+    if unknown:
+        console.print(f"only {len(energies) - len(unknown)} of {count} states converged: states "
+                      f"{unknown} are unconverged candidates (their energies are estimates)")
+    console.print(("the list is complete: " if complete else "the list is NOT certified "
+                   "complete: ") + result.certificate)
     for text in result.warnings:
         console.print(f"[bold red]warning:[/] {text}")
     if result.unconverged:
@@ -124,18 +134,21 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
 @click.option("--state", "state", type=int, required=True, help="state index (0-based)")
 @click.option("-o", "--output", "output", type=click.Path(file_okay=False), required=True)
 @click.option("--json", "as_json", is_flag=True, help="print the JSON object (with the arrays)")
+@one_line_errors
 def density(config: str, state: int, output: str, as_json: bool) -> None:
     """Exact marginal densities of q (or Q), det phi, Tr G and orientations for one state."""
-    _enable_x64()
+    enable_x64()
     from affinebody.quantum import config as qconfig
     from affinebody.quantum.density_files import write_densities
 
     if state < 0:
         raise click.UsageError(f"--state must be >= 0 (got {state})")
-    qc = _run(lambda: qconfig.load(config)).quantum
-    result, _ = _run(lambda: _solve(config, state + 1))
-    payload = _run(lambda: write_densities(result, state, output, qc.density_points,
-                                           qc.density_tolerance))
+    qc = qconfig.load(config).quantum
+    result, _ = _solve(config, state + 1)
+    payload = write_densities(result, state, output, qc.density_points, qc.density_tolerance)
+    if not result.complete(state + 1):  # a caveat on the index, not on the densities
+        click.echo(f"warning: state {state} is indexed in a list that is not certified "
+                   f"complete: {result.certificate}", err=True)
     if as_json:
         click.echo(json.dumps(payload))
     else:
@@ -158,4 +171,7 @@ def density(config: str, state: int, output: str, as_json: bool) -> None:
         if as_json:
             for text in payload["warnings"]:
                 click.echo(f"warning: {text}", err=True)
-        sys.exit(3)
+        sys.exit(EXIT_STOPPED)  # densities above the tolerance: written, flagged
+
+
+__all__ = ["spectrum", "density"]

@@ -17,9 +17,11 @@ the sign of det phi), trG = Tr G, K1..Kn (K_a = Tr G^a, eq. (17)) and det = det 
 
 Discretisation settings, all optional: ``levels`` (default 10), ``sectors`` ("auto", "all" for
 n = 2 and 3; for n = 3 also "scalar", "spin1", "scalar+spin1"; "auto" is "all"),
-``basis_size``, ``scale``, ``scale_sigma``, ``centre``, ``tolerance``, ``max_spin``; for
-``affinebody density`` also ``density_points`` and ``density_tolerance`` (1e-8, relative to the
-peak of each density).
+``basis_size``, ``scale``, ``scale_sigma``, ``centre``, ``tolerance``, ``max_spin`` (the last
+shell the sector search may reach: n = 2 |m1| + |m2| for d'Alembert, max(|s|, |k|) for the
+affine models, max(j, j') for n = 3; an n = 2 search stops earlier once certified complete,
+docs/theory/two-polar.md, "Lower bounds of a sector"); for ``affinebody density`` also
+``density_points`` and ``density_tolerance`` (1e-8, relative to the peak of each density).
 Every error is one line naming the field, e.g.
 ``config error: quantum.hbar must be > 0 (got -1.0)``.
 """
@@ -30,11 +32,11 @@ import math
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from affinebody.config import ConfigError, load_toml, one_line_error
-from affinebody.quantum.spectra import Settings
+from affinebody.quantum.intervals import ExpressionPotential, invariant_names
+from affinebody.quantum.levels import Settings
 
 KINETIC_NAMES = ("dalembert", "af-is", "is-af", "af-af", "af-J")
 
@@ -75,11 +77,6 @@ class QuantumConfig(_Section):
 
 
 VARIABLES_DOC = "q1..qn, Q1..Qn, trG, K1..Kn, det"
-
-
-def invariant_names(n: int) -> tuple[str, ...]:
-    return (tuple(f"q{a}" for a in range(1, n + 1)) + tuple(f"Q{a}" for a in range(1, n + 1))
-            + ("trG",) + tuple(f"K{a}" for a in range(1, n + 1)) + ("det",))
 
 
 def _positive(value: float | None, name: str) -> None:
@@ -154,30 +151,14 @@ def _affine_constants(qc: QuantumSection) -> tuple[float, float, float]:
             float(qc.B or 0.0))
 
 
-def compile_potential(text: str, n: int):
-    """The potential text as a function V(Q [..., n]) -> [...] (numpy in, numpy out)."""
-    from affinebody.expressions import compile_expression
-
+def compile_potential(text: str, n: int) -> ExpressionPotential:
+    """The potential text as a function V(Q [..., n]) -> [...] (numpy in, numpy out) that keeps
+    its text, so that the sector search can certify lower bounds of V
+    (:mod:`affinebody.quantum.bounds`)."""
     try:
-        expr = compile_expression(text, invariant_names(n), field="quantum.potential")
+        return ExpressionPotential(text, n)
     except ValueError as err:
         raise ConfigError(str(err)) from None
-
-    def potential(Q: np.ndarray) -> np.ndarray:
-        Q = np.asarray(Q, float)
-        G2 = Q * Q
-        values = {}
-        with np.errstate(divide="ignore"):
-            for a in range(n):
-                values[f"q{a + 1}"] = np.log(np.abs(Q[..., a]))
-                values[f"Q{a + 1}"] = Q[..., a]
-                values[f"K{a + 1}"] = np.sum(G2 ** (a + 1), axis=-1)
-        values["trG"] = np.sum(G2, axis=-1)
-        values["det"] = np.prod(Q, axis=-1)
-        out = np.asarray(expr(**{k: values[k] for k in expr.used}), float)
-        return np.broadcast_to(out, Q.shape[:-1])
-
-    return potential
 
 
 def parse(text: str, source: str = "config") -> QuantumConfig:
@@ -214,3 +195,9 @@ def solver_arguments(config: QuantumConfig) -> dict:
         centre=qc.centre, tolerance=qc.tolerance, max_spin=qc.max_spin,
         check_shrink=4 if n == 2 else 2)
     return kwargs
+
+
+__all__ = [
+    "KINETIC_NAMES", "QuantumSystem", "QuantumSection", "QuantumConfig", "VARIABLES_DOC",
+    "invariant_names", "check", "compile_potential", "parse", "load", "solver_arguments"
+]

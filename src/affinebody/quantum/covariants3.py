@@ -444,3 +444,10 @@ def module_generators(j: int, jp: int, model: str = "matrix", max_degree: int = 
         raise RuntimeError(f"covariants ({j}, {jp}): {len(generators)} generators up to degree "
                            f"{max_degree}, expected {rank}")
     return tuple(generators)
+
+
+__all__ = [
+    "monomials", "sphere_moment", "harmonic_basis", "rotation_generators", "harmonic_projection",
+    "fixed_subspace", "expm_antisymmetric", "fixed_dimension", "polynomial_multiplicity",
+    "covariant_count", "basic_invariants", "RING", "module_generators"
+]

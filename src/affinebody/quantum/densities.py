@@ -54,7 +54,8 @@ from functools import cache
 import numpy as np
 from scipy import linalg
 
-from affinebody.quantum.spectra import Level, Spectrum, sqrt_x_over_sinh
+from affinebody.quantum.bases import sqrt_x_over_sinh
+from affinebody.quantum.levels import Level, Spectrum
 
 #: node counts tried per integrated variable (n = 2: one variable; n = 3: two, so fewer),
 #: each 3/2 of the one before: the nested check rule of 2N/3 nodes is the previous count
@@ -188,12 +189,12 @@ def _grid3_joint(spectrum: Spectrum, basis, coeff: np.ndarray) -> Joint:
             return np.einsum("prk,k->pr", replace(sb, nodes=p).values(), coeff)
         degree, scale, scale_sigma, centre = sb.candidate_args
     else:
-        from affinebody.quantum.channels3 import _channel_candidates
+        from affinebody.quantum.channels3 import channel_candidates
 
         settings = spectrum.settings
         degree, scale = settings["basis_size"], settings["scale"]
         scale_sigma, centre = settings.get("scale_sigma", 1.0), settings.get("centre", 0.0)
-        cand = _channel_candidates(kind, x, degree, scale, scale_sigma, centre, spin1)[0]
+        cand = channel_candidates(kind, x, degree, scale, scale_sigma, centre, spin1)[0]
         P, d, K = cand.shape
         sw = np.sqrt(grid.weights)[:, None, None]
         target = (values @ coeff)[:, :, None]
@@ -204,7 +205,7 @@ def _grid3_joint(spectrum: Spectrum, basis, coeff: np.ndarray) -> Joint:
                              f"off its grid (residual {error:.1e})")
 
         def amplitude(p):
-            c = _channel_candidates(kind, p, degree, scale, scale_sigma, centre, spin1)[0]
+            c = channel_candidates(kind, p, degree, scale, scale_sigma, centre, spin1)[0]
             return np.einsum("pdk,k->pd", c, mix[:, 0])
     return _joint3(kind, amplitude, degree, scale, scale_sigma, centre)
 

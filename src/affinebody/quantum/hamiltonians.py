@@ -37,18 +37,22 @@ Models (generators and coefficient tensors; indices as in operators.py):
 in the Lebesgue measure for d'Alembert; ``"lebesgue"`` for the affine models substitutes (107),
 ``"haar"`` for d'Alembert the Haar-Hermitian pi. The results are unitarily equivalent via
 multiplication by |det phi|^(n/2).
+
+Role: this module is part of the independent reference (autodiff on Cartesian wave functions,
+no reduction) that the reduced solvers of :mod:`affinebody.quantum.spectra` are tested
+against (tests/test_quantum_operators.py, tests/test_quantum_reduction.py); no solver
+imports it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
-from functools import partial
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from affinebody import _pytree
 from affinebody._checks import as_float64, as_matrix, check_symmetric_positive_definite
 from affinebody.quantum import operators as ops
 
@@ -62,8 +66,7 @@ GENERATORS: dict[str, Callable] = {
 TRANSLATIONAL = ("linear_momentum", "comoving_linear_momentum")
 
 
-@partial(jax.tree_util.register_dataclass, data_fields=["coefficients"], meta_fields=["generator"])
-@dataclass(frozen=True)
+@_pytree.dataclass
 class QuadraticKineticOperator:
     """T = 1/2 K[alpha, beta] X_alpha X_beta with X = GENERATORS[generator] (see module doc).
 
@@ -72,7 +75,7 @@ class QuadraticKineticOperator:
     """
 
     coefficients: jax.Array
-    generator: str = "comoving_affine_spin"
+    generator: str = _pytree.static_field(default="comoving_affine_spin")
 
     @property
     def translational(self) -> bool:
@@ -296,3 +299,12 @@ def hamiltonian_op(
         return out
 
     return apply_full
+
+
+__all__ = [
+    "GENERATORS", "TRANSLATIONAL", "QuadraticKineticOperator", "dalembert_kinetic",
+    "dalembert_translational_kinetic", "affine_translational_kinetic", "affine_J_kinetic",
+    "H_affine_kinetic", "left_invariant_kinetic", "right_invariant_kinetic", "tilde_constants",
+    "affine_isotropic_kinetic", "isotropic_affine_kinetic", "affine_affine_kinetic",
+    "kinetic_operator_from_hamiltonian", "hamiltonian_op"
+]

@@ -29,7 +29,7 @@ Bases (complete: covariants3 proves each covariant module free over the invarian
 * affine: phi = U exp(S) (polar), and a covariant is (D^j(U) (x) 1) chi(S) with chi a covariant
   of the symmetric S under the diagonal SO(3); at phi = diag(e^q), S = diag(q). So g_i are the
   generators of those ("symmetric" model; walls q_a = q_b only, as on GL+(3)) at
-  (q - centre/3)/b, times the scalar front of :func:`_channel_candidates` (prod sqrt((q_a -
+  (q - centre/3)/b, times the scalar front of :func:`channel_candidates` (prod sqrt((q_a -
   q_b) / sinh(q_a - q_b)), Gaussians in the traceless part y and in sigma) and S3 invariants
   of (y, sigma), total degree <= ``degree``. For (1, 1) this is the dedicated spin-1 basis.
 
@@ -47,16 +47,14 @@ import numpy as np
 from scipy import linalg
 
 from affinebody.quantum import covariants3 as cov
-from affinebody.quantum.channels3 import _sqrt_x_over_sinh_derivative_ratio, setup3
-from affinebody.quantum.spectra import (
+from affinebody.quantum.bases import (
     Basis,
-    LevelCollector,
-    Sector,
-    Spectrum,
-    shell_complete,
     solve_block,
     sqrt_x_over_sinh,
+    sqrt_x_over_sinh_derivative_ratio,
 )
+from affinebody.quantum.channels3 import setup3
+from affinebody.quantum.levels import LevelCollector, Sector, Spectrum, shell_complete
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 #: shells max(j, j') explored by default for n = 3 (the generators of (6, 6) have degree 18)
@@ -219,7 +217,7 @@ def scalar_factors(kind: str, x: np.ndarray, scale: float, scale_sigma: float, c
     for a, b in PAIRS:
         d = x[:, a] - x[:, b]
         g = sqrt_x_over_sinh(d)
-        dlog = _sqrt_x_over_sinh_derivative_ratio(d)
+        dlog = sqrt_x_over_sinh_derivative_ratio(d)
         grad = np.zeros((P, 3))
         grad[:, a], grad[:, b] = dlog, -dlog
         dfront = dfront * g[:, None] + front[:, None] * g[:, None] * grad
@@ -455,8 +453,14 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
                         f"{levels} lowest states were certain: raise quantum.max_spin "
                         f"(at most {MAX_SHELL} for n = 3)")
     merged, unconverged = found.levels(levels)
+    certificate = ("conditional: no lower bound of the (j, j') blocks is implemented for n = 3; "
+                   + (f"the search stopped after shell {shell}, whose lowest level lies above "
+                      f"the {levels}-th candidate (a heuristic: it assumes the lowest level per "
+                      f"shell rises with the shell)" if finished else
+                      f"searched every sector up to max(j, j') = {max_shell}"))
     return Spectrum(merged, unconverged, found.blocks, model, 3, "all", setup.info(settings),
-                    bounded, warnings)
+                    bounded, warnings, certified=False, certificate=certificate,
+                    requested=levels)
 
 
 

@@ -51,6 +51,11 @@ Unitary groups (94)-(102): ``translation_group``, ``left_translation_group``,
 ``(R(z) Psi)(phi) = Psi(phi exp z)``), times
 the multiplier ``exp((n - k) Tr z / 2)`` per body that makes them unitary in the chosen measure
 (none for "haar"). They are exp((i/hbar) z^b_a X^a_b) for the corresponding generator X.
+
+Role: this module is part of the independent reference (autodiff on Cartesian wave functions,
+no reduction) that the reduced solvers of :mod:`affinebody.quantum.spectra` are tested
+against (tests/test_quantum_operators.py, tests/test_quantum_reduction.py); no solver
+imports it.
 """
 
 from __future__ import annotations
@@ -373,3 +378,12 @@ def generator_pairing(z: jax.Array, op_value: jax.Array, bodies: bool) -> jax.Ar
     if bodies:
         summed = summed.sum(axis=0)
     return summed.reshape(op_value.shape[lead + 2 :])
+
+
+__all__ = [
+    "MEASURES", "density_exponent", "configuration_density", "affine_spin_op",
+    "comoving_affine_spin_op", "canonical_momentum_op", "spin_op", "vorticity_op",
+    "linear_momentum_op", "comoving_linear_momentum_op", "orbital_affine_momentum_op",
+    "on_internal", "total_affine_momentum_op", "translation_group", "left_translation_group",
+    "right_translation_group", "spatial_affine_group", "generator_pairing"
+]

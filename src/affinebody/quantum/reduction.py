@@ -80,19 +80,24 @@ Verification: tests/test_quantum_reduction.py builds Psi(phi) from F through an 
 (:func:`two_polar_section`), applies the full operator of hamiltonians.py on R^{n^2} by
 autodiff and compares with :meth:`TwoPolarReduction.apply` (asserted to 1e-8 relative; the
 observed agreement is ~1e-13).
+
+Role: this module is part of the independent reference (autodiff on Cartesian wave functions,
+no reduction) that the reduced solvers of :mod:`affinebody.quantum.spectra` are tested
+against (tests/test_quantum_operators.py, tests/test_quantum_reduction.py); no solver
+imports it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import partial
 from itertools import combinations, product
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from affinebody import _pytree
 from affinebody.polar import two_polar, two_polar_haar_density, two_polar_lebesgue_density
 
 MODELS = ("af-is", "is-af", "af-af", "dalembert")
@@ -115,8 +120,7 @@ def rotation_generator(n: int, a: int, b: int) -> np.ndarray:
 # channels: how rho_ab, tau_ab act on the vector F of radial functions
 
 
-@partial(jax.tree_util.register_dataclass, data_fields=["rho", "tau"], meta_fields=[])
-@dataclass(frozen=True)
+@_pytree.dataclass
 class Channel:
     """Matrices r_ab, t_ab [pairs, d, d] with rho_ab = (hbar/i) r_ab, tau_ab = (hbar/i) t_ab
     acting on the radial vector F (see the module docstring)."""
@@ -338,3 +342,10 @@ class TwoPolarReduction:
         if potential is not None:
             out = out + potential(x) * F(x)
         return out
+
+
+__all__ = [
+    "MODELS", "pairs", "rotation_generator", "Channel", "so2_character_channel",
+    "so2_sector_allowed", "cartesian_channel", "identification_group", "identification_projector",
+    "cartesian_wave_function", "so2_angle", "two_polar_section", "TwoPolarReduction"
+]

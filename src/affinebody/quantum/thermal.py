@@ -28,13 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import linalg
 
-from affinebody.quantum.spectra import (
-    AffineInertia,
-    Hermite1D,
-    Potential,
-    Radial2D,
-    inv_x2_minus_inv_sinh2,
-)
+from affinebody.quantum.bases import Hermite1D, Radial2D, inv_x2_minus_inv_sinh2
+from affinebody.quantum.levels import AffineInertia, Potential
 
 
 def affine_metric_determinant(model: str, n: int, I: float, A: float,  # noqa: E741
@@ -184,7 +179,7 @@ def partition_function_affine2(model: str, potential_x: Callable[[np.ndarray], n
     For such V the dilatation sigma = ln det phi separates (H = H_x + H_sigma, the reduced
     operator of :mod:`affinebody.quantum.spectra`), so Z = Z_sigma * sum_{s,k} Z_x(s, k):
     one 1D problem per sector (2D-radial Laguerre basis conjugated by sqrt(x / sinh x), as in
-    :func:`~affinebody.quantum.spectra.haar2_block`) and one Hermite problem for sigma.
+    :func:`~affinebody.quantum.n2.haar2_block`) and one Hermite problem for sigma.
     Energies are measured from the minimum of V (no shift of Z). ``error`` (if ``check``) is
     the larger change of Z under a basis 10 smaller and a scale 1.2 times wider; scales default
     to the harmonic lengths at the minima of V_x (x = 0) and V_sigma.
@@ -226,3 +221,9 @@ def partition_function_affine2(model: str, potential_x: Callable[[np.ndarray], n
             error = max(error, abs(evaluate(*args)[0] - z))
     factor = math.exp(beta * shift)
     return PartitionFunction(z * factor, error * factor, count, ms, mk)
+
+
+__all__ = [
+    "affine_metric_determinant", "classical_partition_function_affine2", "PartitionFunction",
+    "partition_function_affine2"
+]

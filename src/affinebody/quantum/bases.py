@@ -1,0 +1,210 @@
+"""One-dimensional bases of the reduced problems and the shared dense solver
+(docs/theory/two-polar.md).
+
+Gauss quadratures by Golub-Welsch, 2D-radial (generalised Laguerre) and Hermite functions, the
+basis descriptor :class:`Basis` used to evaluate eigenfunctions, the smooth functions of the Haar
+conjugation g(x) = sqrt(x / sinh x), and :func:`solve_block` (main, nested and widened bases:
+the spread is the error estimate).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import linalg, optimize, special
+
+from affinebody.quantum.levels import Settings
+
+
+# ------------------------------------------------------------------ one-dimensional bases
+def gauss_basis(jacobi_diag: np.ndarray, jacobi_off: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss nodes and the matrix B[g, j] = sqrt(w_g) p_j(t_g) of orthonormal polynomials.
+
+    Golub-Welsch: the eigenvectors of the Jacobi matrix (the matrix of t in the orthonormal
+    basis) are exactly sqrt(w_g) p_j(t_g), with the sign fixed by p_0 > 0. No overflow for large
+    degrees or parameters, unlike explicit weights and polynomial values.
+    """
+    nodes, vecs = linalg.eigh_tridiagonal(jacobi_diag, jacobi_off)
+    vecs = vecs * np.sign(vecs[0])[None, :]
+    return nodes, vecs.T
+
+
+def laguerre_jacobi(m: float, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobi matrix of t for Laguerre polynomials orthonormal under t^m e^-t dt on (0, inf)."""
+    j = np.arange(size, dtype=float)
+    return 2 * j + m + 1, -np.sqrt((j[1:]) * (j[1:] + m))
+
+
+def hermite_jacobi(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobi matrix of x for Hermite polynomials orthonormal under e^{-x^2} dx."""
+    j = np.arange(1, size, dtype=float)
+    return np.zeros(size), np.sqrt(j / 2)
+
+
+@dataclass(frozen=True)
+class Radial2D:
+    """2D-radial oscillator functions u_j(r) = sqrt(2) b^-1 (r/b)^m e^{-t/2} l_j(t), t = r^2/b^2.
+
+    Orthonormal under r dr; ``laplacian`` is the exact Galerkin matrix of
+    -(1/r)(r u')' + m^2 u / r^2, namely (2 diag(2j+m+1) - T)/b^2 with T the Jacobi matrix.
+    """
+
+    m: int
+    size: int
+    scale: float
+    quad: int
+
+    def nodes(self) -> tuple[np.ndarray, np.ndarray]:
+        t, B = gauss_basis(*laguerre_jacobi(self.m, self.quad))
+        return self.scale * np.sqrt(t), B[:, : self.size]
+
+    def laplacian(self) -> np.ndarray:
+        d, o = laguerre_jacobi(self.m, self.size)
+        T = np.diag(d) + np.diag(o, 1) + np.diag(o, -1)
+        return (2 * np.diag(d) - T) / self.scale**2
+
+    def evaluate(self, r: np.ndarray) -> np.ndarray:
+        """u_j(r) at arbitrary r >= 0, shape [..., size]."""
+        t = (np.asarray(r, float) / self.scale) ** 2
+        out = np.empty(t.shape + (self.size,))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_power = np.where(t > 0, 0.5 * self.m * np.log(np.where(t > 0, t, 1.0)),
+                                 0.0 if self.m == 0 else -np.inf)
+        front = np.exp(log_power - 0.5 * t - 0.5 * special.gammaln(self.m + 1))
+        p_prev = np.zeros_like(t)
+        p = np.ones_like(t)
+        for j in range(self.size):
+            out[..., j] = p
+            a = 2 * j + self.m + 1
+            b_next = math.sqrt((j + 1) * (j + 1 + self.m))
+            b_here = math.sqrt(j * (j + self.m))
+            p_prev, p = p, ((a - t) * p - b_here * p_prev) / b_next
+        return out * (front * math.sqrt(2) / self.scale)[..., None]
+
+
+@dataclass(frozen=True)
+class Hermite1D:
+    """Hermite functions h_j(x) = b^-1/2 psi_j((x - c)/b), orthonormal under dx.
+
+    ``laplacian`` is the exact Galerkin matrix of -d^2/dx^2, (2 diag(j + 1/2) - X^2)/b^2.
+    """
+
+    size: int
+    scale: float
+    centre: float
+    quad: int
+
+    def nodes(self) -> tuple[np.ndarray, np.ndarray]:
+        y, B = gauss_basis(*hermite_jacobi(self.quad))
+        return self.centre + self.scale * y, B[:, : self.size]
+
+    def laplacian(self) -> np.ndarray:
+        d, o = hermite_jacobi(self.size + 1)
+        X = np.diag(o, 1) + np.diag(o, -1)
+        X2 = (X @ X)[: self.size, : self.size]
+        return (2 * np.diag(np.arange(self.size) + 0.5) - X2) / self.scale**2
+
+    def evaluate(self, x: np.ndarray) -> np.ndarray:
+        y = (np.asarray(x, float) - self.centre) / self.scale
+        out = np.empty(y.shape + (self.size,))
+        p_prev = np.zeros_like(y)
+        p = np.full_like(y, math.pi**-0.25)
+        for j in range(self.size):
+            out[..., j] = p
+            p_prev, p = p, (math.sqrt(2.0 / (j + 1)) * y * p - math.sqrt(j / (j + 1)) * p_prev)
+        return out * (np.exp(-0.5 * y * y) / math.sqrt(self.scale))[..., None]
+
+
+# --------------------------------------------------------------------- reduced problems
+@dataclass(frozen=True)
+class Basis:
+    """What is needed to evaluate a block's eigenfunctions: kind plus its 1D factors."""
+
+    kind: str  # "lebesgue2", "haar2", "scalar3"
+    factors: tuple
+
+    def reduced_values(self, coords: tuple[np.ndarray, ...]) -> np.ndarray:
+        """Basis functions at reduced coordinates (r1, r2) / (x, sigma) / Q [P, 3]."""
+        if self.kind == "lebesgue2":
+            u1 = self.factors[0].evaluate(coords[0])
+            u2 = self.factors[1].evaluate(coords[1])
+            return (u1[..., :, None] * u2[..., None, :]).reshape(u1.shape[:-1] + (-1,))
+        if self.kind == "haar2":
+            x, sigma = coords
+            g = sqrt_x_over_sinh(x)
+            u = self.factors[0].evaluate(x) * g[..., None]
+            h = self.factors[1].evaluate(sigma)
+            return (u[..., :, None] * h[..., None, :]).reshape(u.shape[:-1] + (-1,))
+        return self.factors[0].evaluate(coords[0])
+
+
+def sqrt_x_over_sinh(x: np.ndarray) -> np.ndarray:
+    """g(x) = sqrt(x / sinh x), smooth (-> 1 - x^2/12 at 0): the conjugation of the Haar radial
+    part (module docstring)."""
+    x = np.asarray(x, float)
+    small = np.abs(x) < 1e-4
+    safe = np.where(small, 1.0, x)
+    return np.where(small, 1 - x * x / 12, np.sqrt(safe / np.sinh(safe)))
+
+
+def inv_x2_minus_inv_sinh2(x: np.ndarray) -> np.ndarray:
+    """1/x^2 - 1/sinh^2 x, smooth (-> 1/3 at 0)."""
+    x = np.asarray(x, float)
+    small = np.abs(x) < 2e-2
+    safe = np.where(small, 1.0, x)
+    series = 1 / 3 - x**2 / 15 + 2 * x**4 / 189
+    return np.where(small, series, 1 / safe**2 - 1 / np.sinh(safe) ** 2)
+
+
+def sqrt_x_over_sinh_derivative_ratio(x: np.ndarray) -> np.ndarray:
+    """d/dx log sqrt(x / sinh x) = (1/x - coth x)/2, smooth (-> -x/6 at 0)."""
+    small = np.abs(x) < 1e-3
+    safe = np.where(small, 1.0, x)
+    return np.where(small, -x / 6, 0.5 * (1 / safe - 1 / np.tanh(safe)))
+
+
+def dense_lowest(H: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    count = min(count, H.shape[0])
+    w, v = linalg.eigh(H, subset_by_index=[0, count - 1], driver="evr")
+    return w, v
+
+def solve_block(build: Callable[[int, float], tuple[np.ndarray, Basis]], size: int, scale: float,
+                count: int, settings: Settings
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Basis]:
+    """The ``count`` lowest eigenpairs of ``build(size, scale)`` and their error estimates: the
+    larger change under the nested basis ``size - check_shrink`` and the widened basis
+    ``scale * check_widen`` (skipped when check_widen == 1); inf where a check basis has fewer
+    levels. Returns (energies, eigenvectors, errors, basis)."""
+    H, basis = build(size, scale)
+    if H.size == 0:  # no basis function (an n = 3 sector starting above this degree)
+        return np.zeros(0), np.zeros((0, 0)), np.zeros(0), basis
+    E, vec = dense_lowest(H, count)
+    Hs, _ = build(size - settings.check_shrink, scale)
+    Es = linalg.eigvalsh(Hs)[: len(E)] if Hs.size else np.zeros(0)
+    if settings.check_widen == 1.0:
+        Ew = E
+    else:
+        Hw, _ = build(size, scale * settings.check_widen)
+        Ew = linalg.eigvalsh(Hw)[: len(E)]
+    err = np.full(len(E), np.inf)
+    k = min(len(Es), len(Ew))
+    err[:k] = np.maximum(np.abs(E[:k] - Es[:k]), np.abs(E[:k] - Ew[:k]))
+    return E, vec, err, basis
+
+def variational_parameters(energy: Callable[[np.ndarray], float], start: np.ndarray
+                           ) -> np.ndarray:
+    """The basis parameters (log-scales, centre) minimising ``energy`` (Nelder-Mead from
+    ``start``; coarse: only the basis quality depends on them)."""
+    res = optimize.minimize(energy, start, method="Nelder-Mead",
+                            options={"xatol": 1e-3, "fatol": 1e-10, "maxiter": 200})
+    return res.x
+
+
+__all__ = [
+    "gauss_basis", "laguerre_jacobi", "hermite_jacobi", "Radial2D", "Hermite1D", "Basis",
+    "sqrt_x_over_sinh", "inv_x2_minus_inv_sinh2", "sqrt_x_over_sinh_derivative_ratio",
+    "dense_lowest", "solve_block", "variational_parameters"
+]

@@ -1,0 +1,219 @@
+"""Certified lower bounds of the lowest level of every n = 2 sector: the stopping rule of the
+sector search (docs/theory/two-polar.md, "Lower bounds of a sector").
+
+In a sector the reduced operator is H = T + U with a kinetic part T that is a non-negative
+quadratic form under the sector's measure (integrate by parts: <psi, T psi> = (hbar^2/M)
+int |d_x psi|^2 sinh x dx dsigma + hbar^2/(M + 2B) int |d_sigma psi|^2 ..., resp.
+(hbar^2/4I) int |d_r1 psi|^2 + |d_r2 psi|^2 r1 r2 dr1 dr2) and a multiplication operator U, so
+E_min(sector) >= inf U:
+
+* affine models, sector (s, k), p = s + k, d = s - k, x = q1 - q2 >= 0, sigma = q1 + q2:
+  U = V + c p^2 / sinh^2(x/2) - c d^2 / cosh^2(x/2) + e r^2, c = hbar^2/(16 M), e = hbar^2/(2 I~),
+  r = k (af-is) or s (is-af);
+* d'Alembert, block (|m1|, |m2|), r1 = rho cos(theta), r2 = rho sin(theta):
+  U = V + hbar^2 (m1^2 / r1^2 + m2^2 / r2^2) / (4 I).
+
+V is bounded below on a partition of the reduced domain into cells (unbounded ones included)
+by interval arithmetic on its expression (:mod:`affinebody.quantum.intervals`); the centrifugal
+terms are bounded on each cell in closed form (for af-is: inf over u = sinh^2(x/2) in
+[u_lo, u_hi] of a/u - b/(1 + u), attained at the ends or at u* = sqrt(a)/(sqrt(b) - sqrt(a))).
+The minimum over cells of the two bounds is a lower bound of E_min(sector).
+
+Infinitely many sectors: the centrifugal part is a quadratic form in (p, d) (resp. (m1, m2)),
+so on each cell U >= v_cell + lambda_min L^2 for every sector of shell L. Affine models (not
+af-af): 2 (s^2 + k^2) = p^2 + d^2 >= 2 L^2 and lambda_min >= det / tr = c (e - 4c) /
+(4c + (e/2) sinh^2 x) (both from the 2 x 2 matrix of the form, decreasing in x); d'Alembert:
+m1^2 + m2^2 >= L^2 / 2 and lambda_min = hbar^2 / (4 I rho^2). The tail bound is the minimum over
+cells at the first shell not enumerated.
+
+What is certified and what is assumed: the enclosures of V (round-off, libm within 1 ulp, see
+:mod:`affinebody.quantum.intervals`) and the closed forms above, evaluated in float64 and
+lowered by a relative 1e-12; the comparison with the K-th level uses the computed (Galerkin,
+i.e. variational upper-bound) candidate energies. A potential given as a Python callable
+cannot be bounded: the search then runs to max_spin and the result says it is conditional.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from affinebody.quantum.intervals import (
+    HaarCells,
+    Interval,
+    LebesgueCells,
+    Unsupported,
+    Value,
+    lower_bounds,
+)
+from affinebody.quantum.levels import AffineInertia
+
+#: safety margin (relative) subtracted from every bound for the float64 evaluation
+MARGIN = 1e-12
+
+
+@dataclass(frozen=True)
+class ShellBounds:
+    """Lower bounds of the lowest level: ``shell_min[L]`` over the sectors of shell L
+    (L = 0 .. len - 1), ``tail`` over every sector of a higher shell."""
+
+    shell_min: np.ndarray
+    tail: float
+    method: str
+    #: the bound of each sector (block key) of the shells enumerated
+    sector: dict = field(default_factory=dict)
+
+    def of(self, key: tuple) -> float:
+        """Lower bound of every level of the block ``key`` (-inf if unknown)."""
+        return float(self.sector.get(key, -np.inf))
+
+    def beyond(self, shell: int) -> float:
+        """Lower bound of every level of the sectors of the shells > ``shell``."""
+        rest = self.shell_min[shell + 1:]
+        return float(min(np.min(rest) if len(rest) else np.inf, self.tail))
+
+
+def _lowered(value: np.ndarray) -> np.ndarray:
+    return value - MARGIN * (1.0 + np.abs(value))
+
+
+def _expression(potential) -> str:
+    text = getattr(potential, "text", None)
+    if not isinstance(text, str):
+        raise Unsupported("the potential is a Python callable, not an expression")
+    return text
+
+
+# --------------------------------------------------------------------- affine models (n = 2)
+def haar_strip_edges() -> np.ndarray:
+    """Edges of the strips in x = q1 - q2: fine near 0, geometric far out, the last unbounded."""
+    return np.concatenate([np.linspace(0.0, 8.0, 321), np.geomspace(8.0, 80.0, 41)[1:],
+                           [np.inf]])
+
+
+def haar_strip_minima(text: str, centre: float, x_edges: np.ndarray, sigma_stiffness: float = 0.0,
+                      kappas: tuple[float, ...] = (0.0,)) -> np.ndarray:
+    """w_i <= inf over x in [x_i, x_(i+1)] of the fibre operator T_sigma + V(x, .) (module
+    docstring): for each kappa >= 0, T_sigma + kappa (sigma - centre)^2 >= sqrt(alpha kappa)
+    (alpha = ``sigma_stiffness`` = hbar^2 / (M + 2B): the oscillator ground state), so
+    w_i = max over kappa of [sqrt(alpha kappa) + inf (V - kappa (sigma - centre)^2)], the
+    infimum bounded by interval arithmetic on cells in sigma (width 0.025 within 12 of
+    ``centre``, wider out to 48, then two unbounded ones). kappa = 0 is the plain inf V."""
+    inner = np.linspace(-12.0, 12.0, 961)
+    outer = np.geomspace(12.0, 48.0, 25)[1:]
+    s_edges = np.concatenate([[-np.inf], centre - outer[::-1], centre + inner, centre + outer,
+                              [np.inf]])
+    XL, SL = np.meshgrid(x_edges[:-1], s_edges[:-1], indexing="ij")
+    XH, SH = np.meshgrid(x_edges[1:], s_edges[1:], indexing="ij")
+    cells = HaarCells(XL, XH, SL, SH)
+    best = np.full(len(x_edges) - 1, -np.inf)
+    for kappa in kappas:
+        # V - kappa (sigma - centre)^2, the square joining the degree-0 group as a form
+        square = Value(Interval.point(-kappa * centre * centre), a=2 * kappa * centre,
+                       qq=-kappa)
+        shifted = lower_bounds(text, cells, square if kappa > 0 else None)
+        zero_point = math.sqrt(sigma_stiffness * kappa) * (1 - 1e-12)
+        best = np.maximum(best, np.min(shifted, axis=1) + zero_point)
+    return best
+
+
+def centrifugal_haar_min(a: np.ndarray, b: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray
+                         ) -> np.ndarray:
+    """inf over x in [x_lo, x_hi] of a / sinh^2(x/2) - b / cosh^2(x/2) (a, b >= 0), closed form
+    in u = sinh^2(x/2): f(u) = a/u - b/(1 + u) decreases if b <= a, else has its minimum
+    -(sqrt(b) - sqrt(a))^2 at u* = sqrt(a) / (sqrt(b) - sqrt(a))."""
+    a, b = np.broadcast_arrays(np.asarray(a, float), np.asarray(b, float))
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        u_lo = np.sinh(x_lo / 2) ** 2
+        u_hi = np.where(np.isfinite(x_hi), np.sinh(np.minimum(x_hi, 1400.0) / 2) ** 2, np.inf)
+        ra, rb = np.sqrt(a), np.sqrt(b)
+        u_star = np.where(rb > ra, ra / np.where(rb > ra, rb - ra, 1.0), np.inf)
+        u = np.clip(u_star, u_lo, u_hi)
+
+        def f(u):
+            first = np.where(a == 0, 0.0, a / u)
+            second = np.where(b == 0, 0.0, b / (1 + u))
+            return first - second
+        value = f(u)
+    return np.where(np.isnan(value), -np.inf, value)
+
+
+def haar2_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell: int,
+                       centre: float, scale_sigma: float) -> ShellBounds:
+    """Lower bounds per shell max(|s|, |k|) <= ``max_shell`` and beyond, for af-is / is-af
+    (module docstring). Raises :class:`Unsupported` where none can be certified."""
+    if inertia.model == "af-af":
+        raise Unsupported("af-af is unbounded below")
+    text = _expression(potential)
+    edges = haar_strip_edges()
+    x_lo, x_hi = edges[:-1], edges[1:]
+    alpha = hbar**2 / inertia.dilatation
+    base = alpha / scale_sigma**4  # the stiffness of which scale_sigma is the oscillator length
+    v = haar_strip_minima(text, centre, edges, alpha,
+                          tuple(f * base for f in (0.0, 0.25, 0.5, 0.75, 0.9)))
+    c = hbar**2 / (16 * inertia.M)
+    e = hbar**2 * inertia.inv_I_tilde / 2
+    shell_min = np.full(max_shell + 1, np.inf)
+    sector: dict = {}
+    for L in range(max_shell + 1):
+        keys = [(s, k) for s in range(-L, L + 1) for k in range(-L, L + 1)
+                if max(abs(s), abs(k)) == L and (s + k) % 2 == 0]
+        s, k = np.array(keys, float).T
+        r = k if inertia.model == "af-is" else s
+        cent = centrifugal_haar_min(((s + k) ** 2)[:, None], ((s - k) ** 2)[:, None],
+                                    x_lo[None, :], x_hi[None, :])
+        each = _lowered(np.min(v[None, :] + c * cent, axis=1) + e * r * r)
+        sector.update(zip(keys, each.tolist(), strict=True))
+        shell_min[L] = np.min(each)
+    with np.errstate(over="ignore"):
+        sinh2 = np.sinh(np.minimum(x_hi, 700.0)) ** 2
+        lam = np.maximum(c * (e - 4 * c), 0.0) / (4 * c + 0.5 * e * sinh2)
+    lam = np.where(np.isfinite(x_hi), lam, 0.0)
+    L = max_shell + 1
+    tail = float(_lowered(np.min(v + 2 * lam * L * L)))
+    return ShellBounds(shell_min, tail,
+                       "certified: kinetic form >= 0, V bounded below by interval arithmetic "
+                       "on its expression over cells of (x, sigma), centrifugal terms in closed "
+                       "form (docs/theory/two-polar.md, 'Lower bounds of a sector')", sector)
+
+
+# --------------------------------------------------------------------- d'Alembert (n = 2)
+def lebesgue2_shell_bounds(potential, hbar: float, inertia: float, max_shell: int,
+                           length: float) -> ShellBounds:
+    """Lower bounds per shell |m1| + |m2| <= ``max_shell`` and beyond for the n = 2 d'Alembert
+    body, J = inertia * Id (module docstring); ``length``: the oscillator length of the basis,
+    which sets the radial cells. Raises :class:`Unsupported` where none can be certified."""
+    text = _expression(potential)
+    r_edges = length * np.concatenate([np.linspace(0.0, 8.0, 161), np.geomspace(8.0, 64.0, 21)[1:],
+                                       [np.inf]])
+    t_edges = np.linspace(0.0, math.pi / 2, 65)
+    RL, TL = np.meshgrid(r_edges[:-1], t_edges[:-1], indexing="ij")
+    RH, TH = np.meshgrid(r_edges[1:], t_edges[1:], indexing="ij")
+    v = lower_bounds(text, LebesgueCells(RL, RH, TL, TH)).ravel()
+    w = hbar**2 / (4 * inertia)
+    with np.errstate(divide="ignore"):
+        inv1 = np.where(np.isfinite(RH), 1 / (RH * np.cos(TL)) ** 2, 0.0).ravel()
+        inv2 = np.where(np.isfinite(RH), 1 / (RH * np.sin(TH)) ** 2, 0.0).ravel()
+        inv_rho = np.where(np.isfinite(RH), 1 / RH**2, 0.0).ravel()
+    shell_min = np.full(max_shell + 1, np.inf)
+    sector: dict = {}
+    for L in range(max_shell + 1):
+        a = np.arange(L + 1, dtype=float)[:, None]
+        bound = v[None, :] + w * (a * a * inv1[None, :] + (L - a) ** 2 * inv2[None, :])
+        each = _lowered(np.min(bound, axis=1))
+        sector.update({(int(m), L - int(m)): float(b) for m, b in zip(a[:, 0], each,
+                                                                        strict=True)})
+        shell_min[L] = float(np.min(each))
+    L = max_shell + 1
+    tail = float(_lowered(np.min(v + w * L * L / 2 * inv_rho)))
+    return ShellBounds(shell_min, tail,
+                       "certified: kinetic form >= 0, V bounded below by interval arithmetic "
+                       "on its expression over cells of (rho, theta), centrifugal terms at the "
+                       "cell corners (docs/theory/two-polar.md, 'Lower bounds of a sector')",
+                       sector)
+
+
+__all__ = ["MARGIN", "ShellBounds", "haar_strip_edges", "haar_strip_minima",
+           "centrifugal_haar_min", "haar2_shell_bounds", "lebesgue2_shell_bounds"]
