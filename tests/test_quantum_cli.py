@@ -4,6 +4,7 @@ import json
 from math import comb
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from affinebody.quantum.cli import density, spectrum
@@ -146,3 +147,51 @@ def test_af_af_spectrum_says_unbounded_below(tmp_path):
     assert any("unbounded below" in w for w in data["warnings"])
     table = CliRunner().invoke(spectrum, [str(path), "--levels", "3"])
     assert table.exit_code == 0 and "unbounded below" in table.output
+
+
+UNBOUNDED = """
+[system]
+n = 2
+[quantum]
+hbar = 1.0
+kinetic = "dalembert"
+inertia = 1.0
+potential = "{potential}"
+"""
+
+
+@pytest.mark.parametrize("n, potential", [(2, "-0.5*trG"), (2, "0.1*trG - det**2"),
+                                          (3, "0.5*det - sqrt(trG)**3")])
+def test_a_potential_unbounded_below_is_refused_at_once(tmp_path, n, potential):
+    """H has no lowest level: one line, exit 1, before any sector is solved (it used to run
+    for minutes with no output)."""
+    import time
+
+    path = tmp_path / "unbounded.toml"
+    path.write_text(UNBOUNDED.format(potential=potential).replace("n = 2", f"n = {n}"))
+    started = time.perf_counter()
+    result = CliRunner().invoke(spectrum, [str(path)])
+    assert time.perf_counter() - started < 20
+    assert result.exit_code == 1
+    message = result.stderr.strip()
+    assert "\n" not in message and "unbounded below" in message
+
+
+def test_wells_bounded_below_pass_the_unboundedness_check():
+    """Negative but bounded potentials (the shear well of the completeness tests, a Gaussian
+    well, a log barrier at det -> 0 that rises at infinity) are not refused."""
+    from affinebody.quantum.config import compile_potential
+    from affinebody.quantum.spectra import require_bounded_below
+
+    for n, text in [(2, "0.5*(q1 + q2)**2 + (-24.0)*Q1*Q2/(Q1 + Q2)**2"),
+                    (2, "0.5*trG - 5*exp(-trG)"), (3, "0.5*trG - log(det**2 + 1e-3)")]:
+        require_bounded_below(compile_potential(text, n), n)
+
+
+def test_more_levels_than_the_solver_can_deliver_is_refused(tmp_path):
+    path = tmp_path / "oscillator.toml"
+    path.write_text(UNBOUNDED.format(potential="0.5*trG"))
+    result = CliRunner().invoke(spectrum, [str(path), "--levels", "100000"])
+    assert result.exit_code == 1
+    message = result.stderr.strip()
+    assert "\n" not in message and "--levels 100000" in message

@@ -26,6 +26,8 @@ Discretisations (all Galerkin, potential matrices by Gauss quadrature):
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy import linalg
 
@@ -137,7 +139,8 @@ def n2_sectors(key: tuple, model: str) -> tuple[Sector, ...]:
     return tuple(Sector(s, -k, (-1) ** abs(s)) for s, k in out)
 
 def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
-             affine: AffineInertia, levels: int, settings: Settings) -> Spectrum:
+             affine: AffineInertia, levels: int, settings: Settings,
+             progress: Callable[[str], None] | None = None) -> Spectrum:
     """The lowest ``levels`` states of the n = 2 body over the sectors (s, k), shell by shell
     (d'Alembert: shell |m1| + |m2|; affine: max(|s|, |k|)) up to ``settings.max_spin``;
     arguments as in :func:`affinebody.quantum.spectra.solve` (``affine``: the constants of the
@@ -148,7 +151,8 @@ def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
     (:mod:`affinebody.quantum.bounds`) exceeds E_K is not solved, and the search stops after the
     shell L when every sector of the shells above L has its bound above E_K (``certified``).
     Without a bound (a Python callable, af-af, a bound that stays below E_K) every shell up to
-    max_spin is searched and the result is conditional (``certificate`` says why)."""
+    max_spin is searched and the result is conditional (``certificate`` says why).
+    ``progress`` receives a line as each shell starts."""
     found = LevelCollector(settings)
     info: dict = {"basis_size": settings.basis_size}
     count = levels + 4
@@ -191,6 +195,9 @@ def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
     shell_minima: list[float] = []
     certified, searched, pruned = False, -1, 0
     for shell in range(settings.max_spin + 1):
+        if progress is not None:
+            progress(f"shell {shell} of at most {settings.max_spin} "
+                     f"({found.state_count()} states found)")
         shell_min = np.inf
         for key in by_shell.get(shell, []):
             if bounds is not None and found.state_count() >= levels and (

@@ -27,6 +27,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
+
 from affinebody.quantum import channels3, n2, n3
 from affinebody.quantum.levels import (
     MODELS,
@@ -43,12 +45,53 @@ SECTORS3 = ("all", "scalar", "spin1", "scalar+spin1")
 __all__ = ["MODELS", "SECTORS3", "Level", "Sector", "Settings", "Spectrum", "solve"]
 
 
+#: The most states one solve may ask for (a bound on the work a request implies).
+MAX_LEVELS = 5000
+
+
+def require_bounded_below(potential: Potential, n: int) -> None:
+    """ValueError when V runs to -infinity along a ray of the reduced domain: then H has no
+    lowest level (a wave packet of fixed shape carried out along the ray keeps its kinetic
+    energy while its potential energy decreases without bound), and no sector search can end.
+
+    The evidence is sampled, not proved: V at Q = exp(t u), for unit directions u of the
+    log singular values (and, for d'Alembert's Lebesgue domain, det phi < 0 too) and
+    t = 4, 8, ..., 64, must fall below -1e8 (1 + |V(Id)|) and keep falling along the ray. A
+    potential unbounded below only more slowly passes this check (the solver then runs to
+    ``max_spin`` and reports its list as conditional)."""
+    angles = np.linspace(0.0, 2 * np.pi, 24, endpoint=False)
+    if n == 2:
+        directions = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+    else:
+        rng = np.random.default_rng(0)
+        directions = rng.normal(size=(48, n))
+        directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    t = 2.0 ** np.arange(2, 7)
+    q = t[:, None, None] * directions[None]  # [T, D, n]
+    signs = np.ones(n)
+    signs[-1] = -1.0
+    reference = float(np.asarray(potential(np.ones((1, n))))[0])
+    floor = -1e8 * (1.0 + abs(reference))
+    for flip in (np.ones(n), signs):
+        Q = np.sort(np.exp(q), axis=-1)[..., ::-1] * flip
+        with np.errstate(all="ignore"):
+            V = np.asarray(potential(Q.reshape(-1, n)), dtype=float).reshape(q.shape[:2])
+        falling = np.all(np.diff(V[-3:], axis=0) < 0, axis=0) & (V[-1] < floor)
+        if np.any(falling):
+            d = int(np.argmax(falling))
+            point = ", ".join(f"{v:.3g}" for v in Q[-1, d])
+            raise ValueError(
+                f"quantum.potential is unbounded below: V = {V[-1, d]:.3g} at Q = ({point}) "
+                f"and still falling along that ray, so the Hamiltonian has no lowest level; "
+                f"add a confining term")
+
+
 def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: float = 1.0,
           I: float = 1.0, A: float = 0.0, B: float = 0.0, levels: int = 10,  # noqa: E741
           settings: Settings | None = None, sectors: str = "auto",
           progress: Callable[[str], None] | None = None) -> Spectrum:
     """The lowest ``levels`` states (counted with multiplicity) of the reduced problem.
-    ``progress`` (n = 3, all sectors) receives a line per sector as it starts.
+    ``progress`` receives a line per sector (n = 3, all sectors) or per shell (n = 2) as it starts.
 
     ``model`` in :data:`MODELS`; d'Alembert uses J = inertia * Id, the affine models (I, A, B).
     ``sectors``: "all" (every sector: n = 2 the characters (s, k), n = 3 the SO(3) x SO(3)
@@ -62,6 +105,12 @@ def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: flo
         raise ValueError(f"quantum.kinetic must be one of {MODELS} (got {model!r})")
     if n not in (2, 3):
         raise ValueError(f"system.n must be 2 or 3 for quantum spectra (got {n})")
+    if levels > MAX_LEVELS:
+        raise ValueError(
+            f"--levels {levels} is more than this solver is built for (at most {MAX_LEVELS} "
+            f"states: every sector is solved densely, and {levels} states need thousands of "
+            f"sectors, hours of work): ask for fewer levels")
+    require_bounded_below(potential, n)
     if sectors == "auto":
         sectors = "all"
     if n == 2 and sectors != "all":
@@ -79,4 +128,4 @@ def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: flo
         return channels3.solve_channels(model, potential, hbar, inertia,
                                         AffineInertia(model, I, A, B), levels, settings, sectors)
     return n2.solve_n2(model, potential, hbar, inertia, AffineInertia(model, I, A, B), levels,
-                       settings)
+                       settings, progress)
