@@ -195,3 +195,15 @@ def test_more_levels_than_the_solver_can_deliver_is_refused(tmp_path):
     assert result.exit_code == 1
     message = result.stderr.strip()
     assert "\n" not in message and "--levels 100000" in message
+
+
+def test_af_af_without_a_shell_limit_is_refused_at_once(tmp_path):
+    """af-af's kinetic energy is indefinite: no lowest level exists, and a search for one would
+    run through every shell of the default limit (minutes, no output); refused in one line
+    unless quantum.max_spin says which shells to solve (test_af_af_spectrum_says_...)."""
+    path = tmp_path / "afaf.toml"
+    path.write_text(AF_AF.replace("max_spin = 4\n", ""))
+    result = CliRunner().invoke(spectrum, [str(path), "--levels", "3"])
+    assert result.exit_code == 1
+    message = result.stderr.strip()
+    assert "\n" not in message and "indefinite" in message and "quantum.max_spin" in message

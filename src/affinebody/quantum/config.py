@@ -106,6 +106,11 @@ def check(config: QuantumConfig) -> QuantumConfig:
                           f"{qc.density_points})")
     if qc.max_spin < 0:
         raise ConfigError(f"quantum.max_spin must be >= 0 (got {qc.max_spin})")
+    if qc.kinetic == "af-af" and "max_spin" not in qc.model_fields_set:
+        raise ConfigError("quantum.kinetic = 'af-af' (72) is indefinite: its Hamiltonian has no "
+                          "lowest level (the sectors s = -k bind without bound), so a search for "
+                          "the lowest levels cannot end; set quantum.max_spin to the shells to "
+                          "solve (their levels are then reported, marked unbounded below)")
     if qc.kinetic == "dalembert":
         _positive(qc.inertia, "inertia")
         for name in ("I", "A", "B"):
