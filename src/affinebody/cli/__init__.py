@@ -1,7 +1,8 @@
 """The ``affinebody`` command line: one click group, one subcommand per job.
 
 ``run``, ``demo``, ``plot``, ``export``, ``validate`` (:mod:`.run`), ``sweep`` (:mod:`.sweep`),
-``spectrum`` and ``density`` (:mod:`affinebody.quantum.cli`) and ``kinematics-demo``. Every
+``spectrum`` and ``density`` (:mod:`affinebody.quantum.cli`), ``phonons`` (:mod:`.phonons`)
+and ``kinematics-demo``. Every
 command turns JAX's float64 mode on for its own process and reports errors as one line
 (:mod:`.common`).
 """
@@ -30,11 +31,12 @@ def kinematics_demo() -> None:
 
 
 def _register_commands() -> None:
+    from affinebody.cli.phonons import phonons_command
     from affinebody.cli.run import COMMANDS  # run, demo, plot, export, validate
     from affinebody.cli.sweep import sweep
     from affinebody.quantum.cli import density, spectrum
 
-    for command in (*COMMANDS, spectrum, density, sweep):
+    for command in (*COMMANDS, spectrum, density, sweep, phonons_command):
         main.add_command(command)
 
 

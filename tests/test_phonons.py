@@ -1,0 +1,282 @@
+"""Lattice dynamics of affine crystals (affinebody.phonons, affinebody phonons).
+
+Facts checked against independent derivations or methods:
+
+- the 1D chain (n = 1, nearest neighbours) has the closed-form 2x2 D(k) derived below by hand;
+- the frequencies are the peaks of the power spectra of p and of the affine spin Sigma of a
+  small-amplitude NVE run of the same crystal (simulate.run: an independent method);
+- the acoustic sum rule, the sound speed and the elastic constant of the chain against the
+  closed form and against the stress-strain response of a finite strain of the box (energy of
+  the strained box from the library's all-pairs sum, internal shape relaxed);
+- omega(k) is invariant under the material affine transformations phi -> phi B of a model that
+  has them, and under the square lattice's quarter turn k -> R k.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scipy.optimize import minimize_scalar
+
+from affinebody import kinetic, phonons
+from affinebody.potentials import build_potential, total_potential
+from affinebody.simulate import run
+from affinebody.state import State
+from affinebody.system import HamiltonianSystem
+
+# chain: V = sum_bonds [ka/2 (r - a)^2 + kd/2 (D - a)^2 + kb/2 (M1 - 1)^2] + sum_K kc/2 (det - 1)^2
+KA, KD, KB, KC, A, MASS, J = 2.0, 1.5, 0.8, 3.0, 1.0, 1.3, 0.7
+BODIES = 6
+
+
+def chain_potential(box):
+    pair = build_potential("pair", {"expr": f"{KA / 2} * (r - {A})**2 + {KD / 2} * (D - {A})**2 "
+                                            f"+ {KB / 2} * (M1 - 1)**2", "r_cut": 1.6},
+                           n=1, box=box)
+    dil = build_potential("dilatation", {"stiffness": KC, "form": "harmonic"}, n=1)
+    return total_potential([pair, dil])
+
+
+def chain_dynamical_matrix(k):
+    """Closed form, derived by hand. Harmonic energy of the bond (j, j + 1) with x_j = x0_j +
+    dx_j, phi_j = 1 + t_j: dr = dx_{j+1} - dx_j; D = |u| sqrt((phi_j^-2 + phi_{j+1}^-2)/2)
+    gives dD = dr - a/2 (t_j + t_{j+1}); M1 = phi_{j+1}/phi_j gives dM1 = t_{j+1} - t_j (both
+    orders alike); det gives t_j. With Bloch waves (X, T) e^{ikja}, e = e^{ika}, the energy per
+    cell is 1/2 [ka |e-1|^2 |X|^2 + kd |(e-1) X - a/2 (1+e) T|^2 + kb |e-1|^2 |T|^2 + kc |T|^2]."""
+    c, s = np.cos(k * A), np.sin(k * A)
+    return np.array([[(KA + KD) * 2 * (1 - c), 1j * KD * A * s],
+                     [-1j * KD * A * s, KD * A**2 / 2 * (1 + c) + 2 * KB * (1 - c) + KC]])
+
+
+@pytest.fixture(scope="module")
+def chain():
+    box = (BODIES * A,)
+    system = HamiltonianSystem(
+        kinetic.KineticEnergy(kinetic.DAlembertTranslational(MASS), kinetic.DAlembert(J * np.eye(1))),
+        chain_potential(box), "GL+")
+    x = A * np.arange(BODIES, dtype=float)[:, None]
+    phi = np.ones((BODIES, 1, 1))
+    crystal = phonons.make_crystal(system, x, phi, box)
+    return crystal, phonons.force_constants(crystal)
+
+
+def test_chain_closed_form(chain):
+    crystal, fc = chain
+    assert crystal.cells == (BODIES,) and len(crystal.basis) == 1 and crystal.dof == 2
+    assert np.abs(phonons.residual_forces(crystal)).max() < 1e-12
+    ks = np.linspace(-np.pi / A, np.pi / A, 9)
+    spectrum = phonons.solve(fc, ks[:, None])
+    mass = np.diag([MASS, J])
+    for k, omega2, in zip(ks, spectrum.omega2, strict=True):
+        exact = chain_dynamical_matrix(k)
+        assert np.abs(fc.dynamical_matrix(np.array([k])) - exact).max() < 1e-10
+        expected = np.sort(np.linalg.eigvals(np.linalg.solve(mass, exact)).real)
+        assert np.abs(omega2 - expected).max() < 1e-10 * expected.max()
+    # acoustic sum rule: one zero at Gamma, translational; the optical one is the internal mode
+    gamma = phonons.solve(fc, np.zeros((1, 1)))
+    assert abs(gamma.omega2[0, 0]) < 1e-12
+    assert gamma.omega2[0, 1] == pytest.approx((KD * A**2 + KC) / J, rel=1e-12)
+    assert gamma.character[0, 0, 0] == pytest.approx(1.0, abs=1e-12)
+    assert gamma.character[0, 1, 1] == pytest.approx(1.0, abs=1e-12)  # pure dilatation (n = 1)
+
+
+def test_chain_long_waves_and_finite_strain(chain):
+    """Sound speed and C11 from the long waves against the closed form (Schur complement of
+    the closed-form D(k) as k -> 0) and against a finite strain of the box."""
+    crystal, fc = chain
+    c11_exact = A * ((KA + KD) - KD**2 * A**2 / (KD * A**2 + KC))  # per length a
+    speed = phonons.sound_speeds(fc, [1.0])[0]
+    assert speed == pytest.approx(np.sqrt(c11_exact * A / MASS), rel=1e-7)
+    voigt, residual = phonons.elastic_constants(fc)
+    assert voigt[0, 0] == pytest.approx(c11_exact, rel=1e-7)
+    assert residual < 1e-10
+
+    def relaxed_energy_density(strain):
+        box = (BODIES * A * (1 + strain),)
+        potential = chain_potential(box)
+        x = (A * (1 + strain) * np.arange(BODIES, dtype=float))[:, None]
+
+        def energy(f):
+            return float(potential.energy(x, np.full((BODIES, 1, 1), f)))
+
+        best = minimize_scalar(energy, bracket=(0.9, 1.0, 1.1), tol=1e-12)
+        return best.fun / (BODIES * A)
+
+    h = 1e-3
+    w0, wp, wm = (relaxed_energy_density(e) for e in (0.0, h, -h))
+    assert (wp + wm - 2 * w0) / h**2 == pytest.approx(voigt[0, 0], rel=1e-5)
+
+
+def _bloch(signal, x0, k):
+    return np.einsum("tk...,k->t...", signal, np.exp(-1j * k * x0[:, 0]))
+
+
+def _peaks(series, dt, count):
+    """The ``count`` largest local maxima of the Hann-windowed power spectrum, refined by a
+    parabola through log power (angular frequencies)."""
+    window = np.hanning(len(series))
+    power = np.abs(np.fft.rfft((series - series.mean()) * window)) ** 2
+    omega = 2 * np.pi * np.fft.rfftfreq(len(series), dt)
+    inner = np.flatnonzero((power[1:-1] > power[:-2]) & (power[1:-1] > power[2:])) + 1
+    best = inner[np.argsort(power[inner])[::-1][:count]]
+    out = []
+    for i in best:
+        a, b, c = np.log(power[i - 1:i + 2])
+        out.append(omega[i] + 0.5 * (a - c) / (a - 2 * b + c) * (omega[1] - omega[0]))
+    return np.sort(out)
+
+
+def test_chain_frequencies_are_md_power_spectrum_peaks(chain):
+    """A small-amplitude NVE run (Strang splitting) of the 6-body chain: the peaks of the power
+    spectra of the Bloch projections of p and of the affine spin Sigma = phi pi at the
+    commensurate k = 2 pi m / (6 a) are the harmonic frequencies."""
+    crystal, fc = chain
+    rng = np.random.default_rng(3)
+    x0 = crystal.x
+    state = State(x0 + 1e-5 * rng.standard_normal(x0.shape),
+                  crystal.phi + 1e-5 * rng.standard_normal(crystal.phi.shape),
+                  1e-5 * rng.standard_normal(x0.shape), 1e-5 * rng.standard_normal(crystal.phi.shape))
+    dt, steps = 0.02, 8192
+    traj = run(crystal.system, state, dt, steps, observers=())
+    p = np.asarray(traj.states.p)[:, :, 0]
+    spin = np.asarray(traj.states.phi @ traj.states.pi)[:, :, 0, 0]
+    worst = 0.0
+    for m in (1, 2, 3):
+        k = 2 * np.pi * m / (BODIES * A)
+        harmonic = np.sort(phonons.solve(fc, [[k]], vectors=False).omega[0])
+        both = _bloch(p, x0, k).real + _bloch(spin, x0, k).real
+        found = _peaks(both, dt, 2)
+        worst = max(worst, float(np.max(np.abs(found - harmonic) / harmonic)))
+    assert worst < 2e-3
+
+
+# ---------------------------------------------------------------------------------- n = 2
+
+
+def square_system(internal):
+    box = (3.0, 3.0)
+    pair = build_potential("pair", {"expr": "(r - 1)**2 + 0.3 * (M1 - 2)**2 + 0.2 * (M2 - 2)**2",
+                                    "r_cut": 1.5}, n=2, box=box)
+    dil = build_potential("dilatation", {"stiffness": 2.0}, n=2)
+    return HamiltonianSystem(kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0), internal),
+                             total_potential([pair, dil]), "GL+"), box
+
+
+@pytest.fixture(scope="module")
+def square():
+    system, box = square_system(kinetic.IsotropicAffine(0.5, 0.1, 0.05))
+    grid = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0), indexing="ij"), -1)
+    x = grid.reshape(-1, 2)
+    return system, x, box
+
+
+def test_square_acoustic_sum_rule_and_material_affine_invariance(square):
+    system, x, box = square
+    phi = np.broadcast_to(np.eye(2), (9, 2, 2))
+    crystal = phonons.make_crystal(system, x, phi, box)
+    assert crystal.cells == (3, 3) and crystal.dof == 6
+    fc = phonons.force_constants(crystal)
+    rng = np.random.default_rng(0)
+    ks = rng.uniform(-np.pi, np.pi, (6, 2))
+    reference = phonons.solve(fc, np.concatenate([np.zeros((1, 2)), ks]))
+    scale = np.abs(reference.omega2).max()
+    # Gamma: the n translations are zero modes (sum rule), and so are the 3 uniform sl(2)
+    # shears (Goldstone modes of the material SL invariance); the dilatation is held by det
+    assert np.abs(reference.omega2[0, :5]).max() < 1e-12 * scale
+    assert reference.omega2[0, 5] > 1e-3 * scale
+    assert np.sum(reference.character[0, :5, 0]) == pytest.approx(2.0, abs=1e-10)
+    assert reference.character[0, 5, 1] == pytest.approx(1.0, abs=1e-10)
+    # long waves: omega -> 0 linearly along the acoustic branches
+    small = phonons.solve(fc, [[1e-3, 0.0], [2e-3, 0.0]], vectors=False).omega[:, :2]
+    assert np.allclose(small[1] / small[0], 2.0, rtol=1e-5)
+    # is-af (73) and a potential in r, M_a, det are materially affine (SL, for det): phi -> phi B
+    b = np.array([[1.3, 0.4], [-0.2, 0.7]])
+    b = b / np.sqrt(np.linalg.det(b))
+    moved = phonons.make_crystal(system, x, phi @ b, box)
+    assert np.abs(phonons.residual_forces(moved)).max() < 1e-12
+    other = phonons.solve(phonons.force_constants(moved), np.concatenate([np.zeros((1, 2)), ks]))
+    assert np.abs(other.omega2 - reference.omega2).max() < 1e-10 * scale
+    # the quarter turn of the square lattice (the model is spatially and materially Euclidean)
+    turn = np.array([[0.0, -1.0], [1.0, 0.0]])
+    turned = phonons.solve(fc, ks @ turn.T, vectors=False)
+    assert np.abs(turned.omega2 - reference.omega2[1:]).max() < 1e-10 * scale
+
+
+def test_af_af_and_non_equilibrium_are_refused(square, tmp_path):
+    system, x, box = square
+    affine = system.replace(kinetic=kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0),
+                                                          kinetic.AffineAffine(0.5, 0.1)))
+    crystal = phonons.make_crystal(affine, x, np.broadcast_to(np.eye(2), (9, 2, 2)), box)
+    with pytest.raises(ValueError, match="af-af"):
+        phonons.kinetic_metric(crystal)
+    config = tmp_path / "c.toml"
+    config.write_text(CHAIN_CONFIG.replace("box = [4.0]\n", ""), encoding="utf-8")
+    result = CliRunner().invoke(_main(), ["phonons", str(config), "--no-plot"])
+    assert result.exit_code == 1
+    assert "phonons need a periodic box: set system.box" in result.output
+    config.write_text(CHAIN_CONFIG.replace("stiffness = 2.0", "stiffness = 2.0\nvolume = 1.2"), encoding="utf-8")
+    result = CliRunner().invoke(_main(), ["phonons", str(config), "--no-plot"])
+    assert result.exit_code == 1 and "not an equilibrium (largest residual force" in result.output
+
+
+def _main():
+    from affinebody.cli import main
+
+    return main
+
+
+CHAIN_CONFIG = """
+[system]
+n = 1
+bodies = 4
+box = [4.0]
+
+[kinetic]
+internal = "af-is"
+I = 0.5
+A = 0.0
+
+[[potential]]
+kind = "morse"
+depth = 1.0
+alpha = 2.0
+r0 = 1.0
+r_cut = 1.5
+
+[[potential]]
+kind = "dilatation"
+stiffness = 2.0
+
+[initial]
+generator = "lattice"
+
+[run]
+dt = 0.01
+steps = 1
+
+[phonons]
+points = 5
+mesh = [8]
+"""
+
+
+def test_cli_json_document(tmp_path):
+    config = tmp_path / "c.toml"
+    config.write_text(CHAIN_CONFIG, encoding="utf-8")
+    result = CliRunner().invoke(_main(), ["phonons", str(config), "--json", "--no-plot",
+                                          "-o", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    omega, k = np.asarray(doc["omega"]), np.asarray(doc["k"])
+    assert k.shape == (5, 1) and omega.shape == (5, 2)
+    assert np.all(np.diff(omega, axis=1) >= 0) and k[-1, 0] == pytest.approx(np.pi)
+    # Morse chain: acoustic omega(k) = 2 sqrt(V''/m) |sin(k a / 2)| with V'' = 2 depth alpha^2;
+    # the internal mode (det only) is flat at sqrt(stiffness / (I + A + B))
+    acoustic = 2 * np.sqrt(8.0) * np.abs(np.sin(k[:, 0] / 2))
+    expected = np.sort(np.stack([acoustic, np.full(5, np.sqrt(2.0 / 0.5))], axis=1), axis=1)
+    assert np.allclose(omega, expected, rtol=1e-10, atol=1e-7)
+    assert np.asarray(doc["character"]["shares"]).shape == (5, 2, 4)
+    assert (tmp_path / "out" / "phonons.json").exists()
