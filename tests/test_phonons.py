@@ -56,7 +56,8 @@ def chain_dynamical_matrix(k):
 def chain():
     box = (BODIES * A,)
     system = HamiltonianSystem(
-        kinetic.KineticEnergy(kinetic.DAlembertTranslational(MASS), kinetic.DAlembert(J * np.eye(1))),
+        kinetic.KineticEnergy(kinetic.DAlembertTranslational(MASS),
+                              kinetic.DAlembert(J * np.eye(1))),
         chain_potential(box), "GL+")
     x = A * np.arange(BODIES, dtype=float)[:, None]
     phi = np.ones((BODIES, 1, 1))
@@ -141,7 +142,8 @@ def test_chain_frequencies_are_md_power_spectrum_peaks(chain):
     x0 = crystal.x
     state = State(x0 + 1e-5 * rng.standard_normal(x0.shape),
                   crystal.phi + 1e-5 * rng.standard_normal(crystal.phi.shape),
-                  1e-5 * rng.standard_normal(x0.shape), 1e-5 * rng.standard_normal(crystal.phi.shape))
+                  1e-5 * rng.standard_normal(x0.shape),
+                  1e-5 * rng.standard_normal(crystal.phi.shape))
     dt, steps = 0.02, 8192
     traj = run(crystal.system, state, dt, steps, observers=())
     p = np.asarray(traj.states.p)[:, :, 0]

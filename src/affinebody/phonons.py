@@ -37,7 +37,8 @@ This is exact for every k (no supercell of the wave is needed) and costs one sma
 bond.
 
 Frequencies: omega = sqrt(omega^2), and for an unstable mode (omega^2 < 0) the imaginary
-frequency is reported as -sqrt(-omega^2) (never hidden; ``imaginary`` marks them).
+frequency is reported as -sqrt(-omega^2) (never hidden; ``imaginary`` marks them); only
+round-off zeros, |omega^2| <= 1e-12 max_k |omega^2|, are set to 0.
 
 Long waves (``christoffel``): eliminating every degree of freedom but the n uniform
 translations T statically, S(k) = T^H D T - T^H D Q (Q^H D Q)^-1 Q^H D T (Q the M-orthogonal
@@ -60,11 +61,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from affinebody.groups import expm, lie_algebra, project_algebra
-from affinebody.potentials import OneBodyTerm, PairTerm, TotalPotential
+from affinebody.mutual import affine_invariants
+from affinebody.potentials import OneBodyTerm, PairTerm, TotalPotential, pair_variables
 from affinebody.state import VelocityState
 
 #: Names of the characters of a mode: shares of its kinetic energy.
 CHARACTERS = ("translational", "dilatational", "shear", "rotational")
+#: The one-body Hessians and the kinetic metric are small and run once: compile them fast.
+_QUICK = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 #: High-symmetry points of the orthorhombic Brillouin zone, in units of the reciprocal vectors.
 POINTS = {
     "G": (0.0, 0.0, 0.0), "X": (0.5, 0.0, 0.0), "Y": (0.0, 0.5, 0.0), "Z": (0.0, 0.0, 0.5),
@@ -349,7 +353,7 @@ def relax(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 2000) -> 
 # Kinetic metric and force constants
 
 
-@jax.jit
+@functools.partial(jax.jit, compiler_options=_QUICK)
 def _metric_columns(system, x, phi, algebra):
     """Hessian-vector products of T in the chart velocities: [dof (column), N, dof (row)]."""
     n = x.shape[-1]
@@ -374,8 +378,6 @@ def kinetic_metric(crystal: Crystal) -> np.ndarray:
     v = dx/dt and xi = dphi/dt = X_dot phi0 (chart velocities; models (63)-(74)). ValueError
     when M is not positive definite (af-af (72) for n >= 2: its A Tr(Omega^2) is indefinite)."""
     system = crystal.system
-    n, d = crystal.n, crystal.dof
-
     cols = np.asarray(_metric_columns(system, jnp.asarray(crystal.x), jnp.asarray(crystal.phi),
                               jnp.asarray(crystal.algebra)))
     blocks = np.transpose(cols, (1, 2, 0))[crystal.basis]
@@ -410,6 +412,23 @@ class ForceConstants:
         return out.reshape(k.shape[:-1] + (size, size))
 
 
+def _bond_energy(term, u, phi_a, phi_b):
+    """V_ab of one pair term from the scalars it declares (``PairTerm.scalar_requirements``,
+    ``energy_from_scalars``: the contract the pair kernels use), computing only those."""
+    n = u.shape[-1]
+    plain, k_powers, m_powers = term.scalar_requirements(n)
+    names = set(plain) | ({"K"} if k_powers else set()) | ({"M"} if m_powers else set())
+    values = pair_variables(names, u[None], phi_a[None], phi_b[None])
+    base = {name: values[name] for name in plain}
+    if k_powers:
+        base["K"] = values["K"][..., :k_powers]
+    if m_powers:
+        base["M"] = values["M"][..., :m_powers]
+        if term.asymmetric:
+            base["Ms"] = affine_invariants(phi_b[None], phi_a[None])[..., :m_powers]
+    return term.energy_from_scalars(base, n)[0]
+
+
 @functools.partial(jax.jit, static_argnums=0)
 def _pair_hessians(terms, xa, xb, pa, pb, algebra):
     """Hessians [B, 2 dof, 2 dof] of the pair energies of bonds (a, b) in both bodies' charts."""
@@ -417,15 +436,15 @@ def _pair_hessians(terms, xa, xb, pa, pb, algebra):
     d = n + algebra.shape[0]
 
     def pair_energy(q, xa, xb, pa, pb):
-        xs = jnp.stack([xa + q[:n], xb + q[d:d + n]])
-        ps = jnp.stack([_chart(pa, q[n:d], algebra), _chart(pb, q[d + n:], algebra)])
-        return sum(term.energy(xs, ps) for term in terms)
+        u = xa + q[:n] - xb - q[d:d + n]  # in range: the minimum image itself
+        phi_a, phi_b = _chart(pa, q[n:d], algebra), _chart(pb, q[d + n:], algebra)
+        return sum(_bond_energy(term, u, phi_a, phi_b) for term in terms)
 
     zero = jnp.zeros((xa.shape[0], 2 * d))
-    return jax.vmap(jax.hessian(pair_energy))(zero, xa, xb, pa, pb)
+    return jax.vmap(jax.jacfwd(jax.jacfwd(pair_energy)))(zero, xa, xb, pa, pb)
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@functools.partial(jax.jit, static_argnums=0, compiler_options=_QUICK)
 def _one_body_hessians(terms, x, phi, algebra):
     """Hessians [P, dof, dof] of the one-body energies in the chart."""
     n = x.shape[-1]
@@ -435,7 +454,7 @@ def _one_body_hessians(terms, x, phi, algebra):
         return sum(term.energy(x[None] + q[None, :n], _chart(phi, q[n:], algebra)[None])
                    for term in terms)
 
-    return jax.vmap(jax.hessian(one_energy))(jnp.zeros((x.shape[0], d)), x, phi)
+    return jax.vmap(jax.jacfwd(jax.jacfwd(one_energy)))(jnp.zeros((x.shape[0], d)), x, phi)
 
 
 def force_constants(crystal: Crystal) -> ForceConstants:
@@ -563,6 +582,10 @@ def solve(fc: ForceConstants, k, vectors: bool = True, chunk: int = 256) -> Spec
         vecs.append(u)
         chars.append(energy / total)
     omega2 = np.concatenate(values)
+    # round-off zeros (|omega^2| below 1e-12 of the largest at that k, e.g. exactly flat
+    # Goldstone branches) are zeros, not instabilities
+    scale = np.max(np.abs(omega2), axis=1, keepdims=True)
+    omega2 = np.where(np.abs(omega2) <= 1e-12 * scale, 0.0, omega2)
     if not vectors:
         return Spectrum(k, omega2)
     return Spectrum(k, omega2, np.concatenate(vecs), np.concatenate(chars))
@@ -600,27 +623,36 @@ def path(crystal: Crystal, labels=None, points: int = 50):
     return np.concatenate(ks), np.concatenate(dist), ticks
 
 
-def mesh(crystal: Crystal, sizes) -> np.ndarray:
-    """Gamma-centred uniform mesh of the Brillouin zone, m_j points per axis: k [prod m, n]."""
+def mesh(crystal: Crystal, sizes) -> tuple[np.ndarray, np.ndarray]:
+    """Gamma-centred uniform mesh of the Brillouin zone, m_j points per axis, reduced by time
+    reversal (D(-k) = conj D(k), so omega(-k) = omega(k)): (k [K, n], weights [K]) with the
+    weights summing to prod m."""
     sizes = [int(m) for m in sizes]
-    axes = [(np.arange(m) / m - (np.arange(m) / m >= 0.5)) * b
-            for m, b in zip(sizes, crystal.reciprocal, strict=True)]
-    grid = np.meshgrid(*axes, indexing="ij")
-    return np.stack([g.ravel() for g in grid], axis=-1)
+    index = np.stack(np.meshgrid(*[np.arange(m) for m in sizes], indexing="ij"), -1)
+    index = index.reshape(-1, len(sizes))
+    flat = np.ravel_multi_index(index.T, sizes)
+    partner = np.ravel_multi_index(((-index) % np.asarray(sizes)).T, sizes)
+    keep = flat <= partner
+    weights = np.where(flat == partner, 1.0, 2.0)[keep]
+    frac = index[keep] / np.asarray(sizes, dtype=float)
+    frac = frac - (frac >= 0.5)
+    return frac * crystal.reciprocal, weights
 
 
-def density_of_states(omega, bins: int = 400, width: float | None = None):
-    """Gaussian-broadened density of states of the signed frequencies ``omega`` [nk, modes]:
-    (grid [bins], g [bins]) with integral the number of modes per k (imaginary frequencies
-    appear at negative omega); ``width`` defaults to 1% of the range."""
+def density_of_states(omega, weights=None, bins: int = 400, width: float | None = None):
+    """Gaussian-broadened density of states of the signed frequencies ``omega`` [nk, modes]
+    with k weights (:func:`mesh`): (grid [bins], g [bins]) with integral the number of modes
+    per k (imaginary frequencies appear at negative omega); ``width``: 1% of the range."""
     omega = np.atleast_2d(np.asarray(omega, dtype=float))
-    nk = omega.shape[0]
+    weights = np.ones(len(omega)) if weights is None else np.asarray(weights, dtype=float)
+    nk = float(np.sum(weights))
     flat = omega.ravel()
     lo, hi = float(min(flat.min(), 0.0)), float(flat.max())
     span = max(hi - lo, 1e-12)
     width = 0.01 * span if width is None else float(width)
     grid = np.linspace(lo - 3 * width, hi + 3 * width, bins)
-    counts, edges = np.histogram(flat, bins=4 * bins, range=(grid[0], grid[-1]))
+    counts, edges = np.histogram(flat, bins=4 * bins, range=(grid[0], grid[-1]),
+                                 weights=np.repeat(weights, omega.shape[1]))
     centres = 0.5 * (edges[1:] + edges[:-1])
     kernel = np.exp(-0.5 * ((grid[:, None] - centres[None]) / width) ** 2)
     g = kernel @ counts / (math.sqrt(2 * math.pi) * width * nk)
@@ -656,7 +688,9 @@ def christoffel(fc: ForceConstants, direction, eps: float = 1e-4) -> np.ndarray:
     a = t.T @ dk @ t
     b = t.T @ dk @ q
     c = q.T @ dk @ q
-    schur = a - b @ np.linalg.solve(c, np.conj(b.T))
+    # exact zero modes of the internal block (Goldstone modes of a symmetry of V, e.g. uniform
+    # rotations of the shapes) decouple from the translations: the pseudo-inverse drops them
+    schur = a - b @ np.linalg.pinv(c, rcond=1e-13, hermitian=True) @ np.conj(b.T)
     return np.real(schur) / scale**2
 
 

@@ -109,11 +109,12 @@ def compute(config, built, path=None, mesh=None, points=None, relax=None, dos=Tr
                                     (section is not None and section.relax))},
     }
     if dos:
-        km = phonons.mesh(crystal, sizes)
+        km, weights = phonons.mesh(crystal, sizes)
         omega_mesh = phonons.solve(fc, km, vectors=False).omega
-        grid, density = phonons.density_of_states(omega_mesh)
+        grid, density = phonons.density_of_states(omega_mesh, weights)
         doc["dos"] = {"mesh": list(sizes), "omega": grid.tolist(), "density": density.tolist(),
-                      "imaginary": int(np.sum(omega_mesh < 0))}
+                      "imaginary_fraction": float(np.sum(weights[:, None] * (omega_mesh < 0))
+                                                  / (np.sum(weights) * omega_mesh.shape[1]))}
     eye = np.eye(crystal.n)
     directions = [eye[j] for j in range(crystal.n)]
     if crystal.n > 1:
@@ -147,7 +148,7 @@ def plot(doc: dict, path: Path) -> None:
     for branch in range(omega.shape[1]):
         ax.scatter(distance, omega[:, branch], c=internal[:, branch], s=2, cmap="coolwarm",
                    vmin=0, vmax=1)
-    for label, d in doc["ticks"]:
+    for _, d in doc["ticks"]:
         ax.axvline(d, color="0.8", lw=0.5)
     ax.set_xticks([d for _, d in doc["ticks"]])
     ax.set_xticklabels(["Γ" if label == "G" else label for label, _ in doc["ticks"]])
