@@ -114,6 +114,33 @@ def test_chain_long_waves_and_finite_strain(chain):
     assert (wp + wm - 2 * w0) / h**2 == pytest.approx(voigt[0, 0], rel=1e-5)
 
 
+def test_diatomic_chain_two_bodies_per_cell():
+    """Alternating masses m1, m2 on a chain with springs k (r - a)^2 / 2 (nearest neighbours):
+    the cell found has 2 bodies, and omega^2 = k (1/m1 + 1/m2) -+ k sqrt((1/m1 + 1/m2)^2 -
+    4 sin^2(k_w a) / (m1 m2)) with the period 2a (textbook closed form); the shapes (held by
+    kc/2 (det - 1)^2, inertia J) give two flat branches kc / J."""
+    m1, m2, spring, kc, inertia, bodies = 1.0, 2.5, 3.0, 2.0, 0.4, 8
+    box = (float(bodies),)
+    pair = build_potential("pair", {"expr": f"{spring / 2} * (r - 1)**2", "r_cut": 1.5}, n=1,
+                           box=box)
+    dil = build_potential("dilatation", {"stiffness": kc, "form": "harmonic"}, n=1)
+    masses = np.where(np.arange(bodies) % 2 == 0, m1, m2)
+    system = HamiltonianSystem(
+        kinetic.KineticEnergy(kinetic.DAlembertTranslational(masses),
+                              kinetic.DAlembert(np.full((bodies, 1, 1), inertia))),
+        total_potential([pair, dil]), "GL+")
+    x = np.arange(bodies, dtype=float)[:, None]
+    crystal = phonons.make_crystal(system, x, np.ones((bodies, 1, 1)), box)
+    assert crystal.cells == (bodies // 2,) and len(crystal.basis) == 2
+    ks = np.linspace(0.0, np.pi / 2, 6)
+    omega2 = phonons.solve(phonons.force_constants(crystal), ks[:, None], vectors=False).omega2
+    s = 1 / m1 + 1 / m2
+    root = np.sqrt(s**2 - 4 * np.sin(ks) ** 2 / (m1 * m2))
+    expected = np.sort(np.stack([spring * (s - root), spring * (s + root),
+                                 np.full(6, kc / inertia), np.full(6, kc / inertia)], 1), 1)
+    assert np.abs(omega2 - expected).max() < 1e-10 * expected.max()
+
+
 def _bloch(signal, x0, k):
     return np.einsum("tk...,k->t...", signal, np.exp(-1j * k * x0[:, 0]))
 
