@@ -236,6 +236,44 @@ def test_square_acoustic_sum_rule_and_material_affine_invariance(square):
     assert np.abs(turned.omega2 - reference.omega2[1:]).max() < 1e-10 * scale
 
 
+def test_square_elastic_constants_against_finite_strain():
+    """V(r) = (r - 1)^2 (r - sqrt 2)^2 on the square lattice with first and second neighbours:
+    V' = 0 on both shells, so the crystal is stress-free and C_ijkl = sum_bonds V''(r) r_i r_j
+    r_k r_l / r^2 per cell (Born): C11 = V''(1) + V''(sqrt 2), C12 = C66 = V''(sqrt 2). And the
+    energy per cell of a finitely strained infinite crystal, sum_bonds V(|(Id + e) R|), summed
+    here in numpy, gives the same constants by central differences."""
+    box = (4.0, 4.0)
+    root2 = np.sqrt(2.0)
+    pair = build_potential("pair", {"expr": "(r - 1)**2 * (r - sqrt(2))**2", "r_cut": 1.6},
+                           n=2, box=box)
+    system = HamiltonianSystem(
+        kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0), kinetic.DAlembert(np.eye(2))),
+        pair, "GL+")
+    x = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0), indexing="ij"), -1).reshape(-1, 2)
+    crystal = phonons.make_crystal(system, x, np.broadcast_to(np.eye(2), (16, 2, 2)), box)
+    voigt, residual = phonons.elastic_constants(phonons.force_constants(crystal))
+    second = 2 * (root2 - 1) ** 2
+    assert residual < 1e-6
+    assert np.allclose(voigt, [[2 * second, second, 0], [second, 2 * second, 0],
+                               [0, 0, second]], rtol=0, atol=1e-7)
+
+    bonds = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, -1.0]])
+
+    def w(strain):
+        r = np.linalg.norm(bonds @ (np.eye(2) + strain).T, axis=1)
+        return np.sum((r - 1) ** 2 * (r - root2) ** 2)
+
+    h = 1e-4
+    strains = {0: np.array([[1.0, 0], [0, 0]]), 1: np.array([[0, 0], [0, 1.0]]),
+               2: np.array([[0, 0.5], [0.5, 0]])}  # Voigt: engineering shear gamma = 2 e_xy
+    finite = np.zeros((3, 3))
+    for a in range(3):
+        for b in range(3):
+            e1, e2 = strains[a] * h, strains[b] * h
+            finite[a, b] = (w(e1 + e2) - w(e1 - e2) - w(e2 - e1) + w(-e1 - e2)) / (4 * h * h)
+    assert np.allclose(voigt, finite, rtol=0, atol=1e-6)
+
+
 def test_rigid_rotors_on_so2_closed_form():
     """Group SO(2): phi = rot(alpha), the chart theta = sqrt(2) alpha along E = [[0, -1], [1, 0]]
     / sqrt(2). V = sum_bonds (r - 1)^2 - c K1 with K1 = Tr(phi_K^T phi_L) = 2 cos(alpha_K -
