@@ -295,15 +295,16 @@ def bonds(crystal: Crystal):
 # Equilibrium
 
 
-def residual_forces(crystal: Crystal) -> np.ndarray:
+def residual_forces(crystal: Crystal, neighbors=None) -> np.ndarray:
     """Generalized forces [P, dof] on the primitive cell's bodies in the chart coordinates:
     -dV/dx and -<dV/dphi phi^T, E_a> (the component along the group), from the forces of the
-    whole box (``HamiltonianSystem.forces``, all pairs with the minimum image)."""
+    whole box (``HamiltonianSystem.forces``: all pairs with the minimum image, or the pairs of
+    a ``neighbors.NeighborList`` valid for the box, for large boxes)."""
     from affinebody.state import State
 
     state = State(jnp.asarray(crystal.x), jnp.asarray(crystal.phi),
                   jnp.zeros_like(jnp.asarray(crystal.x)), jnp.zeros_like(jnp.asarray(crystal.phi)))
-    gx, gphi = (np.asarray(g) for g in _box_forces(crystal.system, state))
+    gx, gphi = (np.asarray(g) for g in _box_forces(crystal.system, state, neighbors))
     b = crystal.basis
     spatial = np.einsum("kij,kaj->kia", gphi[b], crystal.phi[b])  # dV/dphi phi^T
     gtheta = np.einsum("kia,gia->kg", spatial, crystal.algebra)
@@ -369,8 +370,8 @@ def _metric_columns(system, x, phi, algebra):
 
 
 @jax.jit
-def _box_forces(system, state):
-    return system.forces(state)
+def _box_forces(system, state, neighbors):
+    return system.forces(state, neighbors)
 
 
 def kinetic_metric(crystal: Crystal) -> np.ndarray:
