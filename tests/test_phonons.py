@@ -307,7 +307,7 @@ def test_af_af_and_non_equilibrium_are_refused(square, tmp_path):
     with pytest.raises(ValueError, match="af-af"):
         phonons.kinetic_metric(crystal)
     config = tmp_path / "c.toml"
-    config.write_text(CHAIN_CONFIG.replace("box = [4.0]\n", ""), encoding="utf-8")
+    config.write_text(CHAIN_CONFIG.replace("box = [4.4]\n", ""), encoding="utf-8")
     result = CliRunner().invoke(_main(), ["phonons", str(config), "--no-plot"])
     assert result.exit_code == 1
     assert "phonons need a periodic box: set system.box" in result.output
@@ -323,7 +323,7 @@ CHAIN_CONFIG = """
 [system]
 n = 1
 bodies = 4
-box = [4.0]
+box = [4.4]
 
 [kinetic]
 internal = "af-is"
@@ -344,12 +344,14 @@ volume = 1.2
 
 [initial]
 generator = "lattice"
+spacing = 1.1
 
 [run]
 dt = 0.01
 steps = 1
 
 [phonons]
+relax_cell = true
 points = 5
 mesh = [8]
 """
@@ -357,7 +359,8 @@ mesh = [8]
 
 def test_cli_refuses_a_non_equilibrium_and_relaxes_it(tmp_path):
     """det phi = 1 is not the minimum of the dilatation potential with volume 1.2: refused with
-    the residual force; with --relax the shapes go to det = 1.2, where the closed forms hold."""
+    the residual force; with --relax (and phonons.relax_cell) the shapes go to det = 1.2 and the
+    stretched cell (spacing 1.1) to the Morse minimum r0 = 1, where the closed forms hold."""
     config = tmp_path / "c.toml"
     config.write_text(CHAIN_CONFIG, encoding="utf-8")
     result = CliRunner().invoke(_main(), ["phonons", str(config), "--no-plot"])
@@ -376,4 +379,5 @@ def test_cli_refuses_a_non_equilibrium_and_relaxes_it(tmp_path):
     assert np.allclose(omega, expected, rtol=1e-9, atol=1e-7)
     assert np.asarray(doc["character"]["shares"]).shape == (5, 2, 4)
     assert doc["crystal"]["relaxed"] and doc["crystal"]["residual_force"] < 1e-8
+    assert doc["crystal"]["lattice"] == pytest.approx([1.0], rel=1e-8)
     assert (tmp_path / "out" / "phonons.json").exists()

@@ -210,6 +210,8 @@ class PhononsSection(_Section):
 
     relax: bool = Field(False, description="relax positions and shapes phi to the nearest "
                                            "minimum first (the cell is kept)")
+    relax_cell: bool = Field(False, description="with relax: relax the orthorhombic cell "
+                                                "edges too (zero stress)")
     tolerance: float = Field(1e-6, gt=0, description="largest residual generalized force "
                                                     "accepted as an equilibrium")
     path: list[str] | None = Field(None, description="high-symmetry points, e.g. "

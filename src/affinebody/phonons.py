@@ -263,14 +263,15 @@ def _chart(phi0, theta, algebra):
     return (jnp.eye(n) + xmat + 0.5 * xmat @ xmat) @ phi0
 
 
-def bonds(crystal: Crystal):
-    """Neighbours of the primitive cell's bodies within the largest cut-off: arrays
-    (s [B], s' [B], R [B, n] lattice vector, u [B, n] = x_{s', R} - x_s, J [B] box index)."""
+def bonds(crystal: Crystal, reach: float | None = None):
+    """Neighbours of the primitive cell's bodies within the largest cut-off (or ``reach``, at
+    most half the box): arrays (s [B], s' [B], R [B, n] lattice vector, u [B, n] =
+    x_{s', R} - x_s, J [B] box index)."""
     pairs, _ = _terms(crystal.system.potential)
     if not pairs:
         return (np.zeros(0, int), np.zeros(0, int), np.zeros((0, crystal.n)),
                 np.zeros((0, crystal.n)), np.zeros(0, int))
-    r_cut = max(t.cutoff.r_cut for t in pairs)
+    r_cut = max(t.cutoff.r_cut for t in pairs) if reach is None else reach
     x, box, a = crystal.x, crystal.box, crystal.lattice
     ss, ts, rs, us, js = [], [], [], [], []
     for s, b in enumerate(crystal.basis):
@@ -348,6 +349,82 @@ def relax(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 2000) -> 
     x = x - crystal.box * np.floor(x / crystal.box)  # back into the box
     return Crystal(system, x, phi, crystal.box, crystal.cells, crystal.basis, crystal.sublattice,
                    x - x[crystal.basis[crystal.sublattice]], crystal.algebra)
+
+
+def relax_cell(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 4000) -> Crystal:
+    """The crystal at the nearest minimum of V per cell over the positions and shapes of the
+    primitive cell's bodies *and* the orthorhombic cell edges (zero stress; phi_s ->
+    expm(X_s) phi_s, edges a_j -> exp(s_j) a_j), by BFGS on the energy per cell summed over
+    bonds (pairs within 1.25 r_cut, at most half the box, rechecked after each round). Returns
+    the crystal in the new box, with the pair terms' box replaced (ValueError when the relaxed
+    box is too small for the cut-off)."""
+    import dataclasses
+
+    from scipy.optimize import minimize
+
+    from affinebody.potentials import total_potential
+
+    system = crystal.system
+    pairs, singles = _terms(system.potential)
+    p, n, g = len(crystal.basis), crystal.n, len(crystal.algebra)
+    algebra = jnp.asarray(crystal.algebra)
+    for _ in range(4):
+        r_cut = max((t.cutoff.r_cut for t in pairs), default=0.0)
+        reach = min(1.25 * r_cut, 0.5 * float(crystal.box.min()) * (1 - 1e-9))
+        s, t, _, u, _ = bonds(crystal, reach)
+        x0 = jnp.asarray(crystal.x[crystal.basis])
+        phi0 = jnp.asarray(crystal.phi[crystal.basis])
+        sj, tj, uj = jnp.asarray(s), jnp.asarray(t), jnp.asarray(u)
+
+        def configuration(z, x0=x0, phi0=phi0):
+            q = z[:p * (n + g)].reshape(p, n + g)
+            xmat = jnp.einsum("ka,aij->kij", q[:, n:], algebra)
+            return q[:, :n], expm(xmat) @ phi0, jnp.exp(z[p * (n + g):])
+
+        def energy(z, sj=sj, tj=tj, uj=uj, configuration=configuration, x0=x0):
+            dx, phi, scale = configuration(z)
+            total = 0.0
+            if pairs:
+                vec = scale * uj + dx[tj] - dx[sj]
+                per_bond = jax.vmap(lambda v, left, right: sum(
+                    _bond_energy(pair, v, left, right) for pair in pairs))
+                total = total + 0.5 * jnp.sum(per_bond(vec, phi[sj], phi[tj]))
+            for term in singles:
+                total = total + term.energy(scale * x0 + dx, phi)
+            return total
+
+        value_and_grad = jax.jit(jax.value_and_grad(energy))
+
+        def fun(z, value_and_grad=value_and_grad):
+            v, gr = value_and_grad(jnp.asarray(z))
+            return float(v), np.asarray(gr, dtype=float)
+
+        result = minimize(fun, np.zeros(p * (n + g) + n), jac=True, method="BFGS",
+                          options={"gtol": tolerance, "maxiter": max_steps})
+        dx, phib, scale = (np.asarray(a) for a in configuration(jnp.asarray(result.x)))
+        box = crystal.box * scale
+        new_terms = []
+        for term in (system.potential.terms if isinstance(system.potential, TotalPotential)
+                     else (system.potential,)):
+            if isinstance(term, PairTerm):
+                if term.cutoff.r_cut > 0.5 * float(box.min()) * (1 + 1e-12):
+                    raise ValueError(f"phonons: the relaxed box {box.tolist()} is too small for "
+                                     f"the cut-off r_cut = {term.cutoff.r_cut} (at most half "
+                                     f"the box): enlarge system.box")
+                term = dataclasses.replace(term, box=tuple(float(b) for b in box))
+            new_terms.append(term)
+        moved = system.replace(potential=total_potential(new_terms))
+        xb = scale * crystal.x[crystal.basis] + dx
+        x = xb[crystal.sublattice] + scale * crystal.translation
+        x = x - box * np.floor(x / box)
+        phi = phib[crystal.sublattice]
+        before = len(s)
+        crystal = Crystal(moved, x, phi, box, crystal.cells, crystal.basis, crystal.sublattice,
+                          x - x[crystal.basis[crystal.sublattice]], crystal.algebra)
+        system = moved
+        if len(bonds(crystal, reach)[0]) == before and abs(np.log(scale)).max() < 0.1:
+            break
+    return crystal
 
 
 # --------------------------------------------------------------------------------------------
@@ -757,5 +834,6 @@ __all__ = [
     "CHARACTERS", "DEFAULT_PATHS", "POINTS", "Crystal", "ForceConstants", "Spectrum",
     "algebra_basis", "bonds", "christoffel", "density_of_states", "elastic_constants",
     "find_cells", "force_constants", "kinetic_metric", "make_crystal", "mesh", "path", "relax",
+    "relax_cell",
     "residual_forces", "signed_frequencies", "solve", "sound_speeds", "tile", "voigt_pairs",
 ]

@@ -57,7 +57,9 @@ def crystal_of(config, built, relax: bool | None = None):
                                        np.asarray(built.state.phi), config.system.box, cells)
         phonons.bonds(crystal)  # refuses terms that a crystal cannot have
         lists = None
-        if relax:
+        if relax and section is not None and section.relax_cell:
+            crystal = phonons.relax_cell(crystal, tolerance=min(tolerance, 1e-9))
+        elif relax:
             crystal = phonons.relax(crystal, tolerance=min(tolerance, 1e-9))
         elif built.neighbor_list:  # the build's list is valid for the given state
             lists = built.neighbors[1]
