@@ -119,6 +119,10 @@ def main() -> None:
     print(f"bodies per cell {len(crystal.basis)}, branches {spectrum.omega2.shape[1]}, "
           f"bonds {len(phonons.bonds(crystal)[0])}, residual force {residual:.2g}")
     print(f"total (after build) {total:.2f} s  [target < 30 s]")
+    gamma = phonons.solve(fc, np.zeros((1, 3)))
+    print(f"acoustic sum rule at Gamma: |omega^2| of the 3 lowest translational modes "
+          f"{np.abs(gamma.omega2[0][np.argsort(-gamma.character[0, :, 0])[:3]]).max():.1e}, "
+          f"their translational shares {np.sort(gamma.character[0, :, 0])[-3:].round(12)}")
     print(f"imaginary modes on the path: {int(np.sum(spectrum.imaginary))}, on the mesh: "
           f"{int(np.sum(mesh.imaginary))}; sound speeds along x: {np.round(speeds, 5)}; "
           f"C11, C12, C44 = {voigt[0, 0]:.5g}, {voigt[0, 1]:.5g}, {voigt[3, 3]:.5g} "

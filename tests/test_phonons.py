@@ -299,6 +299,26 @@ def test_rigid_rotors_on_so2_closed_form():
     assert np.all(spectrum.character[np.arange(5), rotational, 3] > 1 - 1e-10)
 
 
+def test_kinetic_metric_of_the_bi_tensor_models():
+    """In the spatial chart xi = X phi0 the affine velocity is Omega = xi phi0^-1 = X for every
+    phi0, so r-af (71) has the metric R (as an n^2 x n^2 matrix) at any shape; l-af (70) has L
+    at phi0 = Id (Omega_hat = phi0^-1 X phi0 = X there)."""
+    rng = np.random.default_rng(5)
+    a = rng.standard_normal((4, 4))
+    tensor = (a @ a.T + 4 * np.eye(4)).reshape(2, 2, 2, 2)
+    x = np.zeros((1, 2))
+    phi0 = np.array([[[1.2, 0.3], [-0.1, 0.8]]])
+    for model, phi, name in ((kinetic.RightInvariant(tensor), phi0, "r-af"),
+                             (kinetic.LeftInvariant(tensor), np.eye(2)[None], "l-af")):
+        system = HamiltonianSystem(kinetic.KineticEnergy(kinetic.DAlembertTranslational(2.0),
+                                                         model), None, "GL+")
+        crystal = phonons.make_crystal(system, x, phi, (3.0, 3.0))
+        metric = phonons.kinetic_metric(crystal)[0]
+        assert np.allclose(metric[2:, 2:], tensor.reshape(4, 4), atol=1e-12), name
+        assert np.allclose(metric[:2, :2], 2.0 * np.eye(2), atol=1e-14)
+        assert np.allclose(metric[:2, 2:], 0.0, atol=1e-14)
+
+
 def test_af_af_and_non_equilibrium_are_refused(square, tmp_path):
     system, x, box = square
     affine = system.replace(kinetic=kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0),
