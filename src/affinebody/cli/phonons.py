@@ -103,6 +103,8 @@ def compute(config, built, path=None, mesh=None, points=None, relax=None, dos=Tr
         "omega": spectrum.omega.tolist(),
         "omega_squared": spectrum.omega2.tolist(),
         "imaginary": int(np.sum(spectrum.imaginary)),
+        # long-wave figures (sound speeds, elastic constants) describe a stable crystal only
+        "stable": not bool(np.any(spectrum.imaginary)),
         "character": {"names": list(phonons.CHARACTERS), "shares": spectrum.character.tolist()},
         "units": {"k": "1/length (Cartesian)", "omega": "angular frequency; imaginary "
                   "frequencies (omega^2 < 0) as -sqrt(-omega^2)"},
@@ -217,7 +219,9 @@ def phonons_command(config_path, output, path_, mesh, points, relax, as_json, no
                f"force {crystal['residual_force']:.2g}")
     omega = np.asarray(doc["omega"])
     click.echo(f"{omega.shape[1]} branches on {omega.shape[0]} path points; omega in "
-               f"[{omega.min():.6g}, {omega.max():.6g}]; imaginary modes: {doc['imaginary']}")
+               f"[{omega.min():.6g}, {omega.max():.6g}]; imaginary modes: {doc['imaginary']}"
+               + ("" if doc["stable"] else " (UNSTABLE: the long-wave figures below describe "
+                                           "no stable crystal)"))
     for item in doc["sound_speeds"]:
         click.echo(f"sound speeds along {np.round(item['direction'], 4).tolist()}: "
                    f"{', '.join(f'{v:.6g}' for v in item['speeds'])}")
