@@ -23,7 +23,7 @@ LAYERS = {
     "kinematics": ("groups", "polar", "deformation", "mutual", "velocities", "momenta",
                    "inertia", "actions", "brackets", "observables"),
     "models": ("kinetic", "potentials", "pair_kernels", "neighbors"),
-    "mechanics": ("constraints", "nonholonomic", "system", "integrators", "simulate"),
+    "mechanics": ("constraints", "nonholonomic", "system", "integrators", "simulate", "phonons"),
     "quantum": ("quantum",),
     "application": ("_timing", "config", "runner", "sweep", "studies", "h5md", "checkpoint",
                     "plotting", "export", "examples", "units", "quantum.config",

@@ -2,7 +2,8 @@
 
 A config has the sections ``[system]``, ``[body]`` or ``[[bodies]]``, ``[kinetic]``,
 ``[[potential]]``, ``[initial]`` and ``[run]`` (README, "Config file", documents every field),
-and optionally ``[sweep]`` (an ensemble of runs, read by :mod:`affinebody.sweep` only).
+and optionally ``[sweep]`` (an ensemble of runs, read by :mod:`affinebody.sweep` only) and
+``[phonons]`` (lattice dynamics, read by ``affinebody phonons`` only).
 Loading goes in two passes:
 
 1. :func:`parse_config` checks types and refuses unknown keys (pydantic, ``extra="forbid"``);
@@ -209,6 +210,24 @@ class ConstraintsSection(_Section):
         None, description="'spatial': Omega symmetric (40); 'material': Omega_hat symmetric (41)")
 
 
+class PhononsSection(_Section):
+    """``[phonons]``: lattice dynamics of the crystal in the periodic box (``affinebody
+    phonons``, :mod:`affinebody.phonons`)."""
+
+    relax: bool = Field(False, description="relax positions and shapes phi to the nearest "
+                                           "minimum first (the cell is kept)")
+    relax_cell: bool = Field(False, description="with relax: relax the orthorhombic cell "
+                                                "edges too (zero stress)")
+    tolerance: float = Field(1e-6, gt=0, description="largest residual generalized force "
+                                                    "accepted as an equilibrium")
+    path: list[str] | None = Field(None, description="high-symmetry points, e.g. "
+                                                     "['G', 'X', 'M', 'G']")
+    points: int = Field(50, ge=2, le=100_000, description="k points per path segment")
+    mesh: list[int] | None = Field(None, description="DOS mesh: n positive integers")
+    cells: list[int] | None = Field(None, description="primitive cells per box edge "
+                                                      "(default: found from the bodies)")
+
+
 class Config(_Section):
     """A whole configuration file."""
 
@@ -221,6 +240,7 @@ class Config(_Section):
     run: RunSection
     constraints: ConstraintsSection = ConstraintsSection()
     sweep: SweepSection | None = None
+    phonons: PhononsSection | None = None
     # the text the config was read from (not a TOML key)
     source_text: str = Field("", exclude=True, repr=False)
 
@@ -241,8 +261,9 @@ class Config(_Section):
 
     def hash(self) -> str:
         """SHA-256 of the config's meaning, ignoring run.steps (so a run can be extended) and
-        the [sweep] table (which does not change a single run)."""
-        data = self.model_dump(exclude={"source_text": True, "sweep": True, "run": {"steps"}})
+        the [sweep] and [phonons] tables (which do not change a single run)."""
+        data = self.model_dump(exclude={"source_text": True, "sweep": True, "phonons": True,
+                                        "run": {"steps"}})
         for key, default in (("neighbor_list", "auto"), ("neighbor_skin", 0.3)):
             if data["run"][key] == default:  # hashes of configs written before these keys
                 del data["run"][key]

@@ -1,7 +1,8 @@
 """The ``affinebody`` command line: one click group, one subcommand per job.
 
 ``run``, ``demo``, ``plot``, ``export``, ``validate`` (:mod:`.run`), ``sweep`` (:mod:`.sweep`),
-``spectrum`` and ``density`` (:mod:`affinebody.quantum.cli`) and ``kinematics-demo``. Every
+``spectrum`` and ``density`` (:mod:`affinebody.quantum.cli`), ``phonons`` (:mod:`.phonons`)
+and ``kinematics-demo``. Every
 command turns JAX's float64 mode on for its own process and reports errors as one line
 (:mod:`.common`).
 """
@@ -27,6 +28,7 @@ COMMANDS = {
     "sweep": "affinebody.cli.sweep:sweep",
     "spectrum": "affinebody.quantum.cli:spectrum",
     "density": "affinebody.quantum.cli:density",
+    "phonons": "affinebody.cli.phonons:phonons_command",
 }
 
 

@@ -1,0 +1,839 @@
+"""Lattice dynamics of crystals of affine bodies: dispersion relations, densities of states,
+sound speeds and elastic constants (docs/phonons.md).
+
+A crystal is the content of a periodic orthorhombic box (the system's pair terms carry it, with a
+cut-off on r of at most half the box, so that every pair in range is a minimum image), repeated
+by the box's lattice; the box itself is ``cells[j]`` primitive cells along edge j (found by
+:func:`find_cells`: the largest translations that map bodies onto bodies with the same phi and
+the same inertia). Each body K has n translational and dim g internal degrees of freedom, in
+the chart (spatial affine velocity of the paper's (34))
+
+    x_K = x0_K + dx_K,        phi_K = (Id + X_K + X_K^2 / 2) phi0_K,   X_K = sum_a theta_K^a E_a,
+
+with E_a a Frobenius-orthonormal basis of the Lie algebra g of the configuration group (gl(n) on
+GL+, GL, L; sl, so, R Id + so on the subgroups), i.e. the tangent space T_phi0 G = g phi0. The
+chart agrees with phi = expm(X) phi0 to second order, which is all a Hessian at phi0 sees, so
+constrained bodies (SL, SO, R+SO, ...) move in the tangent space of their group and the
+constraint forces enter through the curvature term of the chart.
+
+Harmonic Hamiltonian at an equilibrium q0 (p0 = 0; eq. (75a) to second order):
+
+    H = 1/2 dq_dot^T M dq_dot + 1/2 dq^T K dq,
+
+M the kinetic metric, T = 1/2 q_dot^T M q_dot at q0 (block diagonal per body: the Hessian of the
+model's kinetic energy (63)-(74) in the velocities; T has no x-phi cross terms), K the Hessian
+of V. With Bloch waves dq_{R, s} = u_s exp(i k.R) (R a lattice vector, s a body of the
+primitive cell) the frequencies solve the generalized Hermitian eigenproblem
+
+    D(k) u = omega^2 M u,      D(k) = sum_R K_{0 s, R s'} exp(i k.R).
+
+The force constants K_{0 s, R s'} come from the pair terms' second derivatives: for every body s
+of the primitive cell and every neighbour (s', R) within the cut-off (the minimum image in the
+box) the Hessian of the pair energy V_{s, (s', R)} (59) in the chart coordinates of both bodies
+(autodiff; "bonds"), plus the Hessian of the one-body terms (57). Each unordered pair of the
+infinite crystal is met once from each end, so every bond enters with weight 1/2 in the blocks
+(s, s), (s, s') e^{i k.R}, (s', s) e^{-i k.R}, (s', s'), which makes D(k) exactly Hermitian.
+This is exact for every k (no supercell of the wave is needed) and costs one small Hessian per
+bond.
+
+Frequencies: omega = sqrt(omega^2), and for an unstable mode (omega^2 < 0) the imaginary
+frequency is reported as -sqrt(-omega^2) (never hidden; ``imaginary`` marks them); only
+round-off zeros, |omega^2| <= 1e-12 max_k |omega^2|, are set to 0.
+
+Long waves (``christoffel``): eliminating every degree of freedom but the n uniform
+translations T statically, S(k) = T^H D T - T^H D Q (Q^H D Q)^-1 Q^H D T (Q the M-orthogonal
+complement of T) gives omega^2 = eig(S(k), T^T M T) + O(k^4); Re S(k) = Gamma(k) + O(k^4) with
+the Christoffel (acoustic) matrix Gamma_ik(k) = V_cell A_ijkl k_j k_l, A = d^2 W / d beta d beta
+the energy density's second derivative in the displacement gradient (with internal relaxation).
+Sound speeds are sqrt(eig(Gamma(k_hat), T^T M T)); the elastic constants C (Voigt) are fitted to
+A with the minor and major symmetries (exact when the crystal is stress-free).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from affinebody.groups import expm, lie_algebra, project_algebra
+from affinebody.mutual import affine_invariants
+from affinebody.potentials import OneBodyTerm, PairTerm, TotalPotential, pair_variables
+from affinebody.state import VelocityState
+
+#: Names of the characters of a mode: shares of its kinetic energy.
+CHARACTERS = ("translational", "dilatational", "shear", "rotational")
+#: The one-body Hessians and the kinetic metric are small and run once: compile them fast.
+_QUICK = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+#: High-symmetry points of the orthorhombic Brillouin zone, in units of the reciprocal vectors.
+POINTS = {
+    "G": (0.0, 0.0, 0.0), "X": (0.5, 0.0, 0.0), "Y": (0.0, 0.5, 0.0), "Z": (0.0, 0.0, 0.5),
+    "M": (0.5, 0.5, 0.0), "S": (0.5, 0.5, 0.0), "U": (0.5, 0.0, 0.5), "T": (0.0, 0.5, 0.5),
+    "R": (0.5, 0.5, 0.5),
+}
+#: Default high-symmetry path per dimension.
+DEFAULT_PATHS = {1: ("G", "X"), 2: ("G", "X", "M", "G"), 3: ("G", "X", "M", "G", "R", "X")}
+
+
+# --------------------------------------------------------------------------------------------
+# The crystal
+
+
+def algebra_basis(group: str, n: int) -> np.ndarray:
+    """A Frobenius-orthonormal basis [g, n, n] of the Lie algebra of ``group`` (gl, sl, so or
+    R Id + so, :func:`affinebody.groups.project_algebra`)."""
+    units = np.eye(n * n).reshape(n * n, n, n)
+    projected = np.asarray(project_algebra(jnp.asarray(units), group)).reshape(n * n, n * n)
+    u, s, _ = np.linalg.svd(projected.T)
+    rank = int(np.sum(s > 1e-10))
+    basis = u[:, :rank].T.reshape(rank, n, n)
+    if lie_algebra(group) == "gl":
+        basis = units
+    return basis
+
+
+def _per_body(leaf: Any, bodies: int) -> bool:
+    """A kinetic parameter with a leading body axis (mass [N], J [N, n, n], L [N, n, n, n, n])."""
+    a = np.asarray(leaf)
+    return a.ndim % 2 == 1 and a.shape[0] == bodies
+
+
+def _same_bodies(system, bodies: int) -> np.ndarray:
+    """[N, N] True where bodies K, L have the same kinetic parameters."""
+    same = np.ones((bodies, bodies), dtype=bool)
+    for leaf in jax.tree.leaves(system.kinetic):
+        if _per_body(leaf, bodies):
+            a = np.asarray(leaf).reshape(bodies, -1)
+            scale = max(1.0, float(np.abs(a).max()))
+            same &= np.all(np.abs(a[:, None] - a[None]) <= 1e-12 * scale, axis=-1)
+    return same
+
+
+def _maps_onto_itself(x, phi, box, same, shift) -> bool:
+    """Whether x -> x + shift (mod box) maps the bodies onto bodies with equal phi, inertia."""
+    u = x[None, :, :] - (x[:, None, :] + shift)
+    u -= box * np.round(u / box)
+    close = np.all(np.abs(u) < 1e-8 * box, axis=-1)
+    equal = np.all(np.abs(phi[None] - phi[:, None]) < 1e-10, axis=(-2, -1))
+    return bool(np.all(np.any(close & equal & same, axis=1)))
+
+
+def find_cells(system, x, phi, box) -> tuple[int, ...]:
+    """The largest numbers of primitive cells along each box edge: m_j such that the translation
+    by box_j / m_j along axis j maps the bodies onto bodies with the same phi and inertia."""
+    x, phi, box = np.asarray(x, float), np.asarray(phi, float), np.asarray(box, float)
+    bodies, n = x.shape
+    same = _same_bodies(system, bodies)
+    cells = []
+    for j in range(n):
+        for m in sorted((d for d in range(1, bodies + 1) if bodies % d == 0), reverse=True):
+            shift = np.zeros(n)
+            shift[j] = box[j] / m
+            if m == 1 or _maps_onto_itself(x, phi, box, same, shift):
+                cells.append(m)
+                break
+    return tuple(cells)
+
+
+@dataclass(frozen=True)
+class Crystal:
+    """A periodic crystal of affine bodies at its (candidate) equilibrium.
+
+    system: the ``HamiltonianSystem``; x [N, n], phi [N, n, n]: the bodies of the periodic box
+    ``box`` [n] (orthorhombic edges); cells: primitive cells per box edge. Derived: ``lattice``
+    [n] (primitive edges a_j = box_j / cells_j), ``basis`` [P] (the box indices of the bodies of
+    the primitive cell), ``sublattice`` [N] and ``translation`` [N, n] (x_K = x_basis[s] + T_K
+    with T_K a lattice vector), ``algebra`` [g, n, n] (the chart's E_a).
+    """
+
+    system: Any
+    x: np.ndarray
+    phi: np.ndarray
+    box: np.ndarray
+    cells: tuple[int, ...]
+    basis: np.ndarray
+    sublattice: np.ndarray
+    translation: np.ndarray
+    algebra: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return self.x.shape[1]
+
+    @property
+    def lattice(self) -> np.ndarray:
+        return self.box / np.asarray(self.cells, dtype=float)
+
+    @property
+    def dof(self) -> int:
+        """Degrees of freedom per body: n + dim g."""
+        return self.n + len(self.algebra)
+
+    @property
+    def cell_volume(self) -> float:
+        return float(np.prod(self.lattice))
+
+    @property
+    def reciprocal(self) -> np.ndarray:
+        """Reciprocal edges b_j = 2 pi / a_j."""
+        return 2 * np.pi / self.lattice
+
+
+def make_crystal(system, x, phi, box, cells=None) -> Crystal:
+    """The :class:`Crystal` of the bodies (x, phi) in the periodic ``box``; ``cells`` (primitive
+    cells per edge) is found by :func:`find_cells` when None, and checked otherwise."""
+    x, phi = np.asarray(x, dtype=float), np.asarray(phi, dtype=float)
+    box = np.asarray(box, dtype=float)
+    bodies, n = x.shape
+    if box.shape != (n,):
+        raise ValueError(f"phonons need a periodic orthorhombic box of n = {n} edges "
+                         f"(got {box.tolist()})")
+    if cells is None:
+        cells = find_cells(system, x, phi, box)
+    cells = tuple(int(c) for c in cells)
+    same = _same_bodies(system, bodies)
+    for j, m in enumerate(cells):
+        shift = np.zeros(n)
+        shift[j] = box[j] / m
+        if m < 1 or bodies % m or not _maps_onto_itself(x, phi, box, same, shift):
+            raise ValueError(f"phonons.cells[{j}] = {m}: the translation by box/{m} along axis "
+                             f"{j} does not map the bodies onto equal bodies (drop phonons.cells "
+                             f"to find the primitive cell)")
+    a = box / np.asarray(cells, dtype=float)
+    sublattice = -np.ones(bodies, dtype=int)
+    basis: list[int] = []
+    for k in range(bodies):
+        for s, b in enumerate(basis):
+            f = (x[k] - x[b]) / a
+            if (np.all(np.abs(f - np.round(f)) < 1e-8) and same[k, b]
+                    and np.all(np.abs(phi[k] - phi[b]) < 1e-10)):
+                sublattice[k] = s
+                break
+        else:
+            sublattice[k] = len(basis)
+            basis.append(k)
+    basis_arr = np.asarray(basis)
+    translation = a * np.round((x - x[basis_arr[sublattice]]) / a)
+    return Crystal(system, x, phi, box, cells, basis_arr, sublattice, translation,
+                   algebra_basis(system.group, n))
+
+
+def tile(crystal: Crystal, xb, phib):
+    """Box configuration (x [N, n], phi [N, n, n]) from the primitive cell's (xb, phib)."""
+    s = crystal.sublattice
+    return xb[s] + crystal.translation, phib[s]
+
+
+# --------------------------------------------------------------------------------------------
+# Terms, charts and bonds
+
+
+def _terms(potential) -> tuple[list, list]:
+    """(pair terms, one-body terms) of a potential; ValueError for what phonons cannot use."""
+    if potential is None:
+        return [], []
+    terms = potential.terms if isinstance(potential, TotalPotential) else (potential,)
+    pairs, singles = [], []
+    for k, term in enumerate(terms):
+        if "translation" not in term.symmetry:
+            raise ValueError(f"potential.{k} ({type(term).__name__}) depends on the centres x "
+                             f"and breaks translations: a crystal has no phonons in an external "
+                             f"field (remove it)")
+        if isinstance(term, PairTerm):
+            if term.cutoff is None or term.cutoff.variable != "r":
+                raise ValueError(f"potential.{k}: phonons need a cut-off on r in every pair "
+                                 f"term (set potential.{k}.r_cut)")
+            pairs.append(term)
+        elif isinstance(term, OneBodyTerm):
+            singles.append(term)
+        else:
+            raise ValueError(f"potential.{k} ({type(term).__name__}) is neither a one-body nor "
+                             f"a pair term of affinebody.potentials: phonons cannot split it")
+    return pairs, singles
+
+
+def _chart(phi0, theta, algebra):
+    """phi = (Id + X + X^2 / 2) phi0, X = theta . E (second order in theta, module docstring)."""
+    xmat = jnp.einsum("a,aij->ij", theta, algebra)
+    n = phi0.shape[-1]
+    return (jnp.eye(n) + xmat + 0.5 * xmat @ xmat) @ phi0
+
+
+def bonds(crystal: Crystal, reach: float | None = None):
+    """Neighbours of the primitive cell's bodies within the largest cut-off (or ``reach``, at
+    most half the box): arrays (s [B], s' [B], R [B, n] lattice vector, u [B, n] =
+    x_{s', R} - x_s, J [B] box index)."""
+    pairs, _ = _terms(crystal.system.potential)
+    if not pairs:
+        return (np.zeros(0, int), np.zeros(0, int), np.zeros((0, crystal.n)),
+                np.zeros((0, crystal.n)), np.zeros(0, int))
+    r_cut = max(t.cutoff.r_cut for t in pairs) if reach is None else reach
+    x, box, a = crystal.x, crystal.box, crystal.lattice
+    ss, ts, rs, us, js = [], [], [], [], []
+    for s, b in enumerate(crystal.basis):
+        u = x - x[b]
+        u -= box * np.round(u / box)
+        dist = np.linalg.norm(u, axis=1)
+        for j in np.flatnonzero(dist < r_cut):
+            if j == b:
+                continue
+            t = crystal.sublattice[j]
+            lattice_vector = a * np.round((x[b] + u[j] - x[crystal.basis[t]]) / a)
+            ss.append(s)
+            ts.append(t)
+            rs.append(lattice_vector)
+            us.append(u[j])
+            js.append(j)
+    return (np.asarray(ss, int), np.asarray(ts, int), np.asarray(rs).reshape(-1, crystal.n),
+            np.asarray(us).reshape(-1, crystal.n), np.asarray(js, int))
+
+
+# --------------------------------------------------------------------------------------------
+# Equilibrium
+
+
+def residual_forces(crystal: Crystal, neighbors=None) -> np.ndarray:
+    """Generalized forces [P, dof] on the primitive cell's bodies in the chart coordinates:
+    -dV/dx and -<dV/dphi phi^T, E_a> (the component along the group), from the forces of the
+    whole box (``HamiltonianSystem.forces``: all pairs with the minimum image, or the pairs of
+    a ``neighbors.NeighborList`` valid for the box, for large boxes)."""
+    from affinebody.state import State
+
+    state = State(jnp.asarray(crystal.x), jnp.asarray(crystal.phi),
+                  jnp.zeros_like(jnp.asarray(crystal.x)), jnp.zeros_like(jnp.asarray(crystal.phi)))
+    gx, gphi = (np.asarray(g) for g in _box_forces(crystal.system, state, neighbors))
+    b = crystal.basis
+    spatial = np.einsum("kij,kaj->kia", gphi[b], crystal.phi[b])  # dV/dphi phi^T
+    gtheta = np.einsum("kia,gia->kg", spatial, crystal.algebra)
+    return -np.concatenate([gx[b], gtheta], axis=1)
+
+
+def relax(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 2000) -> Crystal:
+    """The crystal at the nearest minimum of V per cell over the positions and shapes of the
+    primitive cell's bodies (phi_s -> expm(X_s) phi_s stays on the group; the cell is kept),
+    by BFGS on the energy of the whole box; ``tolerance`` on the largest residual force."""
+    from scipy.optimize import minimize
+
+    system = crystal.system
+    p, n, g = len(crystal.basis), crystal.n, len(crystal.algebra)
+    x0 = jnp.asarray(crystal.x[crystal.basis])
+    phi0 = jnp.asarray(crystal.phi[crystal.basis])
+    algebra = jnp.asarray(crystal.algebra)
+    s, shift = jnp.asarray(crystal.sublattice), jnp.asarray(crystal.translation)
+    ncell = len(crystal.x) // p
+
+    def configuration(q):
+        q = q.reshape(p, n + g)
+        xmat = jnp.einsum("ka,aij->kij", q[:, n:], algebra)
+        return x0 + q[:, :n], expm(xmat) @ phi0
+
+    @jax.jit
+    def energy(q):
+        xb, phib = configuration(q)
+        return system.potential.energy(xb[s] + shift, phib[s]) / ncell
+
+    value_and_grad = jax.jit(jax.value_and_grad(energy))
+
+    def fun(q):
+        v, gr = value_and_grad(jnp.asarray(q))
+        return float(v), np.asarray(gr, dtype=float)
+
+    result = minimize(fun, np.zeros(p * (n + g)), jac=True, method="BFGS",
+                      options={"gtol": tolerance, "maxiter": max_steps})
+    xb, phib = (np.asarray(a) for a in configuration(jnp.asarray(result.x)))
+    x, phi = tile(crystal, xb, phib)
+    x = x - crystal.box * np.floor(x / crystal.box)  # back into the box
+    return Crystal(system, x, phi, crystal.box, crystal.cells, crystal.basis, crystal.sublattice,
+                   x - x[crystal.basis[crystal.sublattice]], crystal.algebra)
+
+
+def relax_cell(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 4000) -> Crystal:
+    """The crystal at the nearest minimum of V per cell over the positions and shapes of the
+    primitive cell's bodies *and* the orthorhombic cell edges (zero stress; phi_s ->
+    expm(X_s) phi_s, edges a_j -> exp(s_j) a_j), by BFGS on the energy per cell summed over
+    bonds (pairs within 1.25 r_cut, at most half the box, rechecked after each round). Returns
+    the crystal in the new box, with the pair terms' box replaced (ValueError when the relaxed
+    box is too small for the cut-off)."""
+    import dataclasses
+
+    from scipy.optimize import minimize
+
+    from affinebody.potentials import total_potential
+
+    system = crystal.system
+    pairs, singles = _terms(system.potential)
+    p, n, g = len(crystal.basis), crystal.n, len(crystal.algebra)
+    algebra = jnp.asarray(crystal.algebra)
+    for _ in range(4):
+        r_cut = max((t.cutoff.r_cut for t in pairs), default=0.0)
+        reach = min(1.25 * r_cut, 0.5 * float(crystal.box.min()) * (1 - 1e-9))
+        s, t, _, u, _ = bonds(crystal, reach)
+        x0 = jnp.asarray(crystal.x[crystal.basis])
+        phi0 = jnp.asarray(crystal.phi[crystal.basis])
+        sj, tj, uj = jnp.asarray(s), jnp.asarray(t), jnp.asarray(u)
+
+        def configuration(z, x0=x0, phi0=phi0):
+            q = z[:p * (n + g)].reshape(p, n + g)
+            xmat = jnp.einsum("ka,aij->kij", q[:, n:], algebra)
+            return q[:, :n], expm(xmat) @ phi0, jnp.exp(z[p * (n + g):])
+
+        def energy(z, sj=sj, tj=tj, uj=uj, configuration=configuration, x0=x0):
+            dx, phi, scale = configuration(z)
+            total = 0.0
+            if pairs:
+                vec = scale * uj + dx[tj] - dx[sj]
+                per_bond = jax.vmap(lambda v, left, right: sum(
+                    _bond_energy(pair, v, left, right) for pair in pairs))
+                total = total + 0.5 * jnp.sum(per_bond(vec, phi[sj], phi[tj]))
+            for term in singles:
+                total = total + term.energy(scale * x0 + dx, phi)
+            return total
+
+        value_and_grad = jax.jit(jax.value_and_grad(energy))
+
+        def fun(z, value_and_grad=value_and_grad):
+            v, gr = value_and_grad(jnp.asarray(z))
+            return float(v), np.asarray(gr, dtype=float)
+
+        result = minimize(fun, np.zeros(p * (n + g) + n), jac=True, method="BFGS",
+                          options={"gtol": tolerance, "maxiter": max_steps})
+        dx, phib, scale = (np.asarray(a) for a in configuration(jnp.asarray(result.x)))
+        box = crystal.box * scale
+        new_terms = []
+        for term in (system.potential.terms if isinstance(system.potential, TotalPotential)
+                     else (system.potential,)):
+            if isinstance(term, PairTerm):
+                if term.cutoff.r_cut > 0.5 * float(box.min()) * (1 + 1e-12):
+                    raise ValueError(f"phonons: the relaxed box {box.tolist()} is too small for "
+                                     f"the cut-off r_cut = {term.cutoff.r_cut} (at most half "
+                                     f"the box): enlarge system.box")
+                term = dataclasses.replace(term, box=tuple(float(b) for b in box))
+            new_terms.append(term)
+        moved = system.replace(potential=total_potential(new_terms))
+        xb = scale * crystal.x[crystal.basis] + dx
+        x = xb[crystal.sublattice] + scale * crystal.translation
+        x = x - box * np.floor(x / box)
+        phi = phib[crystal.sublattice]
+        before = len(s)
+        crystal = Crystal(moved, x, phi, box, crystal.cells, crystal.basis, crystal.sublattice,
+                          x - x[crystal.basis[crystal.sublattice]], crystal.algebra)
+        system = moved
+        if len(bonds(crystal, reach)[0]) == before and abs(np.log(scale)).max() < 0.1:
+            break
+    return crystal
+
+
+# --------------------------------------------------------------------------------------------
+# Kinetic metric and force constants
+
+
+@functools.partial(jax.jit, compiler_options=_QUICK)
+def _metric_columns(system, x, phi, algebra):
+    """Hessian-vector products of T in the chart velocities: [dof (column), N, dof (row)]."""
+    n = x.shape[-1]
+    d = n + algebra.shape[0]
+
+    def energy(qdot):
+        xi = jnp.einsum("ka,aij,kjb->kib", qdot[:, n:], algebra, phi)
+        return jnp.sum(system.kinetic.lagrangian(VelocityState(x, phi, qdot[:, :n], xi)))
+
+    zero = jnp.zeros((x.shape[0], d))
+    directions = jnp.broadcast_to(jnp.eye(d)[:, None, :], (d, x.shape[0], d))
+    return jax.vmap(lambda e: jax.jvp(jax.grad(energy), (zero,), (e,))[1])(directions)
+
+
+@jax.jit
+def _box_forces(system, state, neighbors):
+    return system.forces(state, neighbors)
+
+
+def kinetic_metric(crystal: Crystal) -> np.ndarray:
+    """Blocks [P, dof, dof] of the kinetic metric M: T = 1/2 q_dot^T M q_dot at phi0 with
+    v = dx/dt and xi = dphi/dt = X_dot phi0 (chart velocities; models (63)-(74)). ValueError
+    when M is not positive definite (af-af (72) for n >= 2: its A Tr(Omega^2) is indefinite)."""
+    system = crystal.system
+    cols = np.asarray(_metric_columns(system, jnp.asarray(crystal.x), jnp.asarray(crystal.phi),
+                              jnp.asarray(crystal.algebra)))
+    blocks = np.transpose(cols, (1, 2, 0))[crystal.basis]
+    blocks = 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
+    smallest = float(np.linalg.eigvalsh(blocks).min())
+    if not smallest > 0:
+        name = type(getattr(system.kinetic, "internal", None)).__name__
+        why = (" (af-af (72) is indefinite for n >= 2: A Tr(Omega^2) has both signs; choose "
+               "af-is, is-af or another positive-definite model)" if name == "AffineAffine" else
+               "")
+        raise ValueError(f"kinetic: the kinetic metric is not positive definite (smallest "
+                         f"eigenvalue {smallest:.3g}): the harmonic frequencies are undefined{why}")
+    return blocks
+
+
+@dataclass(frozen=True)
+class ForceConstants:
+    """D(k) = sum_R K[R] exp(i k . R): ``vectors`` [nR, n] (the R), ``blocks`` [nR, P dof, P dof],
+    and the kinetic metric ``metric`` [P dof, P dof] (block diagonal)."""
+
+    vectors: np.ndarray
+    blocks: np.ndarray
+    metric: np.ndarray
+    crystal: Crystal
+
+    def dynamical_matrix(self, k) -> np.ndarray:
+        """D(k) [..., P dof, P dof] (Hermitian) for Cartesian k [..., n]."""
+        k = np.asarray(k, dtype=float)
+        phases = np.exp(1j * (k @ self.vectors.T))  # [..., nR]
+        size = self.blocks.shape[-1]
+        out = phases.reshape(-1, len(self.vectors)) @ self.blocks.reshape(len(self.vectors), -1)
+        return out.reshape(k.shape[:-1] + (size, size))
+
+
+def _bond_energy(term, u, phi_a, phi_b):
+    """V_ab of one pair term from the scalars it declares (``PairTerm.scalar_requirements``,
+    ``energy_from_scalars``: the contract the pair kernels use), computing only those."""
+    n = u.shape[-1]
+    plain, k_powers, m_powers = term.scalar_requirements(n)
+    names = set(plain) | ({"K"} if k_powers else set()) | ({"M"} if m_powers else set())
+    values = pair_variables(names, u[None], phi_a[None], phi_b[None])
+    base = {name: values[name] for name in plain}
+    if k_powers:
+        base["K"] = values["K"][..., :k_powers]
+    if m_powers:
+        base["M"] = values["M"][..., :m_powers]
+        if term.asymmetric:
+            base["Ms"] = affine_invariants(phi_b[None], phi_a[None])[..., :m_powers]
+    return term.energy_from_scalars(base, n)[0]
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _pair_hessians(terms, xa, xb, pa, pb, algebra):
+    """Hessians [B, 2 dof, 2 dof] of the pair energies of bonds (a, b) in both bodies' charts."""
+    n = xa.shape[-1]
+    d = n + algebra.shape[0]
+
+    def pair_energy(q, xa, xb, pa, pb):
+        u = xa + q[:n] - xb - q[d:d + n]  # in range: the minimum image itself
+        phi_a, phi_b = _chart(pa, q[n:d], algebra), _chart(pb, q[d + n:], algebra)
+        return sum(_bond_energy(term, u, phi_a, phi_b) for term in terms)
+
+    zero = jnp.zeros((xa.shape[0], 2 * d))
+    return jax.vmap(jax.jacfwd(jax.jacfwd(pair_energy)))(zero, xa, xb, pa, pb)
+
+
+@functools.partial(jax.jit, static_argnums=0, compiler_options=_QUICK)
+def _one_body_hessians(terms, x, phi, algebra):
+    """Hessians [P, dof, dof] of the one-body energies in the chart."""
+    n = x.shape[-1]
+    d = n + algebra.shape[0]
+
+    def one_energy(q, x, phi):
+        return sum(term.energy(x[None] + q[None, :n], _chart(phi, q[n:], algebra)[None])
+                   for term in terms)
+
+    return jax.vmap(jax.jacfwd(jax.jacfwd(one_energy)))(jnp.zeros((x.shape[0], d)), x, phi)
+
+
+def force_constants(crystal: Crystal) -> ForceConstants:
+    """The force constants K[R] (module docstring: bonds' pair Hessians with weight 1/2 per end,
+    one-body Hessians on site) and the kinetic metric of ``crystal``."""
+    pairs, singles = _terms(crystal.system.potential)
+    n, d, p = crystal.n, crystal.dof, len(crystal.basis)
+    algebra = jnp.asarray(crystal.algebra)
+    s, t, rvec, u, j = bonds(crystal)
+    keys = np.round(rvec / crystal.lattice).astype(int)
+    uniq = {(0,) * n: 0}
+    for key in map(tuple, keys):
+        uniq.setdefault(key, len(uniq))
+        uniq.setdefault(tuple(-v for v in key), len(uniq))
+    blocks = np.zeros((len(uniq), p * d, p * d))
+
+    def block(m, a, b, h):
+        blocks[m, a * d:(a + 1) * d, b * d:(b + 1) * d] += h
+
+    if len(s):
+        hess = np.asarray(_pair_hessians(
+            tuple(pairs), jnp.asarray(crystal.x[crystal.basis[s]]),
+            jnp.asarray(crystal.x[crystal.basis[s]] + u),
+            jnp.asarray(crystal.phi[crystal.basis[s]]), jnp.asarray(crystal.phi[j]), algebra))
+        for b in range(len(s)):
+            m, minus = uniq[tuple(keys[b])], uniq[tuple(-keys[b])]
+            h = 0.5 * hess[b]
+            block(0, s[b], s[b], h[:d, :d])
+            block(0, t[b], t[b], h[d:, d:])
+            block(m, s[b], t[b], h[:d, d:])
+            block(minus, t[b], s[b], h[d:, :d])
+    if singles:
+        hb = np.asarray(_one_body_hessians(tuple(singles), jnp.asarray(crystal.x[crystal.basis]),
+                                           jnp.asarray(crystal.phi[crystal.basis]), algebra))
+        for a in range(p):
+            block(0, a, a, hb[a])
+    vectors = np.zeros((len(uniq), n))
+    for key, m in uniq.items():
+        vectors[m] = np.asarray(key) * crystal.lattice
+    metric_blocks = kinetic_metric(crystal)
+    metric = np.zeros((p * d, p * d))
+    for a in range(p):
+        metric[a * d:(a + 1) * d, a * d:(a + 1) * d] = metric_blocks[a]
+    return ForceConstants(vectors, blocks, metric, crystal)
+
+
+# --------------------------------------------------------------------------------------------
+# Spectra
+
+
+def signed_frequencies(omega2) -> np.ndarray:
+    """omega = sqrt(omega^2), and -sqrt(-omega^2) for an unstable mode (imaginary frequency)."""
+    omega2 = np.asarray(omega2)
+    return np.sign(omega2) * np.sqrt(np.abs(omega2))
+
+
+def _character_matrices(fc: ForceConstants) -> np.ndarray:
+    """[4, P, dof, dof]: the kinetic energy of each part (translation; dilatation, shear and
+    rotation of X) of a mode is u_s^H Q_c u_s summed over bodies (cross terms dropped)."""
+    crystal = fc.crystal
+    n, d, p = crystal.n, crystal.dof, len(crystal.basis)
+    e = crystal.algebra
+    eye = np.eye(n)
+
+    def parts(xmat):
+        dil = np.trace(xmat) / n * eye
+        sym = 0.5 * (xmat + xmat.T)
+        return dil, sym - dil, 0.5 * (xmat - xmat.T)
+
+    proj = np.zeros((3, len(e), len(e)))  # coordinates of each part of E_b along E_a
+    for b in range(len(e)):
+        for c, part in enumerate(parts(e[b])):
+            proj[c, :, b] = np.einsum("aij,ij->a", e, part)
+    out = np.zeros((4, p, d, d))
+    for a in range(p):
+        m = fc.metric[a * d:(a + 1) * d, a * d:(a + 1) * d]
+        out[0, a, :n, :n] = m[:n, :n]
+        for c in range(3):
+            out[c + 1, a, n:, n:] = proj[c].T @ m[n:, n:] @ proj[c]
+    return out
+
+
+@dataclass(frozen=True)
+class Spectrum:
+    """omega2 [nk, modes] ascending, omega (signed, :func:`signed_frequencies`), and when asked
+    the eigenvectors [nk, P dof, modes] (u^H M u = 1) and ``character`` [nk, modes, 4]."""
+
+    k: np.ndarray
+    omega2: np.ndarray
+    vectors: np.ndarray | None = None
+    character: np.ndarray | None = None
+
+    @property
+    def omega(self) -> np.ndarray:
+        return signed_frequencies(self.omega2)
+
+    @property
+    def imaginary(self) -> np.ndarray:
+        return self.omega2 < 0
+
+
+def solve(fc: ForceConstants, k, vectors: bool = True, chunk: int = 256) -> Spectrum:
+    """omega^2 of D(k) u = omega^2 M u at Cartesian k [nk, n] (Cholesky M = L L^T, then the
+    Hermitian eigenproblem of L^-1 D L^-T); with ``vectors`` the eigenvectors and characters."""
+    k = np.atleast_2d(np.asarray(k, dtype=float))
+    lower = np.linalg.cholesky(fc.metric)
+    linv = np.linalg.inv(lower)
+    q = _character_matrices(fc) if vectors else None
+    crystal = fc.crystal
+    p, d = len(crystal.basis), crystal.dof
+    values, vecs, chars = [], [], []
+    for start in range(0, len(k), chunk):
+        dk = fc.dynamical_matrix(k[start:start + chunk])
+        reduced = linv @ dk @ linv.T
+        reduced = 0.5 * (reduced + np.conj(np.swapaxes(reduced, -1, -2)))
+        if not vectors:
+            values.append(np.linalg.eigvalsh(reduced))
+            continue
+        w, v = np.linalg.eigh(reduced)
+        u = linv.T @ v
+        ub = u.reshape(len(w), p, d, -1)
+        energy = np.einsum("ksim,csij,ksjm->kmc", np.conj(ub), q, ub).real
+        total = np.maximum(energy.sum(-1, keepdims=True), 1e-300)
+        values.append(w)
+        vecs.append(u)
+        chars.append(energy / total)
+    omega2 = np.concatenate(values)
+    # round-off zeros (|omega^2| below 1e-12 of the largest at that k, e.g. exactly flat
+    # Goldstone branches) are zeros, not instabilities
+    scale = np.max(np.abs(omega2), axis=1, keepdims=True)
+    omega2 = np.where(np.abs(omega2) <= 1e-12 * scale, 0.0, omega2)
+    if not vectors:
+        return Spectrum(k, omega2)
+    return Spectrum(k, omega2, np.concatenate(vecs), np.concatenate(chars))
+
+
+def path(crystal: Crystal, labels=None, points: int = 50):
+    """k points along the high-symmetry path ``labels`` (names of :data:`POINTS`, default
+    :data:`DEFAULT_PATHS`), ``points`` per segment: (k [nk, n] Cartesian, distance [nk],
+    ticks [(label, distance)])."""
+    n = crystal.n
+    labels = tuple(DEFAULT_PATHS[min(n, 3)] if labels is None else labels)
+    if len(labels) < 2:
+        raise ValueError("phonons.path needs at least two points (e.g. ['G', 'X'])")
+    corners = []
+    for label in labels:
+        name = "G" if label in ("Γ", "GAMMA", "Gamma") else label
+        if name not in POINTS:
+            raise ValueError(f"phonons.path: unknown point {label!r} (use {', '.join(POINTS)})")
+        full = np.asarray(POINTS[name])
+        if np.any(full[n:]):
+            raise ValueError(f"phonons.path: point {label!r} is not in the Brillouin zone of "
+                             f"dimension n = {n}")
+        frac = full[:n]
+        corners.append(frac * crystal.reciprocal)
+    ks, dist, ticks = [], [], [(labels[0], 0.0)]
+    offset = 0.0
+    last = len(corners) - 2
+    for m, (a, b, label) in enumerate(zip(corners[:-1], corners[1:], labels[1:], strict=True)):
+        t = np.linspace(0.0, 1.0, points, endpoint=m == last)
+        ks.append(a + t[:, None] * (b - a))
+        length = float(np.linalg.norm(b - a))
+        dist.append(offset + t * length)
+        offset += length
+        ticks.append((label, offset))
+    return np.concatenate(ks), np.concatenate(dist), ticks
+
+
+def mesh(crystal: Crystal, sizes) -> tuple[np.ndarray, np.ndarray]:
+    """Gamma-centred uniform mesh of the Brillouin zone, m_j points per axis, reduced by time
+    reversal (D(-k) = conj D(k), so omega(-k) = omega(k)): (k [K, n], weights [K]) with the
+    weights summing to prod m."""
+    sizes = [int(m) for m in sizes]
+    index = np.stack(np.meshgrid(*[np.arange(m) for m in sizes], indexing="ij"), -1)
+    index = index.reshape(-1, len(sizes))
+    flat = np.ravel_multi_index(index.T, sizes)
+    partner = np.ravel_multi_index(((-index) % np.asarray(sizes)).T, sizes)
+    keep = flat <= partner
+    weights = np.where(flat == partner, 1.0, 2.0)[keep]
+    frac = index[keep] / np.asarray(sizes, dtype=float)
+    frac = frac - (frac >= 0.5)
+    return frac * crystal.reciprocal, weights
+
+
+def density_of_states(omega, weights=None, bins: int = 400, width: float | None = None):
+    """Gaussian-broadened density of states of the signed frequencies ``omega`` [nk, modes]
+    with k weights (:func:`mesh`): (grid [bins], g [bins]) with integral the number of modes
+    per k (imaginary frequencies appear at negative omega); ``width``: 1% of the range."""
+    omega = np.atleast_2d(np.asarray(omega, dtype=float))
+    weights = np.ones(len(omega)) if weights is None else np.asarray(weights, dtype=float)
+    nk = float(np.sum(weights))
+    flat = omega.ravel()
+    lo, hi = float(min(flat.min(), 0.0)), float(flat.max())
+    span = max(hi - lo, 1e-12)
+    width = 0.01 * span if width is None else float(width)
+    grid = np.linspace(lo - 3 * width, hi + 3 * width, bins)
+    counts, edges = np.histogram(flat, bins=4 * bins, range=(grid[0], grid[-1]),
+                                 weights=np.repeat(weights, omega.shape[1]))
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    kernel = np.exp(-0.5 * ((grid[:, None] - centres[None]) / width) ** 2)
+    g = kernel @ counts / (math.sqrt(2 * math.pi) * width * nk)
+    return grid, g
+
+
+# --------------------------------------------------------------------------------------------
+# Long waves
+
+
+def _translations(fc: ForceConstants) -> np.ndarray:
+    crystal = fc.crystal
+    n, d, p = crystal.n, crystal.dof, len(crystal.basis)
+    t = np.zeros((p * d, n))
+    for a in range(p):
+        t[a * d:a * d + n, :] = np.eye(n)
+    return t
+
+
+def christoffel(fc: ForceConstants, direction, eps: float = 1e-4) -> np.ndarray:
+    """Gamma(k_hat) [n, n] = Re S(eps k_hat) / eps^2 (module docstring), k_hat a unit vector; the
+    error is O(eps^2) (Re S is even in k) plus round-off ~1e-16 / eps^2 relative."""
+    direction = np.asarray(direction, dtype=float)
+    direction = direction / np.linalg.norm(direction)
+    t = _translations(fc)
+    m = fc.metric
+    # M-orthogonal complement of the translations
+    mt = m @ t
+    qfull, _ = np.linalg.qr(np.concatenate([mt, np.eye(len(m))], axis=1))
+    q = qfull[:, t.shape[1]:len(m)]
+    scale = eps * float(np.min(fc.crystal.reciprocal))
+    dk = fc.dynamical_matrix(scale * direction)
+    a = t.T @ dk @ t
+    b = t.T @ dk @ q
+    c = q.T @ dk @ q
+    # exact zero modes of the internal block (Goldstone modes of a symmetry of V, e.g. uniform
+    # rotations of the shapes) decouple from the translations: the pseudo-inverse drops them
+    schur = a - b @ np.linalg.pinv(c, rcond=1e-13, hermitian=True) @ np.conj(b.T)
+    return np.real(schur) / scale**2
+
+
+def sound_speeds(fc: ForceConstants, direction) -> np.ndarray:
+    """Sound speeds [n] (ascending) along ``direction``: sqrt(eig(Gamma, T^T M T))."""
+    t = _translations(fc)
+    mass = t.T @ fc.metric @ t
+    gamma = christoffel(fc, direction)
+    lower = np.linalg.cholesky(mass)
+    li = np.linalg.inv(lower)
+    return signed_frequencies(np.linalg.eigvalsh(li @ gamma @ li.T))
+
+
+def voigt_pairs(n: int) -> list[tuple[int, int]]:
+    """Voigt order of symmetric index pairs: (0,0), (1,1), ..., then (1,2), (0,2), (0,1)."""
+    diagonal = [(i, i) for i in range(n)]
+    off = sorted(((i, j) for i in range(n) for j in range(i + 1, n)), key=lambda ij: -sum(ij))
+    return diagonal + off
+
+
+def elastic_constants(fc: ForceConstants) -> tuple[np.ndarray, float]:
+    """Effective elastic constants (Voigt matrix [v, v], v = n(n+1)/2, energy / length^n) from
+    the long waves: Gamma_ik(k) = V_cell A_ijkl k_j k_l, fitted to C with the minor and major
+    symmetries by least squares; returns (C, residual) where the residual (relative) is 0 for a
+    stress-free crystal."""
+    n = fc.crystal.n
+    volume = fc.crystal.cell_volume
+    eye = np.eye(n)
+    # S[i, k, j, l] = (A_ijkl + A_ilkj) / 2 from Gamma along e_j and e_j + e_l
+    single = [christoffel(fc, eye[j]) / volume for j in range(n)]
+    sym = np.zeros((n, n, n, n))
+    for j in range(n):
+        sym[:, :, j, j] = single[j]
+        for ll in range(j + 1, n):
+            both = christoffel(fc, eye[j] + eye[ll]) * 2 / volume  # k = e_j + e_l, |k|^2 = 2
+            sym[:, :, j, ll] = sym[:, :, ll, j] = 0.5 * (both - single[j] - single[ll])
+    pairs = voigt_pairs(n)
+    index = {}
+    for a, (i, j) in enumerate(pairs):
+        index[(i, j)] = index[(j, i)] = a
+    unknowns = [(a, b) for a in range(len(pairs)) for b in range(a, len(pairs))]
+    rows, rhs = [], []
+    for i in range(n):
+        for k in range(n):
+            for j in range(n):
+                for ll in range(n):
+                    row = np.zeros(len(unknowns))
+                    for (p1, p2), w in ((((i, j), (k, ll)), 0.5), (((i, ll), (k, j)), 0.5)):
+                        a, b = sorted((index[p1], index[p2]))
+                        row[unknowns.index((a, b))] += w
+                    rows.append(row)
+                    rhs.append(sym[i, k, j, ll])
+    coef, *_ = np.linalg.lstsq(np.asarray(rows), np.asarray(rhs), rcond=None)
+    c = np.zeros((len(pairs), len(pairs)))
+    for (a, b), v in zip(unknowns, coef, strict=True):
+        c[a, b] = c[b, a] = v
+    fitted = np.asarray(rows) @ coef
+    residual = float(np.linalg.norm(fitted - rhs) / max(np.linalg.norm(rhs), 1e-300))
+    return c, residual
+
+
+__all__ = [
+    "CHARACTERS", "DEFAULT_PATHS", "POINTS", "Crystal", "ForceConstants", "Spectrum",
+    "algebra_basis", "bonds", "christoffel", "density_of_states", "elastic_constants",
+    "find_cells", "force_constants", "kinetic_metric", "make_crystal", "mesh", "path", "relax",
+    "relax_cell",
+    "residual_forces", "signed_frequencies", "solve", "sound_speeds", "tile", "voigt_pairs",
+]

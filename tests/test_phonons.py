@@ -1,0 +1,403 @@
+"""Lattice dynamics of affine crystals (affinebody.phonons, affinebody phonons).
+
+Facts checked against independent derivations or methods:
+
+- the 1D chain (n = 1, nearest neighbours) has the closed-form 2x2 D(k) derived below by hand;
+- the frequencies are the peaks of the power spectra of p and of the affine spin Sigma of a
+  small-amplitude NVE run of the same crystal (simulate.run: an independent method);
+- the acoustic sum rule, the sound speed and the elastic constant of the chain against the
+  closed form and against the stress-strain response of a finite strain of the box (energy of
+  the strained box from the library's all-pairs sum, internal shape relaxed);
+- omega(k) is invariant under the material affine transformations phi -> phi B of a model that
+  has them, and under the square lattice's quarter turn k -> R k.
+"""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scipy.optimize import minimize_scalar
+
+from affinebody import kinetic, phonons
+from affinebody.potentials import build_potential, total_potential
+from affinebody.simulate import run
+from affinebody.state import State
+from affinebody.system import HamiltonianSystem
+
+# chain: V = sum_bonds [ka/2 (r - a)^2 + kd/2 (D - a)^2 + kb/2 (M1 - 1)^2] + sum_K kc/2 (det - 1)^2
+KA, KD, KB, KC, A, MASS, J = 2.0, 1.5, 0.8, 3.0, 1.0, 1.3, 0.7
+BODIES = 6
+
+
+def chain_potential(box):
+    pair = build_potential("pair", {"expr": f"{KA / 2} * (r - {A})**2 + {KD / 2} * (D - {A})**2 "
+                                            f"+ {KB / 2} * (M1 - 1)**2", "r_cut": 1.6},
+                           n=1, box=box)
+    dil = build_potential("dilatation", {"stiffness": KC, "form": "harmonic"}, n=1)
+    return total_potential([pair, dil])
+
+
+def chain_dynamical_matrix(k):
+    """Closed form, derived by hand. Harmonic energy of the bond (j, j + 1) with x_j = x0_j +
+    dx_j, phi_j = 1 + t_j: dr = dx_{j+1} - dx_j; D = |u| sqrt((phi_j^-2 + phi_{j+1}^-2)/2)
+    gives dD = dr - a/2 (t_j + t_{j+1}); M1 = phi_{j+1}/phi_j gives dM1 = t_{j+1} - t_j (both
+    orders alike); det gives t_j. With Bloch waves (X, T) e^{ikja}, e = e^{ika}, the energy per
+    cell is 1/2 [ka |e-1|^2 |X|^2 + kd |(e-1) X - a/2 (1+e) T|^2 + kb |e-1|^2 |T|^2 + kc |T|^2]."""
+    c, s = np.cos(k * A), np.sin(k * A)
+    return np.array([[(KA + KD) * 2 * (1 - c), 1j * KD * A * s],
+                     [-1j * KD * A * s, KD * A**2 / 2 * (1 + c) + 2 * KB * (1 - c) + KC]])
+
+
+@pytest.fixture(scope="module")
+def chain():
+    box = (BODIES * A,)
+    system = HamiltonianSystem(
+        kinetic.KineticEnergy(kinetic.DAlembertTranslational(MASS),
+                              kinetic.DAlembert(J * np.eye(1))),
+        chain_potential(box), "GL+")
+    x = A * np.arange(BODIES, dtype=float)[:, None]
+    phi = np.ones((BODIES, 1, 1))
+    crystal = phonons.make_crystal(system, x, phi, box)
+    return crystal, phonons.force_constants(crystal)
+
+
+def test_chain_closed_form(chain):
+    crystal, fc = chain
+    assert crystal.cells == (BODIES,) and len(crystal.basis) == 1 and crystal.dof == 2
+    assert np.abs(phonons.residual_forces(crystal)).max() < 1e-12
+    ks = np.linspace(-np.pi / A, np.pi / A, 9)
+    spectrum = phonons.solve(fc, ks[:, None])
+    mass = np.diag([MASS, J])
+    for k, omega2, in zip(ks, spectrum.omega2, strict=True):
+        exact = chain_dynamical_matrix(k)
+        assert np.abs(fc.dynamical_matrix(np.array([k])) - exact).max() < 1e-10
+        expected = np.sort(np.linalg.eigvals(np.linalg.solve(mass, exact)).real)
+        assert np.abs(omega2 - expected).max() < 1e-10 * expected.max()
+    # acoustic sum rule: one zero at Gamma, translational; the optical one is the internal mode
+    gamma = phonons.solve(fc, np.zeros((1, 1)))
+    assert abs(gamma.omega2[0, 0]) < 1e-12
+    assert gamma.omega2[0, 1] == pytest.approx((KD * A**2 + KC) / J, rel=1e-12)
+    assert gamma.character[0, 0, 0] == pytest.approx(1.0, abs=1e-12)
+    assert gamma.character[0, 1, 1] == pytest.approx(1.0, abs=1e-12)  # pure dilatation (n = 1)
+
+
+def test_chain_long_waves_and_finite_strain(chain):
+    """Sound speed and C11 from the long waves against the closed form (Schur complement of
+    the closed-form D(k) as k -> 0) and against a finite strain of the box."""
+    crystal, fc = chain
+    c11_exact = A * ((KA + KD) - KD**2 * A**2 / (KD * A**2 + KC))  # per length a
+    speed = phonons.sound_speeds(fc, [1.0])[0]
+    assert speed == pytest.approx(np.sqrt(c11_exact * A / MASS), rel=1e-7)
+    voigt, residual = phonons.elastic_constants(fc)
+    assert voigt[0, 0] == pytest.approx(c11_exact, rel=1e-7)
+    assert residual < 1e-10
+
+    def relaxed_energy_density(strain):
+        box = (BODIES * A * (1 + strain),)
+        potential = chain_potential(box)
+        x = (A * (1 + strain) * np.arange(BODIES, dtype=float))[:, None]
+
+        compiled = jax.jit(potential.energy)
+
+        def energy(f):
+            return float(compiled(x, np.full((BODIES, 1, 1), f)))
+
+        best = minimize_scalar(energy, bracket=(0.9, 1.0, 1.1), tol=1e-12)
+        return best.fun / (BODIES * A)
+
+    h = 1e-3
+    w0, wp, wm = (relaxed_energy_density(e) for e in (0.0, h, -h))
+    assert (wp + wm - 2 * w0) / h**2 == pytest.approx(voigt[0, 0], rel=1e-5)
+
+
+def test_diatomic_chain_two_bodies_per_cell():
+    """Alternating masses m1, m2 on a chain with springs k (r - a)^2 / 2 (nearest neighbours):
+    the cell found has 2 bodies, and omega^2 = k (1/m1 + 1/m2) -+ k sqrt((1/m1 + 1/m2)^2 -
+    4 sin^2(k_w a) / (m1 m2)) with the period 2a (textbook closed form); the shapes (held by
+    kc/2 (det - 1)^2, inertia J) give two flat branches kc / J."""
+    m1, m2, spring, kc, inertia, bodies = 1.0, 2.5, 3.0, 2.0, 0.4, 8
+    box = (float(bodies),)
+    pair = build_potential("pair", {"expr": f"{spring / 2} * (r - 1)**2", "r_cut": 1.5}, n=1,
+                           box=box)
+    dil = build_potential("dilatation", {"stiffness": kc, "form": "harmonic"}, n=1)
+    masses = np.where(np.arange(bodies) % 2 == 0, m1, m2)
+    system = HamiltonianSystem(
+        kinetic.KineticEnergy(kinetic.DAlembertTranslational(masses),
+                              kinetic.DAlembert(np.full((bodies, 1, 1), inertia))),
+        total_potential([pair, dil]), "GL+")
+    x = np.arange(bodies, dtype=float)[:, None]
+    crystal = phonons.make_crystal(system, x, np.ones((bodies, 1, 1)), box)
+    assert crystal.cells == (bodies // 2,) and len(crystal.basis) == 2
+    ks = np.linspace(0.0, np.pi / 2, 6)
+    omega2 = phonons.solve(phonons.force_constants(crystal), ks[:, None], vectors=False).omega2
+    s = 1 / m1 + 1 / m2
+    root = np.sqrt(s**2 - 4 * np.sin(ks) ** 2 / (m1 * m2))
+    expected = np.sort(np.stack([spring * (s - root), spring * (s + root),
+                                 np.full(6, kc / inertia), np.full(6, kc / inertia)], 1), 1)
+    assert np.abs(omega2 - expected).max() < 1e-10 * expected.max()
+
+
+def _bloch(signal, x0, k):
+    return np.einsum("tk...,k->t...", signal, np.exp(-1j * k * x0[:, 0]))
+
+
+def _peaks(series, dt, count):
+    """The ``count`` largest local maxima of the Hann-windowed power spectrum, refined by a
+    parabola through log power (angular frequencies)."""
+    window = np.hanning(len(series))
+    power = np.abs(np.fft.rfft((series - series.mean()) * window)) ** 2
+    omega = 2 * np.pi * np.fft.rfftfreq(len(series), dt)
+    inner = np.flatnonzero((power[1:-1] > power[:-2]) & (power[1:-1] > power[2:])) + 1
+    best = inner[np.argsort(power[inner])[::-1][:count]]
+    out = []
+    for i in best:
+        a, b, c = np.log(power[i - 1:i + 2])
+        out.append(omega[i] + 0.5 * (a - c) / (a - 2 * b + c) * (omega[1] - omega[0]))
+    return np.sort(out)
+
+
+def test_chain_frequencies_are_md_power_spectrum_peaks(chain):
+    """A small-amplitude NVE run (Strang splitting) of the 6-body chain: the peaks of the power
+    spectra of the Bloch projections of p and of the affine spin Sigma = phi pi at the
+    commensurate k = 2 pi m / (6 a) are the harmonic frequencies."""
+    crystal, fc = chain
+    rng = np.random.default_rng(3)
+    x0 = crystal.x
+    state = State(x0 + 1e-5 * rng.standard_normal(x0.shape),
+                  crystal.phi + 1e-5 * rng.standard_normal(crystal.phi.shape),
+                  1e-5 * rng.standard_normal(x0.shape),
+                  1e-5 * rng.standard_normal(crystal.phi.shape))
+    dt, steps = 0.02, 8192
+    traj = run(crystal.system, state, dt, steps, observers=())
+    p = np.asarray(traj.states.p)[:, :, 0]
+    spin = np.asarray(traj.states.phi @ traj.states.pi)[:, :, 0, 0]
+    worst = 0.0
+    for m in (1, 2, 3):
+        k = 2 * np.pi * m / (BODIES * A)
+        harmonic = np.sort(phonons.solve(fc, [[k]], vectors=False).omega[0])
+        both = _bloch(p, x0, k).real + _bloch(spin, x0, k).real
+        found = _peaks(both, dt, 2)
+        worst = max(worst, float(np.max(np.abs(found - harmonic) / harmonic)))
+    assert worst < 2e-3
+
+
+# ---------------------------------------------------------------------------------- n = 2
+
+
+def square_system(internal):
+    box = (3.0, 3.0)
+    pair = build_potential("pair", {"expr": "(r - 1)**2 + 0.3 * (M1 - 2)**2",
+                                    "r_cut": 1.5}, n=2, box=box)
+    dil = build_potential("dilatation", {"stiffness": 2.0}, n=2)
+    return HamiltonianSystem(kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0), internal),
+                             total_potential([pair, dil]), "GL+"), box
+
+
+@pytest.fixture(scope="module")
+def square():
+    system, box = square_system(kinetic.IsotropicAffine(0.5, 0.1, 0.05))
+    grid = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0), indexing="ij"), -1)
+    x = grid.reshape(-1, 2)
+    return system, x, box
+
+
+def test_square_acoustic_sum_rule_and_material_affine_invariance(square):
+    system, x, box = square
+    phi = np.broadcast_to(np.eye(2), (9, 2, 2))
+    crystal = phonons.make_crystal(system, x, phi, box)
+    assert crystal.cells == (3, 3) and crystal.dof == 6
+    fc = phonons.force_constants(crystal)
+    rng = np.random.default_rng(0)
+    ks = rng.uniform(-np.pi, np.pi, (6, 2))
+    reference = phonons.solve(fc, np.concatenate([np.zeros((1, 2)), ks]))
+    scale = np.abs(reference.omega2).max()
+    # Gamma: the n translations are zero modes (sum rule), and so are the 3 uniform sl(2)
+    # shears (Goldstone modes of the material SL invariance); the dilatation is held by det
+    assert np.abs(reference.omega2[0, :5]).max() < 1e-12 * scale
+    assert reference.omega2[0, 5] > 1e-3 * scale
+    assert np.sum(reference.character[0, :5, 0]) == pytest.approx(2.0, abs=1e-10)
+    assert reference.character[0, 5, 1] == pytest.approx(1.0, abs=1e-10)
+    # long waves: omega -> 0 linearly along the acoustic branches
+    small = phonons.solve(fc, [[1e-3, 0.0], [2e-3, 0.0]], vectors=False).omega[:, :2]
+    assert np.allclose(small[1] / small[0], 2.0, rtol=1e-5)
+    # is-af (73) and a potential in r, M_a, det are materially affine (SL, for det): phi -> phi B
+    b = np.array([[1.3, 0.4], [-0.2, 0.7]])
+    b = b / np.sqrt(np.linalg.det(b))
+    moved = phonons.make_crystal(system, x, phi @ b, box)
+    other = phonons.solve(phonons.force_constants(moved), np.concatenate([np.zeros((1, 2)), ks]))
+    assert np.abs(other.omega2 - reference.omega2).max() < 1e-10 * scale
+    # the quarter turn of the square lattice (the model is spatially and materially Euclidean)
+    turn = np.array([[0.0, -1.0], [1.0, 0.0]])
+    turned = phonons.solve(fc, ks @ turn.T, vectors=False)
+    assert np.abs(turned.omega2 - reference.omega2[1:]).max() < 1e-10 * scale
+
+
+def test_square_elastic_constants_against_finite_strain():
+    """V(r) = (r - 1)^2 (r - sqrt 2)^2 on the square lattice with first and second neighbours:
+    V' = 0 on both shells, so the crystal is stress-free and C_ijkl = sum_bonds V''(r) r_i r_j
+    r_k r_l / r^2 per cell (Born): C11 = V''(1) + V''(sqrt 2), C12 = C66 = V''(sqrt 2). And the
+    energy per cell of a finitely strained infinite crystal, sum_bonds V(|(Id + e) R|), summed
+    here in numpy, gives the same constants by central differences."""
+    box = (4.0, 4.0)
+    root2 = np.sqrt(2.0)
+    pair = build_potential("pair", {"expr": "(r - 1)**2 * (r - sqrt(2))**2", "r_cut": 1.6},
+                           n=2, box=box)
+    system = HamiltonianSystem(
+        kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0), kinetic.DAlembert(np.eye(2))),
+        pair, "GL+")
+    x = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0), indexing="ij"), -1).reshape(-1, 2)
+    crystal = phonons.make_crystal(system, x, np.broadcast_to(np.eye(2), (16, 2, 2)), box)
+    voigt, residual = phonons.elastic_constants(phonons.force_constants(crystal))
+    second = 2 * (root2 - 1) ** 2
+    assert residual < 1e-6
+    assert np.allclose(voigt, [[2 * second, second, 0], [second, 2 * second, 0],
+                               [0, 0, second]], rtol=0, atol=1e-7)
+
+    bonds = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, -1.0]])
+
+    def w(strain):
+        r = np.linalg.norm(bonds @ (np.eye(2) + strain).T, axis=1)
+        return np.sum((r - 1) ** 2 * (r - root2) ** 2)
+
+    h = 1e-4
+    strains = {0: np.array([[1.0, 0], [0, 0]]), 1: np.array([[0, 0], [0, 1.0]]),
+               2: np.array([[0, 0.5], [0.5, 0]])}  # Voigt: engineering shear gamma = 2 e_xy
+    finite = np.zeros((3, 3))
+    for a in range(3):
+        for b in range(3):
+            e1, e2 = strains[a] * h, strains[b] * h
+            finite[a, b] = (w(e1 + e2) - w(e1 - e2) - w(e2 - e1) + w(-e1 - e2)) / (4 * h * h)
+    assert np.allclose(voigt, finite, rtol=0, atol=1e-6)
+
+
+def test_rigid_rotors_on_so2_closed_form():
+    """Group SO(2): phi = rot(alpha), the chart theta = sqrt(2) alpha along E = [[0, -1], [1, 0]]
+    / sqrt(2). V = sum_bonds (r - 1)^2 - c K1 with K1 = Tr(phi_K^T phi_L) = 2 cos(alpha_K -
+    alpha_L): its gradient in GL is not zero at phi = Id (constraint forces), so the chart's
+    curvature term matters. By hand: c/2 dtheta^2 per bond, T = J/2 theta_dot^2 (d'Alembert,
+    isotropic J), so omega_rot^2 = 2 c sum_j (1 - cos k_j) / J; the springs give
+    omega^2 = 4 (1 - cos k_j) / m for the x_j polarization."""
+    c, inertia = 0.6, 0.3
+    box = (3.0, 3.0)
+    pair = build_potential("pair", {"expr": f"(r - 1)**2 - {c} * K1", "r_cut": 1.3}, n=2, box=box)
+    system = HamiltonianSystem(
+        kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0),
+                              kinetic.DAlembert(inertia * np.eye(2))), pair, "SO")
+    x = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0), indexing="ij"), -1).reshape(-1, 2)
+    crystal = phonons.make_crystal(system, x, np.broadcast_to(np.eye(2), (9, 2, 2)), box)
+    assert crystal.dof == 3 and np.abs(phonons.residual_forces(crystal)).max() < 1e-12
+    ks = np.random.default_rng(1).uniform(-np.pi, np.pi, (5, 2))
+    spectrum = phonons.solve(phonons.force_constants(crystal), ks)
+    expected = np.sort(np.stack([4 * (1 - np.cos(ks[:, 0])), 4 * (1 - np.cos(ks[:, 1])),
+                                 2 * c * np.sum(1 - np.cos(ks), axis=1) / inertia], 1), axis=1)
+    assert np.abs(spectrum.omega2 - expected).max() < 1e-10 * expected.max()
+    rotational = np.argmax(spectrum.character[..., 3], axis=1)
+    assert np.all(spectrum.character[np.arange(5), rotational, 3] > 1 - 1e-10)
+
+
+def test_kinetic_metric_of_the_bi_tensor_models():
+    """In the spatial chart xi = X phi0 the affine velocity is Omega = xi phi0^-1 = X for every
+    phi0, so r-af (71) has the metric R (as an n^2 x n^2 matrix) at any shape; l-af (70) has L
+    at phi0 = Id (Omega_hat = phi0^-1 X phi0 = X there)."""
+    rng = np.random.default_rng(5)
+    a = rng.standard_normal((4, 4))
+    tensor = (a @ a.T + 4 * np.eye(4)).reshape(2, 2, 2, 2)
+    x = np.zeros((1, 2))
+    phi0 = np.array([[[1.2, 0.3], [-0.1, 0.8]]])
+    for model, phi, name in ((kinetic.RightInvariant(tensor), phi0, "r-af"),
+                             (kinetic.LeftInvariant(tensor), np.eye(2)[None], "l-af")):
+        system = HamiltonianSystem(kinetic.KineticEnergy(kinetic.DAlembertTranslational(2.0),
+                                                         model), None, "GL+")
+        crystal = phonons.make_crystal(system, x, phi, (3.0, 3.0))
+        metric = phonons.kinetic_metric(crystal)[0]
+        assert np.allclose(metric[2:, 2:], tensor.reshape(4, 4), atol=1e-12), name
+        assert np.allclose(metric[:2, :2], 2.0 * np.eye(2), atol=1e-14)
+        assert np.allclose(metric[:2, 2:], 0.0, atol=1e-14)
+
+
+def test_af_af_and_non_equilibrium_are_refused(square, tmp_path):
+    system, x, box = square
+    affine = system.replace(kinetic=kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0),
+                                                          kinetic.AffineAffine(0.5, 0.1)))
+    crystal = phonons.make_crystal(affine, x, np.broadcast_to(np.eye(2), (9, 2, 2)), box)
+    with pytest.raises(ValueError, match="af-af"):
+        phonons.kinetic_metric(crystal)
+    config = tmp_path / "c.toml"
+    config.write_text(CHAIN_CONFIG.replace("box = [4.4]\n", ""), encoding="utf-8")
+    result = CliRunner().invoke(_main(), ["phonons", str(config), "--no-plot"])
+    assert result.exit_code == 1
+    assert "phonons need a periodic box: set system.box" in result.output
+
+
+def _main():
+    from affinebody.cli import main
+
+    return main
+
+
+CHAIN_CONFIG = """
+[system]
+n = 1
+bodies = 4
+box = [4.4]
+
+[kinetic]
+internal = "af-is"
+I = 0.5
+A = 0.0
+
+[[potential]]
+kind = "morse"
+depth = 1.0
+alpha = 2.0
+r0 = 1.0
+r_cut = 1.5
+
+[[potential]]
+kind = "dilatation"
+stiffness = 2.0
+volume = 1.2
+
+[initial]
+generator = "lattice"
+spacing = 1.1
+
+[run]
+dt = 0.01
+steps = 1
+
+[phonons]
+relax_cell = true
+points = 5
+mesh = [8]
+"""
+
+
+def test_cli_refuses_a_non_equilibrium_and_relaxes_it(tmp_path):
+    """det phi = 1 is not the minimum of the dilatation potential with volume 1.2: refused with
+    the residual force; with --relax (and phonons.relax_cell) the shapes go to det = 1.2 and the
+    stretched cell (spacing 1.1) to the Morse minimum r0 = 1, where the closed forms hold."""
+    config = tmp_path / "c.toml"
+    config.write_text(CHAIN_CONFIG, encoding="utf-8")
+    result = CliRunner().invoke(_main(), ["phonons", str(config), "--no-plot"])
+    assert result.exit_code == 1 and "not an equilibrium (largest residual force" in result.output
+    result = CliRunner().invoke(_main(), ["phonons", str(config), "--json", "--no-plot", "--relax",
+                                          "-o", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    omega, k = np.asarray(doc["omega"]), np.asarray(doc["k"])
+    assert k.shape == (5, 1) and omega.shape == (5, 2)
+    assert np.all(np.diff(omega, axis=1) >= 0) and k[-1, 0] == pytest.approx(np.pi)
+    # Morse chain: acoustic omega(k) = 2 sqrt(V''/m) |sin(k a / 2)| with V'' = 2 depth alpha^2;
+    # internal: V = s/2 ln(det/v0)^2 and T = I/2 (xi/phi)^2 in n = 1, so omega^2 = s / I
+    acoustic = 2 * np.sqrt(8.0) * np.abs(np.sin(k[:, 0] / 2))
+    expected = np.sort(np.stack([acoustic, np.full(5, np.sqrt(2.0 / 0.5))], axis=1), axis=1)
+    assert np.allclose(omega, expected, rtol=1e-9, atol=1e-7)
+    assert np.asarray(doc["character"]["shares"]).shape == (5, 2, 4)
+    assert doc["crystal"]["relaxed"] and doc["crystal"]["residual_force"] < 1e-8
+    assert doc["crystal"]["lattice"] == pytest.approx([1.0], rel=1e-8)
+    assert (tmp_path / "out" / "phonons.json").exists()
