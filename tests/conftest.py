@@ -32,3 +32,17 @@ settings.register_profile(
 )
 settings.register_profile("ci", parent=settings.get_profile("default"), derandomize=True)
 settings.load_profile("ci" if os.environ.get("CI") else "default")
+
+#: Test files that take longest (seconds of test time measured on the 2-core machine, largest
+#: first). ``make test`` distributes whole files over two workers (--dist loadfile) in
+#: collection order; starting with the longest files keeps a long file from starting last while
+#: the other worker idles (longest-processing-time-first). Files not listed keep their order.
+LONGEST_FIRST = ("test_constraints", "test_nonholonomic", "test_integrators", "test_kinetic",
+                 "test_pair_kernels", "test_cli_neighbor_list", "test_crash_safety",
+                 "test_linalg", "test_neighbor_runs", "test_potentials",
+                 "test_quantum_operators", "test_sweep", "test_studies", "test_quantum_limits")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))  # stable: order kept
