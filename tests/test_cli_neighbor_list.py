@@ -301,7 +301,7 @@ def sweep_config(mode: str):
     # spacing 1.2: the diagonal neighbours (1.70) lie just outside the list radius (1.55), so
     # moving bodies bring new pairs into it
     wide = float(1.2 * SIDE)
-    text = (crystal(mode).replace(f"steps = {STEPS}", "steps = 40")
+    text = (crystal(mode).replace(f"steps = {STEPS}", "steps = 30")
             .replace("spacing = 1.0", "spacing = 1.2")
             .replace(f"box = [{float(SIDE)}, {float(SIDE)}]", f"box = [{wide}, {wide}]"))
     return check_config(parse_config(text + SWEEP_TABLE))

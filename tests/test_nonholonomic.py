@@ -89,8 +89,8 @@ def test_constraint_at_round_off_and_energy_bounded(internal, group, kind):
     assert float(nh.residuals(system.kinetic, state, kind, group)) < 1e-14
     evolve = tracker(system)
     e0 = float(system.hamiltonian(state))
-    mid, first_error, first_res = evolve(state, 0.05, 300)
-    final, later_error, later_res = evolve(mid, 0.05, 900)
+    mid, first_error, first_res = evolve(state, 0.05, 150)
+    final, later_error, later_res = evolve(mid, 0.05, 450)
     assert max(float(first_res), float(later_res)) < 1e-13
     if group == "SL":
         assert float(jnp.max(jnp.abs(jnp.linalg.det(final.phi) - 1.0))) < 1e-13
