@@ -88,3 +88,29 @@ def test_any_mutated_config_is_accepted_or_refused_in_one_line(tmp_path_factory,
         assert not message.startswith("internal error"), (text, message)
     else:
         assert ": ok (" in result.output, (text, result.output)
+
+
+@settings(max_examples=3, deadline=60_000, suppress_health_check=[HealthCheck.too_slow])
+@given(text=mutated())
+def test_a_mutated_config_runs_or_is_refused_and_never_leaves_a_broken_file(tmp_path_factory,
+                                                                            text):
+    """The same mutations through ``affinebody run`` (a few steps): exit 0 with a trajectory
+    that opens and holds every frame, or a one-line refusal (exit 1) or stop (exit 3) that
+    leaves either no file or one that opens."""
+    from affinebody.h5md import read_trajectory
+
+    enable_x64()
+    folder = tmp_path_factory.mktemp("fuzzrun")
+    path, out = folder / "config.toml", folder / "out.h5"
+    path.write_text(text, encoding="utf-8")
+    result = CliRunner().invoke(CLI, ["run", str(path), "-o", str(out), "--steps", "40",
+                                      "--quiet"])
+    message = result.stderr.strip()
+    assert result.exit_code in (0, 1, 3), (text, result.output, message, result.exception)
+    assert "Traceback" not in result.output + message
+    if result.exit_code == 0:
+        assert read_trajectory(out).frames >= 2
+    else:
+        assert message and "\n" not in message and not message.startswith("internal error")
+        if out.exists():
+            read_trajectory(out)  # opens: never half-written
