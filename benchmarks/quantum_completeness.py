@@ -11,44 +11,66 @@ time, shells searched, blocks skipped by their bound, whether the list is certif
 number of unconverged states (NaN in their place), the worst error of the converged ones, and
 the number of genuine levels among the K lowest that are missing or replaced (must be 0).
 
-Run: OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/quantum_completeness.py
+Run: .venv/bin/python benchmarks/quantum_completeness.py [--quick]
+(each row is the whole ``affinebody spectrum`` command, start-up included)
 """
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
-import jax
 import numpy as np
 
-from affinebody.quantum import spectra as sp
-from affinebody.quantum.config import compile_potential
-
-jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_quantum_completeness import SHEAR_WELL, shear_well_exact  # noqa: E402
 
+AFFINEBODY = str(Path(sys.executable).parent / "affinebody")  # the installed command
+CONFIG = """[system]
+n = 2
+[quantum]
+hbar = 1.0
+kinetic = "af-is"
+I = 1.0
+A = 0.2
+B = 0.1
+potential = "{potential}"
+basis_size = {basis}
+max_spin = {max_spin}
+"""
+ROWS = [(30, 24, 40), (60, 24, 40), (60, 24, 80), (30, 40, 40), (60, 40, 80)]
+
 
 def main() -> None:
+    """``affinebody spectrum CONFIG --levels K --json`` for each row (``--quick``: the first and
+    third), timed as a whole command, its list compared with the closed form."""
     exact = np.array([E for E, _, _ in shear_well_exact(max_shell=90, top=3.0)])
-    V = compile_potential(SHEAR_WELL, 2)
-    print(f"{'K':>3} {'basis':>5} {'max_spin':>8} {'time s':>7} {'shells':>6} {'skipped':>7} "
-          f"{'certified':>9} {'unknown':>7} {'worst err':>9} {'wrong':>5}")
-    for K, basis, max_spin in [(30, 24, 40), (60, 24, 40), (60, 24, 80), (30, 40, 40),
-                               (60, 40, 80)]:
-        t0 = time.perf_counter()
-        s = sp.solve("af-is", 2, V, 1.0, I=1.0, A=0.2, B=0.1, levels=K,
-                     settings=sp.Settings(basis_size=basis, max_spin=max_spin))
-        elapsed = time.perf_counter() - t0
-        got = np.array(s.energies(K))
-        known = ~np.isnan(got)
-        worst = float(np.max(np.abs(got[known] - exact[:K][known]))) if known.any() else np.nan
-        wrong = int(np.sum(np.abs(got[known] - exact[:K][known]) > 1e-6)) + (K - len(got))
-        print(f"{K:>3} {basis:>5} {max_spin:>8} {elapsed:>7.1f} "
-              f"{s.settings['shells_searched']:>6} {s.settings['sectors_pruned']:>7} "
-              f"{s.certified!s:>9} {int((~known).sum()):>7} {worst:>9.1e} {wrong:>5}")
+    rows = [ROWS[0], ROWS[2]] if "--quick" in sys.argv else ROWS
+    print(f"{'K':>3} {'basis':>5} {'max_spin':>8} {'command s':>9} {'certified':>9} "
+          f"{'unknown':>7} {'worst err':>9} {'wrong':>5}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for K, basis, max_spin in rows:
+            path = Path(tmp) / f"c{K}_{basis}_{max_spin}.toml"
+            path.write_text(CONFIG.format(potential=SHEAR_WELL, basis=basis,
+                                          max_spin=max_spin))
+            t0 = time.perf_counter()
+            done = subprocess.run([AFFINEBODY, "spectrum", str(path), "--levels", str(K),
+                                   "--json"], capture_output=True, text=True, check=True,
+                                  env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+            elapsed = time.perf_counter() - t0
+            data = json.loads(done.stdout)
+            got = np.array([np.nan if e is None else e for e in data["energies"]], dtype=float)
+            known = ~np.isnan(got)
+            diff = np.abs(got[known] - exact[: len(got)][known])
+            worst = float(diff.max()) if known.any() else np.nan
+            wrong = int(np.sum(diff > 1e-6)) + (K - len(got))
+            print(f"{K:>3} {basis:>5} {max_spin:>8} {elapsed:>9.1f} {data['certified']!s:>9} "
+                  f"{int((~known).sum()):>7} {worst:>9.1e} {wrong:>5}", flush=True)
 
 
 if __name__ == "__main__":

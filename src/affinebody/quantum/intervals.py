@@ -28,6 +28,7 @@ interval) encloses everything: [-inf, inf], so it never yields a false bound.
 
 from __future__ import annotations
 
+import abc
 import ast
 import math
 from dataclasses import dataclass
@@ -230,22 +231,25 @@ class Value:
                      const=None if self.const is None else c * self.const, qq=c * self.qq)
 
 
-class Cells:
+class Cells(abc.ABC):
     """The cells of a reduced domain: enclosures of lam^d, tau^e, a sigma + b x and the
-    variables of the potential (subclasses)."""
+    variables of the potential (``HaarCells``, ``LebesgueCells``)."""
 
+    @abc.abstractmethod
     def lam_power(self, d: float) -> Interval:
-        raise NotImplementedError
+        """Enclosure of lam^d on each cell."""
 
+    @abc.abstractmethod
     def tau_power(self, e: float) -> Interval:
-        raise NotImplementedError
+        """Enclosure of tau^e on each cell."""
 
+    @abc.abstractmethod
     def linear(self, a: float, b: float, qq: float = 0.0) -> Interval:
         """Enclosure of qq sigma^2 + a sigma + b x on each cell."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def variables(self) -> dict[str, Value]:
-        raise NotImplementedError
+        """The potential's variables on the cells."""
 
     def flatten(self, v: Value) -> Interval:
         """The plain interval enclosing v on each cell."""
