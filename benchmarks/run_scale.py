@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import resource
 import shutil
 import subprocess
 import sys
@@ -36,7 +37,12 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-AFFINEBODY = [str(Path(sys.executable).parent / "affinebody")]  # the installed command
+# the installed command; where only the package is on the path (a bare GPU machine with the
+# package in PYTHONPATH), the same entry point through the interpreter
+_SCRIPT = Path(sys.executable).parent / "affinebody"
+AFFINEBODY = ([str(_SCRIPT)] if _SCRIPT.is_file() else
+              [sys.executable, "-c", "import sys; from affinebody.cli import main; "
+               "sys.argv[0] = 'affinebody'; main()"])
 LAMMPS_INPUT = ROOT.parent / "shared" / "bench" / "lammps" / "in.gb"
 
 CONFIG = """\
@@ -90,22 +96,32 @@ def write_config(folder: Path, side: int, steps: int, every: int) -> Path:
 
 
 def timed(command: list[str], env: dict | None = None) -> tuple[float, str, int]:
-    """(wall seconds, stdout + stderr, peak RSS of the command in kB, from GNU time)."""
+    """(wall seconds, stdout + stderr, peak RSS of the command in kB, from GNU time; without
+    /usr/bin/time, the largest peak of any child so far, from getrusage)."""
+    gnu_time = Path("/usr/bin/time").is_file()
     start = time.perf_counter()
-    done = subprocess.run(["/usr/bin/time", "-f", "MAXRSS_KB %M", *command],
-                          capture_output=True, text=True, env=env, check=False)
+    done = subprocess.run(["/usr/bin/time", "-f", "MAXRSS_KB %M", *command] if gnu_time
+                          else command, capture_output=True, text=True, env=env, check=False)
     wall = time.perf_counter() - start
     if done.returncode:
         raise SystemExit(f"{' '.join(command)} failed:\n{done.stderr[-2000:]}")
-    peak = int(re.findall(r"MAXRSS_KB (\d+)", done.stderr)[-1])
+    if gnu_time:
+        peak = int(re.findall(r"MAXRSS_KB (\d+)", done.stderr)[-1])
+    else:
+        peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     return wall, done.stdout + done.stderr, peak
+
+
+def pinned(cores: str, command: list[str]) -> list[str]:
+    """``taskset -c CORES COMMAND`` where taskset exists, else the command itself."""
+    return ["taskset", "-c", cores, *command] if shutil.which("taskset") else command
 
 
 def ours(config: Path, out: Path, cores: str, threads: int) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS=str(threads))
     out.unlink(missing_ok=True)
-    wall, text, peak = timed(["taskset", "-c", cores, *AFFINEBODY, "run", str(config), "-o",
-                              str(out), "--verbose"], env)
+    wall, text, peak = timed(pinned(cores, [*AFFINEBODY, "run", str(config), "-o", str(out),
+                                            "--verbose"]), env)
     match = re.search(r"compiling ([\d.]+) s, integrating ([\d.]+) s \(([\d.e+]+) steps/s, "
                       r"([\d.e+]+) body-steps/s\)", text)
     if not match:
@@ -171,14 +187,13 @@ def memory(sizes: list[int]) -> None:
 
 
 def single(bodies: int, steps: int) -> None:
-    import jax
-
     side = round(bodies ** (1 / 3))
     with tempfile.TemporaryDirectory() as tmp:
         config = write_config(Path(tmp), side, steps, every=steps)
         cores = ",".join(map(str, sorted(os.sched_getaffinity(0))))
         result = ours(config, Path(tmp) / "s.h5", cores, len(os.sched_getaffinity(0)))
-    print(f"{side**3} bodies, {steps} steps on {jax.devices()[0].device_kind}: "
+    device = re.search(r"^device: (.*)$", result["text"], re.M)[1]
+    print(f"{side**3} bodies, {steps} steps on {device}: "
           f"{result['rate']:.3g} body-steps/s in the loop, whole command {result['wall']:.1f} s, "
           f"compile {result['compile']:.1f} s")
     print(result["text"])

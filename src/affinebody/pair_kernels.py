@@ -64,7 +64,11 @@ from jax import lax
 from affinebody import _linalg as linalg
 from affinebody.space import Space
 
+#: Pairs per pass of the JAX kernel on a CPU (where it runs without Numba, and in tests).
 PAIR_CHUNK = 1 << 16
+#: Pairs per pass of the JAX kernel on a GPU: every pass is a handful of kernel launches and
+#: one trip of a device loop, so passes must be few and large (memory ~1 kB per pair of a pass).
+ACCELERATOR_PAIR_CHUNK = 1 << 22
 #: Fixed parts of a chunk of pairs in the host kernel, each with its own per-body sums, added
 #: in a fixed order (threads run the parts; the result is the same on any number of cores).
 HOST_PARTITIONS = 2
@@ -127,12 +131,24 @@ def _scalar_values_and_partials(pot, n: int):
     return run
 
 
+def pair_chunk() -> int:
+    """Pairs per pass of :func:`energy_and_gradients` on the default backend."""
+    return PAIR_CHUNK if jax.default_backend() == "cpu" else ACCELERATOR_PAIR_CHUNK
+
+
+def _mm(a: jax.Array, b: jax.Array) -> jax.Array:
+    """a @ b for stacks of tiny matrices as elementwise products and a sum: XLA fuses it with
+    its neighbours (a batched dot of 3 x 3 blocks would be a separate, slow library call on a
+    GPU)."""
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+
+
 def _matrix_power_traces(m: jax.Array, powers: int) -> tuple:
     """Tr(m^a) for a = 1..powers and the list of matrix powers m^0..m^(powers-1)."""
     eye = jnp.broadcast_to(jnp.eye(m.shape[-1]), m.shape)
     mats = [eye]
     for _ in range(1, powers):
-        mats.append(mats[-1] @ m)
+        mats.append(_mm(mats[-1], m))
     traces = [jnp.einsum("...ij,...ji->...", mats[a], m) for a in range(powers)]
     return jnp.stack(traces, axis=-1), mats
 
@@ -168,13 +184,13 @@ def _chunk_contributions(pot, space: Space, n, x, phi, binv, det, i, j, valid):
     if "det" in plain:
         base["det"] = det[j] / det[i]
     if k_powers:
-        g_mat = jnp.swapaxes(phi_k, -1, -2) @ phi_l
+        g_mat = _mm(jnp.swapaxes(phi_k, -1, -2), phi_l)
         base["K"], k_mats = _matrix_power_traces(g_mat, k_powers)
     if m_powers:
-        gamma = b_k @ phi_l
+        gamma = _mm(b_k, phi_l)
         base["M"], m_mats = _matrix_power_traces(gamma, m_powers)
         if swapped:
-            gamma_s = b_l @ phi_k
+            gamma_s = _mm(b_l, phi_k)
             base["Ms"], ms_mats = _matrix_power_traces(gamma_s, m_powers)
     pad = _padding_base(pot, n, u.shape[0], plain, k_powers, m_powers, swapped)
     base = {key: jnp.where(valid.reshape(valid.shape + (1,) * (v.ndim - 1)), v, pad[key])
@@ -199,24 +215,25 @@ def _chunk_contributions(pot, space: Space, n, x, phi, binv, det, i, j, valid):
         g_detk = -partials["det"] * base["det"] / det[i]
     if k_powers:
         w = _weighted(k_mats, partials["K"])
-        g_phik = g_phik + phi_l @ w
-        g_phil = g_phil + phi_k @ jnp.swapaxes(w, -1, -2)
+        g_phik = g_phik + _mm(phi_l, w)
+        g_phil = g_phil + _mm(phi_k, jnp.swapaxes(w, -1, -2))
     if m_powers:
         w = _weighted(m_mats, partials["M"])
-        g_bk = g_bk + jnp.swapaxes(phi_l @ w, -1, -2)
-        g_phil = g_phil + jnp.swapaxes(w @ b_k, -1, -2)
+        g_bk = g_bk + jnp.swapaxes(_mm(phi_l, w), -1, -2)
+        g_phil = g_phil + jnp.swapaxes(_mm(w, b_k), -1, -2)
         if swapped:
             w = _weighted(ms_mats, partials["Ms"])
-            g_bl = g_bl + jnp.swapaxes(phi_k @ w, -1, -2)
-            g_phik = g_phik + jnp.swapaxes(w @ b_l, -1, -2)
+            g_bl = g_bl + jnp.swapaxes(_mm(phi_k, w), -1, -2)
+            g_phik = g_phik + jnp.swapaxes(_mm(w, b_l), -1, -2)
     return jnp.sum(energies), (g_u, g_phik, g_phil, g_bk, g_bl, g_detk, g_detl)
 
 
-def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int = PAIR_CHUNK):
+def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | None = None):
     """(E, dV/dx [N, n], dV/dphi [N, n, n]) of ``pot`` summed over the pairs (i[p], j[p]),
     p < count (JAX; jit with ``pot``, ``space``, ``chunk`` static). Pairs beyond ``count`` are
-    padding. Memory: one chunk of pairs at a time."""
+    padding. Memory: one chunk of pairs at a time (default :func:`pair_chunk`)."""
     _require_cutoff(pot)
+    chunk = pair_chunk() if chunk is None else chunk
     bodies, n = x.shape
     binv = linalg.inv(phi)
     det = linalg.det(phi)
@@ -232,14 +249,17 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int = PA
         energy, g_x, g_phi, g_b, g_det = carry
         ii, jj, idx = block
         valid = idx < count
-        ii = jnp.where(valid, ii, 0)
-        jj = jnp.where(valid, jj, jnp.minimum(1, bodies - 1))
         e, (g_u, g_phik, g_phil, g_bk, g_bl, g_detk, g_detl) = _chunk_contributions(
-            pot, space, n, x, phi, binv, det, ii, jj, valid)
-        g_x = g_x.at[ii].add(g_u).at[jj].add(-g_u)
-        g_phi = g_phi.at[ii].add(g_phik).at[jj].add(g_phil)
-        g_b = g_b.at[ii].add(g_bk).at[jj].add(g_bl)
-        g_det = g_det.at[ii].add(g_detk).at[jj].add(g_detl)
+            pot, space, n, x, phi, binv, det, jnp.where(valid, ii, 0),
+            jnp.where(valid, jj, jnp.minimum(1, bodies - 1)), valid)
+        # padding pairs add nothing: their index is out of range and dropped (sending them to
+        # one body instead serialises millions of atomic adds on a GPU)
+        ii, jj = jnp.where(valid, ii, bodies), jnp.where(valid, jj, bodies)
+        add = lambda total, index, value: total.at[index].add(value, mode="drop")  # noqa: E731
+        g_x = add(add(g_x, ii, g_u), jj, -g_u)
+        g_phi = add(add(g_phi, ii, g_phik), jj, g_phil)
+        g_b = add(add(g_b, ii, g_bk), jj, g_bl)
+        g_det = add(add(g_det, ii, g_detk), jj, g_detl)
         return (energy + e, g_x, g_phi, g_b, g_det), None
 
     init = (jnp.zeros(()), jnp.zeros_like(x), jnp.zeros_like(phi), jnp.zeros_like(phi),
@@ -502,6 +522,7 @@ def pair_sum(pot, space: Space, x, phi, i, j, count):
 
 
 __all__ = [
-    "PAIR_CHUNK", "energy_and_gradients", "energy_and_gradients_host", "host_kernel_in_use",
-    "host_threads", "neighbor_energy", "padding_value", "pair_sum", "scalar_columns",
+    "ACCELERATOR_PAIR_CHUNK", "PAIR_CHUNK", "energy_and_gradients", "energy_and_gradients_host",
+    "host_kernel_in_use", "host_threads", "neighbor_energy", "padding_value", "pair_chunk",
+    "pair_sum", "scalar_columns",
 ]

@@ -111,6 +111,10 @@ def run(config_file, output, steps, resume, overwrite, quiet, verbose):
         for line in summary.lines():
             click.echo(line)
     if verbose:
+        import jax
+
+        device = jax.devices()[0]
+        click.echo(f"device: {device.platform} {device.device_kind} (JAX {jax.__version__})")
         click.echo("phases:")
         click.echo(f"  {'load and validate':<22} {loaded:9.3f} s")
         for line in summary.phase_lines():

@@ -1,0 +1,110 @@
+"""Where a step of ``affinebody run`` goes: the parts of the loop timed as compiled functions.
+
+The system is the one of ``run_scale.py`` (3D lattice, d'Alembert + af-is, the affine pair
+potential with D and M1, a dilatation term, neighbour list on), built by the same
+``config.build`` that ``affinebody run`` calls. Timed, each as a jitted function of the
+product, median of repeated calls after one warm-up (compile excluded, reported apart):
+
+- ``forces``: all generalised forces (the pair kernel of the backend and the one-body terms);
+- ``list build``: a full neighbour-list build (``neighbors.build``);
+- ``list check``: the displacement test run every step (``neighbors.needs_rebuild``);
+- ``step``: one whole integrator step as the loop runs it (``affinebody run``'s summary line
+  over a longer run is the reference; this isolates one step).
+
+``--pair-chunks`` and ``--candidate-chunks`` time the forces and the build at other pass sizes
+of the JAX kernels (how ``pair_kernels.ACCELERATOR_PAIR_CHUNK`` and
+``neighbors._ACCELERATOR_CANDIDATES_PER_CHUNK`` were chosen on a GPU).
+
+    .venv/bin/python benchmarks/step_phases.py --bodies 4096
+    python benchmarks/step_phases.py --bodies 1000000 --pair-chunks 18 20 22 24   # on a GPU
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from run_scale import write_config  # noqa: E402
+
+
+def timed(function, *args, repeats: int = 5) -> tuple[float, float]:
+    """(first call s, median of ``repeats`` later calls s), results waited for."""
+    import jax
+
+    start = time.perf_counter()
+    jax.block_until_ready(function(*args))
+    first = time.perf_counter() - start
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(function(*args))
+        times.append(time.perf_counter() - start)
+    return first, statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--bodies", type=int, default=4096)
+    parser.add_argument("--pair-chunks", type=int, nargs="*", default=[],
+                        help="log2 of pair-kernel pass sizes to compare")
+    parser.add_argument("--candidate-chunks", type=int, nargs="*", default=[],
+                        help="log2 of list-build pass sizes to compare")
+    args = parser.parse_args()
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from affinebody import neighbors as nb
+    from affinebody import pair_kernels as pk
+    from affinebody.config import build, load_config
+    from affinebody.integrators import get_integrator
+
+    side = round(args.bodies ** (1 / 3))
+    with tempfile.TemporaryDirectory() as tmp:
+        config = load_config(write_config(Path(tmp), side, steps=10, every=10))
+    start = time.perf_counter()
+    built = build(config)
+    stages = ", ".join(f"{k} {v:.2f}" for k, v in built.timings.items())
+    print(f"{side**3} bodies on {jax.devices()[0].device_kind}; set-up "
+          f"{time.perf_counter() - start:.2f} s ({stages})")
+    system, state = built.system, built.state
+    spec, lst = built.neighbors
+    print(f"list: capacity {lst.i.shape[0]} pairs, {int(lst.count)} in use "
+          f"({int(lst.count) / side**3:.1f} per body)")
+
+    def report(name, first, median):
+        print(f"  {name:<34} {median * 1e3:10.3f} ms   (first call {first:.2f} s)", flush=True)
+
+    forces = jax.jit(system.forces)
+    report("forces", *timed(forces, state, lst))
+    for log2 in args.pair_chunks:
+        pk.ACCELERATOR_PAIR_CHUNK = pk.PAIR_CHUNK = 1 << log2
+        # a new function object, so that jit traces again with the new pass size
+        report(f"forces, pair pass 2^{log2}",
+               *timed(jax.jit(lambda s, nbrs: system.forces(s, nbrs)), state, lst))
+    build_jit = jax.jit(nb.build, static_argnums=0)
+    report("list build", *timed(build_jit, spec, state.x, state.phi))
+    for log2 in args.candidate_chunks:
+        nb._ACCELERATOR_CANDIDATES_PER_CHUNK = nb._CANDIDATES_PER_CHUNK = 1 << log2
+        report(f"list build, pass 2^{log2}",
+               *timed(jax.jit(lambda x, phi: nb.build(spec, x, phi)), state.x, state.phi))
+    check = jax.jit(nb.needs_rebuild, static_argnums=0)
+    report("list check", *timed(check, spec, lst, state.x, state.phi))
+    method = get_integrator(config.run.integrator)
+    f0 = system.forces(state, lst)
+
+    @jax.jit
+    def step(s, f):
+        return method.advance(system, s, f, config.run.dt, spec, lst)
+
+    report("step (kick, drift, list, forces)", *timed(step, state, f0))
+
+
+if __name__ == "__main__":
+    main()
