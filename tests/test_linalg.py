@@ -255,3 +255,23 @@ def test_expm_of_a_large_batch_compiles_without_lapack_calls():
     x = jnp.zeros((20000, 3, 3))
     assert lapack_calls(jax.jit(la.expm).lower(x).compile().as_text()) == []
     assert lapack_calls(jax.jit(jax.scipy.linalg.expm).lower(x).compile().as_text())
+
+
+def test_fused_products_of_the_gpu_path_are_the_same_matrices(monkeypatch):
+    """The GPU form of tiny products (elementwise, ``fused_products``) computes the same
+    matrices as ``@``: products, the exponential and an exact af-is drift agree to round-off
+    with the CPU form, exercised here on the CPU by forcing the switch."""
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(size=(2, 40, 3, 3))
+    phi = np.eye(3) + 0.2 * rng.normal(size=(40, 3, 3))
+    state = State(jnp.zeros((40, 3)), jnp.asarray(phi), jnp.zeros((40, 3)),
+                  jnp.asarray(rng.normal(size=(40, 3, 3))))
+    model = kin.AffineIsotropic(1.0, 0.2, 0.1)
+    plain = (la.matmul(a, b), la.expm(3.0 * a), model.flow(state, 0.3))
+    monkeypatch.setattr(la, "fused_products", lambda: True)
+    fused = (la.matmul(a, b), la.expm(3.0 * a), model.flow(state, 0.3))
+    np.testing.assert_allclose(fused[0], np.asarray(a) @ np.asarray(b), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(fused[1], plain[1], rtol=1e-13, atol=1e-13 * np.max(
+        np.abs(plain[1])))
+    for mine, theirs in zip(fused[2], plain[2], strict=True):
+        np.testing.assert_allclose(mine, theirs, rtol=1e-12, atol=1e-13)

@@ -682,15 +682,17 @@ class _IsotropicAffineFamily:
         return expm(casimir), expm(rotation)
 
     def _flow_left(self, state: State, h) -> State:
-        c, r = self._group_elements(state.pi @ state.phi, h)
+        mm = linalg.matmul
+        c, r = self._group_elements(mm(state.pi, state.phi), h)
         # r is orthogonal (exponential of a skew matrix): r^-1 = r^T.
-        pi = transpose(r) @ linalg.solve(c, state.pi)
-        return state._replace(phi=state.phi @ c @ r, pi=pi)
+        pi = mm(transpose(r), linalg.solve(c, state.pi))
+        return state._replace(phi=mm(mm(state.phi, c), r), pi=pi)
 
     def _flow_right(self, state: State, h) -> State:
-        c, r = self._group_elements(state.phi @ state.pi, h)
-        pi = transpose(linalg.solve(transpose(c), transpose(state.pi))) @ transpose(r)
-        return state._replace(phi=r @ c @ state.phi, pi=pi)
+        mm = linalg.matmul
+        c, r = self._group_elements(mm(state.phi, state.pi), h)
+        pi = mm(transpose(linalg.solve(transpose(c), transpose(state.pi))), transpose(r))
+        return state._replace(phi=mm(mm(r, c), state.phi), pi=pi)
 
     def _check_region(self, model: str, n: int | None) -> None:
         if not all(is_concrete(v) for v in self._iab()):

@@ -136,11 +136,7 @@ def pair_chunk() -> int:
     return PAIR_CHUNK if jax.default_backend() == "cpu" else ACCELERATOR_PAIR_CHUNK
 
 
-def _mm(a: jax.Array, b: jax.Array) -> jax.Array:
-    """a @ b for stacks of tiny matrices as elementwise products and a sum: XLA fuses it with
-    its neighbours (a batched dot of 3 x 3 blocks would be a separate, slow library call on a
-    GPU)."""
-    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+_mm = linalg.matmul
 
 
 def _matrix_power_traces(m: jax.Array, powers: int) -> tuple:
