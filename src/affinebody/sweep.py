@@ -258,8 +258,9 @@ def scan_points(config: Config) -> list[ScanPoint]:
 
 @dataclass(frozen=True)
 class Task:
-    """One unit of work: samples ``start .. start + count - 1`` of one point, padded to ``size``
-    with copies of the last sample (discarded) so that all tasks of a point share one shape."""
+    """One unit of work: samples ``start`` to ``start + count - 1`` of one point, padded to
+    ``size`` with copies of the last sample (discarded) so that all tasks of a point share one
+    shape."""
 
     point: int
     batch: int
