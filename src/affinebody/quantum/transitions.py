@@ -21,7 +21,7 @@ under the reduced measure mu(y). Then
 
 with (Ds, Dv) = (s_f - s_i, v_f - v_i): the angular Fourier coefficient of the operator. That
 is the selection rule, read off the operator itself: an element is nonzero only for the
-(Ds, Dv) where O_Delta does not vanish (phi components and phi^T-free parts: (+-1, +-1); G =
+(Ds, Dv) where O_Delta does not vanish (components of phi: (+-1, +-1); G =
 phi^T phi = R diag(Q^2) R^T: Ds = 0, Dv in {0, +-2}; C = phi phi^T: Dv = 0, Ds in {0, +-2};
 invariants: (0, 0)). The angular integrals are done by the trapezoidal rule on a 16 x 16 grid
 (exact for trigonometric polynomials of degree < 16 - |Delta|; operators with harmonics beyond
