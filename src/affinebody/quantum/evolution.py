@@ -54,8 +54,10 @@ from affinebody.quantum.transitions import invariants_at
 
 #: the largest reduced basis (functions per coordinate) evolve solves densely
 MAX_BASIS = 48
-#: the most (time points) x (states)^2 one evolution may cost
+#: the most (time points) x (basis functions)^2 one evolution may cost
 MAX_WORK = 4e9
+#: the most time intervals of one evolution
+MAX_STEPS = 100000
 #: the packet must be held by the eigenstates of the basis to this
 CAPTURE = 1e-6
 #: the least distance of the packet's centre from the wall of the domain, in widths
@@ -75,9 +77,7 @@ def sector_spectrum(model: str, potential: Potential, hbar: float, *, inertia: f
     nested and widened check bases and is flagged converged or not)."""
     settings = settings or Settings()
     size = settings.basis_size
-    if size > MAX_BASIS:
-        raise ValueError(f"quantum.basis_size = {size} is more than evolve solves ({MAX_BASIS}: "
-                         f"a dense eigenproblem of {size * size} functions takes minutes)")
+    check_work(size, 1)
     if model == "dalembert":
         b = settings.scale or auto_scale_lebesgue2(potential, hbar, inertia)
         info = {"scale": b}
@@ -119,7 +119,7 @@ def variables_at(model: str, y: np.ndarray) -> np.ndarray:
     return Q if model == "dalembert" else np.log(Q)
 
 
-def _check_packet(model: str, packet: Packet) -> None:
+def check_packet(model: str, packet: Packet) -> None:
     X1, X2 = packet.centre
     w = packet.width
     if not (math.isfinite(w) and w > 0):
@@ -143,6 +143,20 @@ def block_functions(spectrum: Spectrum, levels: list[Level], y: np.ndarray
     if block.basis.kind == "haar2":
         values = values / sqrt_x_over_sinh(y[:, 0])[:, None]
     return values, block.vectors[:, [lv.index for lv in levels]]
+
+
+def check_work(basis_size: int, times: int) -> None:
+    """Refuse at once an evolution whose work, (times) x (basis functions)^2 for the packet on
+    the quadrature, exceeds :data:`MAX_WORK`, or whose basis exceeds :data:`MAX_BASIS`."""
+    if basis_size > MAX_BASIS:
+        raise ValueError(f"quantum.basis_size = {basis_size} is more than evolve solves "
+                         f"({MAX_BASIS}: a dense eigenproblem of {basis_size ** 2} functions "
+                         f"takes minutes)")
+    work = times * basis_size**4
+    if work > MAX_WORK:
+        raise ValueError(f"evolve: {times} times x {basis_size ** 2} states is more work than "
+                         f"allowed ({work:.1e} > {MAX_WORK:.0e}): ask for fewer --steps or a "
+                         f"smaller quantum.basis_size")
 
 
 @dataclass(frozen=True)
@@ -172,12 +186,10 @@ def evolve(spectrum: Spectrum, packet: Packet, times: np.ndarray, hbar: float) -
     """The packet's evolution over ``times`` in the eigenstates of ``spectrum`` (a
     :func:`sector_spectrum`; module docstring)."""
     model = spectrum.model
-    _check_packet(model, packet)
+    check_packet(model, packet)
     times = np.asarray(times, float)
     levels = spectrum.levels
-    if len(times) * len(levels) ** 2 > MAX_WORK:
-        raise ValueError(f"evolve: {len(times)} times x {len(levels)} states is more work than "
-                         f"allowed ({MAX_WORK:.0e}); ask for fewer --steps or a smaller basis")
+    check_work(spectrum.settings["basis_size"], len(times))
     first = joint_density(spectrum, levels[0])  # the box where the states live
     last = joint_density(spectrum, levels[-1])
     kind = first.model
@@ -248,5 +260,5 @@ def spectrum_lines(evolution: Evolution, count: int = 5) -> list[float]:
     return out
 
 
-__all__ = ["MAX_BASIS", "MAX_WORK", "VARIABLES", "sector_spectrum", "Packet", "variables_at",
-           "Evolution", "evolve", "spectrum_lines"]
+__all__ = ["MAX_BASIS", "MAX_STEPS", "MAX_WORK", "VARIABLES", "sector_spectrum", "Packet",
+           "variables_at", "check_packet", "check_work", "Evolution", "evolve", "spectrum_lines"]
