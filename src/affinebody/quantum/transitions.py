@@ -46,7 +46,7 @@ from affinebody.quantum.levels import Level, Sector, Settings, Spectrum
 ANGLES = 16
 MAX_HARMONIC = 4
 #: Gauss-Legendre nodes per reduced coordinate (n = 2)
-NODES2 = 112
+NODES2 = 96
 #: elements of a non-vanishing harmonic are computed; below this fraction of the operator's
 #: largest harmonic a harmonic counts as absent (the selection rule)
 HARMONIC_FLOOR = 1e-12
@@ -147,14 +147,16 @@ class Component:
 def level_components(spectrum: Spectrum, level: Level, merge: float | None = None
                      ) -> list[Component]:
     """Every eigenvector of the solved blocks whose energy is ``level``'s (within the merge
-    tolerance of :class:`~affinebody.quantum.levels.Settings`): the level's states. Their
-    state count must be the level's multiplicity."""
+    tolerance of :class:`~affinebody.quantum.levels.Settings`, error estimate within the
+    level's): the level's states. Their state count must be the level's multiplicity."""
     merge = Settings().merge if merge is None else merge
     tol = merge * max(1.0, abs(level.energy))
     out = []
     for key, block in spectrum.blocks.items():
         for i, E in enumerate(block.energies):
-            if abs(E - level.energy) <= tol:
+            # the merged entries of the level (an unconverged candidate at the same energy has
+            # an error estimate above the level's, the largest of its entries)
+            if abs(E - level.energy) <= tol and block.errors[i] <= level.error:
                 one = Level(float(E), 1, block.sectors, float(block.errors[i]), key, i)
                 out.append(Component(block.sectors, joint_density(spectrum, one)))
     found = sum(c.states for c in out)
