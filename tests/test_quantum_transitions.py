@@ -48,6 +48,16 @@ def strengths(spectrum, text, initial=0):
     return [t.strength for t in transitions(spectrum, Operator(text, 2), initial).transitions]
 
 
+def deficits(table, target):
+    """target - (partial energy-weighted sums), one per level with a nonzero strength."""
+    partial, out = 0.0, []
+    for t in table.transitions:
+        partial += (t.E_final - t.E_initial) * t.strength
+        if t.strength > 1e-12:
+            out.append(target - partial)
+    return out
+
+
 def test_oscillator_closed_forms(oscillator):
     """phi_ab = sqrt(U)(a + a^dagger) per component: from the ground, phi11 reaches only the
     4-fold level 1 (strength U); from level 1 (average over its 4 states) it reaches level 0
@@ -141,17 +151,12 @@ def test_trk_dalembert_non_oscillator_converges():
         target = hbar**2 * float(model.hamiltonian(jnp.eye(2)[None], pi)[0])
         assert abs(target - hbar**2 / (2 * inertia)) < 1e-14
         table = transitions(s, Operator(f"phi{a + 1}{b + 1}", 2), 0)
-        partial, deficits = 0.0, []
-        for t in table.transitions:
-            partial += (t.E_final - t.E_initial) * t.strength
-            if t.strength > 1e-12:
-                deficits.append(target - partial)
-        assert len(deficits) >= 2
-        assert all(d > 0 for d in deficits)  # each level adds positive weight below the limit
-        assert all(later < earlier / 10 for earlier, later in zip(deficits, deficits[1:],
-                                                                  strict=False))
-        assert deficits[-1] < 5e-5 * target
-        assert abs(trk_sum(table) - (target - deficits[-1])) < 1e-14
+        d = deficits(table, target)
+        assert len(d) >= 2
+        assert all(x > 0 for x in d)  # each level adds positive weight below the limit
+        assert all(later < earlier / 10 for earlier, later in zip(d, d[1:], strict=False))
+        assert d[-1] < 5e-5 * target
+        assert abs(trk_sum(table) - (target - d[-1])) < 1e-14
 
 
 def test_trk_metric_form_affine():
@@ -175,16 +180,10 @@ def test_trk_metric_form_affine():
     np.testing.assert_allclose(H, H[0], rtol=1e-13)
     mean_det = math.sqrt(strengths(s, "det")[0])  # <0|det|0> (the ground is non-degenerate)
     target = hbar**2 * mean_det / 4 * H[0]
-    table = transitions(s, Operator("sqrt(det)", 2), 0)
-    partial, deficits = 0.0, []
-    for t in table.transitions:
-        partial += (t.E_final - t.E_initial) * t.strength
-        if t.strength > 1e-12:
-            deficits.append(target - partial)
-    assert len(deficits) >= 5
-    assert all(later < earlier / 3 for earlier, later in zip(deficits, deficits[1:],
-                                                             strict=False))
-    assert 0 < deficits[-1] < 1e-4 * target
+    d = deficits(transitions(s, Operator("sqrt(det)", 2), 0), target)
+    assert len(d) >= 5
+    assert all(later < earlier / 3 for earlier, later in zip(d, d[1:], strict=False))
+    assert 0 < d[-1] < 1e-4 * target
     assert abs(trk_sum(transitions(s, Operator("q1 + q2", 2), 0)) - hbar**2 * H[0]) < 1e-10
 
 

@@ -39,7 +39,7 @@ import numpy as np
 
 from affinebody.expressions import compile_expression
 from affinebody.quantum.densities import joint_density, measure
-from affinebody.quantum.intervals import invariant_names
+from affinebody.quantum.intervals import invariant_names, invariant_values
 from affinebody.quantum.levels import Level, Sector, Settings, Spectrum
 
 #: angular grid per angle (n = 2) and the largest |Delta s|, |Delta v| resolved
@@ -90,17 +90,7 @@ class Operator:
     def __call__(self, Q: np.ndarray, alpha: np.ndarray | None = None,
                  beta: np.ndarray | None = None) -> np.ndarray:
         """O at phi = R(alpha) diag(Q) R(beta)^T (n = 2; Q [..., n] broadcast with the angles)."""
-        Q = np.asarray(Q, float)
-        n = self.n
-        values = {}
-        G2 = Q * Q
-        with np.errstate(divide="ignore"):
-            for a in range(n):
-                values[f"q{a + 1}"] = np.log(np.abs(Q[..., a]))
-                values[f"Q{a + 1}"] = Q[..., a]
-                values[f"K{a + 1}"] = np.sum(G2 ** (a + 1), axis=-1)
-        values["trG"] = np.sum(G2, axis=-1)
-        values["det"] = np.prod(Q, axis=-1)
+        values = invariant_values(Q)
         used = self._expr.used
         if self.angular:  # phi = R(alpha) diag(Q) R(beta)^T, G = phi^T phi, C = phi phi^T
             ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
