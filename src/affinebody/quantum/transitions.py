@@ -242,6 +242,7 @@ class Transition:
     E_final: float
     strength: float
     sector_final: tuple[Sector, ...]
+    sector_initial: tuple[Sector, ...]
     #: a sector of the final level is reached by a harmonic of the operator
     allowed: bool
 
@@ -249,6 +250,7 @@ class Transition:
         return {"initial": self.initial, "final": self.final, "E_initial": self.E_initial,
                 "E_final": self.E_final, "strength": self.strength,
                 "sector_final": [s.as_dict() for s in self.sector_final],
+                "sector_initial": [s.as_dict() for s in self.sector_initial],
                 "allowed": self.allowed}
 
 
@@ -322,7 +324,7 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> Tra
             for c, a in zip(cs, amps[k], strict=True):
                 if spectrum.n == 2 and not set(ci.sectors) & set(c.sectors):
                     continue
-                if spectrum.n == 3 and not _same_multiplet(ci, c):
+                if spectrum.n == 3 and not _multiplets(ci) & _multiplets(c):
                     continue
                 overlap = _element(a, ai, w, np.ones(len(w))).real
                 error = max(error, abs(overlap - (1.0 if c is ci else 0.0)))
@@ -339,9 +341,12 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> Tra
         for ci, ai in zip(start, amps[initial], strict=True):
             for cf, af in zip(components[k], amps[k], strict=True):
                 if spectrum.n == 3:
-                    if _same_multiplet(ci, cf):
+                    common = _multiplets(ci) & _multiplets(cf)
+                    if common:
                         allowed = True
-                        total += ci.states * abs(_element(af, ai, w, H[(0, 0)])) ** 2
+                        element = abs(_element(af, ai, w, H[(0, 0)])) ** 2
+                        total += element * sum(s.dimension for s in ci.sectors
+                                               if (s.spin, s.vorticity) in common)
                     continue
                 for si in ci.sectors:
                     for sf in cf.sectors:
@@ -350,16 +355,14 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> Tra
                             allowed = True
                             total += abs(_element(af, ai, w, O)) ** 2
         out.append(Transition(initial, k, levels[initial].energy, lv.energy,
-                              total / d_initial, lv.sectors, allowed))
+                              total / d_initial, lv.sectors, levels[initial].sectors, allowed))
     return TransitionTable(out, operator.text, selection_rule(spectrum.n, sorted(H)), error)
 
 
-def _same_multiplet(a: Component, b: Component) -> bool:
-    """n = 3: both components are one (j, j') multiplet (parities may differ: an invariant odd
-    under phi -> -phi, like det, connects them)."""
-    ka = {(s.spin, s.vorticity) for s in a.sectors}
-    kb = {(s.spin, s.vorticity) for s in b.sectors}
-    return len(ka) == 1 and ka == kb and len(a.sectors) == 1 and len(b.sectors) == 1
+def _multiplets(c: Component) -> set[tuple[int, int]]:
+    """n = 3: the (j, j') of a component's sectors (an invariant connects equal (j, j'), parities
+    included: one odd under phi -> -phi, like det, connects opposite parities)."""
+    return {(s.spin, s.vorticity) for s in c.sectors}
 
 
 def trk_sum(table: TransitionTable) -> float:
