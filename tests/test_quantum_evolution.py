@@ -114,6 +114,26 @@ def test_survival_lines_at_level_spacings(runs):
         assert min(abs(line - w) for weight, w in pairs if weight > 0.01 * pairs[0][0]) < np.pi / T
 
 
+def test_affine_packet_moments():
+    """af-is: the packet in q = ln Q (the Haar measure x = g^2 sinh x and the conjugation g of
+    the basis handled) starts with mean q = its centre, spread = its width in each variable and
+    <det phi> = E[e^(q1 + q2)] = exp(0.1 + 0.12^2) of the Gaussian; norm and energy constant."""
+    def V(Q):
+        q = np.log(np.abs(Q))
+        s, x = q[..., 0] + q[..., 1], q[..., 0] - q[..., 1]
+        return 0.25 * s * s + 0.5 * x * x + 0.3 * np.cosh(x)
+
+    hbar = 0.1
+    spectrum = sector_spectrum("af-is", V, hbar, I=0.5, A=0.1, B=0.1,
+                               settings=Settings(basis_size=24))
+    ev = evolve(spectrum, Packet((0.6, -0.5), (0.1, 0.0), 0.12), np.linspace(0, 2, 5), hbar)
+    assert ev.captured > 1 - 1e-6
+    np.testing.assert_allclose([ev.mean["q1"][0], ev.mean["q2"][0]], [0.6, -0.5], atol=1e-5)
+    np.testing.assert_allclose([ev.spread["q1"][0], ev.spread["q2"][0]], 0.12, atol=1e-5)
+    np.testing.assert_allclose(ev.mean["det"][0], np.exp(0.1 + 0.12**2), rtol=1e-5)
+    assert np.ptp(ev.norm) < 1e-13 and np.ptp(ev.energy) < 1e-13
+
+
 CONFIG = f"""
 [system]
 n = 2
@@ -130,8 +150,10 @@ def test_cli_evolve_json_and_errors(tmp_path):
     path = tmp_path / "packet.toml"
     path.write_text(CONFIG)
     args = [str(path), "--at", "1.85,0.45", "--width", "0.158", "--time", "2", "--steps", "10"]
-    result = CliRunner().invoke(evolve_command, [*args, "--json"])
+    result = CliRunner().invoke(evolve_command, [*args, "--json", "--plot",
+                                                 str(tmp_path / "packet.png")])
     assert result.exit_code == 0, result.output
+    assert (tmp_path / "packet.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     data = json.loads(result.output)
     assert len(data["times"]) == 11 and set(data["mean"]) == {"Q1", "Q2", "det", "trG"}
     assert np.ptp(data["norm"]) < 1e-13 and data["captured"] > 1 - 1e-6
