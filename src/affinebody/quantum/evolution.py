@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from affinebody._checks import require_x64
 from affinebody.quantum.bases import solve_block, sqrt_x_over_sinh
 from affinebody.quantum.densities import joint_density, measure
 from affinebody.quantum.levels import (
@@ -75,6 +76,7 @@ def sector_spectrum(model: str, potential: Potential, hbar: float, *, inertia: f
     """Every eigenpair of the n = 2 sector spin = vorticity = 0 (the reduced block of
     :mod:`affinebody.quantum.n2`, solved densely; each level carries the error estimate of its
     nested and widened check bases and is flagged converged or not)."""
+    require_x64()  # a potential expression is evaluated by JAX
     settings = settings or Settings()
     size = settings.basis_size
     check_work(size, 1)

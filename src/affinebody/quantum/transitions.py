@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from affinebody._checks import require_x64
 from affinebody.expressions import compile_expression
 from affinebody.quantum.densities import joint_density, measure
 from affinebody.quantum.intervals import invariant_names, invariant_values
@@ -80,6 +81,7 @@ class Operator:
     field: str = "--operator"
 
     def __post_init__(self):
+        require_x64()  # the expression is evaluated by JAX
         expr = compile_expression(self.text, operator_names(self.n), field=self.field)
         object.__setattr__(self, "_expr", expr)
 
