@@ -40,7 +40,7 @@ def oscillator():
     """R^4 oscillator (d'Alembert, n = 2): levels 0, 1, 2 with 1, 4, 10 states."""
     s = sp.solve("dalembert", 2, lambda Q: 0.5 * K * np.sum(Q * Q, -1), HBAR, inertia=INERTIA,
                  levels=15, settings=sp.Settings(basis_size=12, max_spin=2))
-    assert [lv.multiplicity for lv in s.states()] == [1, 4, 10]
+    assert [lv.multiplicity for lv in s.levels] == [1, 4, 10]
     return s
 
 
@@ -84,7 +84,7 @@ def test_selection_rules_and_hermiticity(oscillator):
     used), vanishes to round-off where the rule forbids it and equals the reduced element where
     it allows it; and <f|O|i> = conj(<i|O|f>)."""
     s = oscillator
-    y, w = reduced_quadrature(level_components(s, s.states()[1]))
+    y, w = reduced_quadrature(level_components(s, s.levels[1]))
     Q = invariants_at("lebesgue2", y)
     assert set(harmonics(Operator("phi21", 2), Q)) == {(1, 1), (1, -1), (-1, 1), (-1, -1)}
     assert set(harmonics(Operator("G12", 2), Q)) == {(0, 2), (0, -2)}
@@ -94,7 +94,7 @@ def test_selection_rules_and_hermiticity(oscillator):
     op = Operator("phi11 + 0.3*G12 - 0.2*C12*Q1 + det", 2)
     M = matrix_elements(s, op, 1, 2)  # <f in level 2|O|i in level 1>
     np.testing.assert_allclose(M, matrix_elements(s, op, 2, 1).conj().T, atol=1e-13)
-    ci, cf = level_components(s, s.states()[1]), level_components(s, s.states()[2])
+    ci, cf = level_components(s, s.levels[1]), level_components(s, s.levels[2])
     y, w = reduced_quadrature(ci + cf)
     Q = invariants_at("lebesgue2", y)
     t = 2 * np.pi * np.arange(12) / 12  # exact for the degree-3 operator and |Delta| <= 4
@@ -193,9 +193,9 @@ def test_n3_oscillator_scalar_operators():
     N = 3, with 6 U^3 (six products of three distinct components)."""
     s = sp.solve("dalembert", 3, ExpressionPotential(f"0.5*{K}*trG", 3), HBAR, inertia=INERTIA,
                  levels=3, sectors="scalar", settings=sp.Settings(basis_size=6, check_shrink=2))
-    E = [lv.energy for lv in s.states()]  # N = 0, 2, 3, then N >= 4
+    E = [lv.energy for lv in s.levels]  # N = 0, 2, 3, then N >= 4
     np.testing.assert_allclose(np.diff(E[:3]), [2 * HBAR * OMEGA, HBAR * OMEGA], rtol=1e-10)
-    assert s.states()[2].sectors[0].parity == -1
+    assert s.levels[2].sectors[0].parity == -1
     trg = [t.strength for t in transitions(s, Operator("trG", 3), 0).transitions]
     zeros = [0] * (len(trg) - 3)  # trG|0> and det|0> have no component with N >= 4
     np.testing.assert_allclose(trg, [81 * U**2, 18 * U**2, 0, *zeros], atol=1e-12)

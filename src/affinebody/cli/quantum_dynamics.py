@@ -4,9 +4,10 @@ of a quantum affine body and the time evolution of a wave packet (docs/quantum-t
 ``affinebody transitions CONFIG.toml --operator EXPR [--levels K] [--from I] [--json]``: the
 reduced strengths B(I -> F) = (1/d_I) sum |<f|O|i>|^2 of the operator EXPR (in q1..qn, Q1..Qn,
 trG, K1..Kn, det, and for n = 2 the components phi11..phi22, G11..G22, C11..C22) from level I
-(default 0) to each of the levels computed; with --json one object
+(default 0; levels numbered as the ``states`` of ``affinebody spectrum --json``, the converged
+levels ascending) to each of the levels computed; with --json one object
 ``{"transitions": [{"initial", "final", "E_initial", "E_final", "strength", "sector_final",
-"allowed"}, ...], "operator", "selection_rule", "energy_weighted_sum", ...}``.
+"sector_initial", "allowed"}, ...], "operator", "selection_rule", "energy_weighted_sum", ...}``.
 
 ``affinebody evolve CONFIG.toml --at X1,X2 [--momentum P1,P2] [--width W] [--time T]
 [--steps N] [--json] [--plot FILE.png]`` (n = 2): a Gaussian packet of the sector spin =

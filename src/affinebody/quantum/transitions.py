@@ -271,14 +271,13 @@ def _element(fa: np.ndarray, fi: np.ndarray, weights: np.ndarray, O: np.ndarray)
 
 def matrix_elements(spectrum: Spectrum, operator: Operator, initial: int, final: int
                     ) -> np.ndarray:
-    """The matrix <f|O|i> [states of level ``final``, states of level ``initial``] (levels
-    indexed as in :meth:`Spectrum.states`; n = 2 only, where each sector is one state; the
-    order of states is the order of the components and their sectors)."""
+    """The matrix <f|O|i> [states of level ``final``, states of level ``initial``] (indices
+    into ``spectrum.levels``, the converged levels ascending; n = 2 only, where each sector is
+    one state; the order of states is the order of the components and their sectors)."""
     if spectrum.n != 2:
         raise ValueError("matrix_elements: n = 2 only (n = 3: use transitions)")
-    states = spectrum.states()
-    ci = level_components(spectrum, states[initial])
-    cf = level_components(spectrum, states[final])
+    ci = level_components(spectrum, spectrum.levels[initial])
+    cf = level_components(spectrum, spectrum.levels[final])
     y, w = reduced_quadrature(ci + cf)
     H = harmonics(operator, invariants_at(ci[0].joint.model, y))
     rows = []
@@ -297,24 +296,23 @@ def matrix_elements(spectrum: Spectrum, operator: Operator, initial: int, final:
 
 def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> TransitionTable:
     """Reduced strengths B(I -> F) of ``operator`` from the level ``initial`` (0: the ground
-    level; indices into :meth:`Spectrum.states`) to every converged level F, F = I included
-    (module docstring)."""
+    level) to every level F, F = I included (module docstring). Levels are indexed as
+    ``spectrum.levels``: the converged levels in ascending order, the ``states`` list of
+    ``affinebody spectrum --json`` (an unconverged candidate is neither an initial nor a final
+    level)."""
     if operator.n != spectrum.n:
         raise ValueError(f"--operator is for n = {operator.n}, the spectrum is n = {spectrum.n}")
     if spectrum.n == 3 and operator.angular:
         raise ValueError("--operator: components of phi, G, C are supported for n = 2 only; for "
                          "n = 3 use the invariants (" + ", ".join(invariant_names(3)) + ")")
-    levels = spectrum.states()
+    levels = spectrum.levels
     if sum(lv.multiplicity for lv in levels) > MAX_STATES:
         raise ValueError(f"transitions: {sum(lv.multiplicity for lv in levels)} states is more "
                          f"than the {MAX_STATES} this command is built for: ask for fewer levels")
     if not 0 <= initial < len(levels):
         raise ValueError(f"--from {initial} is not a level: the spectrum has levels 0.."
                          f"{len(levels) - 1}")
-    if not levels[initial].converged:
-        raise ValueError(f"--from {initial}: the level at {levels[initial].energy:.9g} is not "
-                         f"converged (raise quantum.basis_size)")
-    components = [level_components(spectrum, lv) if lv.converged else [] for lv in levels]
+    components = [level_components(spectrum, lv) for lv in levels]
     y, w = reduced_quadrature([c for cs in components for c in cs])
     model = components[initial][0].joint.model
     H = harmonics(operator, invariants_at(model, y))
@@ -337,8 +335,6 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> Tra
     d_initial = levels[initial].multiplicity
     out = []
     for k, lv in enumerate(levels):
-        if not lv.converged:
-            continue
         total, allowed = 0.0, False
         for ci, ai in zip(start, amps[initial], strict=True):
             for cf, af in zip(components[k], amps[k], strict=True):
