@@ -239,3 +239,7 @@ def test_cli_transitions_json_and_errors(tmp_path):
         bad = CliRunner().invoke(transitions_command, [str(path), *args])
         assert bad.exit_code == 1, (args, bad.output)
         assert needle in bad.output and len(bad.output.strip().splitlines()) == 1
+    n3 = tmp_path / "n3.toml"  # refused before any solving
+    n3.write_text(CONFIG.replace("n = 2", "n = 3"))
+    bad = CliRunner().invoke(transitions_command, [str(n3), "--operator", "G12 + trG"])
+    assert bad.exit_code == 1 and "supported for n = 2 only" in bad.output

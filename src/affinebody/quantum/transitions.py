@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from affinebody._checks import require_x64
-from affinebody.expressions import compile_expression
+from affinebody.expressions import compile_expression, expression_variables
 from affinebody.quantum.densities import joint_density, measure
 from affinebody.quantum.intervals import invariant_names, invariant_values
 from affinebody.quantum.levels import Level, Sector, Settings, Spectrum
@@ -82,6 +82,12 @@ class Operator:
 
     def __post_init__(self):
         require_x64()  # the expression is evaluated by JAX
+        matrix = sorted(set(expression_variables(self.text, field=self.field))
+                        & set(component_names(2)) - set(component_names(self.n)))
+        if matrix:
+            raise ValueError(f"{self.field}: the components of phi, G, C ({', '.join(matrix)}) "
+                             f"are supported for n = 2 only; for n = {self.n} use the "
+                             f"invariants ({', '.join(invariant_names(self.n))})")
         expr = compile_expression(self.text, operator_names(self.n), field=self.field)
         object.__setattr__(self, "_expr", expr)
 
@@ -309,6 +315,9 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> Tra
     if sum(lv.multiplicity for lv in levels) > MAX_STATES:
         raise ValueError(f"transitions: {sum(lv.multiplicity for lv in levels)} states is more "
                          f"than the {MAX_STATES} this command is built for: ask for fewer levels")
+    if not levels:
+        raise ValueError("transitions: no level of the spectrum converged (raise "
+                         "quantum.basis_size, or loosen quantum.tolerance)")
     if not 0 <= initial < len(levels):
         raise ValueError(f"--from {initial} is not a level: the spectrum has levels 0.."
                          f"{len(levels) - 1}")
