@@ -45,7 +45,7 @@ def solve_config(config_path: str, levels: int | None):
     kwargs = qconfig.solver_arguments(cfg)
     if levels is not None:
         if levels < 1:
-            raise click.UsageError(f"--levels must be >= 1 (got {levels})")
+            raise ValueError(f"--levels must be >= 1 (got {levels})")
         kwargs["levels"] = levels
     status = nullcontext(None)
     if sys.stderr.isatty():
@@ -142,7 +142,7 @@ def density(config: str, state: int, output: str, as_json: bool) -> None:
     from affinebody.quantum.density_files import write_densities
 
     if state < 0:
-        raise click.UsageError(f"--state must be >= 0 (got {state})")
+        raise ValueError(f"--state must be >= 0 (got {state})")
     qc = qconfig.load(config).quantum
     result, _ = solve_config(config, state + 1)
     payload = write_densities(result, state, output, qc.density_points, qc.density_tolerance)
