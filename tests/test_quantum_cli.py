@@ -207,3 +207,17 @@ def test_af_af_without_a_shell_limit_is_refused_at_once(tmp_path):
     assert result.exit_code == 1
     message = result.stderr.strip()
     assert "\n" not in message and "indefinite" in message and "quantum.max_spin" in message
+
+
+@pytest.mark.parametrize("command, flags, name", [(spectrum, ["--levels", "0"], "--levels"),
+                                                  (density, ["--state", "-1", "-o", "out"],
+                                                   "--state")])
+def test_out_of_range_counts_are_one_line_exit_1(tmp_path, command, flags, name):
+    """A count out of range is bad input (exit 1, one line naming the flag), not click's usage
+    error (exit 2), and is refused before any solving."""
+    path = tmp_path / "osc.toml"
+    path.write_text(OSCILLATOR)
+    result = CliRunner().invoke(command, [str(path), *flags])
+    assert result.exit_code == 1
+    message = result.stderr.strip()
+    assert "\n" not in message and name in message

@@ -1,7 +1,8 @@
 """The ``affinebody`` command line: one click group, one subcommand per job.
 
 ``run``, ``demo``, ``plot``, ``export``, ``validate`` (:mod:`.run`), ``sweep`` (:mod:`.sweep`),
-``spectrum`` and ``density`` (:mod:`affinebody.quantum.cli`), ``phonons`` (:mod:`.phonons`)
+``spectrum`` and ``density`` (:mod:`affinebody.quantum.cli`), ``transitions`` and ``evolve``
+(:mod:`.quantum_dynamics`), ``phonons`` (:mod:`.phonons`)
 and ``kinematics-demo``. Every
 command turns JAX's float64 mode on for its own process and reports errors as one line
 (:mod:`.common`).
@@ -28,6 +29,8 @@ COMMANDS = {
     "sweep": "affinebody.cli.sweep:sweep",
     "spectrum": "affinebody.quantum.cli:spectrum",
     "density": "affinebody.quantum.cli:density",
+    "transitions": "affinebody.cli.quantum_dynamics:transitions",
+    "evolve": "affinebody.cli.quantum_dynamics:evolve",
     "phonons": "affinebody.cli.phonons:phonons_command",
 }
 

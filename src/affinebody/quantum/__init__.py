@@ -18,6 +18,9 @@ Layers, bottom to top (no module imports one above it; only core and kinematics 
 - :mod:`.thermal`      partition functions and the classical limit.
 - :mod:`.spectra`      :func:`~.spectra.solve`, dispatching to n2 / n3 / channels3.
 - :mod:`.densities`    probability densities of the states.
+- :mod:`.transitions`  matrix elements of configuration operators between levels, reduced
+                       strengths, selection rules (docs/quantum-transitions.md).
+- :mod:`.evolution`    exact evolution of a wave packet of the n = 2 sector (0, 0).
 - :mod:`.config`, :mod:`.cli`: TOML configs, the ``spectrum`` / ``density`` commands
                        (application layer).
 

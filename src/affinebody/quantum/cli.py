@@ -33,7 +33,7 @@ from affinebody._checks import enable_x64
 from affinebody.cli.common import EXIT_STOPPED, one_line_errors
 
 
-def _solve(config_path: str, levels: int | None):
+def solve_config(config_path: str, levels: int | None):
     """Solve CONFIG; on a terminal, a status line on stderr names the sector being solved (an
     n = 3 spectrum over every sector can take minutes)."""
     from contextlib import nullcontext
@@ -45,7 +45,7 @@ def _solve(config_path: str, levels: int | None):
     kwargs = qconfig.solver_arguments(cfg)
     if levels is not None:
         if levels < 1:
-            raise click.UsageError(f"--levels must be >= 1 (got {levels})")
+            raise ValueError(f"--levels must be >= 1 (got {levels})")
         kwargs["levels"] = levels
     status = nullcontext(None)
     if sys.stderr.isatty():
@@ -66,7 +66,7 @@ def _solve(config_path: str, levels: int | None):
 def spectrum(config: str, levels: int | None, as_json: bool) -> None:
     """Lowest energy levels of the quantum affine body described by CONFIG."""
     enable_x64()
-    result, count = _solve(config, levels)
+    result, count = solve_config(config, levels)
     energies = result.energies(count)
     unknown = result.unknown_states(count)
     complete = result.complete(count)
@@ -142,9 +142,9 @@ def density(config: str, state: int, output: str, as_json: bool) -> None:
     from affinebody.quantum.density_files import write_densities
 
     if state < 0:
-        raise click.UsageError(f"--state must be >= 0 (got {state})")
+        raise ValueError(f"--state must be >= 0 (got {state})")
     qc = qconfig.load(config).quantum
-    result, _ = _solve(config, state + 1)
+    result, _ = solve_config(config, state + 1)
     payload = write_densities(result, state, output, qc.density_points, qc.density_tolerance)
     if not result.complete(state + 1):  # a caveat on the index, not on the densities
         click.echo(f"warning: state {state} is indexed in a list that is not certified "
@@ -174,4 +174,4 @@ def density(config: str, state: int, output: str, as_json: bool) -> None:
         sys.exit(EXIT_STOPPED)  # densities above the tolerance: written, flagged
 
 
-__all__ = ["spectrum", "density"]
+__all__ = ["solve_config", "spectrum", "density"]

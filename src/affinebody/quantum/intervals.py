@@ -564,19 +564,26 @@ class ExpressionPotential:
 
     def __call__(self, Q: np.ndarray) -> np.ndarray:
         Q = np.asarray(Q, float)
-        n = self.n
-        G2 = Q * Q
-        values = {}
-        with np.errstate(divide="ignore"):
-            for a in range(n):
-                values[f"q{a + 1}"] = np.log(np.abs(Q[..., a]))
-                values[f"Q{a + 1}"] = Q[..., a]
-                values[f"K{a + 1}"] = np.sum(G2 ** (a + 1), axis=-1)
-        values["trG"] = np.sum(G2, axis=-1)
-        values["det"] = np.prod(Q, axis=-1)
+        values = invariant_values(Q)
         expr = self._expr
         out = np.asarray(expr(**{k: values[k] for k in expr.used}), float)
         return np.broadcast_to(out, Q.shape[:-1])
+
+
+def invariant_values(Q: np.ndarray) -> dict[str, np.ndarray]:
+    """The values of :func:`invariant_names` at signed singular values Q [..., n]: q_a =
+    ln |Q_a|, Q_a, K_a = Tr G^a = sum Q^(2a), trG, det = prod Q."""
+    Q = np.asarray(Q, float)
+    G2 = Q * Q
+    values = {}
+    with np.errstate(divide="ignore"):
+        for a in range(Q.shape[-1]):
+            values[f"q{a + 1}"] = np.log(np.abs(Q[..., a]))
+            values[f"Q{a + 1}"] = Q[..., a]
+            values[f"K{a + 1}"] = np.sum(G2 ** (a + 1), axis=-1)
+    values["trG"] = np.sum(G2, axis=-1)
+    values["det"] = np.prod(Q, axis=-1)
+    return values
 
 
 def invariant_names(n: int) -> tuple[str, ...]:
@@ -587,4 +594,4 @@ def invariant_names(n: int) -> tuple[str, ...]:
 
 __all__ = ["Interval", "Value", "Cells", "HaarCells", "LebesgueCells", "Enclosure",
            "Unsupported", "lower_bounds", "evaluate", "summands", "quadratic_range",
-           "ExpressionPotential", "invariant_names"]
+           "ExpressionPotential", "invariant_values", "invariant_names"]

@@ -1,0 +1,214 @@
+"""``affinebody transitions`` and ``affinebody evolve``: transition strengths between the levels
+of a quantum affine body and the time evolution of a wave packet (docs/quantum-transitions.md).
+
+``affinebody transitions CONFIG.toml --operator EXPR [--levels K] [--from I] [--json]``: the
+reduced strengths B(I -> F) = (1/d_I) sum |<f|O|i>|^2 of the operator EXPR (in q1..qn, Q1..Qn,
+trG, K1..Kn, det, and for n = 2 the components phi11..phi22, G11..G22, C11..C22) from level I
+(default 0; levels numbered as the ``states`` of ``affinebody spectrum --json``, the converged
+levels ascending) to each of the levels computed; with --json one object
+``{"transitions": [{"initial", "final", "E_initial", "E_final", "strength", "sector_final",
+"sector_initial", "allowed"}, ...], "operator", "selection_rule", "energy_weighted_sum", ...}``.
+
+``affinebody evolve CONFIG.toml --at X1,X2 [--momentum P1,P2] [--width W] [--time T]
+[--steps N] [--json] [--plot FILE.png]`` (n = 2): a Gaussian packet of the sector spin =
+vorticity = 0 centred at X (the signed singular values Q for d'Alembert, q = ln Q for the
+affine models) with mean momentum P conjugate to X, propagated exactly by its expansion in
+eigenstates; prints the means and spreads of the invariants, the survival probability
+|<psi(0)|psi(t)>|^2, the norm and the energy at N + 1 times in [0, T].
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+
+import click
+import numpy as np
+
+from affinebody._checks import enable_x64
+from affinebody.cli.common import one_line_errors
+
+
+def _pair(text: str, flag: str) -> tuple[float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"{flag} takes two numbers separated by a comma (got "
+                               f"{text!r})") from None
+    if len(values) != 2 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{flag} takes two finite numbers separated by a comma (got "
+                               f"{text!r})")
+    return values
+
+
+@click.command("transitions")
+@click.argument("config", type=click.Path(exists=True, dir_okay=False))
+@click.option("--operator", "operator", required=True,
+              help="expression in q1..qn, Q1..Qn, trG, K1..Kn, det (n = 2 also phi11.., G11.., "
+                   "C11..)")
+@click.option("--levels", "levels", type=int, default=None, help="number of states K")
+@click.option("--from", "initial", type=int, default=0, help="initial level (0: the ground)")
+@click.option("--json", "as_json", is_flag=True, help="print one JSON object")
+@one_line_errors
+def transitions(config: str, operator: str, levels: int | None, initial: int,
+                as_json: bool) -> None:
+    """Reduced transition strengths of an operator from one level of CONFIG to every level."""
+    enable_x64()
+    from affinebody.quantum import config as qconfig
+    from affinebody.quantum import transitions as tr
+    from affinebody.quantum.cli import solve_config
+
+    cfg = qconfig.load(config)
+    try:  # a bad expression is refused before solving
+        op = tr.Operator(operator, cfg.system.n)
+    except ValueError as err:
+        raise ValueError(str(err).removeprefix("config error: ")) from None
+    count = cfg.quantum.levels if levels is None else levels
+    if count < 1:
+        raise ValueError(f"--levels must be >= 1 (got {count})")
+    if count > tr.MAX_STATES:
+        raise ValueError(f"--levels {count}: transitions are computed between at most "
+                               f"{tr.MAX_STATES} states (every pair of levels is integrated): "
+                               f"ask for fewer")
+    if initial < 0:
+        raise ValueError(f"--from must be >= 0 (got {initial})")
+    result, count = solve_config(config, levels)
+    table = tr.transitions(result, op, initial)
+    warnings = list(result.warnings)
+    if not result.complete(count):
+        warnings.append(f"the levels are not certified to be the {count} lowest: "
+                        f"{result.certificate}")
+    if as_json:
+        click.echo(json.dumps({
+            "transitions": [t.as_dict() for t in table.transitions],
+            "operator": table.operator,
+            "selection_rule": table.selection_rule,
+            "energy_weighted_sum": tr.trk_sum(table),
+            "orthonormality_error": table.orthonormality_error,
+            "model": result.model, "n": result.n, "levels": count,
+            "warnings": warnings,
+        }))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    out = Table(title=f"|<F|{operator}|{initial}>|^2 summed over the states of F, averaged over "
+                      f"those of level {initial} ({result.model}, n = {result.n})")
+    for col in ("F", "E_F", "E_F - E_I", "strength", "sectors of F"):
+        out.add_column(col, justify="right")
+    for t in table.transitions:
+        sectors = " ".join(f"({s.spin},{s.vorticity})" for s in t.sector_final)
+        strength = f"{t.strength:.6e}" if t.allowed else "0 (forbidden)"
+        out.add_row(str(t.final), f"{t.E_final:.10g}", f"{t.E_final - t.E_initial:.6g}",
+                    strength, sectors)
+    console = Console()
+    console.print(out)
+    console.print(f"selection rule: {table.selection_rule}")
+    console.print(f"energy-weighted sum over these levels: {tr.trk_sum(table):.10g}")
+    for text in warnings:
+        console.print(f"[bold red]warning:[/] {text}")
+
+
+@click.command("evolve")
+@click.argument("config", type=click.Path(exists=True, dir_okay=False))
+@click.option("--at", "centre", required=True,
+              help="packet centre X1,X2: Q1,Q2 (d'Alembert) or q1,q2 (affine models)")
+@click.option("--momentum", "momentum", default="0,0", help="mean momentum P1,P2 conjugate to X")
+@click.option("--width", "width", type=float, default=None,
+              help="standard deviation of |psi|^2 in each variable (default sqrt(hbar/2))")
+@click.option("--time", "duration", type=float, default=10.0, help="final time T")
+@click.option("--steps", "steps", type=int, default=200, help="number of intervals in [0, T]")
+@click.option("--json", "as_json", is_flag=True, help="print one JSON object")
+@click.option("--plot", "plot", type=click.Path(dir_okay=False), default=None,
+              help="write a PNG of the means, spreads and survival probability")
+@one_line_errors
+def evolve(config: str, centre: str, momentum: str, width: float | None, duration: float,
+           steps: int, as_json: bool, plot: str | None) -> None:
+    """Time evolution of a wave packet of the body of CONFIG (n = 2, sector (0, 0))."""
+    enable_x64()
+    from contextlib import nullcontext
+
+    from affinebody.quantum import config as qconfig
+    from affinebody.quantum import evolution as ev
+
+    cfg = qconfig.load(config)
+    if cfg.system.n != 2:
+        raise ValueError(f"evolve is for n = 2 (got system.n = {cfg.system.n})")
+    X0, P0 = _pair(centre, "--at"), _pair(momentum, "--momentum")
+    if not (math.isfinite(duration) and duration > 0):
+        raise ValueError(f"--time must be > 0 (got {duration})")
+    if not 1 <= steps <= ev.MAX_STEPS:
+        raise ValueError(f"--steps must be between 1 and {ev.MAX_STEPS} (got {steps})")
+    kwargs = qconfig.solver_arguments(cfg)
+    hbar, settings = kwargs["hbar"], kwargs["settings"]
+    ev.check_work(settings.basis_size, steps + 1)
+    packet = ev.Packet(X0, P0, math.sqrt(hbar / 2) if width is None else width)
+    ev.check_packet(kwargs["model"], packet)
+    status = nullcontext(None)
+    if sys.stderr.isatty():
+        from rich.console import Console
+
+        status = Console(stderr=True).status(
+            f"solving the sector (0, 0) with {settings.basis_size ** 2} functions ...")
+    with status:
+        spectrum = ev.sector_spectrum(
+            kwargs["model"], kwargs["potential"], hbar, inertia=kwargs.get("inertia", 1.0),
+            I=kwargs.get("I", 1.0), A=kwargs.get("A", 0.0), B=kwargs.get("B", 0.0),
+            settings=settings)
+    times = np.linspace(0.0, duration, steps + 1)
+    result = ev.evolve(spectrum, packet, times, hbar)
+    if plot is not None:
+        _plot(result, plot, kwargs["model"])
+    if as_json:
+        payload = result.as_dict()
+        payload.update(model=spectrum.model, n=2, sector={"spin": 0, "vorticity": 0},
+                       hbar=hbar, centre=list(X0), momentum=list(P0), width=packet.width,
+                       lines=ev.spectrum_lines(result))
+        click.echo(json.dumps(payload))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    names = list(result.mean)
+    table = Table(title=f"packet at {X0}, momentum {P0}, width {packet.width:.4g} "
+                        f"({spectrum.model}, hbar = {hbar}, {len(result.energies)} states, "
+                        f"captured {result.captured:.10f})")
+    for col in ["t", *(f"<{k}> +- spread" for k in names), "survival"]:
+        table.add_column(col, justify="right")
+    for k in range(0, len(times), max(1, len(times) // 20)):
+        table.add_row(f"{times[k]:.4g}",
+                      *(f"{result.mean[n][k]:.6g} +- {result.spread[n][k]:.3g}" for n in names),
+                      f"{result.survival[k]:.6f}")
+    console = Console()
+    console.print(table)
+    console.print(f"norm {result.norm[0]:.15f} (spread over t {np.ptp(result.norm):.1e}), "
+                  f"energy {result.energy[0]:.12g} (spread {np.ptp(result.energy):.1e}), "
+                  f"eigenvalue error estimate weighted by the packet {result.energy_error:.1e}")
+
+
+def _plot(result, path: str, model: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = result.times
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    for ax, names in ((axes[0], list(result.mean)[:2]), (axes[1], list(result.mean)[2:])):
+        for name in names:
+            m, s = result.mean[name], result.spread[name]
+            ax.plot(t, m, label=f"<{name}>")
+            ax.fill_between(t, m - s, m + s, alpha=0.25)
+        ax.set_xlabel("t")
+        ax.legend()
+    axes[2].plot(t, result.survival)
+    axes[2].set_xlabel("t")
+    axes[2].set_ylabel("|<psi(0)|psi(t)>|^2")
+    fig.suptitle(f"wave packet of the {model} body, sector (0, 0)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+__all__ = ["transitions", "evolve"]

@@ -1,0 +1,384 @@
+"""Transition matrix elements <f|O|i> between computed eigenstates and reduced transition
+probabilities (paper, introduction and last section: "What are the corresponding quantum
+transition probabilities?"; docs/quantum-transitions.md).
+
+A level holds several states: the sectors of its eigenvectors (n = 2: the characters
+e^{i(s alpha - v beta)} of L = R(alpha), R = R(beta) in phi = L diag(Q) R^T, one state each;
+n = 3: the SO(3) x SO(3) multiplets (j, j'), (2j + 1)(2j' + 1) states each) and, where levels
+of different blocks coincide, every such eigenvector. The *reduced strength*
+
+    B(I -> F) = (1 / d_I) sum_{i in I} sum_{f in F} |<f|O|i>|^2,
+
+(d_I the multiplicity of I) does not depend on the basis chosen inside the degenerate levels.
+
+How an element is computed. A state of sector (s, v) is e^{i(s alpha - v beta)} a(y) with a
+the reduced amplitude of :func:`affinebody.quantum.densities.joint_density` on the reduced
+coordinates y ((|z|, |w|) for d'Alembert, (x, sigma) for the affine models, n = 2), normalised
+under the reduced measure mu(y). Then
+
+    <f|O|i> = int a_f(y) a_i(y) O_{Delta}(y) mu(y) dy,
+    O_{Delta}(y) = (1/4 pi^2) int int O(phi(y, alpha, beta)) e^{-i(Ds alpha - Dv beta)},
+
+with (Ds, Dv) = (s_f - s_i, v_f - v_i): the angular Fourier coefficient of the operator. That
+is the selection rule, read off the operator itself: an element is nonzero only for the
+(Ds, Dv) where O_Delta does not vanish (components of phi: (+-1, +-1); G =
+phi^T phi = R diag(Q^2) R^T: Ds = 0, Dv in {0, +-2}; C = phi phi^T: Dv = 0, Ds in {0, +-2};
+invariants: (0, 0)). The angular integrals are done by the trapezoidal rule on a 16 x 16 grid
+(exact for trigonometric polynomials of degree < 16 - |Delta|; operators with harmonics beyond
+|Delta| = 4 are refused), the reduced integral by Gauss-Legendre over the box where the states
+live. n = 3: operators in the invariants only (scalars of SO(3) x SO(3), so Dj = Dj' = 0 and
+the element is the same for each of the (2j + 1)(2j' + 1) states of the multiplet).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from affinebody._checks import require_x64
+from affinebody.expressions import compile_expression, expression_variables
+from affinebody.quantum.densities import joint_density, measure
+from affinebody.quantum.intervals import invariant_names, invariant_values
+from affinebody.quantum.levels import Level, Sector, Settings, Spectrum
+
+#: angular grid per angle (n = 2) and the largest |Delta s|, |Delta v| resolved
+ANGLES = 16
+MAX_HARMONIC = 4
+#: Gauss-Legendre nodes per reduced coordinate (n = 2)
+NODES2 = 96
+#: elements of a non-vanishing harmonic are computed; below this fraction of the operator's
+#: largest harmonic a harmonic counts as absent (the selection rule)
+HARMONIC_FLOOR = 1e-12
+#: the eigenvectors must be orthonormal under the quadrature to this (else the quadrature
+#: does not resolve the states and no element is reported)
+ORTHONORMALITY = 1e-8
+#: a request over more states than this is refused before any work
+MAX_STATES = 2000
+
+
+def component_names(n: int) -> tuple[str, ...]:
+    """Matrix components an operator may use besides the invariants: n = 2 phi11..phi22, G11..
+    G22 (G = phi^T phi, the Green tensor), C11..C22 (C = phi phi^T, the Cauchy tensor)."""
+    if n != 2:
+        return ()
+    return tuple(f"{m}{a}{b}" for m in ("phi", "G", "C") for a in (1, 2) for b in (1, 2))
+
+
+def operator_names(n: int) -> tuple[str, ...]:
+    """Every variable of an operator expression (docs/quantum-transitions.md)."""
+    return invariant_names(n) + component_names(n)
+
+
+@dataclass(frozen=True)
+class Operator:
+    """A configuration operator O(phi) given as an expression (``text``) in
+    :func:`operator_names`; ``angular`` when it uses matrix components (not only invariants)."""
+
+    text: str
+    n: int
+    field: str = "--operator"
+
+    def __post_init__(self):
+        require_x64()  # the expression is evaluated by JAX
+        matrix = sorted(set(expression_variables(self.text, field=self.field))
+                        & set(component_names(2)) - set(component_names(self.n)))
+        if matrix:
+            raise ValueError(f"{self.field}: the components of phi, G, C ({', '.join(matrix)}) "
+                             f"are supported for n = 2 only; for n = {self.n} use the "
+                             f"invariants ({', '.join(invariant_names(self.n))})")
+        expr = compile_expression(self.text, operator_names(self.n), field=self.field)
+        object.__setattr__(self, "_expr", expr)
+
+    @property
+    def angular(self) -> bool:
+        return bool(set(self._expr.used) & set(component_names(self.n)))
+
+    def __call__(self, Q: np.ndarray, alpha: np.ndarray | None = None,
+                 beta: np.ndarray | None = None) -> np.ndarray:
+        """O at phi = R(alpha) diag(Q) R(beta)^T (n = 2; Q [..., n] broadcast with the angles)."""
+        values = invariant_values(Q)
+        used = self._expr.used
+        if self.angular:  # phi = R(alpha) diag(Q) R(beta)^T, G = phi^T phi, C = phi phi^T
+            ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
+            Q1, Q2 = Q[..., 0], Q[..., 1]
+            P1, P2 = Q1 * Q1, Q2 * Q2
+            recipes = {
+                "phi11": lambda: Q1 * ca * cb + Q2 * sa * sb,
+                "phi12": lambda: Q1 * ca * sb - Q2 * sa * cb,
+                "phi21": lambda: Q1 * sa * cb - Q2 * ca * sb,
+                "phi22": lambda: Q1 * sa * sb + Q2 * ca * cb,
+                "G11": lambda: P1 * cb * cb + P2 * sb * sb,
+                "G12": lambda: (P1 - P2) * cb * sb,
+                "G21": lambda: (P1 - P2) * cb * sb,
+                "G22": lambda: P1 * sb * sb + P2 * cb * cb,
+                "C11": lambda: P1 * ca * ca + P2 * sa * sa,
+                "C12": lambda: (P1 - P2) * ca * sa,
+                "C21": lambda: (P1 - P2) * ca * sa,
+                "C22": lambda: P1 * sa * sa + P2 * ca * ca,
+            }
+            for name in set(self._expr.used) & set(recipes):
+                values[name] = recipes[name]()
+        shape = np.broadcast_shapes(*(np.shape(values[k]) for k in used)) if used else ()
+        out = np.asarray(self._expr(**{k: values[k] for k in used}), float)
+        out = np.broadcast_to(out, shape if used else out.shape)
+        if not np.all(np.isfinite(out)):
+            raise ValueError(f"{self.field}: {self.text!r} is not finite where the states live "
+                             f"(e.g. log of 0); use an operator that is finite on the body")
+        return out
+
+
+# ------------------------------------------------------------------ states of a level
+@dataclass(frozen=True)
+class Component:
+    """One eigenvector of a level: its sectors (states) and its reduced amplitude."""
+
+    sectors: tuple[Sector, ...]
+    joint: object  # densities.Joint
+
+    @property
+    def states(self) -> int:
+        return sum(s.dimension for s in self.sectors)
+
+
+def level_components(spectrum: Spectrum, level: Level, merge: float | None = None
+                     ) -> list[Component]:
+    """Every eigenvector of the solved blocks whose energy is ``level``'s (within the merge
+    tolerance of :class:`~affinebody.quantum.levels.Settings`, error estimate within the
+    level's): the level's states. Their state count must be the level's multiplicity."""
+    merge = Settings().merge if merge is None else merge
+    tol = merge * max(1.0, abs(level.energy))
+    out = []
+    for key, block in spectrum.blocks.items():
+        for i, E in enumerate(block.energies):
+            # the merged entries of the level (an unconverged candidate at the same energy has
+            # an error estimate above the level's, the largest of its entries)
+            if abs(E - level.energy) <= tol and block.errors[i] <= level.error:
+                one = Level(float(E), 1, block.sectors, float(block.errors[i]), key, i)
+                out.append(Component(block.sectors, joint_density(spectrum, one)))
+    found = sum(c.states for c in out)
+    if found != level.multiplicity:
+        raise ValueError(f"transitions: the level at {level.energy:.9g} has multiplicity "
+                         f"{level.multiplicity} but {found} eigenvector states were found at "
+                         f"its energy")
+    return out
+
+
+def invariants_at(model: str, y: np.ndarray) -> np.ndarray:
+    """Signed singular values Q [..., n] at the reduced coordinates y of ``model``'s joint
+    density (densities.Joint): (|z|, |w|) -> (|z| + |w|, |z| - |w|); (x, sigma) -> exp((sigma
+    +- x)/2); Q (lebesgue3); q -> exp(q) (haar3)."""
+    if model == "lebesgue2":
+        return np.stack([y[..., 0] + y[..., 1], y[..., 0] - y[..., 1]], -1)
+    if model == "haar2":
+        return np.exp(np.stack([(y[..., 1] + y[..., 0]) / 2, (y[..., 1] - y[..., 0]) / 2], -1))
+    if model == "lebesgue3":
+        return y
+    return np.exp(y)
+
+
+def reduced_quadrature(components: list[Component]) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes y [P, d] and weights [P] (the reduced measure included) covering every component:
+    n = 2 a Gauss-Legendre product rule over the union of their boxes; n = 3 the chamber
+    quadrature of the joint densities (the same for every block of a spectrum)."""
+    first = components[0].joint
+    if first.model in ("lebesgue2", "haar2"):
+        lo = np.min([c.joint.box[:, 0] for c in components], axis=0)
+        hi = np.max([c.joint.box[:, 1] for c in components], axis=0)
+        x, w = np.polynomial.legendre.leggauss(NODES2)
+        axes = [(lo[k] + (hi[k] - lo[k]) * (x + 1) / 2, (hi[k] - lo[k]) * w / 2)
+                for k in range(2)]
+        Y0, Y1 = np.meshgrid(axes[0][0], axes[1][0], indexing="ij")
+        y = np.stack([Y0.ravel(), Y1.ravel()], -1)
+        weights = np.outer(axes[0][1], axes[1][1]).ravel()
+    else:
+        y, weights = first.nodes, first.weights
+    return y, weights * measure(first.model, y)
+
+
+def amplitudes(component: Component, y: np.ndarray) -> np.ndarray:
+    """The reduced amplitude [P, r] of a component at y (r = 1 for n = 2)."""
+    a = np.asarray(component.joint.amplitude(y), float)
+    return a.reshape(len(y), -1)
+
+
+def harmonics(operator: Operator, Q: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+    """(Delta s, Delta v) -> O_Delta [P] at the reduced nodes (module docstring); only the
+    harmonics that do not vanish (the selection rule). An operator in the invariants only has
+    the single harmonic (0, 0)."""
+    if not operator.angular:
+        return {(0, 0): np.asarray(operator(Q), float)}
+    t = 2 * np.pi * np.arange(ANGLES) / ANGLES
+    A, B = np.meshgrid(t, t, indexing="ij")
+    values = operator(Q[:, None, None, :], A[None], B[None])  # [P, N, N]
+    F = np.fft.fft2(values, axes=(1, 2)) / ANGLES**2  # F[k, l] = mean O e^{-i(k a + l b)}
+    size = np.max(np.abs(F), axis=0)
+    top = float(np.max(size))
+    k = np.fft.fftfreq(ANGLES, 1 / ANGLES).astype(int)
+    K, L = np.meshgrid(k, k, indexing="ij")
+    beyond = (np.abs(K) > MAX_HARMONIC) | (np.abs(L) > MAX_HARMONIC)
+    if top > 0 and np.max(size[beyond]) > HARMONIC_FLOOR * top:
+        raise ValueError(f"--operator {operator.text!r} has angular harmonics beyond "
+                         f"|Delta spin|, |Delta vorticity| = {MAX_HARMONIC} (it is not a "
+                         f"polynomial of low degree in the components of phi, G, C); not "
+                         f"supported")
+    out = {}
+    for ki, li in zip(*np.nonzero(~beyond & (size > HARMONIC_FLOOR * top)), strict=True):
+        # the element <f|O|i> needs k = Delta s, l = -Delta v (module docstring)
+        out[(int(K[ki, li]), int(-L[ki, li]))] = F[:, ki, li]
+    return out or {(0, 0): np.zeros(len(Q))}
+
+
+def selection_rule(n: int, allowed: list[tuple[int, int]]) -> str:
+    """The selection rule in words."""
+    if n == 3:
+        return ("n = 3, an operator in the invariants is a scalar of SO(3) x SO(3): only "
+                "final levels holding the initial sector (Delta j = Delta j' = 0) are reached, "
+                "with the same element for every state of the multiplet")
+    pairs = ", ".join(f"({s:+d}, {v:+d})" for s, v in sorted(allowed))
+    return (f"n = 2: the operator's angular harmonics allow (Delta spin, Delta vorticity) in "
+            f"{{{pairs}}}; every other element vanishes by the SO(2) x SO(2) symmetry and "
+            f"final levels without such a sector have strength 0")
+
+
+@dataclass(frozen=True)
+class Transition:
+    initial: int
+    final: int
+    E_initial: float
+    E_final: float
+    strength: float
+    sector_final: tuple[Sector, ...]
+    sector_initial: tuple[Sector, ...]
+    #: a sector of the final level is reached by a harmonic of the operator
+    allowed: bool
+
+    def as_dict(self) -> dict:
+        return {"initial": self.initial, "final": self.final, "E_initial": self.E_initial,
+                "E_final": self.E_final, "strength": self.strength,
+                "sector_final": [s.as_dict() for s in self.sector_final],
+                "sector_initial": [s.as_dict() for s in self.sector_initial],
+                "allowed": self.allowed}
+
+
+@dataclass(frozen=True)
+class TransitionTable:
+    transitions: list[Transition]
+    operator: str
+    selection_rule: str
+    #: largest |<a|b> - delta_ab| over the states compared (the quadrature's own check)
+    orthonormality_error: float
+
+
+def _element(fa: np.ndarray, fi: np.ndarray, weights: np.ndarray, O: np.ndarray) -> complex:
+    return complex(np.sum(weights * O * np.sum(fa * fi, -1)))
+
+
+def matrix_elements(spectrum: Spectrum, operator: Operator, initial: int, final: int
+                    ) -> np.ndarray:
+    """The matrix <f|O|i> [states of level ``final``, states of level ``initial``] (indices
+    into ``spectrum.levels``, the converged levels ascending; n = 2 only, where each sector is
+    one state; the order of states is the order of the components and their sectors)."""
+    if spectrum.n != 2:
+        raise ValueError("matrix_elements: n = 2 only (n = 3: use transitions)")
+    ci = level_components(spectrum, spectrum.levels[initial])
+    cf = level_components(spectrum, spectrum.levels[final])
+    y, w = reduced_quadrature(ci + cf)
+    H = harmonics(operator, invariants_at(ci[0].joint.model, y))
+    rows = []
+    for f in cf:
+        af = amplitudes(f, y)
+        for sf in f.sectors:
+            row = []
+            for i in ci:
+                ai = amplitudes(i, y)
+                for si in i.sectors:
+                    O = H.get((sf.spin - si.spin, sf.vorticity - si.vorticity))
+                    row.append(0j if O is None else _element(af, ai, w, O))
+            rows.append(row)
+    return np.array(rows, complex)
+
+
+def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> TransitionTable:
+    """Reduced strengths B(I -> F) of ``operator`` from the level ``initial`` (0: the ground
+    level) to every level F, F = I included (module docstring). Levels are indexed as
+    ``spectrum.levels``: the converged levels in ascending order, the ``states`` list of
+    ``affinebody spectrum --json`` (an unconverged candidate is neither an initial nor a final
+    level)."""
+    if operator.n != spectrum.n:
+        raise ValueError(f"--operator is for n = {operator.n}, the spectrum is n = {spectrum.n}")
+    if spectrum.n == 3 and operator.angular:
+        raise ValueError("--operator: components of phi, G, C are supported for n = 2 only; for "
+                         "n = 3 use the invariants (" + ", ".join(invariant_names(3)) + ")")
+    levels = spectrum.levels
+    if sum(lv.multiplicity for lv in levels) > MAX_STATES:
+        raise ValueError(f"transitions: {sum(lv.multiplicity for lv in levels)} states is more "
+                         f"than the {MAX_STATES} this command is built for: ask for fewer levels")
+    if not levels:
+        raise ValueError("transitions: no level of the spectrum converged (raise "
+                         "quantum.basis_size, or loosen quantum.tolerance)")
+    if not 0 <= initial < len(levels):
+        raise ValueError(f"--from {initial} is not a level: the spectrum has levels 0.."
+                         f"{len(levels) - 1}")
+    components = [level_components(spectrum, lv) for lv in levels]
+    y, w = reduced_quadrature([c for cs in components for c in cs])
+    model = components[initial][0].joint.model
+    H = harmonics(operator, invariants_at(model, y))
+    amps = [[amplitudes(c, y) for c in cs] for cs in components]
+    start = components[initial]
+    error = 0.0
+    for k, cs in enumerate(components):  # orthonormality check against the initial states
+        for ci, ai in zip(start, amps[initial], strict=True):
+            for c, a in zip(cs, amps[k], strict=True):
+                if spectrum.n == 2 and not set(ci.sectors) & set(c.sectors):
+                    continue
+                if spectrum.n == 3 and not _multiplets(ci) & _multiplets(c):
+                    continue
+                overlap = _element(a, ai, w, np.ones(len(w))).real
+                error = max(error, abs(overlap - (1.0 if c is ci else 0.0)))
+    if error > ORTHONORMALITY:
+        raise ValueError(f"transitions: the eigenvectors are orthonormal only to {error:.1e} "
+                         f"under the quadrature (the states are not resolved; raise "
+                         f"quantum.basis_size)")
+    d_initial = levels[initial].multiplicity
+    out = []
+    for k, lv in enumerate(levels):
+        total, allowed = 0.0, False
+        for ci, ai in zip(start, amps[initial], strict=True):
+            for cf, af in zip(components[k], amps[k], strict=True):
+                if spectrum.n == 3:
+                    common = _multiplets(ci) & _multiplets(cf)
+                    if common:
+                        allowed = True
+                        element = abs(_element(af, ai, w, H[(0, 0)])) ** 2
+                        total += element * sum(s.dimension for s in ci.sectors
+                                               if (s.spin, s.vorticity) in common)
+                    continue
+                for si in ci.sectors:
+                    for sf in cf.sectors:
+                        O = H.get((sf.spin - si.spin, sf.vorticity - si.vorticity))
+                        if O is not None:
+                            allowed = True
+                            total += abs(_element(af, ai, w, O)) ** 2
+        out.append(Transition(initial, k, levels[initial].energy, lv.energy,
+                              total / d_initial, lv.sectors, levels[initial].sectors, allowed))
+    return TransitionTable(out, operator.text, selection_rule(spectrum.n, sorted(H)), error)
+
+
+def _multiplets(c: Component) -> set[tuple[int, int]]:
+    """n = 3: the (j, j') of a component's sectors (an invariant connects equal (j, j'), parities
+    included: one odd under phi -> -phi, like det, connects opposite parities)."""
+    return {(s.spin, s.vorticity) for s in c.sectors}
+
+
+def trk_sum(table: TransitionTable) -> float:
+    """The energy-weighted sum sum_F (E_F - E_I) B(I -> F) of a table (the Thomas-Reiche-Kuhn
+    sum over the levels computed; docs/quantum-transitions.md)."""
+    return math.fsum((t.E_final - t.E_initial) * t.strength for t in table.transitions)
+
+
+__all__ = ["ANGLES", "MAX_HARMONIC", "MAX_STATES", "component_names", "operator_names",
+           "Operator", "Component", "level_components", "invariants_at", "reduced_quadrature",
+           "amplitudes", "harmonics", "selection_rule", "Transition", "TransitionTable",
+           "matrix_elements", "transitions", "trk_sum"]

@@ -1,0 +1,169 @@
+"""Time evolution of a wave packet (quantum/evolution.py, docs/quantum-transitions.md): norm and
+energy conserved to round-off, Ehrenfest (the means of the singular values follow the classical
+trajectory of the simulator, affinebody.simulate, for the same body, with an error that shrinks
+with hbar), the Fourier lines of the survival probability at level spacings, and the
+``affinebody evolve`` command (JSON, one-line errors, refusal of too much work)."""
+
+import json
+import textwrap
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from affinebody.cli.quantum_dynamics import evolve as evolve_command
+from affinebody.config import build, parse_config
+from affinebody.quantum.evolution import Packet, evolve, sector_spectrum, spectrum_lines
+from affinebody.quantum.levels import Settings
+from affinebody.simulate import run
+
+EXPR = "0.5*(det - 0.5)**2 + 0.25*(trG - 4.25)**2"
+Q0 = (1.85, 0.45)  # phi = diag(Q0) at rest; the packet's centre in the singular values
+
+
+def potential(Q):
+    det, trG = Q[..., 0] * Q[..., 1], np.sum(Q * Q, -1)
+    return 0.5 * (det - 0.5) ** 2 + 0.25 * (trG - 4.25) ** 2
+
+
+@pytest.fixture(scope="module")
+def classical():
+    """The simulator's trajectory of the same d'Alembert body (J = Id, group L so that det phi
+    may change sign): phi stays diagonal (zero spin and vorticity); its signed singular values."""
+    cfg = parse_config(textwrap.dedent(f"""
+        [system]
+        n = 2
+        group = "L"
+        bodies = 1
+        [body]
+        mass = 1.0
+        inertia = 1.0
+        [kinetic]
+        internal = "dalembert"
+        [[potential]]
+        kind = "one-body"
+        expr = "{EXPR}"
+        [initial]
+        x = [[0.0, 0.0]]
+        phi = [[[{Q0[0]}, 0.0], [0.0, {Q0[1]}]]]
+        [run]
+        dt = 0.002
+        steps = 3000
+        every = 50
+        """))
+    built = build(cfg)
+    traj = run(built.system, built.state, 0.002, 3000, every=50)
+    phi = np.asarray(traj.states.phi)[:, 0]
+    Q = np.linalg.svd(phi, compute_uv=False)
+    Q[:, 1] *= np.sign(np.linalg.det(phi))
+    return np.asarray(traj.times), Q
+
+
+@pytest.fixture(scope="module")
+def runs(classical):
+    times, _ = classical
+    out = {}
+    for hbar, size in ((0.1, 24), (0.05, 32)):
+        spectrum = sector_spectrum("dalembert", potential, hbar, inertia=1.0,
+                                   settings=Settings(basis_size=size))
+        packet = Packet(Q0, (0.0, 0.0), np.sqrt(hbar / 4))
+        out[hbar] = (spectrum, evolve(spectrum, packet, times, hbar))
+    return out
+
+
+def test_norm_and_energy_conserved(runs):
+    for _, ev in runs.values():
+        assert ev.captured > 1 - 1e-6
+        assert np.ptp(ev.norm) < 1e-13 and np.ptp(ev.energy) < 1e-13 * abs(ev.energy[0])
+        assert abs(ev.norm[0] - ev.captured) < 1e-13
+        np.testing.assert_allclose(ev.mean["Q1"][0], Q0[0], atol=1e-6)  # the packet's centre
+        np.testing.assert_allclose(ev.mean["Q2"][0], Q0[1], atol=1e-6)
+        assert ev.survival[0] == pytest.approx(1.0, abs=1e-12)
+
+
+def test_ehrenfest_error_shrinks_with_hbar(classical, runs):
+    """Over t in [0, 6] (about two periods of the motion, amplitude ~0.4 in Q2) the largest
+    distance between <Q_a>(t) and the classical Q_a(t) is 0.087 at hbar = 0.1 and 0.038 at
+    hbar = 0.05 (0.059 at hbar = 0.07, docs/quantum-transitions.md): O(hbar)."""
+    _, Q = classical
+    errors = {}
+    for hbar, (_, ev) in runs.items():
+        errors[hbar] = max(np.max(np.abs(ev.mean["Q1"] - Q[:, 0])),
+                           np.max(np.abs(ev.mean["Q2"] - Q[:, 1])))
+    assert np.ptp(Q[:, 1]) > 0.3  # the motion is not small against the errors
+    assert errors[0.05] < errors[0.1] / 1.8
+    assert errors[0.05] < 0.05
+
+
+def test_survival_lines_at_level_spacings(runs):
+    """The three strongest Fourier lines of |<psi(0)|psi(t)>|^2 over t in [0, 40] lie within half
+    a frequency bin (pi/40) of differences (E_m - E_n)/hbar of populated states, the strongest
+    at that of the most populated pair."""
+    hbar = 0.1
+    spectrum, _ = runs[hbar]
+    T = 40.0
+    ev = evolve(spectrum, Packet(Q0, (0.0, 0.0), np.sqrt(hbar / 4)), np.linspace(0, T, 401),
+                hbar)
+    p, E = np.abs(ev.coefficients) ** 2, ev.energies
+    top = np.argsort(-p)[:8]
+    pairs = sorted(((p[m] * p[n], (E[m] - E[n]) / hbar) for m in top for n in top
+                    if E[m] > E[n]), reverse=True)
+    lines = spectrum_lines(ev, 3)
+    assert abs(lines[0] - pairs[0][1]) < np.pi / T
+    for line in lines:
+        assert min(abs(line - w) for weight, w in pairs if weight > 0.01 * pairs[0][0]) < np.pi / T
+
+
+def test_affine_packet_moments():
+    """af-is: the packet in q = ln Q (the Haar measure x = g^2 sinh x and the conjugation g of
+    the basis handled) starts with mean q = its centre, spread = its width in each variable and
+    <det phi> = E[e^(q1 + q2)] = exp(0.1 + 0.12^2) of the Gaussian; norm and energy constant."""
+    def V(Q):
+        q = np.log(np.abs(Q))
+        s, x = q[..., 0] + q[..., 1], q[..., 0] - q[..., 1]
+        return 0.25 * s * s + 0.5 * x * x + 0.3 * np.cosh(x)
+
+    hbar = 0.1
+    spectrum = sector_spectrum("af-is", V, hbar, I=0.5, A=0.1, B=0.1,
+                               settings=Settings(basis_size=24))
+    ev = evolve(spectrum, Packet((0.6, -0.5), (0.1, 0.0), 0.12), np.linspace(0, 2, 5), hbar)
+    assert ev.captured > 1 - 1e-6
+    np.testing.assert_allclose([ev.mean["q1"][0], ev.mean["q2"][0]], [0.6, -0.5], atol=1e-5)
+    np.testing.assert_allclose([ev.spread["q1"][0], ev.spread["q2"][0]], 0.12, atol=1e-5)
+    np.testing.assert_allclose(ev.mean["det"][0], np.exp(0.1 + 0.12**2), rtol=1e-5)
+    assert np.ptp(ev.norm) < 1e-13 and np.ptp(ev.energy) < 1e-13
+
+
+CONFIG = f"""
+[system]
+n = 2
+[quantum]
+hbar = 0.1
+kinetic = "dalembert"
+inertia = 1.0
+potential = "{EXPR}"
+basis_size = 24
+"""
+
+
+def test_cli_evolve_json_and_errors(tmp_path):
+    path = tmp_path / "packet.toml"
+    path.write_text(CONFIG)
+    args = [str(path), "--at", "1.85,0.45", "--width", "0.158", "--time", "2", "--steps", "10"]
+    result = CliRunner().invoke(evolve_command, [*args, "--json", "--plot",
+                                                 str(tmp_path / "packet.png")])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "packet.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    data = json.loads(result.output)
+    assert len(data["times"]) == 11 and set(data["mean"]) == {"Q1", "Q2", "det", "trG"}
+    assert np.ptp(data["norm"]) < 1e-13 and data["captured"] > 1 - 1e-6
+    assert data["survival"][0] == pytest.approx(1.0)
+    for extra, needle in ((["--at", "1.0,0.9"], "6 widths from the wall"),
+                          (["--steps", "1000000"], "--steps must be between"),
+                          (["--at", "1.85"], "two finite numbers")):
+        bad = CliRunner().invoke(evolve_command, [*args, *extra])
+        assert bad.exit_code == 1, (extra, bad.output)
+        assert needle in bad.output and len(bad.output.strip().splitlines()) == 1
+    (tmp_path / "big.toml").write_text(CONFIG.replace("basis_size = 24", "basis_size = 80"))
+    bad = CliRunner().invoke(evolve_command, [str(tmp_path / "big.toml"), *args[1:]])
+    assert bad.exit_code == 1 and "more than evolve solves" in bad.output

@@ -1,0 +1,245 @@
+"""Transition strengths (quantum/transitions.py, docs/quantum-transitions.md) against the
+oscillator's ladder-operator closed forms, the Thomas-Reiche-Kuhn sum rule (d'Alembert, any
+potential) and its metric form for an affine model (the metric taken from the classical kinetic
+energy, affinebody.kinetic), Hermiticity, the selection rules (a direct angular quadrature of
+every element, no selection rule assumed), one n = 3 case, and the ``affinebody transitions``
+command (contract JSON, one-line errors, refusal of too much work)."""
+
+import json
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from affinebody.cli.quantum_dynamics import transitions as transitions_command
+from affinebody.kinetic import AffineIsotropic, DAlembert
+from affinebody.quantum import spectra as sp
+from affinebody.quantum.intervals import ExpressionPotential
+from affinebody.quantum.transitions import (
+    Operator,
+    amplitudes,
+    harmonics,
+    invariants_at,
+    level_components,
+    matrix_elements,
+    reduced_quadrature,
+    transitions,
+    trk_sum,
+)
+
+HBAR, INERTIA, K = 0.7, 1.3, 0.8
+OMEGA = math.sqrt(K / INERTIA)
+#: <1|phi_ab|0>^2 of one Cartesian oscillator: hbar / (2 I omega)
+U = HBAR / (2 * INERTIA * OMEGA)
+
+
+@pytest.fixture(scope="module")
+def oscillator():
+    """R^4 oscillator (d'Alembert, n = 2): levels 0, 1, 2 with 1, 4, 10 states."""
+    s = sp.solve("dalembert", 2, lambda Q: 0.5 * K * np.sum(Q * Q, -1), HBAR, inertia=INERTIA,
+                 levels=15, settings=sp.Settings(basis_size=12, max_spin=2))
+    assert [lv.multiplicity for lv in s.levels] == [1, 4, 10]
+    return s
+
+
+def strengths(spectrum, text, initial=0):
+    return [t.strength for t in transitions(spectrum, Operator(text, 2), initial).transitions]
+
+
+def deficits(table, target):
+    """target - (partial energy-weighted sums), one per level with a nonzero strength."""
+    partial, out = 0.0, []
+    for t in table.transitions:
+        partial += (t.E_final - t.E_initial) * t.strength
+        if t.strength > 1e-12:
+            out.append(target - partial)
+    return out
+
+
+def test_oscillator_closed_forms(oscillator):
+    """phi_ab = sqrt(U)(a + a^dagger) per component: from the ground, phi11 reaches only the
+    4-fold level 1 (strength U); from level 1 (average over its 4 states) it reaches level 0
+    with U/4 and level 2 with (2 + 3)U/4 (the state with the quantum in 11 goes to |2> with 2U,
+    the 3 others to |1,1> with U); trG = sum phi^2 has <0|trG|0> = 4U and reaches level 2 with
+    4 x 2U^2; G11 = phi11^2 + phi21^2: 2U, 2 x 2U^2; phi12 phi21 only |1,1>: U^2;
+    G12 + C11: <0|.|0> = 2U, to level 2: C11 gives 2 x 2U^2, G12 2 x U^2."""
+    np.testing.assert_allclose(strengths(oscillator, "phi11"), [0, U, 0], atol=1e-12)
+    np.testing.assert_allclose(strengths(oscillator, "phi11", 1), [U / 4, 0, 5 * U / 4],
+                               atol=1e-12)
+    np.testing.assert_allclose(strengths(oscillator, "trG"), [16 * U**2, 0, 8 * U**2],
+                               atol=1e-12)
+    np.testing.assert_allclose(strengths(oscillator, "G11"), [4 * U**2, 0, 4 * U**2],
+                               atol=1e-12)
+    np.testing.assert_allclose(strengths(oscillator, "phi12*phi21"), [0, 0, U**2], atol=1e-12)
+    np.testing.assert_allclose(strengths(oscillator, "G12 + C11"), [4 * U**2, 0, 6 * U**2],
+                               atol=1e-12)
+
+
+def test_selection_rules_and_hermiticity(oscillator):
+    """The harmonics of an operator are those group theory predicts (phi: (+-1, +-1); G = R
+    diag(Q^2) R^T: (0, 0), (0, +-2); C: (0, 0), (+-2, 0)); every element between levels 1 and 2,
+    computed by a direct quadrature over the angles with the states' phases (no selection rule
+    used), vanishes to round-off where the rule forbids it and equals the reduced element where
+    it allows it; and <f|O|i> = conj(<i|O|f>)."""
+    s = oscillator
+    y, w = reduced_quadrature(level_components(s, s.levels[1]))
+    Q = invariants_at("lebesgue2", y)
+    assert set(harmonics(Operator("phi21", 2), Q)) == {(1, 1), (1, -1), (-1, 1), (-1, -1)}
+    assert set(harmonics(Operator("G12", 2), Q)) == {(0, 2), (0, -2)}
+    assert set(harmonics(Operator("C11 - trG/2", 2), Q)) == {(2, 0), (-2, 0)}
+    assert set(harmonics(Operator("G11 + det", 2), Q)) == {(0, 0), (0, 2), (0, -2)}
+
+    op = Operator("phi11 + 0.3*G12 - 0.2*C12*Q1 + det", 2)
+    M = matrix_elements(s, op, 1, 2)  # <f in level 2|O|i in level 1>
+    np.testing.assert_allclose(M, matrix_elements(s, op, 2, 1).conj().T, atol=1e-13)
+    ci, cf = level_components(s, s.levels[1]), level_components(s, s.levels[2])
+    y, w = reduced_quadrature(ci + cf)
+    Q = invariants_at("lebesgue2", y)
+    t = 2 * np.pi * np.arange(12) / 12  # exact for the degree-3 operator and |Delta| <= 4
+    A, B = np.meshgrid(t, t, indexing="ij")
+    values = op(Q[:, None, None, :], A[None], B[None])
+    averages = {}  # Delta -> the angular average of O e^{-i(Ds alpha - Dv beta)} at each node
+
+    def average(ds, dv):
+        if (ds, dv) not in averages:
+            phase = np.exp(-1j * (ds * A - dv * B))
+            averages[(ds, dv)] = np.mean(values * phase[None], axis=(1, 2))
+        return averages[(ds, dv)]
+
+    allowed = set(harmonics(op, Q))
+    forbidden, checked = 0.0, 0
+    row = 0
+    for f in cf:
+        af = amplitudes(f, y)[:, 0]
+        for sf in f.sectors:
+            col = 0
+            for i in ci:
+                ai = amplitudes(i, y)[:, 0]
+                for si in i.sectors:
+                    delta = (sf.spin - si.spin, sf.vorticity - si.vorticity)
+                    direct = np.sum(w * af * ai * average(*delta))
+                    if delta in allowed:
+                        assert abs(direct - M[row, col]) < 1e-12
+                        checked += 1
+                    else:
+                        assert M[row, col] == 0
+                        forbidden = max(forbidden, abs(direct))
+                    col += 1
+            row += 1
+    assert checked > 0 and forbidden < 1e-14
+
+
+def test_trk_dalembert_non_oscillator_converges():
+    """d'Alembert, V = trG/2 + 0.8 exp(-trG/2): sum_F (E_F - E_0) B(0 -> F) of phi11 and of
+    phi21 tends to (hbar^2/2) g^-1(dphi_ab, dphi_ab) = hbar^2 H_kin(pi = E_ab) = hbar^2/(2I)
+    (H_kin of affinebody.kinetic.DAlembert) as levels are added: the partial sums approach it,
+    the deficit shrinking by more than 10x per contributing level."""
+    hbar, inertia = 1.0, 1.0
+    def potential(Q):
+        trG = np.sum(Q * Q, -1)
+        return 0.5 * trG + 0.8 * np.exp(-trG / 2)
+
+    # the sectors reached from the ground are (+-1, +-1): shells |m1| + |m2| <= 2 suffice
+    s = sp.solve("dalembert", 2, potential, hbar, inertia=inertia, levels=40,
+                 settings=sp.Settings(basis_size=12, max_spin=2))
+    model = DAlembert(J=jnp.eye(2)[None] * inertia)
+    assert not s.certified  # max_spin cuts the search: the sum covers the sectors it reaches
+    for a, b in ((0, 0), (1, 0)):
+        pi = jnp.zeros((1, 2, 2)).at[0, a, b].set(1.0)
+        target = hbar**2 * float(model.hamiltonian(jnp.eye(2)[None], pi)[0])
+        assert abs(target - hbar**2 / (2 * inertia)) < 1e-14
+        table = transitions(s, Operator(f"phi{a + 1}{b + 1}", 2), 0)
+        d = deficits(table, target)
+        assert len(d) >= 2
+        assert all(x > 0 for x in d)  # each level adds positive weight below the limit
+        assert all(later < earlier / 10 for earlier, later in zip(d, d[1:], strict=False))
+        assert d[-1] < 5e-5 * target
+        assert abs(trk_sum(table) - (target - d[-1])) < 1e-14
+
+
+def test_trk_metric_form_affine():
+    """af-is (74), V = (q1+q2)^2/4 + (q1-q2)^2/2 + 0.3 cosh(q1-q2): for F = sqrt(det phi) the
+    energy-weighted sum tends to (hbar^2/2) <g^-1(dF, dF)> = hbar^2 <H_kin(phi, (dF/dphi)^T)>
+    = hbar^2 <det/4> H_kin(phi, phi^-1), with H_kin of affinebody.kinetic.AffineIsotropic
+    (constant in phi: the model is left-invariant), the deficit shrinking level by level; for
+    F = ln det = q1 + q2 (separable, harmonic in sigma) it holds exactly with one level."""
+    I, A, B, hbar = 0.5, 0.1, 0.1, 1.0  # noqa: E741
+    def potential(Q):
+        sigma, x = np.log(Q[..., 0] * Q[..., 1]), np.log(Q[..., 0] / Q[..., 1])
+        return 0.25 * sigma**2 + 0.5 * x**2 + 0.3 * np.cosh(x)
+
+    # an invariant reaches the sector (0, 0) only: shells max(|s|, |k|) <= 1 are solved
+    s = sp.solve("af-is", 2, potential, hbar, I=I, A=A, B=B, levels=30,
+                 settings=sp.Settings(basis_size=24, max_spin=1))
+    model = AffineIsotropic(I=I, A=A, B=B)
+    rng = np.random.default_rng(1)
+    phis = jnp.asarray(np.eye(2) + 0.3 * rng.normal(size=(3, 2, 2)))
+    H = np.asarray(model.hamiltonian(phis, jnp.linalg.inv(phis)))
+    np.testing.assert_allclose(H, H[0], rtol=1e-13)
+    mean_det = math.sqrt(strengths(s, "det")[0])  # <0|det|0> (the ground is non-degenerate)
+    target = hbar**2 * mean_det / 4 * H[0]
+    d = deficits(transitions(s, Operator("sqrt(det)", 2), 0), target)
+    assert len(d) >= 5
+    assert all(later < earlier / 3 for earlier, later in zip(d, d[1:], strict=False))
+    assert 0 < d[-1] < 1e-4 * target
+    assert abs(trk_sum(transitions(s, Operator("q1 + q2", 2), 0)) - hbar**2 * H[0]) < 1e-10
+
+
+def test_n3_oscillator_scalar_operators():
+    """R^9 oscillator (n = 3, scalar sector): <0|trG|0> = 9U, trG reaches the scalar level of
+    N = 2 with 9 x 2U^2; det (odd under phi -> -phi) reaches only the parity -1 scalar state of
+    N = 3, with 6 U^3 (six products of three distinct components)."""
+    s = sp.solve("dalembert", 3, ExpressionPotential(f"0.5*{K}*trG", 3), HBAR, inertia=INERTIA,
+                 levels=3, sectors="scalar", settings=sp.Settings(basis_size=6, check_shrink=2))
+    E = [lv.energy for lv in s.levels]  # N = 0, 2, 3, then N >= 4
+    np.testing.assert_allclose(np.diff(E[:3]), [2 * HBAR * OMEGA, HBAR * OMEGA], rtol=1e-10)
+    assert s.levels[2].sectors[0].parity == -1
+    trg = [t.strength for t in transitions(s, Operator("trG", 3), 0).transitions]
+    zeros = [0] * (len(trg) - 3)  # trG|0> and det|0> have no component with N >= 4
+    np.testing.assert_allclose(trg, [81 * U**2, 18 * U**2, 0, *zeros], atol=1e-12)
+    det = [t.strength for t in transitions(s, Operator("det", 3), 0).transitions]
+    np.testing.assert_allclose(det, [0, 0, 6 * U**3, *zeros], atol=1e-12)
+
+
+CONFIG = f"""
+[system]
+n = 2
+[quantum]
+hbar = {HBAR}
+kinetic = "dalembert"
+inertia = {INERTIA}
+potential = "0.5*{K}*trG"
+levels = 15
+basis_size = 12
+"""
+
+
+def test_cli_transitions_json_and_errors(tmp_path):
+    path = tmp_path / "osc.toml"
+    path.write_text(CONFIG)
+    result = CliRunner().invoke(transitions_command, [str(path), "--operator", "phi11", "--from",
+                                                      "1", "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.output)
+    rows = data["transitions"]
+    assert [r["final"] for r in rows] == [0, 1, 2] and {r["initial"] for r in rows} == {1}
+    np.testing.assert_allclose([r["strength"] for r in rows], [U / 4, 0, 5 * U / 4],
+                               atol=1e-12)
+    np.testing.assert_allclose([r["E_final"] - r["E_initial"] for r in rows],
+                               [-HBAR * OMEGA, 0, HBAR * OMEGA], atol=1e-12)
+    assert len(rows[2]["sector_final"]) == 10 and rows[1]["allowed"] is False
+    assert "(+1, +1)" in data["selection_rule"]
+    for args, needle in ((["--operator", "phi11 + foo"], "unknown name 'foo'"),
+                         (["--operator", "phi11", "--from", "7"], "--from 7 is not a level"),
+                         (["--operator", "exp(phi11)"], "angular harmonics"),
+                         (["--operator", "phi11", "--levels", "100000"], "at most 2000"),
+                         (["--operator", "phi11", "--levels", "0"], "--levels must be >= 1")):
+        bad = CliRunner().invoke(transitions_command, [str(path), *args])
+        assert bad.exit_code == 1, (args, bad.output)
+        assert needle in bad.output and len(bad.output.strip().splitlines()) == 1
+    n3 = tmp_path / "n3.toml"  # refused before any solving
+    n3.write_text(CONFIG.replace("n = 2", "n = 3"))
+    bad = CliRunner().invoke(transitions_command, [str(n3), "--operator", "G12 + trG"])
+    assert bad.exit_code == 1 and "supported for n = 2 only" in bad.output
