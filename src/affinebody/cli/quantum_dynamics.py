@@ -116,7 +116,8 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
               help="packet centre X1,X2: Q1,Q2 (d'Alembert) or q1,q2 (affine models)")
 @click.option("--momentum", "momentum", default="0,0", help="mean momentum P1,P2 conjugate to X")
 @click.option("--width", "width", type=float, default=None,
-              help="standard deviation of |psi|^2 in each variable (default sqrt(hbar/2))")
+              help="standard deviation of the packet's probability density in each variable "
+                   "(default sqrt(hbar/2))")
 @click.option("--time", "duration", type=float, default=10.0, help="final time T")
 @click.option("--steps", "steps", type=int, default=200, help="number of intervals in [0, T]")
 @click.option("--json", "as_json", is_flag=True, help="print one JSON object")
