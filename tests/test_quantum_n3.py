@@ -19,6 +19,7 @@ from affinebody.quantum import spectra as sp
 from affinebody.quantum.cli import density, spectrum
 from affinebody.quantum.config import compile_potential
 from affinebody.quantum.levels import AffineInertia
+from oracles import r9_radial_levels
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 
@@ -131,19 +132,6 @@ def test_r9_oscillator_every_sector_exact_with_full_degeneracies(chamber_grid):
     assert states == {N: comb(N + 8, 8) for N in range(5)}
 
 
-def radial_r9_levels(V, ell, count, h=0.1, R=10.0):
-    """Independent reference: -chi''/2 + [(l+3)(l+4)/(2 r^2) + V(r)] chi = E chi (the R^9
-    radial equation for hyperspherical harmonics of degree l, chi = r^4 u), sinc DVR."""
-    i = np.arange(1, int(R / h) + 1)
-    d = i[:, None] - i[None, :]
-    T = np.where(d == 0, np.pi**2 / 3 - 1 / (2 * i[:, None] ** 2),
-                 2.0 * (-1.0) ** d * (1 / np.where(d == 0, 1, d) ** 2
-                                      - 1 / (i[:, None] + i[None, :]) ** 2))
-    r = h * i
-    H = T / (2 * h * h) + np.diag((ell + 3) * (ell + 4) / (2 * r**2) + V(r))
-    return linalg.eigvalsh(H)[:count]
-
-
 def test_sector_spectra_equal_r9_radial_spectra_for_an_anharmonic_potential(chamber_grid):
     """V = r^2/2 + 0.8 exp(-r^2/2), r = |phi|: the R^9 problem separates in hyperspherical
     harmonics, whose (j, j') content at degree l is mult(l) - mult(l - 2); so each sector's
@@ -153,7 +141,7 @@ def test_sector_spectra_equal_r9_radial_spectra_for_an_anharmonic_potential(cham
 
     def VQ(Q):
         return Vr(np.sqrt(np.sum(Q**2, -1)))
-    radial = {ell: radial_r9_levels(Vr, ell, 4) for ell in range(7)}
+    radial = {ell: r9_radial_levels(Vr, ell, 4) for ell in range(7)}
 
     def harmonic_content(j, jp, ell):
         lower = cov.polynomial_multiplicity(j, jp, ell - 2) if ell >= 2 else 0

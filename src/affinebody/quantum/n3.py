@@ -537,9 +537,8 @@ def harmonic_block(potential, hbar: float, inertia: float, j: int, jp: int, degr
     if radial_V:
         M = Vq[:, 0, None, None] * S[None]
     else:
-        flat = Y.reshape(len(omega), -1)
-        M = np.stack([(flat * np.repeat(w * v, algebra.rank)[:, None]).reshape(
-            len(omega), algebra.rank, nY).reshape(-1, nY).T @ Y.reshape(-1, nY) for v in Vq])
+        YY = np.einsum("prm,prn->pmn", Y, Y, optimize=True).reshape(len(omega), nY * nY)
+        M = ((Vq * w[None, :]) @ YY).reshape(len(rho), nY, nY)
     U = np.empty((len(rho), nY, radial))
     dU = np.empty_like(U)
     for L in np.unique(Ldeg):
