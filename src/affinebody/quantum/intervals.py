@@ -550,7 +550,11 @@ class Enclosure:
         ivs = [self.plain(v) for v in args]
         if name in _INCREASING:
             fn, lo, hi = _INCREASING[name]
-            return Value(ivs[0].increasing(fn, lo, hi))
+            out = ivs[0].increasing(fn, lo, hi)
+            if name in ("exp", "sqrt"):  # >= 0: the outward widening must not cross 0, where
+                # a factor lam^d = inf on an unbounded cell would turn it into -inf
+                out = Interval(np.maximum(out.lo, 0.0), out.hi)
+            return Value(out)
         if name in _DECREASING:
             fn, lo, hi = _DECREASING[name]
             return Value(ivs[0].decreasing(fn, lo, hi))
