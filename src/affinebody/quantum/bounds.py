@@ -268,8 +268,8 @@ def lebesgue3_shell_bounds(potential, hbar: float, inertia: float, max_shell: in
                      bound(max_shell + 1),
                      "certified: radial kinetic form >= 0, the sector's harmonics of degree "
                      ">= d carry -Lap_S8 >= d(d+7), V bounded below by interval arithmetic on "
-                     "its expression over cells of (rho, theta, psi) (docs/theory/two-polar.md, "
-                     "'Lower bounds of an n = 3 sector')")
+                     "its expression over cells of (rho, theta, psi) "
+                     "(docs/theory/two-polar.md, 'Lower bounds of an n = 3 sector')")
 
 
 def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell: int,
