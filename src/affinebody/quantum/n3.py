@@ -412,21 +412,34 @@ def angular_candidates(algebra: SectorAlgebra, omega: np.ndarray, degree: int
             np.array(deg)[order])
 
 
-def radial_functions(L: int, count: int, scale: float, rho: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def laguerre_table(count: int, a: float, t: np.ndarray) -> np.ndarray:
+    """Generalised Laguerre polynomials L_k^(a)(t), k < ``count``, [len(t), count], by the
+    three-term recurrence (k + 1) L_(k+1) = (2k + 1 + a - t) L_k - (k + a) L_(k-1)."""
+    out = np.empty((len(t), max(count, 1)))
+    out[:, 0] = 1.0
+    if count > 1:
+        out[:, 1] = 1.0 + a - t
+    for k in range(1, count - 1):
+        out[:, k + 1] = ((2 * k + 1 + a - t) * out[:, k] - (k + a) * out[:, k - 1]) / (k + 1)
+    return out[:, :count]
+
+
+def radial_functions(L: int, count: int, scale: float, rho: np.ndarray,
+                     derivative: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """u_k(rho) = c_k t^(L/2) L_k^(a)(t) e^(-t/2), t = rho^2/b^2, a = L + 7/2, k < ``count``:
-    orthonormal under rho^8 drho (c_k^2 = 2 k! / (b^9 Gamma(k + a + 1))). Values and
-    derivatives d/drho, [len(rho), count]."""
+    orthonormal under rho^8 drho (c_k^2 = 2 k! / (b^9 Gamma(k + a + 1))). Values and (if
+    ``derivative``) derivatives d/drho, [len(rho), count]."""
     a = L + 3.5
     t = (rho / scale) ** 2
     k = np.arange(count)
     log_c = 0.5 * (np.log(2.0) + special.gammaln(k + 1) - 9 * np.log(scale)
                    - special.gammaln(k + a + 1))
     front = np.exp(0.5 * L * np.log(t)[:, None] - 0.5 * t[:, None] + log_c[None, :])
-    lag = special.eval_genlaguerre(k[None, :], a, t[:, None])
-    dlag = np.where(k[None, :] > 0,
-                    -special.eval_genlaguerre(np.maximum(k - 1, 0)[None, :], a + 1, t[:, None]),
-                    0.0)
+    lag = laguerre_table(count, a, t)
+    if not derivative:
+        return front * lag, None
+    dlag = np.zeros_like(lag)  # d/dt L_k^(a) = -L_(k-1)^(a+1)
+    dlag[:, 1:] = -laguerre_table(count - 1, a + 1, t)
     dt = (L / (2 * t))[:, None] * lag - 0.5 * lag + dlag  # d/dt of t^(L/2) e^(-t/2) L_k / front
     return front * lag, front * dt * (2 * rho / scale**2)[:, None]
 
@@ -477,7 +490,8 @@ class HarmonicBasis:
             Y = angular_candidates(algebra, omega, self.degree)[0] @ self.angular
             radial = np.zeros((len(Q), len(self.index)))
             for L in np.unique(self.harmonic_degree):
-                u = radial_functions(int(L), self.radial, self.scale, np.maximum(rho, 1e-300))[0]
+                u = radial_functions(int(L), self.radial, self.scale, np.maximum(rho, 1e-300),
+                                     derivative=False)[0]
                 cols = self.harmonic_degree[self.index[:, 0]] == L
                 radial[:, cols] = u[:, self.index[cols, 1]]
             out.append(Y[:, :, self.index[:, 0]] * radial[:, None, :])
@@ -731,5 +745,6 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
 __all__ = ["SectorAlgebra", "sector_algebra", "generator_values", "sector_coefficients",
            "sector_forms", "sector_candidates", "SectorBasis", "sector_block", "sector_dimension",
            "sectors_by_shell", "lowest_degree", "MAX_SHELL", "solve_all_sectors",
-           "angular_candidates", "radial_functions", "HarmonicBasis", "sphere_harmonics",
+           "angular_candidates", "laguerre_table", "radial_functions", "HarmonicBasis",
+           "sphere_harmonics",
            "harmonic_block"]
