@@ -13,7 +13,7 @@ from affinebody.quantum import n3
 from affinebody.quantum import spectra as sp
 from affinebody.quantum.bounds import haar3_shell_bounds, lebesgue3_shell_bounds
 from affinebody.quantum.channels3 import ChamberQuadrature, haar3_grid
-from affinebody.quantum.config import compile_potential
+from affinebody.quantum.config import ConfigError, compile_potential, parse
 from affinebody.quantum.intervals import Haar3Cells, Lebesgue3Cells, lower_bounds
 from affinebody.quantum.levels import AffineInertia, Settings
 from oracles import r9_radial_states
@@ -138,3 +138,15 @@ def test_n3_cell_enclosures_hold_on_random_points():
     for text in texts[1:]:
         lb = lower_bounds(text, Haar3Cells(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]))
         assert np.all(compile_potential(text, 3)(np.exp(q)) >= lb[idx]), text
+
+
+@pytest.mark.parametrize("extra, field", [
+    ("kinetic = 'af-is'\nI = 1.0\nA = 0.2\nradial_size = 12\n", "quantum.radial_size"),
+    ("inertia = 1.0\nradial_size = 2\n", "quantum.radial_size"),
+    ("inertia = 1.0\nsectors = 'scalar'\nradial_size = 12\n", "quantum.radial_size")])
+def test_radial_size_is_refused_where_it_does_not_apply(extra, field):
+    """radial_size is the d'Alembert n = 3 every-sector basis only: elsewhere, or out of range,
+    one line naming the field."""
+    with pytest.raises(ConfigError) as err:
+        parse("[system]\nn = 3\n[quantum]\npotential = 'trG'\n" + extra)
+    assert field in str(err.value) and "\n" not in str(err.value)
