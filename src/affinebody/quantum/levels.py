@@ -221,15 +221,6 @@ def kth_energy(entries, count: int) -> float:
     return values[count - 1] if len(values) >= count else np.inf
 
 
-def shell_complete(known: list, levels: int, shell_min: float) -> bool:
-    """Heuristic stop of a sector search (n = 3, where no certified bound decides; not a
-    proof: it assumes the lowest level per shell rises with the shell): the candidates found
-    (converged or not) hold ``levels`` states, all below the lowest level ``shell_min`` of the
-    shell just solved."""
-    return (sum(state_count(e[2]) for e in known) >= levels
-            and shell_min > kth_energy(known, levels))
-
-
 def truncate_levels(levels: list[Level], count: int) -> list[Level]:
     """The lowest levels that hold the first ``count`` states (the last may hold more)."""
     out, total = [], 0
@@ -309,6 +300,6 @@ class LevelCollector:
 
 __all__ = [
     "Potential", "MODELS", "Sector", "state_count", "Level", "Block", "Spectrum", "Settings",
-    "AffineInertia", "is_converged", "merge_levels", "kth_energy", "shell_complete",
+    "AffineInertia", "is_converged", "merge_levels", "kth_energy",
     "truncate_levels", "eigen_parity", "LevelCollector"
 ]

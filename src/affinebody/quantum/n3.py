@@ -57,7 +57,7 @@ from affinebody.quantum.bases import (
 from affinebody.quantum.bounds import haar3_shell_bounds, lebesgue3_shell_bounds
 from affinebody.quantum.channels3 import ChamberQuadrature, Grid3, setup3
 from affinebody.quantum.intervals import Unsupported
-from affinebody.quantum.levels import LevelCollector, Sector, Spectrum, shell_complete
+from affinebody.quantum.levels import LevelCollector, Sector, Spectrum
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 #: shells max(j, j') explored by default for n = 3 (the generators of (6, 6) have degree 18)
@@ -588,11 +588,7 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
     search stops after the shell L when every sector of the shells above L has its bound above
     E_K; a sector the basis cannot hold (its lowest degree above the basis degree) must have
     its bound above E_K too. Then the list is ``certified``; otherwise (no bound for the
-    potential, af-af, or a bound below E_K) the result is conditional and says why. Where the
-    bounds cannot decide (a Python callable; af-is / is-af bounds, which are weak at large
-    shear), the search would otherwise run every sector up to max_spin, which for n = 3 costs
-    minutes: it then stops as the heuristic did, after a shell lying wholly above E_K, once
-    the sectors still to solve for a certificate outnumber those solved, and says so.
+    potential, af-af, or a bound below E_K) the result is conditional and says why.
 
     d'Alembert with ``settings.radial_size``: each sector in the basis of
     :func:`harmonic_block` (harmonics of degree <= basis_size x ``radial_size`` radial
@@ -648,7 +644,7 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
     found = LevelCollector(settings)
     shell_minima: list[float] = []
     unresolved: list[tuple[int, int]] = []  # sectors the basis cannot hold
-    certified, heuristic, searched, pruned = False, False, -1, 0
+    certified, searched, pruned = False, -1, 0
 
     def above(key) -> bool:
         return (bounds is not None and found.state_count() >= levels
@@ -687,15 +683,6 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
                 and all(above(key) for key in unresolved)):
             certified = True
             break
-        if model != "af-af" and shell_complete(found.known(), levels, shell_min):
-            # the heuristic would stop here; go on only while the certificate is cheap: the
-            # sectors still to solve (bound not above E_K) are not more than those solved
-            pending = [key for later in sectors_by_shell(max_shell)[searched + 1:]
-                       for key in later if not (transpose_symmetric and key[0] > key[1])
-                       and not above(key)]
-            if bounds is None or len(pending) > max(4, len({k[1:3] for k in found.blocks})):
-                heuristic = True
-                break
     info = setup.info(settings)
     if radial:
         info["radial_size"] = radial
@@ -728,14 +715,11 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
             why = "the bound of the sectors not searched does not exceed the K-th level"
         beyond = "" if bounds is None else (
             f" (certified lower bound beyond shell {searched}: {bounds.beyond(searched):.6g})")
-        if heuristic:
-            how = (f"the search stopped after shell {searched}, whose lowest level lies above "
-                   f"the {levels}-th candidate (a heuristic: it assumes the lowest level per "
-                   f"shell rises with the shell)")
-        else:
-            how = f"searched every sector up to max(j, j') = {max_shell}"
-        certificate = f"conditional: {why}; {how}{beyond}"
-        warnings.append(f"the {levels} lowest states are conditional: {why}; {how}")
+        certificate = (f"conditional: {why}; searched every sector up to max(j, j') = "
+                       f"{max_shell}{beyond}")
+        warnings.append(f"the {levels} lowest states are conditional: {why}; only sectors up "
+                        f"to max(j, j') = {max_shell} were searched (at most {MAX_SHELL} for "
+                        f"n = 3)")
     merged, unconverged = found.levels(levels)
     return Spectrum(merged, unconverged, found.blocks, model, 3, "all", info,
                     bounded, warnings, certified=certified, certificate=certificate,
