@@ -150,3 +150,32 @@ def test_radial_size_is_refused_where_it_does_not_apply(extra, field):
     with pytest.raises(ConfigError) as err:
         parse("[system]\nn = 3\n[quantum]\npotential = 'trG'\n" + extra)
     assert field in str(err.value) and "\n" not in str(err.value)
+
+
+#: af-is ring well in the shear plane: sigma^2/2 + 0.3 (r - 3)^2, r^2 = sum (q_a - q_b)^2 / 3
+RING = ("0.5*(q1 + q2 + q3)**2 "
+        "+ 0.3*(sqrt(((q1 - q2)**2 + (q1 - q3)**2 + (q2 - q3)**2)/3) - 3)**2")
+
+
+def test_af_is_ring_well_binds_a_higher_shell_below_a_lower_one():
+    """af-is, n = 3, a ring well at shear radius 3: there the rotor terms (c - c') |K f|^2 of
+    the sectors (j, 0) fade like e^(-2x), while (1, 1) pays its Casimir hbar^2 j'(j'+1)/(2 I~)
+    everywhere; so shell 2's (2, 0) lies below shell 1's (1, 1), and below the third (0, 0)
+    level. A search stopping after the first shell lying above the K-th candidate (the former
+    heuristic) would stop after shell 1 with K = 3 and return three (0, 0) levels; the search
+    finds the (2, 0) level (5 states) in second place and, the af-is bound not deciding here
+    (the ring's rotor levels really are low), reports the list as conditional."""
+    s = sp.solve("af-is", 3, compile_potential(RING, 3), 1.0, I=1.0, A=0.2, B=0.1, levels=3,
+                 settings=Settings(basis_size=4, check_shrink=2, scale=1.5, scale_sigma=1.0,
+                                   centre=0.0, max_spin=2, tolerance=1e-2))
+    lowest: dict = {}
+    for key, block in s.blocks.items():
+        lowest.setdefault(key[1:3], []).append(float(block.energies[0]))
+    scalar = sorted(lowest[(0, 0)])
+    assert min(lowest[(1, 1)]) > scalar[2]  # the heuristic would stop after shell 1
+    assert min(lowest[(2, 0)]) < scalar[1] < min(lowest[(1, 1)])  # not monotone in the shell
+    states = s.states()
+    assert [(lv.sectors[0].spin, lv.sectors[0].vorticity) for lv in states[:2]] == [(0, 0),
+                                                                                    (2, 0)]
+    assert states[1].multiplicity == 5
+    assert not s.certified and s.certificate.startswith("conditional")
