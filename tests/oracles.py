@@ -5,7 +5,10 @@ Not library code: they exist only to test :mod:`affinebody.quantum` (and its ben
 
 from __future__ import annotations
 
+from math import comb
+
 import numpy as np
+from scipy import linalg
 from scipy.sparse.linalg import LinearOperator, eigsh
 
 from affinebody.quantum.bases import Hermite1D
@@ -83,3 +86,29 @@ def cartesian_n2_levels(potential: Potential, hbar: float, inertia: float, count
         w = eigsh(op, k=k, which="SA", tol=tol, return_eigenvectors=False)
         values.extend(np.sort(w))
     return np.sort(np.array(values))[:count]
+
+
+def r9_radial_levels(V, ell: int, count: int, h: float = 0.1, R: float = 10.0) -> np.ndarray:
+    """Lowest ``count`` levels of -chi''/2 + [(l+3)(l+4)/(2 r^2) + V(r)] chi = E chi, the R^9
+    radial equation for the hyperspherical harmonics of degree l (chi = r^4 u; hbar = J = 1),
+    by a sinc DVR on (0, R) with step h (the odd extension: chi(0) = 0). Independent of the
+    two-polar reduction."""
+    i = np.arange(1, int(R / h) + 1)
+    d = i[:, None] - i[None, :]
+    T = np.where(d == 0, np.pi**2 / 3 - 1 / (2 * i[:, None] ** 2),
+                 2.0 * (-1.0) ** d * (1 / np.where(d == 0, 1, d) ** 2
+                                      - 1 / (i[:, None] + i[None, :]) ** 2))
+    r = h * i
+    H = T / (2 * h * h) + np.diag((ell + 3) * (ell + 4) / (2 * r**2) + V(r))
+    return linalg.eigvalsh(H, subset_by_index=[0, count - 1])
+
+
+def r9_radial_states(V, count: int, h: float = 0.02, R: float = 10.0, max_degree: int = 8,
+                     per_degree: int = 6) -> np.ndarray:
+    """The lowest ``count`` states of -Lap/2 + V(|x|) on R^9 with multiplicity: each radial
+    level of degree l counted dim H_l = C(l+8, 8) - C(l+6, 8) times."""
+    states = []
+    for ell in range(max_degree + 1):
+        dim = comb(ell + 8, 8) - (comb(ell + 6, 8) if ell >= 2 else 0)
+        states += [e for e in r9_radial_levels(V, ell, per_degree, h, R) for _ in range(dim)]
+    return np.sort(states)[:count]

@@ -17,7 +17,9 @@ from affinebody.quantum import covariants3 as cov
 from affinebody.quantum import n3
 from affinebody.quantum import spectra as sp
 from affinebody.quantum.cli import density, spectrum
+from affinebody.quantum.config import compile_potential
 from affinebody.quantum.levels import AffineInertia
+from oracles import r9_radial_levels
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 
@@ -130,19 +132,6 @@ def test_r9_oscillator_every_sector_exact_with_full_degeneracies(chamber_grid):
     assert states == {N: comb(N + 8, 8) for N in range(5)}
 
 
-def radial_r9_levels(V, ell, count, h=0.1, R=10.0):
-    """Independent reference: -chi''/2 + [(l+3)(l+4)/(2 r^2) + V(r)] chi = E chi (the R^9
-    radial equation for hyperspherical harmonics of degree l, chi = r^4 u), sinc DVR."""
-    i = np.arange(1, int(R / h) + 1)
-    d = i[:, None] - i[None, :]
-    T = np.where(d == 0, np.pi**2 / 3 - 1 / (2 * i[:, None] ** 2),
-                 2.0 * (-1.0) ** d * (1 / np.where(d == 0, 1, d) ** 2
-                                      - 1 / (i[:, None] + i[None, :]) ** 2))
-    r = h * i
-    H = T / (2 * h * h) + np.diag((ell + 3) * (ell + 4) / (2 * r**2) + V(r))
-    return linalg.eigvalsh(H)[:count]
-
-
 def test_sector_spectra_equal_r9_radial_spectra_for_an_anharmonic_potential(chamber_grid):
     """V = r^2/2 + 0.8 exp(-r^2/2), r = |phi|: the R^9 problem separates in hyperspherical
     harmonics, whose (j, j') content at degree l is mult(l) - mult(l - 2); so each sector's
@@ -152,7 +141,7 @@ def test_sector_spectra_equal_r9_radial_spectra_for_an_anharmonic_potential(cham
 
     def VQ(Q):
         return Vr(np.sqrt(np.sum(Q**2, -1)))
-    radial = {ell: radial_r9_levels(Vr, ell, 4) for ell in range(7)}
+    radial = {ell: r9_radial_levels(Vr, ell, 4) for ell in range(7)}
 
     def harmonic_content(j, jp, ell):
         lower = cov.polynomial_multiplicity(j, jp, ell - 2) if ell >= 2 else 0
@@ -229,9 +218,9 @@ def test_spectrum_cli_n3_default_is_every_sector_with_oscillator_degeneracies(tm
     labels = {(s["spin"], s["vorticity"]) for s in data["states"][2]["sectors"]}
     assert labels == {(0, 0), (0, 2), (2, 0), (1, 1), (2, 2)}
     assert data["sectors"] == "all" and not data["warnings"]
-    # n = 3 has no certified sector bound: the list is exact here but reported as conditional
-    assert data["certified"] is False and data["complete"] is False
-    assert data["certificate"].startswith("conditional") and data["unknown_states"] == []
+    # the expression potential has a certified bound per sector (j, j'): the list is complete
+    assert data["certified"] is True and data["complete"] is True
+    assert data["certificate"].startswith("certified") and data["unknown_states"] == []
     out = tmp_path / "dens"
     state = next(i for i, e in enumerate(data["energies"]) if e > 6)
     result = CliRunner().invoke(density, [str(path), "--state", str(state), "-o", str(out)])
@@ -242,17 +231,19 @@ def test_spectrum_cli_n3_default_is_every_sector_with_oscillator_degeneracies(tm
 
 def test_progress_names_every_sector_solved():
     """The progress callback (a status line in the CLI) is called once per sector solved, and
-    the shell search stops after the first shell lying above the 10 lowest states (N <= 1 of
-    the R^9 oscillator: shells 0, 1 and the stopping shell 2)."""
+    the search stops on the certificate: a sector is solved only if its certified bound
+    sqrt(d (d + 7)) (V = |Q|^2/2, d its lowest degree) does not exceed the 10th state 11/2,
+    so d <= 3 (sqrt 30 = 5.48 < 5.5 < sqrt 44)."""
     lines = []
-    s = sp.solve("dalembert", 3, lambda Q: 0.5 * np.sum(Q**2, -1), 1.0, levels=10,
+    s = sp.solve("dalembert", 3, compile_potential("0.5*trG", 3), 1.0, levels=10,
                  settings=sp.Settings(basis_size=4, scale=1.0, check_shrink=2),
                  progress=lines.append)
     solved = {(k[1], k[2]) for k in s.blocks}
     assert len(lines) == len(solved)
     in_order = sorted(solved, key=lambda p: (max(p), p))
     assert all(f"({j}, {jp})" in line for line, (j, jp) in zip(lines, in_order, strict=True))
-    assert max(max(p) for p in solved) == 2
+    assert {n3.lowest_degree(*p) for p in solved} == {0, 1, 2, 3}
+    assert s.certified and s.complete()
     assert s.energies() == pytest.approx([4.5] + [5.5] * 9, abs=1e-10)
 
 
@@ -280,8 +271,8 @@ def test_every_sector_of_a_continuous_spectrum_is_flagged():
         return 2.0 * np.sum(np.log(Q), -1) ** 2
     s = sp.solve("af-is", 3, V, 1.0, I=1.0, A=0.3, B=0.2, levels=6,
                  settings=sp.Settings(basis_size=6, check_shrink=2, scale=3.0, scale_sigma=0.84,
-                                      centre=0.0))
-    assert s.levels == [] and s.sectors == "all"
+                                      centre=0.0, max_spin=1))
+    assert s.levels == [] and s.sectors == "all" and not s.certified
     assert len({(k[1], k[2]) for k in s.blocks}) >= 2
     assert len(s.unconverged) >= 6 and min(lv.error for lv in s.unconverged) > 1e-3
 

@@ -1,5 +1,6 @@
-"""Certified lower bounds of the lowest level of every n = 2 sector: the stopping rule of the
-sector search (docs/theory/two-polar.md, "Lower bounds of a sector").
+"""Certified lower bounds of the lowest level of every n = 2 sector and every n = 3 sector
+(j, j'): the stopping rule of the sector search (docs/theory/two-polar.md, "Lower bounds of a
+sector"; n = 3: :func:`lebesgue3_shell_bounds`, :func:`haar3_shell_bounds`).
 
 In a sector the reduced operator is H = T + U with a kinetic part T that is a non-negative
 quadratic form under the sector's measure (integrate by parts: <psi, T psi> = (hbar^2/M)
@@ -40,9 +41,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from affinebody.quantum import covariants3 as cov
 from affinebody.quantum.intervals import (
+    Haar3Cells,
     HaarCells,
     Interval,
+    Lebesgue3Cells,
     LebesgueCells,
     Unsupported,
     Value,
@@ -215,5 +219,111 @@ def lebesgue2_shell_bounds(potential, hbar: float, inertia: float, max_shell: in
                        sector)
 
 
+# ------------------------------------------------------------------------------- n = 3
+def _sectors3(max_shell: int) -> list[list[tuple[int, int]]]:
+    """The sectors (j, j') with a non-empty module, by shell max(j, j') <= ``max_shell``."""
+    return [[(j, jp) for j in range(L + 1) for jp in range(L + 1) if max(j, jp) == L
+             and cov.fixed_dimension(j, jp) > 0] for L in range(max_shell + 1)]
+
+
+def _by_shell(each, max_shell: int, tail: float, method: str) -> ShellBounds:
+    shell_min = np.full(max_shell + 1, np.inf)
+    sector: dict = {}
+    for L, keys in enumerate(_sectors3(max_shell)):
+        for key in keys:
+            sector[key] = float(each(*key))
+            shell_min[L] = min(shell_min[L], sector[key])
+    return ShellBounds(shell_min, float(tail), method, sector)
+
+
+def lebesgue3_shell_bounds(potential, hbar: float, inertia: float, max_shell: int,
+                           length: float) -> ShellBounds:
+    """Lower bounds of the lowest level of every n = 3 d'Alembert sector (j, j'), J = inertia
+    * Id, shells max(j, j') <= ``max_shell`` and beyond (docs/theory/two-polar.md, "Lower
+    bounds of an n = 3 sector").
+
+    On R^9, -Lap = -d_rho^2 - (8/rho) d_rho + (-Lap_S8)/rho^2 with the radial part a
+    non-negative form under rho^8 drho; a state of the sector lies, on every sphere, in the
+    harmonics of degree >= d = covariants3.lowest_degree(j, j') (>= max(j, j')), where -Lap_S8
+    >= d (d + 7). So E_min >= inf over Q of hbar^2 d (d + 7) / (2 I |Q|^2) + V(Q), bounded on
+    cells (rho, theta, psi) of the chamber (:class:`~affinebody.quantum.intervals.Lebesgue3Cells`)
+    with the centrifugal term at rho_hi; the bound increases with d, so d = max_shell + 1
+    bounds every sector of the shells not enumerated."""
+    text = _expression(potential)
+    r_edges = length * np.concatenate([np.linspace(0.0, 12.0, 601),
+                                       np.geomspace(12.0, 96.0, 25)[1:], [np.inf]])
+    t_edges = np.linspace(0.0, math.atan(math.sqrt(2.0)), 17)
+    p_edges = np.linspace(-math.pi / 4, math.pi / 4, 17)
+    lo = np.meshgrid(r_edges[:-1], t_edges[:-1], p_edges[:-1], indexing="ij")
+    hi = np.meshgrid(r_edges[1:], t_edges[1:], p_edges[1:], indexing="ij")
+    v = np.min(lower_bounds(text, Lebesgue3Cells(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])),
+               axis=(1, 2))
+    with np.errstate(divide="ignore"):
+        inv = np.where(np.isfinite(r_edges[1:]), 1 / r_edges[1:] ** 2, 0.0)
+    w = hbar**2 / (2 * inertia)
+
+    def bound(d: int) -> float:
+        return float(_lowered(np.min(v + w * d * (d + 7) * inv)))
+    return _by_shell(lambda j, jp: bound(cov.lowest_degree(j, jp)), max_shell,
+                     bound(max_shell + 1),
+                     "certified: radial kinetic form >= 0, the sector's harmonics of degree "
+                     ">= d carry -Lap_S8 >= d(d+7), V bounded below by interval arithmetic on "
+                     "its expression over cells of (rho, theta, psi) "
+                     "(docs/theory/two-polar.md, 'Lower bounds of an n = 3 sector')")
+
+
+def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell: int,
+                       centre: float) -> ShellBounds:
+    """Lower bounds of the lowest level of every n = 3 af-is / is-af sector (j, j'), shells
+    max(j, j') <= ``max_shell`` and beyond (docs/theory/two-polar.md, "Lower bounds of an
+    n = 3 sector").
+
+    Per pair g = (a, b), with a = (K_g (x) 1) f, b = (1 (x) K_g) f, x = q_a - q_b, the
+    centrifugal terms and the Casimir term of the reduced operator (n3.sector_forms) are
+    c |a + b|^2 - d |a - b|^2 + e |b|^2 (af-is; is-af: e |a|^2), c = c0 / sinh^2(x/2),
+    d = c0 / cosh^2(x/2), c0 = hbar^2 / (16 M), e = hbar^2 / (2 I~). The 2 x 2 matrix of this
+    form has determinant c0 (e - 4 c0) / (sinh^2(x/2) cosh^2(x/2)) > 0 (e - 4 c0 = hbar^2 /
+    (4 (I - A))) and trace 2 c0 / (sinh^2 cosh^2) + e, so it is >= lambda(x) (|a|^2 + |b|^2)
+    with lambda(x) = det / tr = c0 (e - 4 c0) / (2 c0 + (e/4) sinh^2 x), decreasing in x;
+    summed over the pairs, sum_g |a_g|^2 = j (j + 1) |f|^2 and sum_g |b_g|^2 = j' (j' + 1) |f|^2.
+    The gradient part is a non-negative form (G positive definite), so E_min >= inf over the
+    chamber of V + lambda(q_1 - q_3) (j (j + 1) + j' (j' + 1)), bounded on cells (r, t, sigma)
+    (:class:`~affinebody.quantum.intervals.Haar3Cells`; q_1 - q_3 = sqrt2 r sin(t + pi/6) <=
+    sqrt2 r_hi). The bound increases with j (j + 1) + j' (j' + 1) >= L (L + 1) on shell L."""
+    if inertia.model == "af-af":
+        raise Unsupported("af-af is unbounded below")
+    text = _expression(potential)
+    r_edges = np.concatenate([np.linspace(0.0, 6.0, 121), np.geomspace(6.0, 60.0, 21)[1:],
+                              [np.inf]])
+    t_edges = np.linspace(math.pi / 6, math.pi / 2, 9)
+    inner = np.linspace(-12.0, 12.0, 121)
+    outer = np.geomspace(12.0, 48.0, 9)[1:]
+    s_edges = np.concatenate([[-np.inf], centre - outer[::-1], centre + inner, centre + outer,
+                              [np.inf]])
+    lo = np.meshgrid(r_edges[:-1], t_edges[:-1], s_edges[:-1], indexing="ij")
+    hi = np.meshgrid(r_edges[1:], t_edges[1:], s_edges[1:], indexing="ij")
+    v = np.min(lower_bounds(text, Haar3Cells(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])),
+               axis=2)  # [r, t]
+    c0 = hbar**2 / (16 * inertia.M)
+    e = hbar**2 * inertia.inv_I_tilde / 2
+    x_hi = math.sqrt(2.0) * r_edges[1:, None] * np.where(
+        t_edges[1:] <= math.pi / 3, np.sin(t_edges[1:] + math.pi / 6), 1.0)[None, :]
+    with np.errstate(over="ignore"):
+        sinh2 = np.sinh(np.minimum(x_hi, 700.0)) ** 2
+        lam = np.where(np.isfinite(x_hi), max(c0 * (e - 4 * c0), 0.0) / (2 * c0 + 0.25 * e * sinh2),
+                       0.0)
+
+    def bound(casimir: float) -> float:
+        return float(_lowered(np.min(v + lam * casimir)))
+    L = max_shell + 1
+    return _by_shell(lambda j, jp: bound(j * (j + 1) + jp * (jp + 1)), max_shell,
+                     bound(L * (L + 1)),
+                     "certified: gradient form >= 0, centrifugal and Casimir terms >= "
+                     "lambda(q1 - q3)(j(j+1) + j'(j'+1)) pair by pair, V bounded below by "
+                     "interval arithmetic on its expression over cells of (r, t, sigma) "
+                     "(docs/theory/two-polar.md, 'Lower bounds of an n = 3 sector')")
+
+
 __all__ = ["MARGIN", "ShellBounds", "haar_strip_edges", "haar_strip_minima",
-           "centrifugal_haar_min", "haar2_shell_bounds", "lebesgue2_shell_bounds"]
+           "centrifugal_haar_min", "haar2_shell_bounds", "lebesgue2_shell_bounds",
+           "lebesgue3_shell_bounds", "haar3_shell_bounds"]

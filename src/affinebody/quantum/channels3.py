@@ -67,6 +67,16 @@ class ChamberQuadrature:
     def build(cls, rho_max: float, n_rho: int = 60, n_angle: int = 28) -> ChamberQuadrature:
         xr, wr = special.roots_legendre(n_rho)
         rho, w_rho = rho_max * (xr + 1) / 2, rho_max * wr / 2
+        omega, w_ang = cls.sphere(n_angle)
+        Q = (rho[:, None, None] * omega[None, :, :]).reshape(-1, 3)
+        # int f(Q) J(Q) dQ = int rho^8 drho int_sphere f J(omega) dOmega (J of degree 6)
+        return cls(Q, (w_rho[:, None] * rho[:, None] ** 8 * w_ang[None, :]).ravel())
+
+    @staticmethod
+    def sphere(n_angle: int = 28) -> tuple[np.ndarray, np.ndarray]:
+        """Nodes omega [P, 3] on the unit sphere of the chamber and weights with J(omega) =
+        prod(omega_a^2 - omega_b^2) included: int over the chamber of f(Q) J(Q) dQ =
+        int_0^inf rho^8 drho sum_p w_p f(rho omega_p) (dQ = rho^2 drho dOmega, J of degree 6)."""
         xa, wa = special.roots_legendre(n_angle)
         u, wu = (xa + 1) / 2, wa / 2
         U, Vv = np.meshgrid(u, u, indexing="ij")
@@ -78,11 +88,10 @@ class ChamberQuadrature:
         ny = np.linalg.norm(y, axis=1)
         # dQ = 2 d(area coords) lambda^2 d lambda with Q = lambda y; lambda = rho / |y|
         w_ang = 2 * WU.ravel() / ny**3
-        Q = (rho[:, None, None] * (y / ny[:, None])[None, :, :]).reshape(-1, 3)
-        w = (w_rho[:, None] * rho[:, None] ** 2 * w_ang[None, :]).ravel()
-        J = (Q[:, 0] ** 2 - Q[:, 1] ** 2) * (Q[:, 0] ** 2 - Q[:, 2] ** 2) * (
-            Q[:, 1] ** 2 - Q[:, 2] ** 2)
-        return cls(Q, w * J)
+        omega = y / ny[:, None]
+        J = (omega[:, 0] ** 2 - omega[:, 1] ** 2) * (omega[:, 0] ** 2 - omega[:, 2] ** 2) * (
+            omega[:, 1] ** 2 - omega[:, 2] ** 2)
+        return omega, w_ang * J
 
 
 @dataclass(frozen=True)

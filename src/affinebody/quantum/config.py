@@ -65,6 +65,8 @@ class QuantumSection(_Section):
     centre: float | None = None
     tolerance: float = 1e-7
     max_spin: int = 40
+    #: n = 3 d'Alembert: radial functions per harmonic of degree <= basis_size (n3.harmonic_block)
+    radial_size: int | None = None
     #: ``affinebody density``: output points per density (default 301 for n = 2, 151 for n = 3)
     #: and the quadrature error allowed, relative to each density's peak
     density_points: int | None = None
@@ -101,6 +103,16 @@ def check(config: QuantumConfig) -> QuantumConfig:
     if qc.basis_size is not None and not low <= qc.basis_size <= high:
         raise ConfigError(f"quantum.basis_size must be between {low} and {high} for n = {n} "
                           f"(got {qc.basis_size})")
+    if qc.radial_size is not None:
+        if n != 3 or qc.kinetic != "dalembert":
+            raise ConfigError(f"quantum.radial_size is for n = 3 with kinetic 'dalembert' only "
+                              f"(got n = {n}, kinetic {qc.kinetic!r}); remove it")
+        if qc.sectors not in ("auto", "all"):
+            raise ConfigError(f"quantum.radial_size needs quantum.sectors = 'all' (got "
+                              f"{qc.sectors!r})")
+        if not 4 <= qc.radial_size <= 60:
+            raise ConfigError(f"quantum.radial_size must be between 4 and 60 (got "
+                              f"{qc.radial_size})")
     if qc.density_points is not None and not 11 <= qc.density_points <= 100001:
         raise ConfigError(f"quantum.density_points must be between 11 and 100001 (got "
                           f"{qc.density_points})")
@@ -198,7 +210,7 @@ def solver_arguments(config: QuantumConfig) -> dict:
     kwargs["settings"] = Settings(
         basis_size=qc.basis_size or default_size, scale=qc.scale, scale_sigma=qc.scale_sigma,
         centre=qc.centre, tolerance=qc.tolerance, max_spin=qc.max_spin,
-        check_shrink=4 if n == 2 else 2)
+        check_shrink=4 if n == 2 else 2, radial_size=qc.radial_size)
     return kwargs
 
 

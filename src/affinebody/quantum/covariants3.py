@@ -171,6 +171,14 @@ def polynomial_multiplicity(j: int, jp: int, degree: int) -> int:
     return n(j, jp) - n(j + 1, jp) - n(j, jp + 1) + n(j + 1, jp + 1)
 
 
+def lowest_degree(j: int, jp: int) -> int:
+    """Lowest polynomial degree on R^{3x3} carrying the sector (j, j') (>= max(j, j'): the
+    polynomials of degree d lie in V_1^(x)d (x) V_1^(x)d); also the lowest degree of the
+    harmonic polynomials carrying it, so on each sphere |phi| = rho a state of the sector lies
+    in the harmonics of degree >= lowest_degree (R^9 oscillator: its lowest shell N)."""
+    return next(d for d in range(4 * (j + jp) + 1) if polynomial_multiplicity(j, jp, d))
+
+
 @cache
 def _symmetric_matrix_weights(degree: int) -> dict[int, int]:
     """Weight multiplicities of SO(2) in the polynomials of ``degree`` on Sym(3) = V_0 + V_2."""
@@ -449,5 +457,6 @@ def module_generators(j: int, jp: int, model: str = "matrix", max_degree: int = 
 __all__ = [
     "monomials", "sphere_moment", "harmonic_basis", "rotation_generators", "harmonic_projection",
     "fixed_subspace", "expm_antisymmetric", "fixed_dimension", "polynomial_multiplicity",
+    "lowest_degree",
     "covariant_count", "basic_invariants", "RING", "module_generators"
 ]

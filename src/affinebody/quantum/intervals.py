@@ -346,6 +346,94 @@ class LebesgueCells(Cells):
         return out
 
 
+class Lebesgue3Cells(Cells):
+    """n = 3 d'Alembert: Q = rho (cos theta, sin theta cos psi, sin theta sin psi), cells
+    [rho_lo, rho_hi] x [theta_lo, theta_hi] x [psi_lo, psi_hi] covering the chamber Q_1 >= Q_2
+    >= |Q_3| (theta in [0, arctan sqrt 2], psi in [-pi/4, pi/4]; a cover of it is enough for
+    lower bounds); lam = rho."""
+
+    def __init__(self, r_lo, r_hi, t_lo, t_hi, p_lo, p_hi):
+        self.r = Interval(np.asarray(r_lo, float), np.asarray(r_hi, float))
+        self.t = Interval(np.asarray(t_lo, float), np.asarray(t_hi, float))
+        self.p = Interval(np.asarray(p_lo, float), np.asarray(p_hi, float))
+
+    def lam_power(self, d):
+        """rho^d, rho >= 0 (d < 0: [rho_hi^d, rho_lo^d], infinite at rho_lo = 0)."""
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            a, b = self.r.lo ** float(d), self.r.hi ** float(d)
+        a, b = np.where(np.isnan(a), 1.0, a), np.where(np.isnan(b), 1.0, b)  # 0^0, inf^0
+        return Interval.make(np.minimum(a, b), np.maximum(a, b), ulps=2)
+
+    def tau_power(self, e):
+        raise AssertionError("no tau in the d'Alembert cells")
+
+    def linear(self, a, b, qq=0.0):
+        raise AssertionError("no linear forms in the d'Alembert cells")
+
+    def variables(self):
+        sin_t = self.t.periodic(np.sin, 0.0)
+        omega = [self.t.periodic(np.cos, math.pi / 2), sin_t * self.p.periodic(np.cos, math.pi / 2),
+                 sin_t * self.p.periodic(np.sin, 0.0)]
+        log_r = self.r.increasing(np.log, 0.0)
+        out = {"trG": Value(Interval.point(1.0), d=2),
+               "det": Value(omega[0] * omega[1] * omega[2], d=3)}
+        for a in range(3):
+            out[f"Q{a + 1}"] = Value(omega[a], d=1)
+            out[f"q{a + 1}"] = Value(log_r + omega[a].even(np.abs).increasing(np.log, 0.0))
+        for k in (1, 2, 3):
+            total = omega[0].integer_power(2 * k)
+            for a in (1, 2):
+                total = total + omega[a].integer_power(2 * k)
+            out[f"K{k}"] = Value(total, d=2 * k)
+        return out
+
+
+class Haar3Cells(Cells):
+    """n = 3 affine models: q = (sigma/3)(1, 1, 1) + r (cos t e_u + sin t e_v), e_u = (1, -1,
+    0)/sqrt2, e_v = (1, 1, -2)/sqrt6 (the chamber q_1 > q_2 > q_3 is t in [pi/6, pi/2]), cells
+    [r_lo, r_hi] x [t_lo, t_hi] x [sigma_lo, sigma_hi]; q_a - sigma/3 = r sqrt(2/3) sin(t +
+    phase_a), phases pi/3, -pi/3, pi; lam = e^(sigma/3), so Q_a = lam e^(q_a - sigma/3) and
+    det = lam^3 exactly; the linear forms are a sigma + [interval]."""
+
+    PHASES = (math.pi / 3, -math.pi / 3, math.pi)
+
+    def __init__(self, r_lo, r_hi, t_lo, t_hi, s_lo, s_hi):
+        self.r = Interval(np.asarray(r_lo, float), np.asarray(r_hi, float))
+        self.t = Interval(np.asarray(t_lo, float), np.asarray(t_hi, float))
+        self.s = Interval(np.asarray(s_lo, float), np.asarray(s_hi, float))
+
+    def lam_power(self, d):
+        with np.errstate(over="ignore", invalid="ignore"):
+            a = np.exp(d * self.s.lo / 3)
+            b = np.exp(d * self.s.hi / 3)
+        return Interval.make(np.minimum(a, b), np.maximum(a, b), ulps=2)
+
+    def tau_power(self, e):
+        raise AssertionError("no tau in the n = 3 affine cells")
+
+    def linear(self, a, b, qq=0.0):
+        return quadratic_range(self.s, qq, a)
+
+    def shear(self, a: int) -> Interval:
+        """q_a - sigma/3 on each cell."""
+        wave = (self.t + Interval.point(self.PHASES[a])).periodic(np.sin, 0.0)
+        return Interval.point(math.sqrt(2.0 / 3.0)) * self.r * wave
+
+    def variables(self):
+        y = [self.shear(a) for a in range(3)]
+        out = {"det": Value(Interval.point(1.0), d=3)}
+        for a in range(3):
+            out[f"q{a + 1}"] = Value(y[a], a=1.0 / 3.0)
+            out[f"Q{a + 1}"] = Value(y[a].increasing(np.exp), d=1)
+        for k in (1, 2, 3):
+            total = (y[0] * Interval.point(2.0 * k)).increasing(np.exp)
+            for a in (1, 2):
+                total = total + (y[a] * Interval.point(2.0 * k)).increasing(np.exp)
+            out[f"K{k}"] = Value(total, d=2 * k)
+        out["trG"] = out["K1"]
+        return out
+
+
 # ------------------------------------------------------------------------------ evaluator
 class Unsupported(ValueError):
     """The expression uses something the enclosure does not cover."""
@@ -462,7 +550,11 @@ class Enclosure:
         ivs = [self.plain(v) for v in args]
         if name in _INCREASING:
             fn, lo, hi = _INCREASING[name]
-            return Value(ivs[0].increasing(fn, lo, hi))
+            out = ivs[0].increasing(fn, lo, hi)
+            if name in ("exp", "sqrt"):  # >= 0: the outward widening must not cross 0, where
+                # a factor lam^d = inf on an unbounded cell would turn it into -inf
+                out = Interval(np.maximum(out.lo, 0.0), out.hi)
+            return Value(out)
         if name in _DECREASING:
             fn, lo, hi = _DECREASING[name]
             return Value(ivs[0].decreasing(fn, lo, hi))
@@ -592,6 +684,7 @@ def invariant_names(n: int) -> tuple[str, ...]:
             + ("trG",) + tuple(f"K{a}" for a in range(1, n + 1)) + ("det",))
 
 
-__all__ = ["Interval", "Value", "Cells", "HaarCells", "LebesgueCells", "Enclosure",
+__all__ = ["Interval", "Value", "Cells", "HaarCells", "LebesgueCells", "Lebesgue3Cells",
+           "Haar3Cells", "Enclosure",
            "Unsupported", "lower_bounds", "evaluate", "summands", "quadratic_range",
            "ExpressionPotential", "invariant_values", "invariant_names"]

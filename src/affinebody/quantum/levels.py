@@ -163,6 +163,9 @@ class Settings:
     check_widen: float = 1.3  # the widened check basis has scale x check_widen
     max_spin: int = 40  # last shell searched: n = 2 |m1| + |m2| (d'Alembert), max(|s|, |k|)
     merge: float = 1e-8  # levels closer than merge * max(1,|E|) are one degenerate level
+    #: n = 3 d'Alembert: radial functions per harmonic (n3.harmonic_block); None: the
+    #: Gaussian x polynomial basis of total degree basis_size (n3.sector_block)
+    radial_size: int | None = None
 
 @dataclass(frozen=True)
 class AffineInertia:
@@ -216,14 +219,6 @@ def kth_energy(entries, count: int) -> float:
     """The ``count``-th lowest energy of the entries counted with their states (inf if fewer)."""
     values = sorted(v for e in entries for v in [e[0]] * state_count(e[2]))
     return values[count - 1] if len(values) >= count else np.inf
-
-
-def shell_complete(known: list, levels: int, shell_min: float) -> bool:
-    """Heuristic stop of a sector search (n = 3; not a proof: it assumes the lowest level per
-    shell rises with the shell): the candidates found (converged or not) hold ``levels``
-    states, all below the lowest level ``shell_min`` of the shell just solved."""
-    return (sum(state_count(e[2]) for e in known) >= levels
-            and shell_min > kth_energy(known, levels))
 
 
 def truncate_levels(levels: list[Level], count: int) -> list[Level]:
@@ -305,6 +300,6 @@ class LevelCollector:
 
 __all__ = [
     "Potential", "MODELS", "Sector", "state_count", "Level", "Block", "Spectrum", "Settings",
-    "AffineInertia", "is_converged", "merge_levels", "kth_energy", "shell_complete",
+    "AffineInertia", "is_converged", "merge_levels", "kth_energy",
     "truncate_levels", "eigen_parity", "LevelCollector"
 ]

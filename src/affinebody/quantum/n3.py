@@ -40,11 +40,12 @@ tolerance are reported as unconverged.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from functools import cache
 
 import numpy as np
-from scipy import linalg
+from scipy import linalg, special
 
 from affinebody.quantum import covariants3 as cov
 from affinebody.quantum.bases import (
@@ -53,8 +54,10 @@ from affinebody.quantum.bases import (
     sqrt_x_over_sinh,
     sqrt_x_over_sinh_derivative_ratio,
 )
-from affinebody.quantum.channels3 import setup3
-from affinebody.quantum.levels import LevelCollector, Sector, Spectrum, shell_complete
+from affinebody.quantum.bounds import haar3_shell_bounds, lebesgue3_shell_bounds
+from affinebody.quantum.channels3 import ChamberQuadrature, Grid3, setup3
+from affinebody.quantum.intervals import Unsupported
+from affinebody.quantum.levels import LevelCollector, Sector, Spectrum
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 #: shells max(j, j') explored by default for n = 3 (the generators of (6, 6) have degree 18)
@@ -371,16 +374,225 @@ def sectors_by_shell(max_spin: int) -> list[list[tuple[int, int]]]:
              and cov.fixed_dimension(j, jp) > 0] for L in range(max_spin + 1)]
 
 
-def lowest_degree(j: int, jp: int) -> int:
-    """Lowest polynomial degree carrying the sector (R^9 oscillator: its lowest shell N)."""
-    return next(d for d in range(4 * (j + jp) + 1) if cov.polynomial_multiplicity(j, jp, d))
+#: lowest polynomial degree carrying the sector (R^9 oscillator: its lowest shell N)
+lowest_degree = cov.lowest_degree
+
+
+# ------------------------------------------- d'Alembert: hyperspherical harmonics x radial
+def angular_candidates(algebra: SectorAlgebra, omega: np.ndarray, degree: int
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The module generators times e3^b p4^c (no power of p2 = |Q|^2, which is 1 on the
+    sphere), homogeneous of degree L <= ``degree``, at unit vectors omega [P, 3]: values
+    [P, r, K], tangential gradients [P, r, 3, K] (the gradient on R^3 minus L f omega, by
+    Euler's identity) and L [K], ascending."""
+    gv, gg, gdeg = generator_values(algebra, omega, degree)
+    e3 = np.prod(omega, -1)
+    de3 = np.stack([omega[:, 1] * omega[:, 2], omega[:, 0] * omega[:, 2],
+                    omega[:, 0] * omega[:, 1]], -1)
+    p4 = np.sum(omega**4, -1)
+    dp4 = 4 * omega**3
+    vals, grads, deg = [], [], []
+    for i, gd in enumerate(gdeg):
+        for b in range((degree - gd) // 3 + 1):
+            for c in range((degree - gd - 3 * b) // 4 + 1):
+                s = e3**b * p4**c
+                ds = (b * e3 ** max(b - 1, 0) * p4**c)[:, None] * de3 + (
+                    c * p4 ** max(c - 1, 0) * e3**b)[:, None] * dp4
+                L = int(gd + 3 * b + 4 * c)
+                v = gv[:, :, i] * s[:, None]
+                g = gg[:, :, :, i] * s[:, None, None] + gv[:, :, None, i] * ds[:, None, :]
+                vals.append(v)
+                grads.append(g - L * v[:, :, None] * omega[:, None, :])
+                deg.append(L)
+    P, r = omega.shape[0], algebra.rank
+    if not deg:
+        return np.zeros((P, r, 0)), np.zeros((P, r, 3, 0)), np.zeros(0, int)
+    order = np.argsort(deg, kind="stable")
+    return (np.stack(vals, -1)[..., order], np.stack(grads, -1)[..., order],
+            np.array(deg)[order])
+
+
+def laguerre_table(count: int, a: float, t: np.ndarray) -> np.ndarray:
+    """Generalised Laguerre polynomials L_k^(a)(t), k < ``count``, [len(t), count], by the
+    three-term recurrence (k + 1) L_(k+1) = (2k + 1 + a - t) L_k - (k + a) L_(k-1)."""
+    out = np.empty((len(t), max(count, 1)))
+    out[:, 0] = 1.0
+    if count > 1:
+        out[:, 1] = 1.0 + a - t
+    for k in range(1, count - 1):
+        out[:, k + 1] = ((2 * k + 1 + a - t) * out[:, k] - (k + a) * out[:, k - 1]) / (k + 1)
+    return out[:, :count]
+
+
+def radial_functions(L: int, count: int, scale: float, rho: np.ndarray,
+                     derivative: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """u_k(rho) = c_k t^(L/2) L_k^(a)(t) e^(-t/2), t = rho^2/b^2, a = L + 7/2, k < ``count``:
+    orthonormal under rho^8 drho (c_k^2 = 2 k! / (b^9 Gamma(k + a + 1))). Values and (if
+    ``derivative``) derivatives d/drho, [len(rho), count]."""
+    a = L + 3.5
+    t = (rho / scale) ** 2
+    k = np.arange(count)
+    log_c = 0.5 * (np.log(2.0) + special.gammaln(k + 1) - 9 * np.log(scale)
+                   - special.gammaln(k + a + 1))
+    front = np.exp(0.5 * L * np.log(t)[:, None] - 0.5 * t[:, None] + log_c[None, :])
+    lag = laguerre_table(count, a, t)
+    if not derivative:
+        return front * lag, None
+    dlag = np.zeros_like(lag)  # d/dt L_k^(a) = -L_(k-1)^(a+1)
+    dlag[:, 1:] = -laguerre_table(count - 1, a + 1, t)
+    dt = (L / (2 * t))[:, None] * lag - 0.5 * lag + dlag  # d/dt of t^(L/2) e^(-t/2) L_k / front
+    return front * lag, front * dt * (2 * rho / scale**2)[:, None]
+
+
+@dataclass(frozen=True)
+class HarmonicBasis:
+    """d'Alembert sector (j, j') in the product basis Y_mu(omega) u_k^(L_mu)(rho): Y_mu the
+    sector's harmonics (restricted covariant harmonic polynomials of degree L_mu <=
+    ``degree``, orthonormal on the chamber's sphere: the candidates of
+    :func:`angular_candidates` orthonormalised in the order of their degree, which removes
+    the parts of lower degree), u_k the radial functions of :func:`radial_functions`
+    (k < ``radial``). ``angular`` [K_candidates, mu] maps the candidates to Y; ``index``
+    [(mu, k)] lists the basis functions in the solver's order (``levels``: the nested check
+    basis first). :meth:`values` evaluates the basis at ``nodes`` (any points of the
+    chamber), as :class:`SectorBasis` does."""
+
+    j: int
+    jp: int
+    nodes: np.ndarray
+    weights: np.ndarray
+    degree: int
+    radial: int
+    scale: float
+    angular: np.ndarray
+    harmonic_degree: np.ndarray  # [mu]
+    index: np.ndarray  # [K, 2] (mu, k)
+    parity: np.ndarray
+    levels: np.ndarray
+
+    @property
+    def candidate_args(self) -> tuple:
+        """(degree, scale, scale_sigma, centre) as for :class:`SectorBasis`: the angular
+        degree (the radial functions are not polynomials of that degree)."""
+        return (self.degree, self.scale, 1.0, 0.0)
+
+    def truncated(self, count: int) -> HarmonicBasis:
+        return replace(self, index=self.index[:count], parity=self.parity[:count],
+                       levels=self.levels[:count])
+
+    def values(self, chunk: int = 8192) -> np.ndarray:
+        """Basis functions at the nodes, [P, r, K]."""
+        algebra = sector_algebra(self.j, self.jp, "matrix")
+        out = []
+        for i in range(0, len(self.nodes), chunk):
+            Q = self.nodes[i:i + chunk]
+            rho = np.linalg.norm(Q, axis=-1)
+            omega = Q / np.where(rho > 0, rho, 1.0)[:, None]
+            Y = angular_candidates(algebra, omega, self.degree)[0] @ self.angular
+            radial = np.zeros((len(Q), len(self.index)))
+            for L in np.unique(self.harmonic_degree):
+                u = radial_functions(int(L), self.radial, self.scale, np.maximum(rho, 1e-300),
+                                     derivative=False)[0]
+                cols = self.harmonic_degree[self.index[:, 0]] == L
+                radial[:, cols] = u[:, self.index[cols, 1]]
+            out.append(Y[:, :, self.index[:, 0]] * radial[:, None, :])
+        return np.concatenate(out)
+
+
+def sphere_harmonics(algebra: SectorAlgebra, omega: np.ndarray, w: np.ndarray, degree: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(transform [K_candidates, mu], L [mu], Y [P, r, mu], tangential gradients of Y): the
+    candidates orthonormalised under the sphere weights in the order of their degree
+    (Householder QR; near-dependent candidates, |R_ii| < 1e-10 max, are dropped)."""
+    vals, tgrads, deg = angular_candidates(algebra, omega, degree)
+    P, r, K = vals.shape
+    if K == 0:
+        return np.zeros((0, 0)), np.zeros(0, int), vals, tgrads
+    R = np.linalg.qr((np.sqrt(w)[:, None, None] * vals).reshape(P * r, K), mode="r")
+    keep = np.abs(np.diag(R)) > 1e-10 * np.max(np.abs(np.diag(R)))
+    T = np.zeros((K, int(keep.sum())))
+    T[keep] = linalg.solve_triangular(R[np.ix_(keep, keep)], np.eye(int(keep.sum())))
+    return T, deg[keep], vals @ T, tgrads @ T
+
+
+def harmonic_block(potential, hbar: float, inertia: float, j: int, jp: int, degree: int,
+                   radial: int, scale: float, shrink: int, n_angle: int | None = None
+                   ) -> tuple[np.ndarray, HarmonicBasis]:
+    """Galerkin Hamiltonian of the d'Alembert sector (j, j') (J = inertia * Id) in the
+    orthonormal basis Y_mu u_k^(L_mu) of :class:`HarmonicBasis`. With f = Y(omega) u(rho),
+    grad f = u' Y omega + (u / rho) grad_t Y and the centrifugal weights c_+- of degree -2,
+
+        <f|H|f'> = (hbar^2/I) [ (1/2) S_mu,nu int u' u'' rho^8 + A_mu,nu int u u' rho^6 ]
+                   + int rho^8 u u' sum_p w_p V(rho omega_p) <Y_mu, Y_nu>(omega_p),
+
+    S and A the overlap and the angular form (1/2 |grad_t Y|^2 + centrifugal terms, hbar = I
+    = 1, :func:`sector_forms` with tangential gradients) on the sphere; for harmonics of
+    degree L, A = L (L + 7) / 2 (the Laplacian of S^8), which the tests check. Radial
+    integrals by Gauss-Legendre in rho. The functions of angular degree <= degree - shrink
+    and radial index < radial - shrink come first (the nested check basis, ``levels`` <=
+    degree - shrink)."""
+    algebra = sector_algebra(j, jp, "matrix")
+    n_angle = n_angle or 20 + 2 * degree
+    omega, w = ChamberQuadrature.sphere(n_angle)
+    T, Ldeg, Y, tY = sphere_harmonics(algebra, omega, w, degree)
+    nY = len(Ldeg)
+    rho_max = scale * math.sqrt(2 * (2 * radial + degree) + 80)
+    n_rho = 2 * radial + degree + 60
+    xr, wr = special.roots_legendre(n_rho)
+    rho, w_rho = rho_max * (xr + 1) / 2, rho_max * wr / 2
+    if nY == 0:
+        empty = np.zeros((0, 0))
+        return empty, HarmonicBasis(j, jp, np.zeros((0, 3)), np.zeros(0), degree, radial, scale,
+                                    T, Ldeg, np.zeros((0, 2), int), np.zeros(0, int),
+                                    np.zeros(0, int))
+    A, S = sector_forms("lebesgue3", algebra, np.zeros(len(omega)), 1.0, 1.0, omega, w, Y, tY)
+    Q = (rho[:, None, None] * omega[None]).reshape(-1, 3)
+    Vq = np.asarray(potential(Q), float).reshape(len(rho), len(omega))
+    radial_V = np.allclose(Vq, Vq[:, :1], rtol=1e-14, atol=1e-14 * np.max(np.abs(Vq)))
+    if radial_V:
+        M = Vq[:, 0, None, None] * S[None]
+    else:
+        YY = np.einsum("prm,prn->pmn", Y, Y, optimize=True).reshape(len(omega), nY * nY)
+        M = ((Vq * w[None, :]) @ YY).reshape(len(rho), nY, nY)
+    U = np.empty((len(rho), nY, radial))
+    dU = np.empty_like(U)
+    for L in np.unique(Ldeg):
+        u, du = radial_functions(int(L), radial, scale, rho)
+        U[:, Ldeg == L], dU[:, Ldeg == L] = u[:, None], du[:, None]
+    w8, w6 = w_rho * rho**8, w_rho * rho**6
+    c = hbar**2 / inertia
+    H = c * (0.5 * np.einsum("mn,imk,inl->mknl", S, w8[:, None, None] * dU, dU, optimize=True)
+             + np.einsum("mn,imk,inl->mknl", A, w6[:, None, None] * U, U, optimize=True))
+    H += np.einsum("imk,imn,inl->mknl", w8[:, None, None] * U, M, U, optimize=True)
+    H = H.reshape(nY * radial, nY * radial)
+    mu, k = np.divmod(np.arange(nY * radial), radial)
+    level = np.where(k < radial - shrink, Ldeg[mu], np.maximum(Ldeg[mu], degree - shrink + 1))
+    order = np.lexsort((k, mu, level))
+    H = H[np.ix_(order, order)]
+    index = np.stack([mu[order], k[order]], -1)
+    basis = HarmonicBasis(j, jp, Q, np.repeat(w8, len(omega)) * np.tile(w, len(rho)), degree,
+                          radial, scale, T, Ldeg, index, (-1) ** Ldeg[index[:, 0]],
+                          level[order])
+    return 0.5 * (H + H.T), basis
 
 
 # -------------------------------------------------------------------------------- solver
 def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float, inertia,
                       levels: int, settings, progress=None):
     """The lowest ``levels`` states of the n = 3 body over every sector (j, j'), shell by shell
-    (shell = max(j, j')), stopping when a whole shell lies above the levels found.
+    (shell = max(j, j')).
+
+    Stopping rule (docs/theory/two-polar.md, "Lower bounds of an n = 3 sector"): with E_K the
+    ``levels``-th lowest candidate found, a sector whose certified lower bound
+    (:func:`~affinebody.quantum.bounds.lebesgue3_shell_bounds`,
+    :func:`~affinebody.quantum.bounds.haar3_shell_bounds`) exceeds E_K is not solved, and the
+    search stops after the shell L when every sector of the shells above L has its bound above
+    E_K; a sector the basis cannot hold (its lowest degree above the basis degree) must have
+    its bound above E_K too. Then the list is ``certified``; otherwise (no bound for the
+    potential, af-af, or a bound below E_K) the result is conditional and says why.
+
+    d'Alembert with ``settings.radial_size``: each sector in the basis of
+    :func:`harmonic_block` (harmonics of degree <= basis_size x ``radial_size`` radial
+    functions); else :func:`sector_block`.
 
     d'Alembert and af-af are symmetric under phi -> phi^T, which swaps (j, j') and (j', j):
     one block serves both (both sectors are listed on its levels). af-is and is-af are each
@@ -392,6 +604,7 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
     setup = setup3(model, potential, hbar, inertia_scalar, inertia, settings)
     kind, degree = setup.kind, settings.basis_size
     physical = inertia_scalar if kind == "lebesgue3" else inertia
+    radial = getattr(settings, "radial_size", None) if kind == "lebesgue3" else None
 
     def build(j, jp):
         """Block builder computing the largest basis once per scale; the nested check basis
@@ -400,32 +613,60 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
 
         def block(d, sc):
             if sc not in cache or cache[sc][0] < d:
-                grid = setup.grid(d, sc)
-                cache[sc] = (d, grid, sector_block(kind, potential, hbar, physical, grid, j, jp,
-                                                   d, sc, setup.sigma_scale(sc), setup.centre))
+                if radial:
+                    cache[sc] = (d, None, harmonic_block(potential, hbar, physical, j, jp, d,
+                                                         radial, sc, setup.check.check_shrink))
+                else:
+                    grid = setup.grid(d, sc)
+                    cache[sc] = (d, grid, sector_block(kind, potential, hbar, physical, grid, j,
+                                                       jp, d, sc, setup.sigma_scale(sc),
+                                                       setup.centre))
             _, grid, (H, basis) = cache[sc]
             nested = basis.truncated(int(np.sum(basis.levels <= d)))
             k = len(nested.levels)
+            if radial:
+                grid = Grid3(basis.nodes, basis.weights)
             return H[:k, :k], Basis("grid3", (kind, grid, nested.values, nested.parity, None))
         return block
 
     transpose_symmetric = model in ("dalembert", "af-af")
     max_shell = min(settings.max_spin, MAX_SHELL)
+    bounds, reason = None, ""
+    try:
+        if model == "dalembert":
+            bounds = lebesgue3_shell_bounds(potential, hbar, inertia_scalar, max_shell,
+                                            setup.scale)
+        else:
+            bounds = haar3_shell_bounds(potential, hbar, inertia, max_shell, setup.centre)
+    except Unsupported as err:
+        reason = str(err)
+
     found = LevelCollector(settings)
     shell_minima: list[float] = []
-    finished = False
+    unresolved: list[tuple[int, int]] = []  # sectors the basis cannot hold
+    certified, searched, pruned = False, -1, 0
+
+    def above(key) -> bool:
+        return (bounds is not None and found.state_count() >= levels
+                and bounds.of(key) > found.kth_energy(levels))
+
     for shell in sectors_by_shell(max_shell):
         shell_min = np.inf
         for j, jp in shell:
             if transpose_symmetric and j > jp:
                 continue
+            if above((j, jp)) and (not transpose_symmetric or above((jp, j))):
+                pruned += 1  # no level of this sector can be among the lowest: not solved
+                continue
             if kind == "lebesgue3" and lowest_degree(j, jp) > degree:
-                continue  # no covariant polynomial of the basis degree: not resolved
+                unresolved.append((j, jp))  # no covariant polynomial of the basis degree
+                continue
             if progress is not None:
                 progress(f"n = 3 {model}: sector (j, j') = ({j}, {jp}), shell {max(j, jp)}")
             E, vec, err, basis = solve_block(build(j, jp), degree, setup.scale, levels + 4,
                                              setup.check)
             if len(E) == 0:
+                unresolved.append((j, jp))
                 continue
             twins = [(j, jp)] + ([(jp, j)] if transpose_symmetric and j != jp else [])
             found.record_each(
@@ -436,11 +677,20 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
                 basis, E, vec, err, basis.factors[3])
             shell_min = min(shell_min, float(E[0]))
         shell_minima.append(shell_min)
-        if model != "af-af" and shell_complete(found.known(), levels, shell_min):
-            finished = True
+        searched = max(max(key) for key in shell)
+        if (bounds is not None and model != "af-af" and found.state_count() >= levels
+                and bounds.beyond(searched) > found.kth_energy(levels)
+                and all(above(key) for key in unresolved)):
+            certified = True
             break
+    info = setup.info(settings)
+    if radial:
+        info["radial_size"] = radial
+    info["shells_searched"] = searched
+    info["sectors_pruned"] = pruned
     warnings = []
     bounded = True
+    missing = [key for key in unresolved if not above(key)]
     if model == "af-af":
         bounded = False
         warnings.append("af-af: the kinetic energy (72) is indefinite; every sector is bounded "
@@ -448,23 +698,37 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
                         "(16 A cosh^2) deepen with the spin); shells explored up to "
                         f"max(j, j') = {max_shell}, lowest level per shell: "
                         + ", ".join(f"{e:.4g}" for e in shell_minima if np.isfinite(e)))
-    elif not finished:
-        warnings.append(f"the sector search stopped at max(j, j') = {max_shell} before the "
-                        f"{levels} lowest states were certain: raise quantum.max_spin "
-                        f"(at most {MAX_SHELL} for n = 3)")
+        certificate = "none: af-af is unbounded below"
+    elif certified:
+        certificate = (f"{bounds.method}; every sector beyond shell {searched} and every sector "
+                       f"not solved has no level below "
+                       f"{min([bounds.beyond(searched)] + [bounds.of(k) for k in unresolved]):.6g}"
+                       f" > the {levels}-th candidate {found.kth_energy(levels):.6g}")
+    else:
+        if reason:
+            why = reason
+        elif missing:
+            why = (f"the sectors {', '.join(map(str, missing))} lie above the basis degree "
+                   f"{degree} and their certified bound does not exceed the {levels}-th level "
+                   f"(raise quantum.basis_size)")
+        else:
+            why = "the bound of the sectors not searched does not exceed the K-th level"
+        beyond = "" if bounds is None else (
+            f" (certified lower bound beyond shell {searched}: {bounds.beyond(searched):.6g})")
+        certificate = (f"conditional: {why}; searched every sector up to max(j, j') = "
+                       f"{max_shell}{beyond}")
+        warnings.append(f"the {levels} lowest states are conditional: {why}; only sectors up "
+                        f"to max(j, j') = {max_shell} were searched (at most {MAX_SHELL} for "
+                        f"n = 3)")
     merged, unconverged = found.levels(levels)
-    certificate = ("conditional: no lower bound of the (j, j') blocks is implemented for n = 3; "
-                   + (f"the search stopped after shell {shell}, whose lowest level lies above "
-                      f"the {levels}-th candidate (a heuristic: it assumes the lowest level per "
-                      f"shell rises with the shell)" if finished else
-                      f"searched every sector up to max(j, j') = {max_shell}"))
-    return Spectrum(merged, unconverged, found.blocks, model, 3, "all", setup.info(settings),
-                    bounded, warnings, certified=False, certificate=certificate,
+    return Spectrum(merged, unconverged, found.blocks, model, 3, "all", info,
+                    bounded, warnings, certified=certified, certificate=certificate,
                     requested=levels)
-
-
 
 
 __all__ = ["SectorAlgebra", "sector_algebra", "generator_values", "sector_coefficients",
            "sector_forms", "sector_candidates", "SectorBasis", "sector_block", "sector_dimension",
-           "sectors_by_shell", "lowest_degree", "MAX_SHELL", "solve_all_sectors"]
+           "sectors_by_shell", "lowest_degree", "MAX_SHELL", "solve_all_sectors",
+           "angular_candidates", "laguerre_table", "radial_functions", "HarmonicBasis",
+           "sphere_harmonics",
+           "harmonic_block"]
