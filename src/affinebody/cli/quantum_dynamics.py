@@ -45,8 +45,8 @@ def _pair(text: str, flag: str) -> tuple[float, float]:
 @click.command("transitions")
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
 @click.option("--operator", "operator", required=True,
-              help="expression in q1..qn, Q1..Qn, trG, K1..Kn, det (n = 2 also phi11.., G11.., "
-                   "C11..)")
+              help="expression in q1..qn, Q1..Qn, trG, K1..Kn, det and phi11.., G11.., C11.. "
+                   "(n = 3: linear in phi, G, C)")
 @click.option("--levels", "levels", type=int, default=None, help="number of states K")
 @click.option("--from", "initial", type=int, default=0, help="initial level (0: the ground)")
 @click.option("--json", "as_json", is_flag=True, help="print one JSON object")
