@@ -72,10 +72,12 @@ VARIABLES = {"dalembert": ("Q1", "Q2", "det", "trG"), "affine": ("q1", "q2", "de
 
 def sector_spectrum(model: str, potential: Potential, hbar: float, *, inertia: float = 1.0,
                     I: float = 1.0, A: float = 0.0, B: float = 0.0,  # noqa: E741
-                    settings: Settings | None = None) -> Spectrum:
+                    settings: Settings | None = None, key: tuple[int, int] = (0, 0)
+                    ) -> Spectrum:
     """Every eigenpair of the n = 2 sector spin = vorticity = 0 (the reduced block of
     :mod:`affinebody.quantum.n2`, solved densely; each level carries the error estimate of its
-    nested and widened check bases and is flagged converged or not)."""
+    nested and widened check bases and is flagged converged or not). d'Alembert: ``key`` =
+    (|m1|, |m2|) picks another block (the characters of z and w, n2.n2_sectors)."""
     require_x64()  # a potential expression is evaluated by JAX
     settings = settings or Settings()
     size = settings.basis_size
@@ -85,7 +87,7 @@ def sector_spectrum(model: str, potential: Potential, hbar: float, *, inertia: f
         info = {"scale": b}
 
         def build(n, s):
-            return lebesgue2_block(potential, hbar, inertia, 0, 0, n, s)
+            return lebesgue2_block(potential, hbar, inertia, key[0], key[1], n, s)
     else:
         affine = AffineInertia(model, I, A, B)
         bx, bs, c0 = auto_scale_haar2(potential, hbar, affine)
@@ -96,13 +98,13 @@ def sector_spectrum(model: str, potential: Potential, hbar: float, *, inertia: f
         def build(n, s):
             return haar2_block(potential, hbar, affine, 0, 0, (n, n), (s, bs * s / bx), c0)
     E, vec, err, basis = solve_block(build, size, info["scale"], size * size, settings)
-    sectors = n2_sectors((0, 0), model)
+    sectors = n2_sectors(key, model)
     # every eigenpair its own level (degenerate ones are not merged: each is a state); the
     # Galerkin space is what the packet evolves in, so every one is used, each with its estimate
-    levels = [Level(float(E[i]), 1, sectors, float(err[i]), (0, 0), i,
+    levels = [Level(float(E[i]), 1, sectors, float(err[i]), key, i,
                     is_converged(E[i], err[i], settings)) for i in range(len(E))]
     info["basis_size"] = size
-    blocks = {(0, 0): Block((0, 0), sectors, basis, E, vec, err)}
+    blocks = {key: Block(key, sectors, basis, E, vec, err)}
     return Spectrum(levels, [], blocks, model, 2, "all", info)
 
 
@@ -220,28 +222,51 @@ def evolve(spectrum: Spectrum, packet: Packet, times: np.ndarray, hbar: float) -
                          f"packet (it reaches energies or places the basis does not resolve): "
                          f"raise quantum.basis_size, or start the packet slower or nearer the "
                          f"minimum")
+    errors = np.array([lv.error for lv in levels])
     E = np.array([lv.energy for lv in levels])
-    phases = np.exp(-1j * np.outer(times, E) / hbar)  # [T, S]
-    ct = c[None, :] * phases
+    return _propagate([(c, E, errors, functions, vectors)], model, y, weights, times, hbar)
+
+
+def _propagate(parts, model: str, y: np.ndarray, weights: np.ndarray, times: np.ndarray,
+               hbar: float) -> Evolution:
+    """The evolution of sum over ``parts`` (c [S], E [S], errors [S], functions [P, N], vectors
+    [N, S]) of c_n e^{-i E_n t/hbar} a_n: parts of different sectors are orthogonal and the
+    invariants observed do not connect them, so densities, norms and energies add."""
+    kind = "lebesgue2" if model == "dalembert" else "haar2"
     names = VARIABLES["dalembert" if model == "dalembert" else "affine"]
     Q = invariants_at(kind, y)
+    X = variables_at(model, y)
     values = {names[0]: X[:, 0], names[1]: X[:, 1], "det": np.prod(Q, -1),
               "trG": np.sum(Q * Q, -1)}
-    basis_ct = ct @ vectors.T  # [T, N]; psi(t, y) = basis_ct @ functions.T, in real products
-    density = ((basis_ct.real @ functions.T) ** 2 + (basis_ct.imag @ functions.T) ** 2) * weights
+    density = np.zeros((len(times), len(y)))
+    amplitude = np.zeros(len(times), complex)
+    norm, energy = np.zeros(len(times)), np.zeros(len(times))
+    c_all, E_all, p_err = [], [], 0.0
+    for c, E, errors, functions, vectors in parts:
+        phases = np.exp(-1j * np.outer(times, E) / hbar)  # [T, S]
+        ct = c[None, :] * phases
+        basis_ct = ct @ vectors.T  # [T, N]; psi(t, y) = basis_ct @ functions.T
+        density += ((basis_ct.real @ functions.T) ** 2
+                    + (basis_ct.imag @ functions.T) ** 2) * weights
+        p = np.abs(c) ** 2
+        amplitude += phases @ p
+        norm += np.sum(np.abs(ct) ** 2, -1)
+        energy += np.abs(ct) ** 2 @ E
+        p_err += float(np.sum(p * np.where(np.isfinite(errors), errors, np.abs(E))))
+        c_all.append(c)
+        E_all.append(E)
+    c, E = np.concatenate(c_all), np.concatenate(E_all)
+    captured = float(np.sum(np.abs(c) ** 2))
+    energy = energy / norm
     mean, spread = {}, {}
     for name, v in values.items():
         m1 = density @ v / captured
         m2 = density @ (v * v) / captured
         mean[name] = m1
         spread[name] = np.sqrt(np.maximum(m2 - m1 * m1, 0.0))
-    p = np.abs(c) ** 2
-    survival = np.abs(phases @ p) ** 2 / captured**2
-    norm = np.sum(np.abs(ct) ** 2, -1)
-    energy = (np.abs(ct) ** 2 @ E) / norm
-    errors = np.array([lv.error for lv in levels])
-    estimate = float(np.sum(p * np.where(np.isfinite(errors), errors, np.abs(E)))) / captured
-    return Evolution(times, E, c, captured, estimate, mean, spread, survival, norm, energy)
+    survival = np.abs(amplitude) ** 2 / captured**2
+    return Evolution(times, E, c, captured, p_err / captured, mean, spread, survival, norm,
+                     energy)
 
 
 def spectrum_lines(evolution: Evolution, count: int = 5) -> list[float]:
