@@ -205,8 +205,8 @@ def test_cli_evolve_json_and_errors(tmp_path):
     small = tmp_path / "small.toml"
     small.write_text(CONFIG.replace("hbar = 0.1", "hbar = 1.0").replace("basis_size = 24",
                                                                        "basis_size = 8"))
-    spin = CliRunner().invoke(evolve_command, [str(small), "--phi", "0.5,0.1,-0.05,0.3", "--pi",
-                                               "0.1,0.3,-0.2,0.1", "--time", "1", "--steps",
+    spin = CliRunner().invoke(evolve_command, [str(small), "--phi", "0.3,0.05,0,0.2", "--pi",
+                                               "0,0.2,-0.1,0", "--time", "1", "--steps",
                                                "4", "--json"])
     assert spin.exit_code == 0, spin.output
     data = json.loads(spin.output)
