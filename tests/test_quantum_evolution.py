@@ -1,7 +1,9 @@
 """Time evolution of a wave packet (quantum/evolution.py, docs/quantum-transitions.md): norm and
 energy conserved to round-off, Ehrenfest (the means of the singular values follow the classical
 trajectory of the simulator, affinebody.simulate, for the same body, with an error that shrinks
-with hbar), the Fourier lines of the survival probability at level spacings, and the
+with hbar), a packet around a classical (phi, pi) with angular momentum (many sectors: exact
+moments, Ehrenfest's rate, conservation), the Fourier lines of the survival probability at
+level spacings, and the
 ``affinebody evolve`` command (JSON, one-line errors, refusal of too much work)."""
 
 import json
@@ -13,7 +15,14 @@ from click.testing import CliRunner
 
 from affinebody.cli.quantum_dynamics import evolve as evolve_command
 from affinebody.config import build, parse_config
-from affinebody.quantum.evolution import Packet, evolve, sector_spectrum, spectrum_lines
+from affinebody.quantum.evolution import (
+    MatrixPacket,
+    Packet,
+    evolve,
+    evolve_matrix_packet,
+    sector_spectrum,
+    spectrum_lines,
+)
 from affinebody.quantum.levels import Settings
 from affinebody.simulate import run
 
@@ -134,6 +143,33 @@ def test_affine_packet_moments():
     assert np.ptp(ev.norm) < 1e-13 and np.ptp(ev.energy) < 1e-13
 
 
+def test_matrix_packet_with_angular_momentum():
+    """A Gaussian in phi around a classical (phi0, pi0) with spin and vorticity (d'Alembert,
+    many sectors superposed): at t = 0 the exact moments of the Gaussian, <trG> = |phi0|^2 +
+    4 w^2 and <det> = det phi0 (det is bilinear in independent components), and Ehrenfest's
+    d<trG>/dt = 2 tr(phi0^T pi0) / I (one-sided 3-point difference, step 1e-3); norm and
+    energy constant to round-off over t in [0, 5]."""
+    def V(Q):
+        r2 = np.sum(Q * Q, -1)
+        return 0.5 * r2 + 0.1 * r2 * r2
+
+    phi0, pi0 = np.array([[0.5, 0.1], [-0.05, 0.3]]), np.array([[0.1, 0.3], [-0.2, 0.1]])
+    hbar, h = 1.0, 1e-3
+    w = np.sqrt(hbar / 2)
+    ev = evolve_matrix_packet(V, hbar, 1.0, Settings(basis_size=12),
+                              MatrixPacket(phi0.tolist(), pi0.tolist(), w),
+                              np.array([0.0, h, 2 * h, 1.0, 5.0]))
+    assert len(ev.coefficients) > 20 * 144  # tens of sectors
+    assert ev.captured > 1 - 1e-9
+    assert np.ptp(ev.norm) < 1e-14 and np.ptp(ev.energy) < 1e-14 * ev.energy[0]
+    trG = ev.mean["trG"]
+    assert abs(trG[0] - (np.sum(phi0**2) + 4 * w * w)) < 1e-7
+    assert abs(ev.mean["det"][0] - np.linalg.det(phi0)) < 1e-7
+    rate = (-3 * trG[0] + 4 * trG[1] - trG[2]) / (2 * h)
+    assert abs(rate - 2 * np.sum(phi0 * pi0)) < 1e-5  # O(h^2) difference error ~1e-6
+    assert abs(trG[3] - trG[0]) > 0.01  # it moves
+
+
 CONFIG = f"""
 [system]
 n = 2
@@ -164,6 +200,17 @@ def test_cli_evolve_json_and_errors(tmp_path):
         bad = CliRunner().invoke(evolve_command, [*args, *extra])
         assert bad.exit_code == 1, (extra, bad.output)
         assert needle in bad.output and len(bad.output.strip().splitlines()) == 1
+    both = CliRunner().invoke(evolve_command, [*args, "--phi", "1.85,0,0,0.45"])
+    assert both.exit_code == 1 and "exactly one of --at" in both.output
+    small = tmp_path / "small.toml"
+    small.write_text(CONFIG.replace("hbar = 0.1", "hbar = 1.0").replace("basis_size = 24",
+                                                                       "basis_size = 8"))
+    spin = CliRunner().invoke(evolve_command, [str(small), "--phi", "0.3,0.05,0,0.2", "--pi",
+                                               "0,0.2,-0.1,0", "--time", "1", "--steps",
+                                               "4", "--json"])
+    assert spin.exit_code == 0, spin.output
+    data = json.loads(spin.output)
+    assert np.ptp(data["norm"]) < 1e-13 and np.ptp(data["energy"]) < 1e-13
     (tmp_path / "big.toml").write_text(CONFIG.replace("basis_size = 24", "basis_size = 80"))
     bad = CliRunner().invoke(evolve_command, [str(tmp_path / "big.toml"), *args[1:]])
     assert bad.exit_code == 1 and "more than evolve solves" in bad.output

@@ -2,8 +2,9 @@
 oscillator's ladder-operator closed forms, the Thomas-Reiche-Kuhn sum rule (d'Alembert, any
 potential) and its metric form for an affine model (the metric taken from the classical kinetic
 energy, affinebody.kinetic), Hermiticity, the selection rules (a direct angular quadrature of
-every element, no selection rule assumed), one n = 3 case, and the ``affinebody transitions``
-command (contract JSON, one-line errors, refusal of too much work)."""
+every element, no selection rule assumed), n = 3 invariants and components (phi, G, C and
+their quadrupole parts, against the R^9 oscillator's ladder operators and TRK), and the
+``affinebody transitions`` command (contract JSON, one-line errors, refusal of too much work)."""
 
 import json
 import math
@@ -203,6 +204,56 @@ def test_n3_oscillator_scalar_operators():
     np.testing.assert_allclose(det, [0, 0, 6 * U**3, *zeros], atol=1e-12)
 
 
+@pytest.fixture(scope="module")
+def oscillator3():
+    """R^9 oscillator (d'Alembert, n = 3, every sector up to max(j, j') = 2): levels N = 0, 1,
+    2 with 1, 9, 45 states (45 = (0, 0) + (1, 1) + (0, 2) + (2, 0) + (2, 2))."""
+    s = sp.solve("dalembert", 3, ExpressionPotential(f"0.5*{K}*trG", 3), HBAR, inertia=INERTIA,
+                 levels=55, settings=sp.Settings(basis_size=4, check_shrink=2, max_spin=2))
+    assert [lv.multiplicity for lv in s.levels] == [1, 9, 45]
+    return s
+
+
+def strengths3(spectrum, text, initial=0):
+    table = transitions(spectrum, Operator(text, 3), initial)
+    return table, [t.strength for t in table.transitions]
+
+
+def test_n3_components_against_ladder_operators(oscillator3):
+    """phi^i_a = sqrt(U) (a + a^+) per component, U = hbar / (2 I omega), summed over the
+    degenerate states of each level (Wigner D-functions of L and R integrated exactly):
+    phi11 from N = 0 reaches N = 1 with U; from N = 1 (averaged over its 9 states) it reaches
+    N = 0 with U / 9 and N = 2 with (2U + 8U) / 9 (sqrt 2 for the doubly occupied mode), and
+    the energy-weighted sum is hbar^2 / (2 I) (TRK, up and down transitions together). The
+    quadrupole part G11 - trG/3 = sum_k (2 phi_k1^2 - phi_k2^2 - phi_k3^2) / 3 has no ground
+    expectation and reaches N = 2 with 3 x 2U^2 (4 + 1 + 1)/9 = 4U^2; C13 = sum_a phi_1a phi_3a
+    reaches N = 2 with 3U^2 (checked together: the sum of the two)."""
+    np.testing.assert_allclose(strengths3(oscillator3, "phi11")[1], [0, U, 0], atol=1e-12)
+    table, up_down = strengths3(oscillator3, "phi11", 1)
+    np.testing.assert_allclose(up_down, [U / 9, 0, 10 * U / 9], rtol=1e-9, atol=1e-12)
+    assert abs(trk_sum(table) - HBAR**2 / (2 * INERTIA)) < 1e-10
+    # the G quadrupole reaches (0, 2), C13 reaches (2, 0): different ranks, no interference
+    table, quadrupoles = strengths3(oscillator3, "G11 - trG/3 + C13")
+    np.testing.assert_allclose(quadrupoles, [0, 0, (4 + 3) * U**2], atol=1e-12)
+    assert [t.allowed for t in table.transitions] == [True, False, True]  # N = 1: (1, 1) only
+
+
+def test_n3_spin1_channel_and_linear_combinations():
+    """The dedicated spin = vorticity = 1 channel (its own coordinates) gives the same ground
+    strengths: phi12 -> U, and a combination sum c_ia phi^i_a -> |c|^2 U (no interference
+    between the components after the sum over the multiplet). Operators not linear in the
+    components are refused for n = 3."""
+    s = sp.solve("dalembert", 3, ExpressionPotential(f"0.5*{K}*trG", 3), HBAR, inertia=INERTIA,
+                 levels=12, sectors="scalar+spin1",
+                 settings=sp.Settings(basis_size=5, check_shrink=2))
+    assert [lv.multiplicity for lv in s.levels] == [1, 9, 10]
+    np.testing.assert_allclose(strengths3(s, "phi11 - 2*phi33 + phi21")[1], [0, 6 * U, 0],
+                               atol=1e-12)
+    for text in ("phi11*phi22", "exp(G12)", "trG*phi11"):
+        with pytest.raises(ValueError, match="linearly with constant coefficients"):
+            Operator(text, 3)
+
+
 CONFIG = f"""
 [system]
 n = 2
@@ -241,5 +292,5 @@ def test_cli_transitions_json_and_errors(tmp_path):
         assert needle in bad.output and len(bad.output.strip().splitlines()) == 1
     n3 = tmp_path / "n3.toml"  # refused before any solving
     n3.write_text(CONFIG.replace("n = 2", "n = 3"))
-    bad = CliRunner().invoke(transitions_command, [str(n3), "--operator", "G12 + trG"])
-    assert bad.exit_code == 1 and "supported for n = 2 only" in bad.output
+    bad = CliRunner().invoke(transitions_command, [str(n3), "--operator", "G12 * trG"])
+    assert bad.exit_code == 1 and "linearly with constant coefficients" in bad.output

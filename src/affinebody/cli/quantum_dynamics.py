@@ -3,7 +3,7 @@ of a quantum affine body and the time evolution of a wave packet (docs/quantum-t
 
 ``affinebody transitions CONFIG.toml --operator EXPR [--levels K] [--from I] [--json]``: the
 reduced strengths B(I -> F) = (1/d_I) sum |<f|O|i>|^2 of the operator EXPR (in q1..qn, Q1..Qn,
-trG, K1..Kn, det, and for n = 2 the components phi11..phi22, G11..G22, C11..C22) from level I
+trG, K1..Kn, det, and the components phi11.., G11.., C11..; n = 3 linearly) from level I
 (default 0; levels numbered as the ``states`` of ``affinebody spectrum --json``, the converged
 levels ascending) to each of the levels computed; with --json one object
 ``{"transitions": [{"initial", "final", "E_initial", "E_final", "strength", "sector_final",
@@ -14,7 +14,9 @@ levels ascending) to each of the levels computed; with --json one object
 vorticity = 0 centred at X (the signed singular values Q for d'Alembert, q = ln Q for the
 affine models) with mean momentum P conjugate to X, propagated exactly by its expansion in
 eigenstates; prints the means and spreads of the invariants, the survival probability
-|<psi(0)|psi(t)>|^2, the norm and the energy at N + 1 times in [0, T].
+|<psi(0)|psi(t)>|^2, the norm and the energy at N + 1 times in [0, T]. Instead of --at,
+``--phi A11,A12,A21,A22 [--pi P11,P12,P21,P22]`` (d'Alembert): a Gaussian in phi around a
+classical (phi, pi) with any spin and vorticity, a superposition of every sector it populates.
 """
 
 from __future__ import annotations
@@ -45,8 +47,8 @@ def _pair(text: str, flag: str) -> tuple[float, float]:
 @click.command("transitions")
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
 @click.option("--operator", "operator", required=True,
-              help="expression in q1..qn, Q1..Qn, trG, K1..Kn, det (n = 2 also phi11.., G11.., "
-                   "C11..)")
+              help="expression in q1..qn, Q1..Qn, trG, K1..Kn, det and phi11.., G11.., C11.. "
+                   "(n = 3: linear in phi, G, C)")
 @click.option("--levels", "levels", type=int, default=None, help="number of states K")
 @click.option("--from", "initial", type=int, default=0, help="initial level (0: the ground)")
 @click.option("--json", "as_json", is_flag=True, help="print one JSON object")
@@ -112,8 +114,11 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
 
 @click.command("evolve")
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
-@click.option("--at", "centre", required=True,
+@click.option("--at", "centre", default=None,
               help="packet centre X1,X2: Q1,Q2 (d'Alembert) or q1,q2 (affine models)")
+@click.option("--phi", "phi", default=None,
+              help="d'Alembert: a packet around the matrix phi = A11,A12,A21,A22 (instead of --at)")
+@click.option("--pi", "pi", default="0,0,0,0", help="with --phi: mean momentum P11,P12,P21,P22")
 @click.option("--momentum", "momentum", default="0,0", help="mean momentum P1,P2 conjugate to X")
 @click.option("--width", "width", type=float, default=None,
               help="standard deviation of the packet's probability density in each variable "
@@ -124,9 +129,10 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
 @click.option("--plot", "plot", type=click.Path(dir_okay=False), default=None,
               help="write a PNG of the means, spreads and survival probability")
 @one_line_errors
-def evolve(config: str, centre: str, momentum: str, width: float | None, duration: float,
-           steps: int, as_json: bool, plot: str | None) -> None:
-    """Time evolution of a wave packet of the body of CONFIG (n = 2, sector (0, 0))."""
+def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: str,
+           width: float | None, duration: float, steps: int, as_json: bool,
+           plot: str | None) -> None:
+    """Time evolution of a wave packet of the body of CONFIG (n = 2)."""
     enable_x64()
     from contextlib import nullcontext
 
@@ -136,6 +142,11 @@ def evolve(config: str, centre: str, momentum: str, width: float | None, duratio
     cfg = qconfig.load(config)
     if cfg.system.n != 2:
         raise ValueError(f"evolve is for n = 2 (got system.n = {cfg.system.n})")
+    if (centre is None) == (phi is None):
+        raise ValueError("evolve: give the packet's centre by exactly one of --at X1,X2 (sector "
+                         "(0, 0)) and --phi A11,A12,A21,A22")
+    if phi is not None:
+        return _evolve_matrix(cfg, phi, pi, width, duration, steps, as_json, plot)
     X0, P0 = _pair(centre, "--at"), _pair(momentum, "--momentum")
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"--time must be > 0 (got {duration})")
@@ -188,6 +199,67 @@ def evolve(config: str, centre: str, momentum: str, width: float | None, duratio
                   f"eigenvalue error estimate weighted by the packet {result.energy_error:.1e}")
 
 
+def _matrix(text: str, flag: str) -> np.ndarray:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{flag} takes four finite numbers A11,A12,A21,A22 (got {text!r})")
+    return np.array(values).reshape(2, 2)
+
+
+def _evolve_matrix(cfg, phi: str, pi: str, width: float | None, duration: float, steps: int,
+                   as_json: bool, plot: str | None) -> None:
+    """evolve --phi: a packet around a classical (phi, pi) of the d'Alembert body, every sector
+    it populates (quantum.evolution.evolve_matrix_packet)."""
+    from contextlib import nullcontext
+
+    from affinebody.quantum import config as qconfig
+    from affinebody.quantum import evolution as ev
+
+    phi0, pi0 = _matrix(phi, "--phi"), _matrix(pi, "--pi")
+    kwargs = qconfig.solver_arguments(cfg)
+    if kwargs["model"] != "dalembert":
+        raise ValueError(f"evolve --phi is for the d'Alembert model (got {kwargs['model']}); "
+                         f"use --at for the sector (0, 0) of the affine models")
+    if not (math.isfinite(duration) and duration > 0):
+        raise ValueError(f"--time must be > 0 (got {duration})")
+    if not 1 <= steps <= ev.MAX_STEPS:
+        raise ValueError(f"--steps must be between 1 and {ev.MAX_STEPS} (got {steps})")
+    hbar, settings = kwargs["hbar"], kwargs["settings"]
+    ev.check_work(settings.basis_size, steps + 1)
+    packet = ev.MatrixPacket(phi0.tolist(), pi0.tolist(),
+                             math.sqrt(hbar / 2) if width is None else width)
+    times = np.linspace(0.0, duration, steps + 1)
+    status = nullcontext(None)
+    if sys.stderr.isatty():
+        from rich.console import Console
+
+        status = Console(stderr=True).status("solving the sectors of the packet ...")
+    with status as live:
+        progress = None if live is None else (lambda text: live.update(f"solving {text} ..."))
+        result = ev.evolve_matrix_packet(kwargs["potential"], hbar, kwargs.get("inertia", 1.0),
+                                         settings, packet, times, progress)
+    if plot is not None:
+        _plot(result, plot, "dalembert")
+    payload = result.as_dict()
+    payload.update(model="dalembert", n=2, hbar=hbar, phi=phi0.tolist(), pi=pi0.tolist(),
+                   width=packet.width, lines=ev.spectrum_lines(result))
+    if as_json:
+        click.echo(json.dumps(payload))
+        return
+    click.echo(f"packet around phi = {phi0.tolist()}, pi = {pi0.tolist()}, width "
+               f"{packet.width:.4g}: {len(result.energies)} states, captured "
+               f"{result.captured:.10f}")
+    for k in range(0, len(times), max(1, len(times) // 20)):
+        click.echo(f"t = {times[k]:.4g}  " + "  ".join(
+            f"<{n}> = {result.mean[n][k]:.6g} +- {result.spread[n][k]:.3g}" for n in result.mean)
+            + f"  survival {result.survival[k]:.6f}")
+    click.echo(f"norm spread {np.ptp(result.norm):.1e}, energy {result.energy[0]:.12g} (spread "
+               f"{np.ptp(result.energy):.1e})")
+
+
 def _plot(result, path: str, model: str) -> None:
     import matplotlib
 
@@ -206,7 +278,7 @@ def _plot(result, path: str, model: str) -> None:
     axes[2].plot(t, result.survival)
     axes[2].set_xlabel("t")
     axes[2].set_ylabel("|<psi(0)|psi(t)>|^2")
-    fig.suptitle(f"wave packet of the {model} body, sector (0, 0)")
+    fig.suptitle(f"wave packet of the {model} body")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

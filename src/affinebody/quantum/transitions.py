@@ -26,19 +26,32 @@ phi^T phi = R diag(Q^2) R^T: Ds = 0, Dv in {0, +-2}; C = phi phi^T: Dv = 0, Ds i
 invariants: (0, 0)). The angular integrals are done by the trapezoidal rule on a 16 x 16 grid
 (exact for trigonometric polynomials of degree < 16 - |Delta|; operators with harmonics beyond
 |Delta| = 4 are refused), the reduced integral by Gauss-Legendre over the box where the states
-live. n = 3: operators in the invariants only (scalars of SO(3) x SO(3), so Dj = Dj' = 0 and
-the element is the same for each of the (2j + 1)(2j' + 1) states of the multiplet).
+live.
+
+n = 3. A state of the multiplet (j, j') is psi_c = sqrt(d) c^T Psi, Psi(L diag Q R^T) =
+(D^j(L) (x) D^j'(R)) F(Q), F = Psi(diag Q) in V_j (x) V_j' (covariants3), c a unit vector,
+d = (2j + 1)(2j' + 1). An operator in the invariants is a scalar of SO(3) x SO(3) (Dj = Dj' = 0,
+the same element for each state of the multiplet). Components enter linearly with constant
+coefficients (refused otherwise): phi^i_a = sum_k L_ik Q_k R_ak (a vector on each side),
+G_ab = sum_k (R (x) R)_{ab,kk} Q_k^2 (scalar on the left, ranks 0 + 2 on the right), C_ab the
+same with L; the quadrupole parts are written G11 - trG/3, G12, ... . The angular integrals
+are exact: int D^j_{ab} D^j'_{cd} rep_{pq} = sum_t w_t[a, c, p] w_t[b, d, q] with w_t the
+invariant vectors of V_j (x) V_j' (x) rep (:func:`invariant_tensors`), and the strength summed
+over both multiplets is d_F d_I |M|^2 with M of :func:`multiplet_matrix` (a Frobenius norm:
+no Wigner-Eckart bookkeeping assumed).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
 from affinebody._checks import require_x64
-from affinebody.expressions import compile_expression, expression_variables
+from affinebody.expressions import compile_expression
+from affinebody.quantum import covariants3 as cov
 from affinebody.quantum.densities import joint_density, measure
 from affinebody.quantum.intervals import invariant_names, invariant_values
 from affinebody.quantum.levels import Level, Sector, Settings, Spectrum
@@ -60,10 +73,10 @@ MAX_STATES = 2000
 
 def component_names(n: int) -> tuple[str, ...]:
     """Matrix components an operator may use besides the invariants: n = 2 phi11..phi22, G11..
-    G22 (G = phi^T phi, the Green tensor), C11..C22 (C = phi phi^T, the Cauchy tensor)."""
-    if n != 2:
-        return ()
-    return tuple(f"{m}{a}{b}" for m in ("phi", "G", "C") for a in (1, 2) for b in (1, 2))
+    G22 (G = phi^T phi, the Green tensor), C11..C22 (C = phi phi^T, the Cauchy tensor);
+    n = 3 phi11..phi33, G11..G33, C11..C33."""
+    return tuple(f"{m}{a}{b}" for m in ("phi", "G", "C") for a in range(1, n + 1)
+                 for b in range(1, n + 1))
 
 
 def operator_names(n: int) -> tuple[str, ...]:
@@ -82,14 +95,49 @@ class Operator:
 
     def __post_init__(self):
         require_x64()  # the expression is evaluated by JAX
-        matrix = sorted(set(expression_variables(self.text, field=self.field))
-                        & set(component_names(2)) - set(component_names(self.n)))
-        if matrix:
-            raise ValueError(f"{self.field}: the components of phi, G, C ({', '.join(matrix)}) "
-                             f"are supported for n = 2 only; for n = {self.n} use the "
-                             f"invariants ({', '.join(invariant_names(self.n))})")
         expr = compile_expression(self.text, operator_names(self.n), field=self.field)
         object.__setattr__(self, "_expr", expr)
+        if self.n == 3 and self.angular:
+            object.__setattr__(self, "coefficients", self._linear_coefficients())
+
+    def _linear_coefficients(self) -> dict[str, float]:
+        """n = 3: the constant coefficients c_v of O = s(invariants) + sum_v c_v v over the
+        components v it uses, checked at random values of every variable (an operator that is
+        not of that form is refused)."""
+        used = list(self._expr.used)
+        comps = [v for v in used if v in component_names(3)]
+        rng = np.random.default_rng(16)
+        points = [{v: rng.uniform(0.5, 2.0) for v in used} for _ in range(4)]
+
+        def value(point, **components):
+            args = {**point, **{v: 0.0 for v in comps}, **components}
+            with np.errstate(all="ignore"):
+                return float(np.asarray(self._expr(**args)))
+
+        coefficients, ok = {}, True
+        for v in comps:
+            c = [value(p, **{v: 1.0}) - value(p) for p in points]
+            ok &= bool(np.all(np.isfinite(c))) and float(np.ptp(c)) <= 1e-9 * (1 + abs(c[0]))
+            coefficients[v] = c[0]
+        for p in points if ok else ():
+            full = float(np.asarray(self._expr(**p)))
+            linear = value(p) + sum(coefficients[v] * p[v] for v in comps)
+            ok &= bool(np.isfinite(full)) and abs(full - linear) <= 1e-9 * (1 + abs(full))
+        if not ok:
+            raise ValueError(f"{self.field}: for n = 3 an operator uses the components of phi, G, "
+                             f"C linearly with constant coefficients, plus any expression in the "
+                             f"invariants (e.g. 'G11 - trG/3', 'phi12 + 2*phi21'); "
+                             f"{self.text!r} is not of that form")
+        object.__setattr__(self, "has_scalar_part", any(value(p) != 0.0 for p in points))
+        return {v: c for v, c in coefficients.items() if c != 0.0}
+
+    def scalar_part(self, Q: np.ndarray) -> np.ndarray:
+        """O with every component set to 0: the invariant part s(Q) (n = 3)."""
+        values = invariant_values(Q)
+        values.update({v: np.zeros(Q.shape[:-1]) for v in component_names(self.n)})
+        used = self._expr.used
+        out = np.asarray(self._expr(**{k: values[k] for k in used}), float)
+        return np.broadcast_to(out, Q.shape[:-1])
 
     @property
     def angular(self) -> bool:
@@ -136,6 +184,9 @@ class Component:
 
     sectors: tuple[Sector, ...]
     joint: object  # densities.Joint
+    #: n = 3: the coordinates E [(2j + 1)(2j' + 1), r] in V_j (x) V_j' (harmonic bases of
+    #: covariants3) of the amplitude's r M-fixed components, (j, j') = sectors[0]
+    frame: np.ndarray | None = None
 
     @property
     def states(self) -> int:
@@ -156,13 +207,27 @@ def level_components(spectrum: Spectrum, level: Level, merge: float | None = Non
             # an error estimate above the level's, the largest of its entries)
             if abs(E - level.energy) <= tol and block.errors[i] <= level.error:
                 one = Level(float(E), 1, block.sectors, float(block.errors[i]), key, i)
-                out.append(Component(block.sectors, joint_density(spectrum, one)))
+                out.append(Component(block.sectors, joint_density(spectrum, one),
+                                     angular_frame(key, block.sectors[0])
+                                     if spectrum.n == 3 else None))
     found = sum(c.states for c in out)
     if found != level.multiplicity:
         raise ValueError(f"transitions: the level at {level.energy:.9g} has multiplicity "
                          f"{level.multiplicity} but {found} eigenvector states were found at "
                          f"its energy")
     return out
+
+
+def angular_frame(key: tuple, sector: Sector) -> np.ndarray:
+    """n = 3: the M-fixed coordinates of a block's amplitude in V_j (x) V_j' (covariants3):
+    the dedicated spin = vorticity = 1 channel (channels3, blocks "spin1") has f_a = Psi_aa
+    (the covariant Psi(phi) = phi and its multiples: diagonal coordinates; V_1 in its harmonic
+    basis is R^3 with D^1(L) = L); every other sector those of covariants3.fixed_subspace."""
+    if key[0] == "spin1":
+        E = np.zeros((9, 3))
+        E[[0, 4, 8], [0, 1, 2]] = 1.0
+        return E
+    return cov.fixed_subspace(sector.spin, sector.vorticity)
 
 
 def invariants_at(model: str, y: np.ndarray) -> np.ndarray:
@@ -230,8 +295,22 @@ def harmonics(operator: Operator, Q: np.ndarray) -> dict[tuple[int, int], np.nda
     return out or {(0, 0): np.zeros(len(Q))}
 
 
-def selection_rule(n: int, allowed: list[tuple[int, int]]) -> str:
+def selection_rule(n: int, allowed: list[tuple[int, int]], operator: Operator | None = None
+                   ) -> str:
     """The selection rule in words."""
+    if n == 3 and operator is not None and operator.angular:
+        parts = {"phi": "phi (a vector on each side): |Delta j|, |Delta j'| <= 1 with j + j_f "
+                        ">= 1 and j' + j'_f >= 1",
+                 "G": "G = R Q^2 R^T (a scalar on the left; ranks 0 and 2 on the right): "
+                      "Delta j = 0, |Delta j'| <= 2 with j' + j'_f >= 2 for the quadrupole part",
+                 "C": "C = L Q^2 L^T (ranks 0 and 2 on the left, a scalar on the right): "
+                      "Delta j' = 0, |Delta j| <= 2 with j + j_f >= 2 for the quadrupole part"}
+        used = [text for kind, text in parts.items()
+                if any(v.startswith(kind) for v in operator.coefficients)]
+        return ("n = 3, SO(3) x SO(3) tensor ranks of the components (angular integrals done "
+                "exactly by the invariant tensors of the multiplets): " + "; ".join(used)
+                + "; the invariant part connects equal (j, j') only; elements outside these "
+                "rules vanish and their final levels have strength 0")
     if n == 3:
         return ("n = 3, an operator in the invariants is a scalar of SO(3) x SO(3): only "
                 "final levels holding the initial sector (Delta j = Delta j' = 0) are reached, "
@@ -300,6 +379,121 @@ def matrix_elements(spectrum: Spectrum, operator: Operator, initial: int, final:
     return np.array(rows, complex)
 
 
+# ------------------------------------------------------- n = 3: operators with components
+def _defining_generators() -> np.ndarray:
+    """K_ab = E_ba - E_ab, pairs (0, 1), (0, 2), (1, 2) (covariants3.rotation_generators)."""
+    out = np.zeros((3, 3, 3))
+    for g, (a, b) in enumerate(((0, 1), (0, 2), (1, 2))):
+        out[g, b, a], out[g, a, b] = 1.0, -1.0
+    return out
+
+
+@cache
+def invariant_tensors(j: int, jp: int, rep: str) -> np.ndarray:
+    """Orthonormal SO(3)-invariant vectors w [t, 2j + 1, 2j' + 1, dim rep] of V_j (x) V_j'
+    (x) rep, so that (Haar measure of mass 1, real orthogonal representations)
+
+        int D^j_{ab}(R) D^j'_{cd}(R) rep(R)_{pq} dR = sum_t w_t[a, c, p] w_t[b, d, q]
+
+    (the projector onto the invariants); t = 0 when the triangle rule forbids (j, j', rep).
+    Found as the null space of the Casimir sum_g X_g^T X_g of the generators X_g of the
+    product (its other eigenvalues are J(J + 1) >= 2)."""
+    K = _defining_generators()
+    reps = {"scalar": np.zeros((3, 1, 1)), "vector": K,
+            "tensor": np.array([np.kron(k, np.eye(3)) + np.kron(np.eye(3), k) for k in K])}
+    parts = [cov.rotation_generators(j), cov.rotation_generators(jp), reps[rep]]
+    eyes = [np.eye(p.shape[1]) for p in parts]
+    casimir = 0.0
+    for g in range(3):
+        X = (np.kron(np.kron(parts[0][g], eyes[1]), eyes[2])
+             + np.kron(np.kron(eyes[0], parts[1][g]), eyes[2])
+             + np.kron(np.kron(eyes[0], eyes[1]), parts[2][g]))
+        casimir = casimir + X.T @ X
+    w, v = np.linalg.eigh(casimir)
+    null = v[:, w < 0.5].T
+    return null.reshape(len(null), 2 * j + 1, 2 * jp + 1, len(eyes[2]))
+
+
+def _component_terms(operator: Operator) -> list[tuple[str, str, int, list, list]]:
+    """The operator's parts as (left rep, right rep, power of Q, [(p_left, p_right, c)], inner
+    indices [(q_left(k), q_right(k)) per axis k]): phi^i_a = sum_k L_ik Q_k R_ak, G_ab =
+    sum_k (R (x) R)_{ab, kk} Q_k^2 (G = R Q^2 R^T), C_ab = sum_k (L (x) L)_{ab, kk} Q_k^2."""
+    axes = range(3)
+    inner = {"phi": [(k, k) for k in axes], "G": [(0, 4 * k) for k in axes],
+             "C": [(4 * k, 0) for k in axes]}
+    reps = {"phi": ("vector", "vector", 1), "G": ("scalar", "tensor", 2),
+            "C": ("tensor", "scalar", 2)}
+    out = []
+    for kind in ("phi", "G", "C"):
+        outer = []
+        for name, c in operator.coefficients.items():
+            if name.startswith(kind) and name[len(kind):].isdigit():
+                a, b = int(name[-2]) - 1, int(name[-1]) - 1
+                p = {"phi": (a, b), "G": (0, 3 * a + b), "C": (3 * a + b, 0)}[kind]
+                outer.append((*p, c))
+        if outer:
+            out.append((*reps[kind], outer, inner[kind]))
+    return out
+
+
+def sector_amplitudes(component: Component, y: np.ndarray, f: np.ndarray | None = None
+                      ) -> list[tuple[Sector, np.ndarray]]:
+    """n = 3: each sector of a component with its amplitude F [P, 2j + 1, 2j' + 1] = Psi(diag
+    Q(y)) in V_j (x) V_j' (the transpose twin (j', j) of a block of a transpose-symmetric model
+    has Psi'(phi) = swap Psi(phi^T), so F^T)."""
+    f = amplitudes(component, y) if f is None else f  # f: amplitudes(component, y)
+    first = component.sectors[0]
+    F = (f @ component.frame.T).reshape(len(y), 2 * first.spin + 1, 2 * first.vorticity + 1)
+    return [(s, F if (s.spin, s.vorticity) == (first.spin, first.vorticity)
+             else F.transpose(0, 2, 1)) for s in component.sectors]
+
+
+def multiplet_matrix(operator: Operator, final: tuple[Sector, np.ndarray],
+                     initial: tuple[Sector, np.ndarray], Q: np.ndarray, weights: np.ndarray
+                     ) -> np.ndarray | None:
+    """n = 3: the matrix M [d_F, d_I] with <f|O|i> = sqrt(d_F d_I) c_f^T M c_i for the states
+    psi_c = sqrt(d) c^T Psi of two multiplets (c unit vectors of V_j (x) V_j'), i.e.
+
+        M = int mu dQ int dL dR (D(L) (x) D(R)) F_f (D(L) (x) D(R)) F_i)^T O(L diag Q R^T),
+
+    done exactly in the angles by :func:`invariant_tensors` (docs/quantum-transitions.md);
+    None when no part of the operator connects the two (the selection rule)."""
+    (sf, FF), (si, FI) = final, initial
+    terms = ([("scalar", "scalar", 0, [(0, 0, 1.0)], [(0, 0)])] if operator.has_scalar_part
+             else []) + _component_terms(operator)
+    M, reached = np.zeros((sf.dimension, si.dimension)), False
+    for left, right, power, outer, inner in terms:
+        wL = invariant_tensors(sf.spin, si.spin, left)
+        wR = invariant_tensors(sf.vorticity, si.vorticity, right)
+        if not (len(wL) and len(wR)):
+            continue
+        radial = [operator.scalar_part(Q)] if power == 0 else [Q[:, k] ** power for k in range(3)]
+        A = np.zeros((len(wL), len(wR)))
+        for r, (qL, qR) in zip(radial, inner, strict=True):
+            moments = np.einsum("p,pbc,pde->bcde", weights * r, FF, FI, optimize=True)
+            A += np.einsum("bcde,tbd,sce->ts", moments, wL[..., qL], wR[..., qR], optimize=True)
+        for pL, pR, c in outer:
+            for t in range(len(wL)):
+                for u in range(len(wR)):
+                    M += c * A[t, u] * np.kron(wL[t, :, :, pL], wR[u, :, :, pR])
+        reached = True
+    return M if reached else None
+
+
+def _strength3(operator: Operator, ci: Component, ai, cf: Component, af, Q, w
+               ) -> tuple[float, bool]:
+    """n = 3, an operator with components: sum over the states of two components of
+    |<f|O|i>|^2 = sum over their sector pairs of d_F d_I |M|^2 (:func:`multiplet_matrix`)."""
+    total, allowed = 0.0, False
+    for si in ai:
+        for sf in af:
+            M = multiplet_matrix(operator, sf, si, Q, w)
+            if M is not None:
+                allowed = True
+                total += sf[0].dimension * si[0].dimension * float(np.sum(M * M))
+    return total, allowed
+
+
 def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> TransitionTable:
     """Reduced strengths B(I -> F) of ``operator`` from the level ``initial`` (0: the ground
     level) to every level F, F = I included (module docstring). Levels are indexed as
@@ -308,9 +502,6 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> Tra
     level)."""
     if operator.n != spectrum.n:
         raise ValueError(f"--operator is for n = {operator.n}, the spectrum is n = {spectrum.n}")
-    if spectrum.n == 3 and operator.angular:
-        raise ValueError("--operator: components of phi, G, C are supported for n = 2 only; for "
-                         "n = 3 use the invariants (" + ", ".join(invariant_names(3)) + ")")
     levels = spectrum.levels
     if sum(lv.multiplicity for lv in levels) > MAX_STATES:
         raise ValueError(f"transitions: {sum(lv.multiplicity for lv in levels)} states is more "
@@ -324,8 +515,15 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> Tra
     components = [level_components(spectrum, lv) for lv in levels]
     y, w = reduced_quadrature([c for cs in components for c in cs])
     model = components[initial][0].joint.model
-    H = harmonics(operator, invariants_at(model, y))
+    Q = invariants_at(model, y)
     amps = [[amplitudes(c, y) for c in cs] for cs in components]
+    if spectrum.n == 3 and operator.angular:
+        H = {}
+        sector_amps = {id(c): sector_amplitudes(c, y, a) for cs, As in zip(components, amps,
+                                                                           strict=True)
+                       for c, a in zip(cs, As, strict=True)}
+    else:
+        H = harmonics(operator, Q)
     start = components[initial]
     error = 0.0
     for k, cs in enumerate(components):  # orthonormality check against the initial states
@@ -347,6 +545,11 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> Tra
         total, allowed = 0.0, False
         for ci, ai in zip(start, amps[initial], strict=True):
             for cf, af in zip(components[k], amps[k], strict=True):
+                if spectrum.n == 3 and operator.angular:
+                    t, a = _strength3(operator, ci, sector_amps[id(ci)], cf, sector_amps[id(cf)],
+                                      Q, w)
+                    total, allowed = total + t, allowed or a
+                    continue
                 if spectrum.n == 3:
                     common = _multiplets(ci) & _multiplets(cf)
                     if common:
@@ -363,7 +566,8 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> Tra
                             total += abs(_element(af, ai, w, O)) ** 2
         out.append(Transition(initial, k, levels[initial].energy, lv.energy,
                               total / d_initial, lv.sectors, levels[initial].sectors, allowed))
-    return TransitionTable(out, operator.text, selection_rule(spectrum.n, sorted(H)), error)
+    rule = selection_rule(spectrum.n, sorted(H), operator)
+    return TransitionTable(out, operator.text, rule, error)
 
 
 def _multiplets(c: Component) -> set[tuple[int, int]]:
@@ -380,5 +584,6 @@ def trk_sum(table: TransitionTable) -> float:
 
 __all__ = ["ANGLES", "MAX_HARMONIC", "MAX_STATES", "component_names", "operator_names",
            "Operator", "Component", "level_components", "invariants_at", "reduced_quadrature",
-           "amplitudes", "harmonics", "selection_rule", "Transition", "TransitionTable",
+           "amplitudes", "harmonics", "selection_rule", "angular_frame", "invariant_tensors",
+           "sector_amplitudes", "multiplet_matrix", "Transition", "TransitionTable",
            "matrix_elements", "transitions", "trk_sum"]
