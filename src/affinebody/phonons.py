@@ -61,8 +61,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from affinebody.groups import expm, lie_algebra, project_algebra
-from affinebody.mutual import affine_invariants
-from affinebody.potentials import OneBodyTerm, PairTerm, TotalPotential, pair_variables
+from affinebody.pair_kernels import energy_and_gradients
+from affinebody.potentials import OneBodyTerm, PairTerm, TotalPotential
+from affinebody.space import as_space
 from affinebody.state import VelocityState
 
 #: Names of the characters of a mode: shares of its kinetic energy.
@@ -296,20 +297,18 @@ def bonds(crystal: Crystal, reach: float | None = None):
 # Equilibrium
 
 
-def residual_forces(crystal: Crystal, neighbors=None) -> np.ndarray:
+def residual_forces(crystal: Crystal) -> np.ndarray:
     """Generalized forces [P, dof] on the primitive cell's bodies in the chart coordinates:
-    -dV/dx and -<dV/dphi phi^T, E_a> (the component along the group), from the forces of the
-    whole box (``HamiltonianSystem.forces``: all pairs with the minimum image, or the pairs of
-    a ``neighbors.NeighborList`` valid for the box, for large boxes)."""
-    from affinebody.state import State
-
-    state = State(jnp.asarray(crystal.x), jnp.asarray(crystal.phi),
-                  jnp.zeros_like(jnp.asarray(crystal.x)), jnp.zeros_like(jnp.asarray(crystal.phi)))
-    gx, gphi = (np.asarray(g) for g in _box_forces(crystal.system, state, neighbors))
-    b = crystal.basis
-    spatial = np.einsum("kij,kaj->kia", gphi[b], crystal.phi[b])  # dV/dphi phi^T
-    gtheta = np.einsum("kia,gia->kg", spatial, crystal.algebra)
-    return -np.concatenate([gx[b], gtheta], axis=1)
+    -dV/dx and -<dV/dphi phi^T, E_a> (the component along the group): each body's bonds
+    (every neighbour within the cut-off, :func:`bonds`) and its one-body terms."""
+    (s, *_), pair, one = _derivatives(crystal)
+    d = crystal.dof
+    total = np.zeros((len(crystal.basis), d))
+    if pair is not None:
+        np.add.at(total, s, pair[0][:, :d])  # each pair is a bond once from either end
+    if one is not None:
+        total += one[0]
+    return -total
 
 
 def relax(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 2000) -> Crystal:
@@ -386,9 +385,8 @@ def relax_cell(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 4000
             total = 0.0
             if pairs:
                 vec = scale * uj + dx[tj] - dx[sj]
-                per_bond = jax.vmap(lambda v, left, right: sum(
-                    _bond_energy(pair, v, left, right) for pair in pairs))
-                total = total + 0.5 * jnp.sum(per_bond(vec, phi[sj], phi[tj]))
+                per_bond = sum(pair.bond_energies(vec, phi[sj], phi[tj]) for pair in pairs)
+                total = total + 0.5 * jnp.sum(per_bond)
             for term in singles:
                 total = total + term.energy(scale * x0 + dx, phi)
             return total
@@ -446,11 +444,6 @@ def _metric_columns(system, x, phi, algebra):
     return jax.vmap(lambda e: jax.jvp(jax.grad(energy), (zero,), (e,))[1])(directions)
 
 
-@jax.jit
-def _box_forces(system, state, neighbors):
-    return system.forces(state, neighbors)
-
-
 def kinetic_metric(crystal: Crystal) -> np.ndarray:
     """Blocks [P, dof, dof] of the kinetic metric M: T = 1/2 q_dot^T M q_dot at phi0 with
     v = dx/dt and xi = dphi/dt = X_dot phi0 (chart velocities; models (63)-(74)). ValueError
@@ -490,41 +483,44 @@ class ForceConstants:
         return out.reshape(k.shape[:-1] + (size, size))
 
 
-def _bond_energy(term, u, phi_a, phi_b):
-    """V_ab of one pair term from the scalars it declares (``PairTerm.scalar_requirements``,
-    ``energy_from_scalars``: the contract the pair kernels use), computing only those."""
-    n = u.shape[-1]
-    plain, k_powers, m_powers = term.scalar_requirements(n)
-    names = set(plain) | ({"K"} if k_powers else set()) | ({"M"} if m_powers else set())
-    values = pair_variables(names, u[None], phi_a[None], phi_b[None])
-    base = {name: values[name] for name in plain}
-    if k_powers:
-        base["K"] = values["K"][..., :k_powers]
-    if m_powers:
-        base["M"] = values["M"][..., :m_powers]
-        if term.asymmetric:
-            base["Ms"] = affine_invariants(phi_b[None], phi_a[None])[..., :m_powers]
-    return term.energy_from_scalars(base, n)[0]
-
-
 @functools.partial(jax.jit, static_argnums=0)
-def _pair_hessians(terms, xa, xb, pa, pb, algebra):
-    """Hessians [B, 2 dof, 2 dof] of the pair energies of bonds (a, b) in both bodies' charts."""
-    n = xa.shape[-1]
+def _pair_derivatives(terms, xa, xb, pa, pb, algebra):
+    """Gradients [B, 2 dof] and Hessians [B, 2 dof, 2 dof] of the pair energies of bonds
+    (a, b) in both bodies' charts.
+
+    Forward derivatives of the closed-form pair gradients of
+    :func:`affinebody.pair_kernels.energy_and_gradients` (autodiff of the scalar function f
+    only, the geometry in closed form), pulled back through the chart: one Jacobian-vector
+    product per chart direction, the same direction in every bond at once (the bonds are
+    independent), so the compiled graph is one first derivative, not a nested second one."""
+    bonds_count, n = xa.shape
     d = n + algebra.shape[0]
+    x0 = jnp.stack([xa, xb], axis=1).reshape(2 * bonds_count, n)  # u = x_a - x_b: free space
+    phi0 = jnp.stack([pa, pb], axis=1).reshape(2 * bonds_count, n, n)
+    first, second = jnp.arange(0, 2 * bonds_count, 2), jnp.arange(1, 2 * bonds_count, 2)
+    free = as_space(None)
 
-    def pair_energy(q, xa, xb, pa, pb):
-        u = xa + q[:n] - xb - q[d:d + n]  # in range: the minimum image itself
-        phi_a, phi_b = _chart(pa, q[n:d], algebra), _chart(pb, q[d + n:], algebra)
-        return sum(_bond_energy(term, u, phi_a, phi_b) for term in terms)
+    def configuration(q):
+        q = q.reshape(2 * bonds_count, d)
+        return x0 + q[:, :n], jax.vmap(_chart, (0, 0, None))(phi0, q[:, n:], algebra)
 
-    zero = jnp.zeros((xa.shape[0], 2 * d))
-    return jax.vmap(jax.jacfwd(jax.jacfwd(pair_energy)))(zero, xa, xb, pa, pb)
+    def gradient(q):
+        x, phi = configuration(q)
+        gx, gphi = 0.0, 0.0
+        for term in terms:
+            _, tx, tphi = energy_and_gradients(term, free, x, phi, first, second, bonds_count)
+            gx, gphi = gx + tx, gphi + tphi
+        return jax.vjp(configuration, q)[1]((gx, gphi))[0]
+
+    zero = jnp.zeros((bonds_count, 2 * d))
+    directions = jnp.broadcast_to(jnp.eye(2 * d)[:, None, :], (2 * d, bonds_count, 2 * d))
+    columns = jax.vmap(lambda e: jax.jvp(gradient, (zero,), (e,))[1])(directions)
+    return gradient(zero), jnp.transpose(columns, (1, 2, 0))  # [B, 2 dof], [B, row, column]
 
 
 @functools.partial(jax.jit, static_argnums=0, compiler_options=_QUICK)
-def _one_body_hessians(terms, x, phi, algebra):
-    """Hessians [P, dof, dof] of the one-body energies in the chart."""
+def _one_body_derivatives(terms, x, phi, algebra):
+    """Gradients [P, dof] and Hessians [P, dof, dof] of the one-body energies in the chart."""
     n = x.shape[-1]
     d = n + algebra.shape[0]
 
@@ -532,43 +528,54 @@ def _one_body_hessians(terms, x, phi, algebra):
         return sum(term.energy(x[None] + q[None, :n], _chart(phi, q[n:], algebra)[None])
                    for term in terms)
 
-    return jax.vmap(jax.jacfwd(jax.jacfwd(one_energy)))(jnp.zeros((x.shape[0], d)), x, phi)
+    zero = jnp.zeros((x.shape[0], d))
+    return (jax.vmap(jax.grad(one_energy))(zero, x, phi),
+            jax.vmap(jax.jacfwd(jax.grad(one_energy)))(zero, x, phi))
+
+
+def _derivatives(crystal: Crystal):
+    """The bonds (:func:`bonds`) and the chart derivatives of V: (bonds, pair gradients
+    [B, 2 dof] and Hessians [B, 2 dof, 2 dof] or None, one-body gradients [P, dof] and
+    Hessians [P, dof, dof] or None)."""
+    pairs, singles = _terms(crystal.system.potential)
+    algebra = jnp.asarray(crystal.algebra)
+    found = bonds(crystal)
+    s, _, _, u, j = found
+    pair = one = None
+    if len(s):
+        xa = crystal.x[crystal.basis[s]]
+        pair = tuple(np.asarray(a) for a in _pair_derivatives(
+            tuple(pairs), jnp.asarray(xa), jnp.asarray(xa + u),
+            jnp.asarray(crystal.phi[crystal.basis[s]]), jnp.asarray(crystal.phi[j]), algebra))
+    if singles:
+        one = tuple(np.asarray(a) for a in _one_body_derivatives(
+            tuple(singles), jnp.asarray(crystal.x[crystal.basis]),
+            jnp.asarray(crystal.phi[crystal.basis]), algebra))
+    return found, pair, one
 
 
 def force_constants(crystal: Crystal) -> ForceConstants:
     """The force constants K[R] (module docstring: bonds' pair Hessians with weight 1/2 per end,
     one-body Hessians on site) and the kinetic metric of ``crystal``."""
-    pairs, singles = _terms(crystal.system.potential)
     n, d, p = crystal.n, crystal.dof, len(crystal.basis)
-    algebra = jnp.asarray(crystal.algebra)
-    s, t, rvec, u, j = bonds(crystal)
+    (s, t, rvec, _, _), pair, one = _derivatives(crystal)
     keys = np.round(rvec / crystal.lattice).astype(int)
     uniq = {(0,) * n: 0}
     for key in map(tuple, keys):
         uniq.setdefault(key, len(uniq))
         uniq.setdefault(tuple(-v for v in key), len(uniq))
-    blocks = np.zeros((len(uniq), p * d, p * d))
-
-    def block(m, a, b, h):
-        blocks[m, a * d:(a + 1) * d, b * d:(b + 1) * d] += h
-
-    if len(s):
-        hess = np.asarray(_pair_hessians(
-            tuple(pairs), jnp.asarray(crystal.x[crystal.basis[s]]),
-            jnp.asarray(crystal.x[crystal.basis[s]] + u),
-            jnp.asarray(crystal.phi[crystal.basis[s]]), jnp.asarray(crystal.phi[j]), algebra))
-        for b in range(len(s)):
-            m, minus = uniq[tuple(keys[b])], uniq[tuple(-keys[b])]
-            h = 0.5 * hess[b]
-            block(0, s[b], s[b], h[:d, :d])
-            block(0, t[b], t[b], h[d:, d:])
-            block(m, s[b], t[b], h[:d, d:])
-            block(minus, t[b], s[b], h[d:, :d])
-    if singles:
-        hb = np.asarray(_one_body_hessians(tuple(singles), jnp.asarray(crystal.x[crystal.basis]),
-                                           jnp.asarray(crystal.phi[crystal.basis]), algebra))
-        for a in range(p):
-            block(0, a, a, hb[a])
+    blocks = np.zeros((len(uniq), p, d, p, d))
+    if pair is not None:
+        hess = 0.25 * (pair[1] + np.swapaxes(pair[1], 1, 2))  # weight 1/2, symmetrized
+        forward = np.asarray([uniq[tuple(key)] for key in keys])
+        backward = np.asarray([uniq[tuple(-key)] for key in keys])
+        np.add.at(blocks, (0, s, slice(None), s), hess[:, :d, :d])
+        np.add.at(blocks, (0, t, slice(None), t), hess[:, d:, d:])
+        np.add.at(blocks, (forward, s, slice(None), t), hess[:, :d, d:])
+        np.add.at(blocks, (backward, t, slice(None), s), hess[:, d:, :d])
+    if one is not None:
+        blocks[0, np.arange(p), :, np.arange(p)] += one[1]
+    blocks = blocks.reshape(len(uniq), p * d, p * d)
     vectors = np.zeros((len(uniq), n))
     for key, m in uniq.items():
         vectors[m] = np.asarray(key) * crystal.lattice
