@@ -401,3 +401,87 @@ def test_cli_refuses_a_non_equilibrium_and_relaxes_it(tmp_path):
     assert doc["crystal"]["relaxed"] and doc["crystal"]["residual_force"] < 1e-8
     assert doc["crystal"]["lattice"] == pytest.approx([1.0], rel=1e-8)
     assert (tmp_path / "out" / "phonons.json").exists()
+
+
+# ---------------------------------------------------------------- an oblique (triangular) lattice
+
+
+def triangular_system(box):
+    import dataclasses
+
+    pair = build_potential("pair", {"expr": "(r - 1)**2 + 0.3 * (K1 - 2)**2", "r_cut": 1.25},
+                           n=2)
+    pair = dataclasses.replace(pair, box=box)  # edges or a triclinic Space
+    dil = build_potential("dilatation", {"stiffness": 2.0}, n=2)
+    return HamiltonianSystem(kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0),
+                                                   kinetic.IsotropicAffine(0.5, 0.1, 0.05)),
+                             total_potential([pair, dil]), "GL+")
+
+
+def test_triangular_lattice_in_an_oblique_box():
+    """The triangular lattice (spacing 1) in its own oblique box, H = 3 [a1 a2] with a1 = (1, 0),
+    a2 = (1/2, sqrt 3/2): one body per primitive cell. Checked against independent methods:
+    the Bloch sum of the Hessian of the whole box's energy (the all-pairs sum with the
+    triclinic minimum image, reverse-mode gradient, central finite differences); the same
+    lattice as 2 bodies per cell of a rectangular box (the spectrum folds: omega_rect(k) =
+    omega(k) and omega(k + G) with G = (0, 2 pi / sqrt 3)); the acoustic sum rule; and the
+    elastic isotropy of a six-fold lattice (C11 = C22, C66 = (C11 - C12) / 2)."""
+    from affinebody.space import triclinic
+
+    a1, a2 = np.array([1.0, 0.0]), np.array([0.5, np.sqrt(3) / 2])
+    box = triclinic(3 * np.stack([a1, a2], axis=1))
+    system = triangular_system(box)
+    sites = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0), indexing="ij"), -1)
+    x = sites.reshape(-1, 2) @ np.stack([a1, a2])
+    phi = np.broadcast_to(np.eye(2), (9, 2, 2))
+    crystal = phonons.make_crystal(system, x, phi, box)
+    assert crystal.cells == (3, 3) and len(crystal.basis) == 1 and not crystal.orthorhombic
+    assert np.abs(phonons.residual_forces(crystal)).max() < 1e-12
+    fc = phonons.force_constants(crystal)
+
+    # whole-box Hessian in the chart coordinates by finite differences of the gradient
+    algebra = crystal.algebra
+    d = crystal.dof
+
+    def energy(q):
+        q = q.reshape(9, d)
+        xmat = jax.numpy.einsum("ka,aij->kij", q[:, 2:], algebra)
+        eye = jax.numpy.eye(2)
+        return system.potential.energy(x + q[:, :2], (eye + xmat + 0.5 * xmat @ xmat) @ phi)
+
+    h = 1e-4
+    steps = h * np.eye(9 * d)
+    gradients = np.asarray(jax.jit(jax.vmap(jax.grad(energy)))(np.concatenate([steps, -steps])))
+    hessian = ((gradients[:9 * d] - gradients[9 * d:]) / (2 * h)).T.reshape(9, d, 9, d)
+    reciprocal = 2 * np.pi * np.linalg.inv(box.matrix).T
+    scale = np.abs(hessian).max()
+    for m in ((0, 0), (1, 0), (1, 2), (2, 1)):
+        k = reciprocal @ np.asarray(m, dtype=float)
+        phases = np.exp(1j * (x - x[0]) @ k)
+        bloch = np.einsum("l,ilj->ij", phases, hessian[0])  # D(k) = sum_L K_0L e^{ik.x_L0}
+        assert np.abs(fc.dynamical_matrix(k) - bloch).max() < 1e-6 * scale, m
+
+    # acoustic sum rule at Gamma, and the folding into the rectangular box's zone
+    rng = np.random.default_rng(2)
+    ks = rng.uniform(-3.0, 3.0, (5, 2))
+    oblique = phonons.solve(fc, np.concatenate([np.zeros((1, 2)), ks]))
+    top = np.abs(oblique.omega2).max()
+    assert np.abs(oblique.omega2[0, :2]).max() < 1e-12 * top
+    assert np.sum(oblique.character[0, :2, 0]) == pytest.approx(2.0, abs=1e-10)
+    rect_box = (3.0, 2 * np.sqrt(3))
+    corners = np.stack(np.meshgrid(np.arange(3.0), np.sqrt(3) * np.arange(2.0),
+                                   indexing="ij"), -1).reshape(-1, 2)
+    rect_sites = np.concatenate([corners, corners + a2])
+    rect = phonons.make_crystal(triangular_system(rect_box), rect_sites,
+                                np.broadcast_to(np.eye(2), (12, 2, 2)), rect_box)
+    assert rect.orthorhombic and rect.cells == (3, 2) and len(rect.basis) == 2
+    folded = phonons.solve(phonons.force_constants(rect), ks, vectors=False).omega2
+    shifted = phonons.solve(fc, ks + np.array([0.0, 2 * np.pi / np.sqrt(3)]), vectors=False)
+    expected = np.sort(np.concatenate([oblique.omega2[1:], shifted.omega2], axis=1), axis=1)
+    assert np.abs(folded - expected).max() < 1e-10 * top
+
+    # six-fold symmetry: the long waves of a triangular lattice are isotropic
+    voigt, residual = phonons.elastic_constants(fc)
+    assert residual < 1e-8
+    assert voigt[0, 0] == pytest.approx(voigt[1, 1], rel=1e-8)
+    assert voigt[2, 2] == pytest.approx((voigt[0, 0] - voigt[0, 1]) / 2, rel=1e-8)

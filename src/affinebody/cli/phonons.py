@@ -106,7 +106,9 @@ def compute(config, built, path=None, mesh=None, points=None, relax=None, dos=Tr
         "units": {"k": "1/length (Cartesian)", "omega": "angular frequency; imaginary "
                   "frequencies (omega^2 < 0) as -sqrt(-omega^2)"},
         "crystal": {"n": crystal.n, "cells": list(crystal.cells),
-                    "lattice": crystal.lattice.tolist(), "bodies_per_cell": len(crystal.basis),
+                    "lattice": crystal.lattice.tolist(),
+                    "lattice_vectors": crystal.vectors.T.tolist(),  # rows: a_j (Cartesian)
+                    "bodies_per_cell": len(crystal.basis),
                     "dof_per_body": crystal.dof, "group": built.system.group,
                     "residual_force": residual,
                     "relaxed": bool(relax if relax is not None else
