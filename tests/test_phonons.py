@@ -485,3 +485,56 @@ def test_triangular_lattice_in_an_oblique_box():
     assert residual < 1e-8
     assert voigt[0, 0] == pytest.approx(voigt[1, 1], rel=1e-8)
     assert voigt[2, 2] == pytest.approx((voigt[0, 0] - voigt[0, 1]) / 2, rel=1e-8)
+
+
+def test_triangular_md_power_spectrum_peaks_in_2d():
+    """A small-amplitude NVE run (Strang splitting) of the 9-body triangular crystal in its
+    oblique box, every internal branch held: V = sum_bonds [(r - 1)^2 - c K1] + sum_K [3 c trG +
+    (det - 1)^2] (the one-body 3 c trG balances the 6 bonds' -c K1, so the pair part of the
+    shapes is c/2 |phi_K - phi_L|^2). At the commensurate k the peaks of the summed power
+    spectra of the Bloch projections of p (2 components) and of the affine spin Sigma = phi pi
+    (4) are the distinct harmonic frequencies, and no other peak carries weight."""
+    import dataclasses
+
+    from affinebody.space import triclinic
+
+    a1, a2 = np.array([1.0, 0.0]), np.array([0.5, np.sqrt(3) / 2])
+    box = triclinic(3 * np.stack([a1, a2], axis=1))
+    pair = dataclasses.replace(build_potential(
+        "pair", {"expr": "(r - 1)**2 - 0.5 * K1", "r_cut": 1.25}, n=2), box=box)
+    one = build_potential("one-body", {"expr": "1.5 * trG + (det - 1)**2"}, n=2)
+    system = HamiltonianSystem(kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0),
+                                                     kinetic.IsotropicAffine(0.5, 0.1, 0.05)),
+                               total_potential([pair, one]), "GL+")
+    sites = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0), indexing="ij"), -1)
+    x = sites.reshape(-1, 2) @ np.stack([a1, a2])
+    phi = np.broadcast_to(np.eye(2), (9, 2, 2))
+    crystal = phonons.make_crystal(system, x, phi, box)
+    assert np.abs(phonons.residual_forces(crystal)).max() < 1e-12
+    fc = phonons.force_constants(crystal)
+    rng = np.random.default_rng(3)
+    state = State(x + 1e-5 * rng.standard_normal(x.shape),
+                  phi + 1e-5 * rng.standard_normal(phi.shape),
+                  1e-5 * rng.standard_normal(x.shape), 1e-5 * rng.standard_normal(phi.shape))
+    dt, steps = 0.04, 4096
+    traj = run(system, state, dt, steps, observers=())
+    spin = np.asarray(traj.states.phi @ traj.states.pi).reshape(steps + 1, 9, 4)
+    signals = np.concatenate([np.asarray(traj.states.p), spin], axis=2)
+    omega = 2 * np.pi * np.fft.rfftfreq(steps + 1, dt)
+    for m in ((1, 0), (1, 2)):
+        k = crystal.reciprocal @ np.asarray(m, dtype=float) / 3
+        harmonic = np.sort(phonons.solve(fc, [k], vectors=False).omega[0])
+        distinct = harmonic[np.concatenate([[True], np.diff(harmonic) > 1e-6 * harmonic[-1]])]
+        bloch = np.einsum("tkc,k->tc", signals, np.exp(-1j * x @ k))
+        parts = np.concatenate([bloch.real, bloch.imag], axis=1)
+        window = np.hanning(len(parts))[:, None]
+        spectra = np.abs(np.fft.rfft((parts - parts.mean(0)) * window, axis=0)) ** 2
+        power = np.sum(spectra / spectra.sum(0), axis=1)
+        inner = np.flatnonzero((power[1:-1] > power[:-2]) & (power[1:-1] > power[2:])) + 1
+        ranked = inner[np.argsort(power[inner])[::-1]]
+        found = []
+        for i in ranked[:len(distinct)]:
+            a, b, c = np.log(power[i - 1:i + 2])
+            found.append(omega[i] + 0.5 * (a - c) / (a - 2 * b + c) * (omega[1] - omega[0]))
+        assert np.abs(np.sort(found) - distinct).max() < 2e-3 * distinct.max(), m
+        assert power[ranked[len(distinct)]] < 1e-3 * power[ranked[:len(distinct)]].min(), m
