@@ -2,12 +2,15 @@
 against closed forms of the d'Alembert oscillator (phi's entries Gaussian): sector states,
 a superposition across sectors and the thermal mixture."""
 
+import json
 import math
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
 from affinebody.quantum import spectra as sp
+from affinebody.quantum.cli import density
 from affinebody.quantum.densities import (
     angle_densities,
     g_component_densities,
@@ -27,7 +30,7 @@ S2 = HBAR / (2 * INERTIA * OMEGA)
 def oscillator():
     """Levels N = 0, 1, 2 of the R^4 oscillator (1 + 4 + 10 states)."""
     spectrum = sp.solve("dalembert", 2, lambda q: 0.5 * K * np.sum(q**2, axis=-1), HBAR,
-                        inertia=INERTIA, levels=15, settings=sp.Settings(basis_size=12))
+                        inertia=INERTIA, levels=15, settings=sp.Settings(basis_size=9))
     assert len(spectrum.energies()) >= 15
     return spectrum
 
@@ -94,3 +97,36 @@ def test_thermal_mixture(oscillator):
     assert g11.converged and np.abs(g11.density - exact).max() < 1e-6 * peak
     with pytest.raises(ValueError, match="exactly one"):
         orientation_densities(oscillator, state=0, temperature=1.0)
+
+
+def test_density_command_superposition(tmp_path):
+    """affinebody density --superpose: the ground state and an N = 1 state (s = +-1, k = +-1:
+    both labels differ, so no cross term survives either angle integral): uniform angles,
+    and each G density is the mean of the two states' (Laplace for the ground state's G12 at
+    large |y| is not asserted here); orientation.json / .npz / .png written, exit 0."""
+    path = tmp_path / "osc.toml"
+    path.write_text(f"""
+[system]
+n = 2
+[quantum]
+hbar = {HBAR}
+kinetic = "dalembert"
+inertia = {INERTIA}
+potential = "0.5*{K}*trG"
+basis_size = 9
+density_points = 11
+""")
+    out = tmp_path / "o"
+    result = CliRunner().invoke(density, [str(path), "--superpose", "0:1,1:1j", "-o", str(out),
+                                          "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    assert doc["kind"] == "superposition" and doc["warnings"] == []
+    for key in ("L_angle", "R_angle"):
+        assert np.abs(np.asarray(doc["densities"][key]["density"]) - 1 / (2 * np.pi)).max() < 1e-12
+    assert {"G11", "G22", "G12"} <= set(doc["densities"])
+    assert all((out / name).exists() for name in ("orientation.json", "orientation.npz",
+                                                  "orientation.png"))
+    result = CliRunner().invoke(density, [str(path), "--state", "0", "--temperature", "1",
+                                          "-o", str(out)])
+    assert result.exit_code == 2 and "exactly one of --state" in result.output

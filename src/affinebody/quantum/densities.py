@@ -852,7 +852,8 @@ def g_component_densities(mixture, points: int = 51, tolerance: float = G_TOLERA
                     break
             previous = p
         integral = float(np.sum((p[1:] + p[:-1]) * np.diff(y)) / 2)
-        out[name] = Marginal(y, p, err, integral, nr, err <= tolerance * np.max(np.abs(p)))
+        out[name] = Marginal(y, p, err, integral, nr,
+                             bool(err <= tolerance * np.max(np.abs(p))))
     return out
 
 
