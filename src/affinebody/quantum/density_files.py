@@ -59,11 +59,19 @@ def write_densities(spectrum: Spectrum, state: int, directory: str | Path,
         ax.plot(orient["angle"], orient[key], label=key.replace("_", " "))
     ax.set_xlabel(label)
     ax.legend()
+    return _save(fig, directory / "density_orientation.png", directory / "densities", arrays,
+                 payload)
+
+
+def _save(fig, png: Path, stem: Path, arrays: dict, payload: dict) -> dict:
+    """Write the figure, STEM.npz (the arrays) and STEM.json (the payload); return payload."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
-    fig.savefig(directory / "density_orientation.png", dpi=100)
+    fig.savefig(png, dpi=100)
     plt.close(fig)
-    np.savez(directory / "densities.npz", **arrays)
-    (directory / "densities.json").write_text(json.dumps(payload))
+    np.savez(stem.with_suffix(".npz"), **arrays)
+    stem.with_suffix(".json").write_text(json.dumps(payload))
     return payload
 
 
@@ -131,9 +139,4 @@ def write_orientation(spectrum: Spectrum, directory: str | Path, state: int | No
         axes[0, 1].legend()
     fig.suptitle(f"{data['kind']}" + (f" {state}" if state is not None else "")
                  + (f", T = {temperature:g}" if temperature is not None else ""))
-    fig.tight_layout()
-    fig.savefig(directory / "orientation.png", dpi=100)
-    plt.close(fig)
-    np.savez(directory / "orientation.npz", **arrays)
-    (directory / "orientation.json").write_text(json.dumps(payload))
-    return payload
+    return _save(fig, directory / "orientation.png", directory / "orientation", arrays, payload)
