@@ -407,15 +407,31 @@ def test_cli_refuses_a_non_equilibrium_and_relaxes_it(tmp_path):
 
 
 def triangular_system(box):
+    """Triangular crystal (spacing 1, 6 neighbours within r_cut = 1.25), every internal branch
+    held: V = sum_bonds [(r - 1)^2 - c K1] + sum_K [3 c trG + (det - 1)^2] (the one-body 3 c
+    trG balances the 6 bonds' -c K1 at phi = Id, so the pair part of the shapes is
+    c/2 |phi_K - phi_L|^2); af-is internal kinetic energy."""
     import dataclasses
 
-    pair = build_potential("pair", {"expr": "(r - 1)**2 + 0.3 * (K1 - 2)**2", "r_cut": 1.25},
-                           n=2)
+    pair = build_potential("pair", {"expr": "(r - 1)**2 - 0.5 * K1", "r_cut": 1.25}, n=2)
     pair = dataclasses.replace(pair, box=box)  # edges or a triclinic Space
-    dil = build_potential("dilatation", {"stiffness": 2.0}, n=2)
+    one = build_potential("one-body", {"expr": "1.5 * trG + (det - 1)**2"}, n=2)
     return HamiltonianSystem(kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0),
                                                    kinetic.IsotropicAffine(0.5, 0.1, 0.05)),
-                             total_potential([pair, dil]), "GL+")
+                             total_potential([pair, one]), "GL+")
+
+
+def triangular_crystal():
+    """The 9 bodies of the triangular lattice in its own oblique box H = 3 [a1 a2]."""
+    from affinebody.space import triclinic
+
+    a1, a2 = np.array([1.0, 0.0]), np.array([0.5, np.sqrt(3) / 2])
+    box = triclinic(3 * np.stack([a1, a2], axis=1))
+    sites = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0), indexing="ij"), -1)
+    x = sites.reshape(-1, 2) @ np.stack([a1, a2])
+    phi = np.broadcast_to(np.eye(2), (9, 2, 2))
+    system = triangular_system(box)
+    return system, phonons.make_crystal(system, x, phi, box), box
 
 
 def test_triangular_lattice_in_an_oblique_box():
@@ -426,15 +442,9 @@ def test_triangular_lattice_in_an_oblique_box():
     lattice as 2 bodies per cell of a rectangular box (the spectrum folds: omega_rect(k) =
     omega(k) and omega(k + G) with G = (0, 2 pi / sqrt 3)); the acoustic sum rule; and the
     elastic isotropy of a six-fold lattice (C11 = C22, C66 = (C11 - C12) / 2)."""
-    from affinebody.space import triclinic
-
-    a1, a2 = np.array([1.0, 0.0]), np.array([0.5, np.sqrt(3) / 2])
-    box = triclinic(3 * np.stack([a1, a2], axis=1))
-    system = triangular_system(box)
-    sites = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0), indexing="ij"), -1)
-    x = sites.reshape(-1, 2) @ np.stack([a1, a2])
-    phi = np.broadcast_to(np.eye(2), (9, 2, 2))
-    crystal = phonons.make_crystal(system, x, phi, box)
+    system, crystal, box = triangular_crystal()
+    x, phi = crystal.x, crystal.phi
+    a2 = np.array([0.5, np.sqrt(3) / 2])
     assert crystal.cells == (3, 3) and len(crystal.basis) == 1 and not crystal.orthorhombic
     assert np.abs(phonons.residual_forces(crystal)).max() < 1e-12
     fc = phonons.force_constants(crystal)
@@ -488,28 +498,13 @@ def test_triangular_lattice_in_an_oblique_box():
 
 
 def test_triangular_md_power_spectrum_peaks_in_2d():
-    """A small-amplitude NVE run (Strang splitting) of the 9-body triangular crystal in its
-    oblique box, every internal branch held: V = sum_bonds [(r - 1)^2 - c K1] + sum_K [3 c trG +
-    (det - 1)^2] (the one-body 3 c trG balances the 6 bonds' -c K1, so the pair part of the
-    shapes is c/2 |phi_K - phi_L|^2). At the commensurate k the peaks of the summed power
-    spectra of the Bloch projections of p (2 components) and of the affine spin Sigma = phi pi
-    (4) are the distinct harmonic frequencies, and no other peak carries weight."""
-    import dataclasses
-
-    from affinebody.space import triclinic
-
-    a1, a2 = np.array([1.0, 0.0]), np.array([0.5, np.sqrt(3) / 2])
-    box = triclinic(3 * np.stack([a1, a2], axis=1))
-    pair = dataclasses.replace(build_potential(
-        "pair", {"expr": "(r - 1)**2 - 0.5 * K1", "r_cut": 1.25}, n=2), box=box)
-    one = build_potential("one-body", {"expr": "1.5 * trG + (det - 1)**2"}, n=2)
-    system = HamiltonianSystem(kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0),
-                                                     kinetic.IsotropicAffine(0.5, 0.1, 0.05)),
-                               total_potential([pair, one]), "GL+")
-    sites = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0), indexing="ij"), -1)
-    x = sites.reshape(-1, 2) @ np.stack([a1, a2])
-    phi = np.broadcast_to(np.eye(2), (9, 2, 2))
-    crystal = phonons.make_crystal(system, x, phi, box)
+    """A small-amplitude NVE run (Strang splitting) of the 9-body triangular crystal
+    (:func:`triangular_crystal`, every internal branch held). At the commensurate k the peaks
+    of the summed power spectra of the Bloch projections of p (2 components) and of the affine
+    spin Sigma = phi pi (4) are the distinct harmonic frequencies, and no other peak carries
+    weight."""
+    system, crystal, _ = triangular_crystal()
+    x, phi = crystal.x, crystal.phi
     assert np.abs(phonons.residual_forces(crystal)).max() < 1e-12
     fc = phonons.force_constants(crystal)
     rng = np.random.default_rng(3)
