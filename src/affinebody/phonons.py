@@ -692,27 +692,37 @@ class Spectrum:
         return self.omega2 < 0
 
 
+def _real_times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b for a real a and a complex b as two real products (no complex copy of a)."""
+    return a @ b.real + 1j * (a @ b.imag)
+
+
 def solve(fc: ForceConstants, k, vectors: bool = True, chunk: int = 256) -> Spectrum:
     """omega^2 of D(k) u = omega^2 M u at Cartesian k [nk, n] (Cholesky M = L L^T, then the
-    Hermitian eigenproblem of L^-1 D L^-T); with ``vectors`` the eigenvectors and characters."""
+    Hermitian eigenproblem of L^-1 D L^-T = sum_R (L^-1 K[R] L^-T) e^{i k.R}, the reduced
+    blocks formed once); with ``vectors`` the eigenvectors and characters."""
     k = np.atleast_2d(np.asarray(k, dtype=float))
     lower = np.linalg.cholesky(fc.metric)
     linv = np.linalg.inv(lower)
+    size = len(fc.metric)
+    reduced_blocks = (linv @ fc.blocks @ linv.T).reshape(len(fc.vectors), -1)
     q = _character_matrices(fc) if vectors else None
     crystal = fc.crystal
     p, d = len(crystal.basis), crystal.dof
     values, vecs, chars = [], [], []
     for start in range(0, len(k), chunk):
-        dk = fc.dynamical_matrix(k[start:start + chunk])
-        reduced = linv @ dk @ linv.T
+        angles = k[start:start + chunk] @ fc.vectors.T
+        reduced = (np.cos(angles) @ reduced_blocks + 1j * (np.sin(angles) @ reduced_blocks))
+        reduced = reduced.reshape(len(angles), size, size)
         reduced = 0.5 * (reduced + np.conj(np.swapaxes(reduced, -1, -2)))
         if not vectors:
             values.append(np.linalg.eigvalsh(reduced))
             continue
         w, v = np.linalg.eigh(reduced)
-        u = linv.T @ v
+        u = _real_times(linv.T, v)
         ub = u.reshape(len(w), p, d, -1)
-        energy = np.einsum("ksim,csij,ksjm->kmc", np.conj(ub), q, ub).real
+        energy = np.stack([np.einsum("ksim,ksim->km", np.conj(ub), _real_times(q[c][None], ub))
+                           .real for c in range(len(q))], axis=-1)
         total = np.maximum(energy.sum(-1, keepdims=True), 1e-300)
         values.append(w)
         vecs.append(u)
