@@ -822,24 +822,37 @@ def g_component_densities(mixture, points: int = 51, tolerance: float = G_TOLERA
     support excluded)."""
     top_weight = max(w for w, _ in mixture)
     mixture = [(w, pure) for w, pure in mixture if w >= 1e-3 * tolerance * top_weight]
-    hi = 0.0  # the value of Tr G below which all but 1e-10 of each state's mass lies
+    # the range: Tr G (which bounds |G_ab|) below which all but 1e-10 of each state's mass
+    # lies, and for the affine models (log-normal-like tails) the smallest squared singular
+    # value above which all but 1e-10 lies, with a geometric grid between them
+    hi, low = 0.0, np.inf
     for _, pure in mixture:
         for joint in pure.joints:
             mass = np.abs(joint.weights * joint(joint.nodes))
             xs = joint.nodes
             if joint.model == "haar2":
                 trg = 2 * np.exp(xs[:, 1]) * np.cosh(xs[:, 0])
+                small = np.exp(xs[:, 1] - xs[:, 0])
             else:
                 trg = 2 * (xs[:, 0] ** 2 + xs[:, 1] ** 2)
-            order = np.argsort(trg)
-            below = np.cumsum(mass[order]) / np.sum(mass)
-            hi = max(hi, float(trg[order][min(np.searchsorted(below, 1 - 1e-10),
-                                              len(order) - 1)]))
+                small = np.zeros_like(trg)
+            for values, upper in ((trg, True), (small, False)):
+                order = np.argsort(values)
+                below = np.cumsum(mass[order]) / np.sum(mass)
+                at = np.searchsorted(below, 1 - 1e-10 if upper else 1e-10)
+                value = float(values[order][min(at, len(order) - 1)])
+                hi, low = (max(hi, value), low) if upper else (hi, min(low, value))
+    geometric = mixture[0][1].joints[0].model == "haar2"
     out = {}
     for name in components:
-        # the values y = 0 (where the densities of G11, G22 are limits and that of G12 has a
-        # logarithmic singularity) are left out of the grid
-        if name == "G12":
+        # y = 0 (where the densities of G11, G22 are limits and that of G12 has a logarithmic
+        # peak) is left out of the grid
+        if geometric:
+            lo = low if name != "G12" else 1e-6 * hi
+            top = hi if name != "G12" else hi / 2
+            half = np.geomspace(lo, top, points if name != "G12" else points // 2 + 1)
+            y = half if name != "G12" else np.concatenate([-half[::-1], half])
+        elif name == "G12":
             y = np.linspace(-hi / 2, hi / 2, 2 * (points // 2) + 2)[1:-1]
         else:
             y = np.linspace(0.0, hi, points + 1)[1:]
