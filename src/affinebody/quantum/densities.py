@@ -848,7 +848,7 @@ def g_component_densities(mixture, points: int = 51, tolerance: float = G_TOLERA
         # y = 0 (where the densities of G11, G22 are limits and that of G12 has a logarithmic
         # peak) is left out of the grid
         if geometric:
-            lo = low if name != "G12" else 1e-6 * hi
+            lo = low
             top = hi if name != "G12" else hi / 2
             half = np.geomspace(lo, top, points if name != "G12" else points // 2 + 1)
             y = half if name != "G12" else np.concatenate([-half[::-1], half])
@@ -864,7 +864,13 @@ def g_component_densities(mixture, points: int = 51, tolerance: float = G_TOLERA
                 if err <= tolerance * np.max(np.abs(p)):
                     break
             previous = p
-        integral = float(np.sum((p[1:] + p[:-1]) * np.diff(y)) / 2)
+        if geometric:  # trapezoid in ln|y| on each side of 0
+            integral = sum(float(np.sum((f[1:] + f[:-1]) * np.diff(np.log(t))) / 2)
+                           for t, f in ((np.abs(y[y > 0]), (y * p)[y > 0]),
+                                        (np.abs(y[y < 0])[::-1], np.abs(y * p)[y < 0][::-1]))
+                           if len(t) > 1)
+        else:
+            integral = float(np.sum((p[1:] + p[:-1]) * np.diff(y)) / 2)
         out[name] = Marginal(y, p, err, integral, nr,
                              bool(err <= tolerance * np.max(np.abs(p))))
     return out
