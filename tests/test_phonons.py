@@ -401,3 +401,139 @@ def test_cli_refuses_a_non_equilibrium_and_relaxes_it(tmp_path):
     assert doc["crystal"]["relaxed"] and doc["crystal"]["residual_force"] < 1e-8
     assert doc["crystal"]["lattice"] == pytest.approx([1.0], rel=1e-8)
     assert (tmp_path / "out" / "phonons.json").exists()
+
+
+# ---------------------------------------------------------------- an oblique (triangular) lattice
+
+
+def triangular_system(box):
+    """Triangular crystal (spacing 1, 6 neighbours within r_cut = 1.25), every internal branch
+    held: V = sum_bonds [(r - 1)^2 - c K1] + sum_K [3 c trG + (det - 1)^2] (the one-body 3 c
+    trG balances the 6 bonds' -c K1 at phi = Id, so the pair part of the shapes is
+    c/2 |phi_K - phi_L|^2); af-is internal kinetic energy."""
+    import dataclasses
+
+    pair = build_potential("pair", {"expr": "(r - 1)**2 - 0.5 * K1", "r_cut": 1.25}, n=2)
+    pair = dataclasses.replace(pair, box=box)  # edges or a triclinic Space
+    one = build_potential("one-body", {"expr": "1.5 * trG + (det - 1)**2"}, n=2)
+    return HamiltonianSystem(kinetic.KineticEnergy(kinetic.DAlembertTranslational(1.0),
+                                                   kinetic.IsotropicAffine(0.5, 0.1, 0.05)),
+                             total_potential([pair, one]), "GL+")
+
+
+def triangular_crystal():
+    """The 9 bodies of the triangular lattice in its own oblique box H = 3 [a1 a2]."""
+    from affinebody.space import triclinic
+
+    a1, a2 = np.array([1.0, 0.0]), np.array([0.5, np.sqrt(3) / 2])
+    box = triclinic(3 * np.stack([a1, a2], axis=1))
+    sites = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0), indexing="ij"), -1)
+    x = sites.reshape(-1, 2) @ np.stack([a1, a2])
+    phi = np.broadcast_to(np.eye(2), (9, 2, 2))
+    system = triangular_system(box)
+    return system, phonons.make_crystal(system, x, phi, box), box
+
+
+def test_triangular_lattice_in_an_oblique_box():
+    """The triangular lattice (spacing 1) in its own oblique box, H = 3 [a1 a2] with a1 = (1, 0),
+    a2 = (1/2, sqrt 3/2): one body per primitive cell. Checked against independent methods:
+    the Bloch sum of the Hessian of the whole box's energy (the all-pairs sum with the
+    triclinic minimum image, reverse-mode gradient, central finite differences); the same
+    lattice as 2 bodies per cell of a rectangular box (the spectrum folds: omega_rect(k) =
+    omega(k) and omega(k + G) with G = (0, 2 pi / sqrt 3)); the acoustic sum rule; and the
+    elastic isotropy of a six-fold lattice (C11 = C22, C66 = (C11 - C12) / 2)."""
+    system, crystal, box = triangular_crystal()
+    x, phi = crystal.x, crystal.phi
+    a2 = np.array([0.5, np.sqrt(3) / 2])
+    assert crystal.cells == (3, 3) and len(crystal.basis) == 1 and not crystal.orthorhombic
+    assert np.abs(phonons.residual_forces(crystal)).max() < 1e-12
+    fc = phonons.force_constants(crystal)
+
+    # whole-box Hessian in the chart coordinates by finite differences of the gradient
+    algebra = crystal.algebra
+    d = crystal.dof
+
+    def energy(q):
+        q = q.reshape(9, d)
+        xmat = jax.numpy.einsum("ka,aij->kij", q[:, 2:], algebra)
+        eye = jax.numpy.eye(2)
+        return system.potential.energy(x + q[:, :2], (eye + xmat + 0.5 * xmat @ xmat) @ phi)
+
+    h = 1e-4
+    steps = h * np.eye(9 * d)
+    gradients = np.asarray(jax.jit(jax.vmap(jax.grad(energy)))(np.concatenate([steps, -steps])))
+    hessian = ((gradients[:9 * d] - gradients[9 * d:]) / (2 * h)).T.reshape(9, d, 9, d)
+    reciprocal = 2 * np.pi * np.linalg.inv(box.matrix).T
+    scale = np.abs(hessian).max()
+    for m in ((0, 0), (1, 0), (1, 2), (2, 1)):
+        k = reciprocal @ np.asarray(m, dtype=float)
+        phases = np.exp(1j * (x - x[0]) @ k)
+        bloch = np.einsum("l,ilj->ij", phases, hessian[0])  # D(k) = sum_L K_0L e^{ik.x_L0}
+        assert np.abs(fc.dynamical_matrix(k) - bloch).max() < 1e-6 * scale, m
+
+    # acoustic sum rule at Gamma, and the folding into the rectangular box's zone
+    rng = np.random.default_rng(2)
+    ks = rng.uniform(-3.0, 3.0, (5, 2))
+    oblique = phonons.solve(fc, np.concatenate([np.zeros((1, 2)), ks]))
+    top = np.abs(oblique.omega2).max()
+    # Gamma: the 2 translations and the uniform isochoric shape changes (for a uniform phi the
+    # bonds' -c K1 cancels the 3 c trG, leaving (det - 1)^2: rotation and 2 shears free) are
+    # the zero modes, the uniform dilatation is not; the translations are 2 of those 5
+    assert np.abs(oblique.omega2[0, :5]).max() < 1e-12 * top
+    assert oblique.omega2[0, 5] > 1e-3 * top
+    assert np.sum(oblique.character[0, :5, 0]) == pytest.approx(2.0, abs=1e-10)
+    rect_box = (3.0, 2 * np.sqrt(3))
+    corners = np.stack(np.meshgrid(np.arange(3.0), np.sqrt(3) * np.arange(2.0),
+                                   indexing="ij"), -1).reshape(-1, 2)
+    rect_sites = np.concatenate([corners, corners + a2])
+    rect = phonons.make_crystal(triangular_system(rect_box), rect_sites,
+                                np.broadcast_to(np.eye(2), (12, 2, 2)), rect_box)
+    assert rect.orthorhombic and rect.cells == (3, 2) and len(rect.basis) == 2
+    folded = phonons.solve(phonons.force_constants(rect), ks, vectors=False).omega2
+    shifted = phonons.solve(fc, ks + np.array([0.0, 2 * np.pi / np.sqrt(3)]), vectors=False)
+    expected = np.sort(np.concatenate([oblique.omega2[1:], shifted.omega2], axis=1), axis=1)
+    assert np.abs(folded - expected).max() < 1e-10 * top
+
+    # six-fold symmetry: the long waves of a triangular lattice are isotropic
+    voigt, residual = phonons.elastic_constants(fc)
+    assert residual < 1e-8
+    assert voigt[0, 0] == pytest.approx(voigt[1, 1], rel=1e-8)
+    assert voigt[2, 2] == pytest.approx((voigt[0, 0] - voigt[0, 1]) / 2, rel=1e-8)
+
+
+def test_triangular_md_power_spectrum_peaks_in_2d():
+    """A small-amplitude NVE run (Strang splitting) of the 9-body triangular crystal
+    (:func:`triangular_crystal`, every internal branch held). At the commensurate k the peaks
+    of the summed power spectra of the Bloch projections of p (2 components) and of the affine
+    spin Sigma = phi pi (4) are the distinct harmonic frequencies, and no other peak carries
+    weight."""
+    system, crystal, _ = triangular_crystal()
+    x, phi = crystal.x, crystal.phi
+    assert np.abs(phonons.residual_forces(crystal)).max() < 1e-12
+    fc = phonons.force_constants(crystal)
+    rng = np.random.default_rng(3)
+    state = State(x + 1e-5 * rng.standard_normal(x.shape),
+                  phi + 1e-5 * rng.standard_normal(phi.shape),
+                  1e-5 * rng.standard_normal(x.shape), 1e-5 * rng.standard_normal(phi.shape))
+    dt, steps = 0.04, 4096
+    traj = run(system, state, dt, steps, observers=())
+    spin = np.asarray(traj.states.phi @ traj.states.pi).reshape(steps + 1, 9, 4)
+    signals = np.concatenate([np.asarray(traj.states.p), spin], axis=2)
+    omega = 2 * np.pi * np.fft.rfftfreq(steps + 1, dt)
+    for m in ((1, 0), (1, 2)):
+        k = crystal.reciprocal @ np.asarray(m, dtype=float) / 3
+        harmonic = np.sort(phonons.solve(fc, [k], vectors=False).omega[0])
+        distinct = harmonic[np.concatenate([[True], np.diff(harmonic) > 1e-6 * harmonic[-1]])]
+        bloch = np.einsum("tkc,k->tc", signals, np.exp(-1j * x @ k))
+        parts = np.concatenate([bloch.real, bloch.imag], axis=1)
+        window = np.hanning(len(parts))[:, None]
+        spectra = np.abs(np.fft.rfft((parts - parts.mean(0)) * window, axis=0)) ** 2
+        power = np.sum(spectra / spectra.sum(0), axis=1)
+        inner = np.flatnonzero((power[1:-1] > power[:-2]) & (power[1:-1] > power[2:])) + 1
+        ranked = inner[np.argsort(power[inner])[::-1]]
+        found = []
+        for i in ranked[:len(distinct)]:
+            a, b, c = np.log(power[i - 1:i + 2])
+            found.append(omega[i] + 0.5 * (a - c) / (a - 2 * b + c) * (omega[1] - omega[0]))
+        assert np.abs(np.sort(found) - distinct).max() < 2e-3 * distinct.max(), m
+        assert power[ranked[len(distinct)]] < 1e-3 * power[ranked[:len(distinct)]].min(), m

@@ -1,11 +1,18 @@
 """Lattice dynamics of crystals of affine bodies: dispersion relations, densities of states,
 sound speeds and elastic constants (docs/phonons.md).
 
-A crystal is the content of a periodic orthorhombic box (the system's pair terms carry it, with a
-cut-off on r of at most half the box, so that every pair in range is a minimum image), repeated
-by the box's lattice; the box itself is ``cells[j]`` primitive cells along edge j (found by
-:func:`find_cells`: the largest translations that map bodies onto bodies with the same phi and
-the same inertia). Each body K has n translational and dim g internal degrees of freedom, in
+A crystal is the content of a periodic box (the system's pair terms carry it, with a cut-off on
+r of at most half the box's perpendicular width, so that every pair in range is a minimum
+image), repeated by the box's lattice. The box is orthorhombic (``system.box``: n edges) or, in
+the library, triclinic (an n x n cell matrix or a triclinic :class:`affinebody.space.Space`);
+it is ``cells[j]`` primitive cells along its vector h_j (found by :func:`find_cells`: the
+largest translations h_j / m_j that map bodies onto bodies with the same phi and the same
+inertia), so the primitive vectors a_j = h_j / cells_j may be oblique. A lattice whose
+primitive vectors are not fractions of the box vectors (a triangular lattice in a rectangular
+box, bcc or fcc in a cubic box) is described by the conventional cell that the box vectors
+give, with several bodies: the spectrum is exact, folded into the smaller Brillouin zone.
+
+Each body K has n translational and dim g internal degrees of freedom, in
 the chart (spatial affine velocity of the paper's (34))
 
     x_K = x0_K + dx_K,        phi_K = (Id + X_K + X_K^2 / 2) phi0_K,   X_K = sum_a theta_K^a E_a,
@@ -51,6 +58,7 @@ A with the minor and major symmetries (exact when the crystal is stress-free).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -61,8 +69,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from affinebody.groups import expm, lie_algebra, project_algebra
-from affinebody.mutual import affine_invariants
-from affinebody.potentials import OneBodyTerm, PairTerm, TotalPotential, pair_variables
+from affinebody.pair_kernels import energy_and_gradients
+from affinebody.potentials import OneBodyTerm, PairTerm, TotalPotential
+from affinebody.space import Space, as_space
 from affinebody.state import VelocityState
 
 #: Names of the characters of a mode: shares of its kinetic energy.
@@ -113,26 +122,49 @@ def _same_bodies(system, bodies: int) -> np.ndarray:
     return same
 
 
+def box_matrix(box, n: int) -> np.ndarray:
+    """The cell matrix H [n, n] (columns: the box vectors) of a periodic box given as n edges
+    (orthorhombic), an n x n matrix or an :class:`affinebody.space.Space` (triclinic)."""
+    if isinstance(box, Space):
+        if not box.periodic:
+            raise ValueError("phonons need a periodic box (got free space)")
+        h = box.matrix
+    else:
+        h = np.asarray(box, dtype=float)
+        h = np.diag(h) if h.shape == (n,) else h
+    if h.shape != (n, n) or not np.linalg.det(h) > 0:
+        raise ValueError(f"phonons need a periodic box of n = {n} edges or an {n} x {n} cell "
+                         f"matrix with det > 0 (got {np.asarray(h).tolist()})")
+    return h
+
+
+def _wrap(u, h) -> np.ndarray:
+    """u minus the box vectors (columns of h) that bring its fractional coordinates to
+    [-1/2, 1/2): the minimum image of the pairs in range."""
+    f = u @ np.linalg.inv(h).T
+    return (f - np.round(f)) @ h.T
+
+
 def _maps_onto_itself(x, phi, box, same, shift) -> bool:
     """Whether x -> x + shift (mod box) maps the bodies onto bodies with equal phi, inertia."""
-    u = x[None, :, :] - (x[:, None, :] + shift)
-    u -= box * np.round(u / box)
-    close = np.all(np.abs(u) < 1e-8 * box, axis=-1)
+    u = _wrap(x[None, :, :] - (x[:, None, :] + shift), box)
+    close = np.all(np.abs(u) < 1e-8 * np.abs(box).max(), axis=-1)
     equal = np.all(np.abs(phi[None] - phi[:, None]) < 1e-10, axis=(-2, -1))
     return bool(np.all(np.any(close & equal & same, axis=1)))
 
 
 def find_cells(system, x, phi, box) -> tuple[int, ...]:
-    """The largest numbers of primitive cells along each box edge: m_j such that the translation
-    by box_j / m_j along axis j maps the bodies onto bodies with the same phi and inertia."""
-    x, phi, box = np.asarray(x, float), np.asarray(phi, float), np.asarray(box, float)
+    """The largest numbers of primitive cells along each box vector: m_j such that the
+    translation by h_j / m_j (h_j the j-th box vector, :func:`box_matrix`) maps the bodies onto
+    bodies with the same phi and inertia."""
+    x, phi = np.asarray(x, float), np.asarray(phi, float)
     bodies, n = x.shape
+    box = box_matrix(box, n)
     same = _same_bodies(system, bodies)
     cells = []
     for j in range(n):
         for m in sorted((d for d in range(1, bodies + 1) if bodies % d == 0), reverse=True):
-            shift = np.zeros(n)
-            shift[j] = box[j] / m
+            shift = box[:, j] / m
             if m == 1 or _maps_onto_itself(x, phi, box, same, shift):
                 cells.append(m)
                 break
@@ -144,10 +176,11 @@ class Crystal:
     """A periodic crystal of affine bodies at its (candidate) equilibrium.
 
     system: the ``HamiltonianSystem``; x [N, n], phi [N, n, n]: the bodies of the periodic box
-    ``box`` [n] (orthorhombic edges); cells: primitive cells per box edge. Derived: ``lattice``
-    [n] (primitive edges a_j = box_j / cells_j), ``basis`` [P] (the box indices of the bodies of
-    the primitive cell), ``sublattice`` [N] and ``translation`` [N, n] (x_K = x_basis[s] + T_K
-    with T_K a lattice vector), ``algebra`` [g, n, n] (the chart's E_a).
+    ``box`` [n, n] (cell matrix H, columns the box vectors h_j: orthorhombic or triclinic);
+    cells: primitive cells per box vector. Derived: ``vectors`` [n, n] (columns the primitive
+    vectors a_j = h_j / cells_j), ``lattice`` [n] (their lengths), ``basis`` [P] (the box
+    indices of the bodies of the primitive cell), ``sublattice`` [N] and ``translation``
+    [N, n] (x_K = x_basis[s] + T_K with T_K a lattice vector), ``algebra`` [g, n, n] (E_a).
     """
 
     system: Any
@@ -165,8 +198,18 @@ class Crystal:
         return self.x.shape[1]
 
     @property
+    def vectors(self) -> np.ndarray:
+        """Primitive vectors a_j = h_j / cells_j as the columns of [n, n]."""
+        return self.box / np.asarray(self.cells, dtype=float)[None, :]
+
+    @property
     def lattice(self) -> np.ndarray:
-        return self.box / np.asarray(self.cells, dtype=float)
+        """Lengths |a_j| of the primitive vectors."""
+        return np.linalg.norm(self.vectors, axis=0)
+
+    @property
+    def orthorhombic(self) -> bool:
+        return bool(np.all(self.box == np.diag(np.diag(self.box))))
 
     @property
     def dof(self) -> int:
@@ -175,40 +218,40 @@ class Crystal:
 
     @property
     def cell_volume(self) -> float:
-        return float(np.prod(self.lattice))
+        return float(abs(np.linalg.det(self.vectors)))
 
     @property
     def reciprocal(self) -> np.ndarray:
-        """Reciprocal edges b_j = 2 pi / a_j."""
-        return 2 * np.pi / self.lattice
+        """Reciprocal vectors b_j (a_i . b_j = 2 pi delta_ij) as the columns of [n, n]."""
+        return 2 * np.pi * np.linalg.inv(self.vectors).T
+
+    def fractional(self, v) -> np.ndarray:
+        """Coordinates of Cartesian vectors v [..., n] in the primitive vectors."""
+        return np.asarray(v) @ np.linalg.inv(self.vectors).T
 
 
 def make_crystal(system, x, phi, box, cells=None) -> Crystal:
     """The :class:`Crystal` of the bodies (x, phi) in the periodic ``box``; ``cells`` (primitive
     cells per edge) is found by :func:`find_cells` when None, and checked otherwise."""
     x, phi = np.asarray(x, dtype=float), np.asarray(phi, dtype=float)
-    box = np.asarray(box, dtype=float)
     bodies, n = x.shape
-    if box.shape != (n,):
-        raise ValueError(f"phonons need a periodic orthorhombic box of n = {n} edges "
-                         f"(got {box.tolist()})")
+    box = box_matrix(box, n)
     if cells is None:
         cells = find_cells(system, x, phi, box)
     cells = tuple(int(c) for c in cells)
     same = _same_bodies(system, bodies)
     for j, m in enumerate(cells):
-        shift = np.zeros(n)
-        shift[j] = box[j] / m
+        shift = box[:, j] / max(m, 1)
         if m < 1 or bodies % m or not _maps_onto_itself(x, phi, box, same, shift):
             raise ValueError(f"phonons.cells[{j}] = {m}: the translation by box/{m} along axis "
                              f"{j} does not map the bodies onto equal bodies (drop phonons.cells "
                              f"to find the primitive cell)")
-    a = box / np.asarray(cells, dtype=float)
+    a_inv = np.linalg.inv(box / np.asarray(cells, dtype=float)[None, :])
     sublattice = -np.ones(bodies, dtype=int)
     basis: list[int] = []
     for k in range(bodies):
         for s, b in enumerate(basis):
-            f = (x[k] - x[b]) / a
+            f = a_inv @ (x[k] - x[b])
             if (np.all(np.abs(f - np.round(f)) < 1e-8) and same[k, b]
                     and np.all(np.abs(phi[k] - phi[b]) < 1e-10)):
                 sublattice[k] = s
@@ -217,7 +260,7 @@ def make_crystal(system, x, phi, box, cells=None) -> Crystal:
             sublattice[k] = len(basis)
             basis.append(k)
     basis_arr = np.asarray(basis)
-    translation = a * np.round((x - x[basis_arr[sublattice]]) / a)
+    translation = np.round((x - x[basis_arr[sublattice]]) @ a_inv.T) @ np.linalg.inv(a_inv).T
     return Crystal(system, x, phi, box, cells, basis_arr, sublattice, translation,
                    algebra_basis(system.group, n))
 
@@ -272,17 +315,16 @@ def bonds(crystal: Crystal, reach: float | None = None):
         return (np.zeros(0, int), np.zeros(0, int), np.zeros((0, crystal.n)),
                 np.zeros((0, crystal.n)), np.zeros(0, int))
     r_cut = max(t.cutoff.r_cut for t in pairs) if reach is None else reach
-    x, box, a = crystal.x, crystal.box, crystal.lattice
+    x, box, a = crystal.x, crystal.box, crystal.vectors
     ss, ts, rs, us, js = [], [], [], [], []
     for s, b in enumerate(crystal.basis):
-        u = x - x[b]
-        u -= box * np.round(u / box)
+        u = _wrap(x - x[b], box)
         dist = np.linalg.norm(u, axis=1)
         for j in np.flatnonzero(dist < r_cut):
             if j == b:
                 continue
             t = crystal.sublattice[j]
-            lattice_vector = a * np.round((x[b] + u[j] - x[crystal.basis[t]]) / a)
+            lattice_vector = a @ np.round(crystal.fractional(x[b] + u[j] - x[crystal.basis[t]]))
             ss.append(s)
             ts.append(t)
             rs.append(lattice_vector)
@@ -296,20 +338,18 @@ def bonds(crystal: Crystal, reach: float | None = None):
 # Equilibrium
 
 
-def residual_forces(crystal: Crystal, neighbors=None) -> np.ndarray:
+def residual_forces(crystal: Crystal) -> np.ndarray:
     """Generalized forces [P, dof] on the primitive cell's bodies in the chart coordinates:
-    -dV/dx and -<dV/dphi phi^T, E_a> (the component along the group), from the forces of the
-    whole box (``HamiltonianSystem.forces``: all pairs with the minimum image, or the pairs of
-    a ``neighbors.NeighborList`` valid for the box, for large boxes)."""
-    from affinebody.state import State
-
-    state = State(jnp.asarray(crystal.x), jnp.asarray(crystal.phi),
-                  jnp.zeros_like(jnp.asarray(crystal.x)), jnp.zeros_like(jnp.asarray(crystal.phi)))
-    gx, gphi = (np.asarray(g) for g in _box_forces(crystal.system, state, neighbors))
-    b = crystal.basis
-    spatial = np.einsum("kij,kaj->kia", gphi[b], crystal.phi[b])  # dV/dphi phi^T
-    gtheta = np.einsum("kia,gia->kg", spatial, crystal.algebra)
-    return -np.concatenate([gx[b], gtheta], axis=1)
+    -dV/dx and -<dV/dphi phi^T, E_a> (the component along the group): each body's bonds
+    (every neighbour within the cut-off, :func:`bonds`) and its one-body terms."""
+    (s, *_), pair, one = _derivatives(crystal)
+    d = crystal.dof
+    total = np.zeros((len(crystal.basis), d))
+    if pair is not None:
+        np.add.at(total, s, pair[0][:, :d])  # each pair is a bond once from either end
+    if one is not None:
+        total += one[0]
+    return -total
 
 
 def relax(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 2000) -> Crystal:
@@ -346,20 +386,20 @@ def relax(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 2000) -> 
                       options={"gtol": tolerance, "maxiter": max_steps})
     xb, phib = (np.asarray(a) for a in configuration(jnp.asarray(result.x)))
     x, phi = tile(crystal, xb, phib)
-    x = x - crystal.box * np.floor(x / crystal.box)  # back into the box
+    f = x @ np.linalg.inv(crystal.box).T
+    x = (f - np.floor(f)) @ crystal.box.T  # back into the box
     return Crystal(system, x, phi, crystal.box, crystal.cells, crystal.basis, crystal.sublattice,
                    x - x[crystal.basis[crystal.sublattice]], crystal.algebra)
 
 
 def relax_cell(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 4000) -> Crystal:
     """The crystal at the nearest minimum of V per cell over the positions and shapes of the
-    primitive cell's bodies *and* the orthorhombic cell edges (zero stress; phi_s ->
-    expm(X_s) phi_s, edges a_j -> exp(s_j) a_j), by BFGS on the energy per cell summed over
+    primitive cell's bodies *and* a stretch of the cell along the Cartesian axes (zero normal
+    stress; phi_s -> expm(X_s) phi_s, H -> diag(exp(s)) H: the edges of an orthorhombic box),
+    by BFGS on the energy per cell summed over
     bonds (pairs within 1.25 r_cut, at most half the box, rechecked after each round). Returns
     the crystal in the new box, with the pair terms' box replaced (ValueError when the relaxed
     box is too small for the cut-off)."""
-    import dataclasses
-
     from scipy.optimize import minimize
 
     from affinebody.potentials import total_potential
@@ -370,7 +410,7 @@ def relax_cell(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 4000
     algebra = jnp.asarray(crystal.algebra)
     for _ in range(4):
         r_cut = max((t.cutoff.r_cut for t in pairs), default=0.0)
-        reach = min(1.25 * r_cut, 0.5 * float(crystal.box.min()) * (1 - 1e-9))
+        reach = min(1.25 * r_cut, as_space(crystal.box).max_cutoff * (1 - 1e-9))
         s, t, _, u, _ = bonds(crystal, reach)
         x0 = jnp.asarray(crystal.x[crystal.basis])
         phi0 = jnp.asarray(crystal.phi[crystal.basis])
@@ -386,9 +426,8 @@ def relax_cell(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 4000
             total = 0.0
             if pairs:
                 vec = scale * uj + dx[tj] - dx[sj]
-                per_bond = jax.vmap(lambda v, left, right: sum(
-                    _bond_energy(pair, v, left, right) for pair in pairs))
-                total = total + 0.5 * jnp.sum(per_bond(vec, phi[sj], phi[tj]))
+                per_bond = sum(pair.bond_energies(vec, phi[sj], phi[tj]) for pair in pairs)
+                total = total + 0.5 * jnp.sum(per_bond)
             for term in singles:
                 total = total + term.energy(scale * x0 + dx, phi)
             return total
@@ -402,21 +441,24 @@ def relax_cell(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 4000
         result = minimize(fun, np.zeros(p * (n + g) + n), jac=True, method="BFGS",
                           options={"gtol": tolerance, "maxiter": max_steps})
         dx, phib, scale = (np.asarray(a) for a in configuration(jnp.asarray(result.x)))
-        box = crystal.box * scale
+        box = scale[:, None] * crystal.box
+        space = as_space(box)
         new_terms = []
         for term in (system.potential.terms if isinstance(system.potential, TotalPotential)
                      else (system.potential,)):
             if isinstance(term, PairTerm):
-                if term.cutoff.r_cut > 0.5 * float(box.min()) * (1 + 1e-12):
+                if term.cutoff.r_cut > space.max_cutoff * (1 + 1e-12):
                     raise ValueError(f"phonons: the relaxed box {box.tolist()} is too small for "
                                      f"the cut-off r_cut = {term.cutoff.r_cut} (at most half "
                                      f"the box): enlarge system.box")
-                term = dataclasses.replace(term, box=tuple(float(b) for b in box))
+                term = dataclasses.replace(term, box=tuple(float(b) for b in np.diag(box))
+                                           if crystal.orthorhombic else space)
             new_terms.append(term)
         moved = system.replace(potential=total_potential(new_terms))
         xb = scale * crystal.x[crystal.basis] + dx
         x = xb[crystal.sublattice] + scale * crystal.translation
-        x = x - box * np.floor(x / box)
+        f = x @ np.linalg.inv(box).T
+        x = (f - np.floor(f)) @ box.T
         phi = phib[crystal.sublattice]
         before = len(s)
         crystal = Crystal(moved, x, phi, box, crystal.cells, crystal.basis, crystal.sublattice,
@@ -444,11 +486,6 @@ def _metric_columns(system, x, phi, algebra):
     zero = jnp.zeros((x.shape[0], d))
     directions = jnp.broadcast_to(jnp.eye(d)[:, None, :], (d, x.shape[0], d))
     return jax.vmap(lambda e: jax.jvp(jax.grad(energy), (zero,), (e,))[1])(directions)
-
-
-@jax.jit
-def _box_forces(system, state, neighbors):
-    return system.forces(state, neighbors)
 
 
 def kinetic_metric(crystal: Crystal) -> np.ndarray:
@@ -490,41 +527,44 @@ class ForceConstants:
         return out.reshape(k.shape[:-1] + (size, size))
 
 
-def _bond_energy(term, u, phi_a, phi_b):
-    """V_ab of one pair term from the scalars it declares (``PairTerm.scalar_requirements``,
-    ``energy_from_scalars``: the contract the pair kernels use), computing only those."""
-    n = u.shape[-1]
-    plain, k_powers, m_powers = term.scalar_requirements(n)
-    names = set(plain) | ({"K"} if k_powers else set()) | ({"M"} if m_powers else set())
-    values = pair_variables(names, u[None], phi_a[None], phi_b[None])
-    base = {name: values[name] for name in plain}
-    if k_powers:
-        base["K"] = values["K"][..., :k_powers]
-    if m_powers:
-        base["M"] = values["M"][..., :m_powers]
-        if term.asymmetric:
-            base["Ms"] = affine_invariants(phi_b[None], phi_a[None])[..., :m_powers]
-    return term.energy_from_scalars(base, n)[0]
-
-
 @functools.partial(jax.jit, static_argnums=0)
-def _pair_hessians(terms, xa, xb, pa, pb, algebra):
-    """Hessians [B, 2 dof, 2 dof] of the pair energies of bonds (a, b) in both bodies' charts."""
-    n = xa.shape[-1]
+def _pair_derivatives(terms, xa, xb, pa, pb, algebra):
+    """Gradients [B, 2 dof] and Hessians [B, 2 dof, 2 dof] of the pair energies of bonds
+    (a, b) in both bodies' charts.
+
+    Forward derivatives of the closed-form pair gradients of
+    :func:`affinebody.pair_kernels.energy_and_gradients` (autodiff of the scalar function f
+    only, the geometry in closed form), pulled back through the chart: one Jacobian-vector
+    product per chart direction, the same direction in every bond at once (the bonds are
+    independent), so the compiled graph is one first derivative, not a nested second one."""
+    bonds_count, n = xa.shape
     d = n + algebra.shape[0]
+    x0 = jnp.stack([xa, xb], axis=1).reshape(2 * bonds_count, n)  # u = x_a - x_b: free space
+    phi0 = jnp.stack([pa, pb], axis=1).reshape(2 * bonds_count, n, n)
+    first, second = jnp.arange(0, 2 * bonds_count, 2), jnp.arange(1, 2 * bonds_count, 2)
+    free = as_space(None)
 
-    def pair_energy(q, xa, xb, pa, pb):
-        u = xa + q[:n] - xb - q[d:d + n]  # in range: the minimum image itself
-        phi_a, phi_b = _chart(pa, q[n:d], algebra), _chart(pb, q[d + n:], algebra)
-        return sum(_bond_energy(term, u, phi_a, phi_b) for term in terms)
+    def configuration(q):
+        q = q.reshape(2 * bonds_count, d)
+        return x0 + q[:, :n], jax.vmap(_chart, (0, 0, None))(phi0, q[:, n:], algebra)
 
-    zero = jnp.zeros((xa.shape[0], 2 * d))
-    return jax.vmap(jax.jacfwd(jax.jacfwd(pair_energy)))(zero, xa, xb, pa, pb)
+    def gradient(q):
+        x, phi = configuration(q)
+        gx, gphi = 0.0, 0.0
+        for term in terms:
+            _, tx, tphi = energy_and_gradients(term, free, x, phi, first, second, bonds_count)
+            gx, gphi = gx + tx, gphi + tphi
+        return jax.vjp(configuration, q)[1]((gx, gphi))[0]
+
+    zero = jnp.zeros((bonds_count, 2 * d))
+    directions = jnp.broadcast_to(jnp.eye(2 * d)[:, None, :], (2 * d, bonds_count, 2 * d))
+    columns = jax.vmap(lambda e: jax.jvp(gradient, (zero,), (e,))[1])(directions)
+    return gradient(zero), jnp.transpose(columns, (1, 2, 0))  # [B, 2 dof], [B, row, column]
 
 
 @functools.partial(jax.jit, static_argnums=0, compiler_options=_QUICK)
-def _one_body_hessians(terms, x, phi, algebra):
-    """Hessians [P, dof, dof] of the one-body energies in the chart."""
+def _one_body_derivatives(terms, x, phi, algebra):
+    """Gradients [P, dof] and Hessians [P, dof, dof] of the one-body energies in the chart."""
     n = x.shape[-1]
     d = n + algebra.shape[0]
 
@@ -532,46 +572,64 @@ def _one_body_hessians(terms, x, phi, algebra):
         return sum(term.energy(x[None] + q[None, :n], _chart(phi, q[n:], algebra)[None])
                    for term in terms)
 
-    return jax.vmap(jax.jacfwd(jax.jacfwd(one_energy)))(jnp.zeros((x.shape[0], d)), x, phi)
+    zero = jnp.zeros((x.shape[0], d))
+    return (jax.vmap(jax.grad(one_energy))(zero, x, phi),
+            jax.vmap(jax.jacfwd(jax.grad(one_energy)))(zero, x, phi))
+
+
+def _derivatives(crystal: Crystal):
+    """The bonds (:func:`bonds`) and the chart derivatives of V: (bonds, pair gradients
+    [B, 2 dof] and Hessians [B, 2 dof, 2 dof] or None, one-body gradients [P, dof] and
+    Hessians [P, dof, dof] or None)."""
+    pairs, singles = _terms(crystal.system.potential)
+    algebra = jnp.asarray(crystal.algebra)
+    found = bonds(crystal)
+    s, _, _, u, j = found
+    pair = one = None
+    if len(s):
+        # the bonds are padded to a power of two (at least 16) with copies of the first, and
+        # the terms compiled without their box (bond displacements are already the images in
+        # range): crystals of the same potential share one compiled function
+        size = max(16, 1 << (len(s) - 1).bit_length())
+        rows = np.concatenate([np.arange(len(s)), np.zeros(size - len(s), int)])
+        xa = crystal.x[crystal.basis[s]][rows]
+        terms = tuple(dataclasses.replace(term, box=None) for term in pairs)
+        pair = tuple(np.asarray(a)[:len(s)] for a in _pair_derivatives(
+            terms, jnp.asarray(xa), jnp.asarray(xa + u[rows]),
+            jnp.asarray(crystal.phi[crystal.basis[s]][rows]), jnp.asarray(crystal.phi[j][rows]),
+            algebra))
+    if singles:
+        one = tuple(np.asarray(a) for a in _one_body_derivatives(
+            tuple(singles), jnp.asarray(crystal.x[crystal.basis]),
+            jnp.asarray(crystal.phi[crystal.basis]), algebra))
+    return found, pair, one
 
 
 def force_constants(crystal: Crystal) -> ForceConstants:
     """The force constants K[R] (module docstring: bonds' pair Hessians with weight 1/2 per end,
     one-body Hessians on site) and the kinetic metric of ``crystal``."""
-    pairs, singles = _terms(crystal.system.potential)
     n, d, p = crystal.n, crystal.dof, len(crystal.basis)
-    algebra = jnp.asarray(crystal.algebra)
-    s, t, rvec, u, j = bonds(crystal)
-    keys = np.round(rvec / crystal.lattice).astype(int)
+    (s, t, rvec, _, _), pair, one = _derivatives(crystal)
+    keys = np.round(crystal.fractional(rvec)).astype(int)
     uniq = {(0,) * n: 0}
     for key in map(tuple, keys):
         uniq.setdefault(key, len(uniq))
         uniq.setdefault(tuple(-v for v in key), len(uniq))
-    blocks = np.zeros((len(uniq), p * d, p * d))
-
-    def block(m, a, b, h):
-        blocks[m, a * d:(a + 1) * d, b * d:(b + 1) * d] += h
-
-    if len(s):
-        hess = np.asarray(_pair_hessians(
-            tuple(pairs), jnp.asarray(crystal.x[crystal.basis[s]]),
-            jnp.asarray(crystal.x[crystal.basis[s]] + u),
-            jnp.asarray(crystal.phi[crystal.basis[s]]), jnp.asarray(crystal.phi[j]), algebra))
-        for b in range(len(s)):
-            m, minus = uniq[tuple(keys[b])], uniq[tuple(-keys[b])]
-            h = 0.5 * hess[b]
-            block(0, s[b], s[b], h[:d, :d])
-            block(0, t[b], t[b], h[d:, d:])
-            block(m, s[b], t[b], h[:d, d:])
-            block(minus, t[b], s[b], h[d:, :d])
-    if singles:
-        hb = np.asarray(_one_body_hessians(tuple(singles), jnp.asarray(crystal.x[crystal.basis]),
-                                           jnp.asarray(crystal.phi[crystal.basis]), algebra))
-        for a in range(p):
-            block(0, a, a, hb[a])
+    blocks = np.zeros((len(uniq), p, d, p, d))
+    if pair is not None:
+        hess = 0.25 * (pair[1] + np.swapaxes(pair[1], 1, 2))  # weight 1/2, symmetrized
+        forward = np.asarray([uniq[tuple(key)] for key in keys])
+        backward = np.asarray([uniq[tuple(-key)] for key in keys])
+        np.add.at(blocks, (0, s, slice(None), s), hess[:, :d, :d])
+        np.add.at(blocks, (0, t, slice(None), t), hess[:, d:, d:])
+        np.add.at(blocks, (forward, s, slice(None), t), hess[:, :d, d:])
+        np.add.at(blocks, (backward, t, slice(None), s), hess[:, d:, :d])
+    if one is not None:
+        blocks[0, np.arange(p), :, np.arange(p)] += one[1]
+    blocks = blocks.reshape(len(uniq), p * d, p * d)
     vectors = np.zeros((len(uniq), n))
     for key, m in uniq.items():
-        vectors[m] = np.asarray(key) * crystal.lattice
+        vectors[m] = crystal.vectors @ np.asarray(key)
     metric_blocks = kinetic_metric(crystal)
     metric = np.zeros((p * d, p * d))
     for a in range(p):
@@ -634,27 +692,37 @@ class Spectrum:
         return self.omega2 < 0
 
 
+def _real_times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b for a real a and a complex b as two real products (no complex copy of a)."""
+    return a @ b.real + 1j * (a @ b.imag)
+
+
 def solve(fc: ForceConstants, k, vectors: bool = True, chunk: int = 256) -> Spectrum:
     """omega^2 of D(k) u = omega^2 M u at Cartesian k [nk, n] (Cholesky M = L L^T, then the
-    Hermitian eigenproblem of L^-1 D L^-T); with ``vectors`` the eigenvectors and characters."""
+    Hermitian eigenproblem of L^-1 D L^-T = sum_R (L^-1 K[R] L^-T) e^{i k.R}, the reduced
+    blocks formed once); with ``vectors`` the eigenvectors and characters."""
     k = np.atleast_2d(np.asarray(k, dtype=float))
     lower = np.linalg.cholesky(fc.metric)
     linv = np.linalg.inv(lower)
+    size = len(fc.metric)
+    reduced_blocks = (linv @ fc.blocks @ linv.T).reshape(len(fc.vectors), -1)
     q = _character_matrices(fc) if vectors else None
     crystal = fc.crystal
     p, d = len(crystal.basis), crystal.dof
     values, vecs, chars = [], [], []
     for start in range(0, len(k), chunk):
-        dk = fc.dynamical_matrix(k[start:start + chunk])
-        reduced = linv @ dk @ linv.T
+        angles = k[start:start + chunk] @ fc.vectors.T
+        reduced = (np.cos(angles) @ reduced_blocks + 1j * (np.sin(angles) @ reduced_blocks))
+        reduced = reduced.reshape(len(angles), size, size)
         reduced = 0.5 * (reduced + np.conj(np.swapaxes(reduced, -1, -2)))
         if not vectors:
             values.append(np.linalg.eigvalsh(reduced))
             continue
         w, v = np.linalg.eigh(reduced)
-        u = linv.T @ v
+        u = _real_times(linv.T, v)
         ub = u.reshape(len(w), p, d, -1)
-        energy = np.einsum("ksim,csij,ksjm->kmc", np.conj(ub), q, ub).real
+        energy = np.stack([np.einsum("ksim,ksim->km", np.conj(ub), _real_times(q[c][None], ub))
+                           .real for c in range(len(q))], axis=-1)
         total = np.maximum(energy.sum(-1, keepdims=True), 1e-300)
         values.append(w)
         vecs.append(u)
@@ -687,7 +755,7 @@ def path(crystal: Crystal, labels=None, points: int = 50):
             raise ValueError(f"phonons.path: point {label!r} is not in the Brillouin zone of "
                              f"dimension n = {n}")
         frac = full[:n]
-        corners.append(frac * crystal.reciprocal)
+        corners.append(crystal.reciprocal @ frac)
     ks, dist, ticks = [], [], [(labels[0], 0.0)]
     offset = 0.0
     last = len(corners) - 2
@@ -714,7 +782,7 @@ def mesh(crystal: Crystal, sizes) -> tuple[np.ndarray, np.ndarray]:
     weights = np.where(flat == partner, 1.0, 2.0)[keep]
     frac = index[keep] / np.asarray(sizes, dtype=float)
     frac = frac - (frac >= 0.5)
-    return frac * crystal.reciprocal, weights
+    return frac @ crystal.reciprocal.T, weights
 
 
 def density_of_states(omega, weights=None, bins: int = 400, width: float | None = None):
@@ -761,7 +829,7 @@ def christoffel(fc: ForceConstants, direction, eps: float = 1e-4) -> np.ndarray:
     mt = m @ t
     qfull, _ = np.linalg.qr(np.concatenate([mt, np.eye(len(m))], axis=1))
     q = qfull[:, t.shape[1]:len(m)]
-    scale = eps * float(np.min(fc.crystal.reciprocal))
+    scale = eps * float(np.min(np.linalg.norm(fc.crystal.reciprocal, axis=0)))
     dk = fc.dynamical_matrix(scale * direction)
     a = t.T @ dk @ t
     b = t.T @ dk @ q

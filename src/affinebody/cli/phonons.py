@@ -56,14 +56,11 @@ def crystal_of(config, built, relax: bool | None = None):
         crystal = phonons.make_crystal(built.system, np.asarray(built.state.x),
                                        np.asarray(built.state.phi), config.system.box, cells)
         phonons.bonds(crystal)  # refuses terms that a crystal cannot have
-        lists = None
         if relax and section is not None and section.relax_cell:
             crystal = phonons.relax_cell(crystal, tolerance=min(tolerance, 1e-9))
         elif relax:
             crystal = phonons.relax(crystal, tolerance=min(tolerance, 1e-9))
-        elif built.neighbor_list:  # the build's list is valid for the given state
-            lists = built.neighbors[1]
-        residual = phonons.residual_forces(crystal, lists)
+        residual = phonons.residual_forces(crystal)
     except ValueError as err:
         raise _error(str(err)) from None
     worst = float(np.abs(residual).max()) if residual.size else 0.0
@@ -109,7 +106,9 @@ def compute(config, built, path=None, mesh=None, points=None, relax=None, dos=Tr
         "units": {"k": "1/length (Cartesian)", "omega": "angular frequency; imaginary "
                   "frequencies (omega^2 < 0) as -sqrt(-omega^2)"},
         "crystal": {"n": crystal.n, "cells": list(crystal.cells),
-                    "lattice": crystal.lattice.tolist(), "bodies_per_cell": len(crystal.basis),
+                    "lattice": crystal.lattice.tolist(),
+                    "lattice_vectors": crystal.vectors.T.tolist(),  # rows: a_j (Cartesian)
+                    "bodies_per_cell": len(crystal.basis),
                     "dof_per_body": crystal.dof, "group": built.system.group,
                     "residual_force": residual,
                     "relaxed": bool(relax if relax is not None else

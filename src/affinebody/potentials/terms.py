@@ -282,10 +282,17 @@ class PairTerm(AbstractPotentialTerm):
         self.check_dimension(n)
         k, l = np.triu_indices(bodies, 1)
         u = self.space.displacement(x[..., k, :], x[..., l, :])
-        phi_k, phi_l = phi[..., k, :, :], phi[..., l, :, :]
+        return self.bond_energies(u, phi[..., k, :, :], phi[..., l, :, :])
+
+    def bond_energies(self, u, phi_k, phi_l) -> jax.Array:
+        """Energies V_KL [..., P] of pairs given by their displacements u = x_K - x_L
+        [..., P, n] (already the image in range) and shapes phi_K, phi_L [..., P, n, n]:
+        computes only the scalars :meth:`scalar_requirements` asks for, then
+        :meth:`energy_from_scalars` (cut-off and switch included)."""
+        n = phi_k.shape[-1]
         plain, k_powers, m_powers = self.scalar_requirements(n)
-        values = pair_variables(plain | {"K", "M"} if k_powers or m_powers else plain,
-                                u, phi_k, phi_l)
+        names = plain | ({"K"} if k_powers else set()) | ({"M"} if m_powers else set())
+        values = pair_variables(names, u, phi_k, phi_l)
         base = {name: values[name] for name in plain}
         if k_powers:
             base["K"] = values["K"][..., :k_powers]

@@ -14,7 +14,9 @@ their estimate and error; never listed as levels), ``sectors`` ("all";
 for n = 3 also "scalar", "spin1", "scalar+spin1"), ``bounded_below`` (false for af-af, whose
 sector sum is unbounded below) and ``warnings`` (af-af; n = 3 spectra that hold only some
 sectors; a sector search stopped by max_spin), also printed under the table.
-``affinebody density CONFIG.toml --state k -o DIR [--json]``: the exact marginal densities of
+``affinebody density CONFIG.toml --state k -o DIR [--json] [--orientation]`` (or
+``--superpose 0:1,8:0.5j`` or ``--temperature T`` instead of ``--state``: the orientation
+densities only, orientation.json / .npz / .png): the exact marginal densities of
 the invariants (Q_a or q_a, det phi, Tr G) and of the orientations for the k-th state (0-based),
 each with a quadrature error estimate, written as densities.npz, densities.json and one PNG per
 density; with --json the same JSON object (arrays included) on stdout, else a table. Densities
@@ -131,20 +133,56 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
 
 @click.command("density")
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
-@click.option("--state", "state", type=int, required=True, help="state index (0-based)")
+@click.option("--state", "state", type=int, default=None, help="state index (0-based)")
 @click.option("-o", "--output", "output", type=click.Path(file_okay=False), required=True)
 @click.option("--json", "as_json", is_flag=True, help="print the JSON object (with the arrays)")
+@click.option("--orientation", is_flag=True,
+              help="also the densities of the angles of L, R and of G11, G22, G12 (n = 2)")
+@click.option("--superpose", default=None,
+              help="orientation densities of a superposition, e.g. 0:1,8:0.5j (n = 2)")
+@click.option("--temperature", type=float, default=None,
+              help="orientation densities of the thermal mixture at T (k_B = 1)")
 @one_line_errors
-def density(config: str, state: int, output: str, as_json: bool) -> None:
-    """Exact marginal densities of q (or Q), det phi, Tr G and orientations for one state."""
+def density(config: str, state: int | None, output: str, as_json: bool, orientation: bool,
+            superpose: str | None, temperature: float | None) -> None:
+    """Exact marginal densities of q (or Q), det phi, Tr G and orientations for one state;
+    with --orientation, --superpose or --temperature the densities of the orientations of the
+    principal axes of C and G and of the components of G (orientation.json, .npz, .png)."""
     enable_x64()
     from affinebody.quantum import config as qconfig
-    from affinebody.quantum.density_files import write_densities
+    from affinebody.quantum.density_files import (
+        parse_superposition,
+        write_densities,
+        write_orientation,
+    )
 
+    if sum(v is not None for v in (state, superpose, temperature)) != 1:
+        raise ValueError("give exactly one of --state, --superpose and --temperature")
+    if superpose is not None or temperature is not None:
+        superposition = None if superpose is None else parse_superposition(superpose)
+        if superposition is not None and min(superposition) < 0:
+            raise ValueError(f"--superpose: state indices must be >= 0 (got "
+                                   f"{min(superposition)})")
+        qc = qconfig.load(config).quantum
+        result, _ = solve_config(config, None if superposition is None else max(superposition) + 1)
+        payload = write_orientation(result, output, superposition=superposition,
+                                    temperature=temperature, points=qc.density_points)
+        click.echo(json.dumps(payload) if as_json else
+                   f"wrote {output}/orientation.json, orientation.npz, orientation.png "
+                   f"({payload['kind']})")
+        for text in payload["warnings"]:
+            click.echo(f"warning: {text}", err=True)
+        if payload["warnings"]:
+            sys.exit(EXIT_STOPPED)
+        return
     if state < 0:
         raise ValueError(f"--state must be >= 0 (got {state})")
     qc = qconfig.load(config).quantum
     result, _ = solve_config(config, state + 1)
+    if orientation:
+        extra = write_orientation(result, output, state=state, points=qc.density_points)
+        for text in extra["warnings"]:
+            click.echo(f"warning: {text}", err=True)
     payload = write_densities(result, state, output, qc.density_points, qc.density_tolerance)
     if not result.complete(state + 1):  # a caveat on the index, not on the densities
         click.echo(f"warning: state {state} is indexed in a list that is not certified "

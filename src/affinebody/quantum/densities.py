@@ -603,3 +603,324 @@ def orientation(n: int) -> dict[str, np.ndarray]:
         ang = np.linspace(0, np.pi, 361)
         dens = (1 - np.cos(ang)) / np.pi
     return {"angle": ang, "L_angle": dens, "R_angle": dens.copy()}
+
+
+# ------------------------------------------------------- orientations and components of G
+#: (nodes in the angle beta of R, nodes in the shape coordinate) of the G densities: graded
+#: Gauss rules (:func:`_graded`), each checked against the one before
+ORIENTATION_NODES = ((96, 72), (144, 108), (216, 162), (324, 243))
+#: default tolerance of the G densities (x their peak): their integrand concentrates at the
+#: edges of the rule as y -> 0, so they converge more slowly than the invariants' densities
+G_TOLERANCE = 1e-6
+#: the components of G = phi^T phi = R D^2 R^T reported (n = 2)
+G_COMPONENTS = ("G11", "G22", "G12")
+
+
+@dataclass(frozen=True)
+class PureState:
+    """A normalised superposition sum_i c_i psi_i of sector states (n = 2).
+
+    Each psi_i = e^{i(s alpha - k beta)} f(reduced) / (2 pi) with L = rot(alpha), R = rot(beta)
+    the factors of phi = L D R^T (D = diag(Q1, Q2), Q1 >= |Q2|): the character of its sector
+    (spin s, vorticity k: phi -> phi R(t)^T has eigenvalue -hbar k, n2.n2_sectors) times the
+    real reduced eigenfunction f of its block. ``amplitudes`` [m] complex; ``joints`` the
+    :class:`Joint` of each f; ``spins``, ``vorticities`` [m]."""
+
+    amplitudes: np.ndarray
+    joints: tuple
+    spins: np.ndarray
+    vorticities: np.ndarray
+
+
+def sector_joint(spectrum: Spectrum, level: Level, sector) -> Joint:
+    """The :class:`Joint` of the reduced eigenfunction of ``sector`` (one of ``level.sectors``):
+    the eigenvector of energy ``level.energy`` in the block that holds the sector."""
+    for key, block in spectrum.blocks.items():
+        if sector in block.sectors and len(block.energies):
+            index = int(np.argmin(np.abs(np.asarray(block.energies) - level.energy)))
+            if abs(block.energies[index] - level.energy) <= 1e-6 * max(1.0, abs(level.energy)):
+                return joint_density(spectrum, replace(level, block=key, index=index))
+    raise ValueError(f"densities: no block holds sector {sector.as_dict()} at E = "
+                     f"{level.energy:.9g}")
+
+
+def state_components(spectrum: Spectrum, state: int) -> list[tuple[Level, object]]:
+    """The (level, sector) of every state of :meth:`Spectrum.energies` up to ``state``, in that
+    order (a degenerate level contributes one entry per state of each of its sectors)."""
+    out = []
+    for level in spectrum.states():
+        for sector in level.sectors:
+            for _ in range(sector.dimension):
+                out.append((level, sector))
+                if len(out) > state:
+                    return out
+    raise ValueError(f"densities: state {state} is beyond the {len(out)} states computed")
+
+
+def pure_state(spectrum: Spectrum, amplitudes: dict[int, complex]) -> PureState:
+    """The normalised superposition sum_k c_k |state k> (keys: indices into
+    :meth:`Spectrum.energies`, each a sector state, n = 2). ValueError for n = 3 or an
+    unconverged state."""
+    if spectrum.n != 2:
+        raise ValueError("orientation densities of single states and superpositions are "
+                         "implemented for n = 2 (n = 3: multiplets and thermal mixtures are "
+                         "Haar-distributed)")
+    if not amplitudes:
+        raise ValueError("a superposition needs at least one state")
+    if min(amplitudes) < 0:
+        raise ValueError(f"state indices must be >= 0 (got {min(amplitudes)})")
+    table = state_components(spectrum, max(amplitudes))
+    c = np.asarray([complex(v) for v in amplitudes.values()])
+    if not np.sum(np.abs(c) ** 2) > 0:
+        raise ValueError("a superposition needs a nonzero amplitude")
+    chosen = [table[k] for k in amplitudes]
+    for k, (level, _) in zip(amplitudes, chosen, strict=True):
+        if not level.converged:
+            raise ValueError(f"state {k} is not converged (raise quantum.basis_size)")
+    return PureState(c / np.sqrt(np.sum(np.abs(c) ** 2)),
+                     tuple(sector_joint(spectrum, lv, sec) for lv, sec in chosen),
+                     np.asarray([sec.spin for _, sec in chosen]),
+                     np.asarray([sec.vorticity for _, sec in chosen]))
+
+
+def thermal_states(spectrum: Spectrum, temperature: float) -> tuple[list, np.ndarray, float]:
+    """The thermal mixture exp(-E / T) / Z over the converged states computed (k_B = 1):
+    (pure states [one eigenstate each], probabilities, the Boltzmann factor of the highest
+    state relative to the lowest, the order of the weight of each state left out)."""
+    if not temperature > 0:
+        raise ValueError(f"the temperature must be > 0 (got {temperature})")
+    count = len(spectrum.energies())
+    table = state_components(spectrum, count - 1)
+    states, energies = [], []
+    for k, (level, _) in enumerate(table):
+        if level.converged:
+            states.append(pure_state(spectrum, {k: 1.0}))
+            energies.append(level.energy)
+    energies = np.asarray(energies)
+    weights = np.exp(-(energies - energies.min()) / temperature)
+    return states, weights / weights.sum(), float(weights[-1] / weights[0])
+
+
+def _union_box(joints) -> np.ndarray:
+    boxes = np.stack([j.box for j in joints])
+    return np.stack([boxes[:, :, 0].min(0), boxes[:, :, 1].max(0)], axis=-1)
+
+
+def _cross_terms(pure: PureState, x: np.ndarray) -> list:
+    """(c_i^* c_j, s_j - s_i, k_j - k_i, f_i f_j measure at x [..., 2]) per ordered pair."""
+    model = pure.joints[0].model
+    flat = x.reshape(-1, x.shape[-1])
+    amps = [np.asarray(j.amplitude(flat)).reshape(x.shape[:-1]) for j in pure.joints]
+    mu = measure(model, x)
+    out = []
+    for i, ci in enumerate(pure.amplitudes):
+        for j, cj in enumerate(pure.amplitudes):
+            out.append((np.conj(ci) * cj, int(pure.spins[j] - pure.spins[i]),
+                        int(pure.vorticities[j] - pure.vorticities[i]), amps[i] * amps[j] * mu))
+    return out
+
+
+def angle_densities(pure: PureState, angle, nodes: int = 160) -> dict[str, np.ndarray]:
+    """Exact densities of alpha (the angle of L: principal axes of the Cauchy tensor C) and of
+    beta (the angle of R: principal axes of G) on [0, 2 pi):
+
+        p_L(alpha) = (1/2pi) sum_{i, j: k_i = k_j} c_i^* c_j e^{i (s_j - s_i) alpha} O_ij,
+        p_R(beta)  = (1/2pi) sum_{i, j: s_i = s_j} c_i^* c_j e^{-i (k_j - k_i) beta} O_ij,
+
+    O_ij = int f_i f_j (measure) over the reduced domain (Gauss rule on the union of the
+    supports, ``nodes`` per coordinate): a finite Fourier series, uniform 1/(2 pi) for a
+    sector state and for any mixture of sector states."""
+    box = _union_box(pure.joints)
+    a, wa = _on(box[0, 0], box[0, 1], nodes)
+    b, wb = _on(box[1, 0], box[1, 1], nodes)
+    grid = np.stack(np.meshgrid(a, b, indexing="ij"), -1)
+    weights = np.outer(wa, wb)
+    angle = np.asarray(angle, float)
+    p_l = np.zeros(angle.shape, dtype=complex)
+    p_r = np.zeros(angle.shape, dtype=complex)
+    for coef, ds, dk, values in _cross_terms(pure, grid):
+        overlap = coef * np.sum(values * weights)
+        if dk == 0:
+            p_l += overlap * np.exp(1j * ds * angle)
+        if ds == 0:
+            p_r += overlap * np.exp(-1j * dk * angle)
+    return {"L_angle": p_l.real / (2 * np.pi), "R_angle": p_r.real / (2 * np.pi)}
+
+
+def _graded(edges, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Legendre on each interval between ``edges`` (n nodes in all), mapped by the
+    quintic t^3 (10 - 15 t + 6 t^2), whose first two derivatives vanish at both ends: the nodes
+    crowd towards the edges, where the G densities concentrate as y -> 0."""
+    s, w = _unit_rule(max(2, n // (len(edges) - 1)))
+    h = s**3 * (10 - 15 * s + 6 * s**2)
+    dh = 30 * s**2 * (1 - s) ** 2
+    nodes, weights = [], []
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        nodes.append(a + (b - a) * h)
+        weights.append((b - a) * dh * w)
+    return np.concatenate(nodes), np.concatenate(weights)
+
+
+def _g_density(pure: PureState, name: str, y: np.ndarray, nb: int, nr: int) -> np.ndarray:
+    """Density of the component ``name`` of G at the values y. G is homogeneous of degree 2 in
+    Q, so the delta of G - y fixes the scale exactly and leaves a smooth integral over the
+    angle beta of R (trapezoid rule, periodic) and one shape coordinate (Gauss):
+
+    * haar2 (x = q1 - q2, sigma = q1 + q2): A = (Q1^2 + Q2^2)/2 = e^sigma cosh x,
+      B = (Q1^2 - Q2^2)/2 = e^sigma sinh x; G11 = A + B cos 2beta, G22 = A - B cos 2beta,
+      G12 = B sin 2beta, i.e. G = e^sigma g(x, beta): sigma = ln(y / g), dG/dsigma = y;
+    * lebesgue2 (r1 = rho cos theta, r2 = rho sin theta; Q1 = r1 + r2, Q2 = r1 - r2):
+      A = rho^2, B = rho^2 sin 2theta, G = rho^2 g(theta, beta): rho^2 = y / g, and
+      rho d rho d theta with dG/drho = 2 y / rho gives the factor rho^2 / (2 y)."""
+    model = pure.joints[0].model
+    beta, wbeta = _graded(np.pi / 2 * np.arange(5), nb)
+    box = _union_box(pure.joints)
+    if model == "haar2":
+        t, wt = _graded(np.array([0.0, box[0, 1]]), nr)
+        even, odd = np.cosh(t)[:, None], np.sinh(t)[:, None]
+    else:
+        t, wt = _graded(np.pi / 4 * np.arange(3), nr)
+        even, odd = np.ones_like(t)[:, None], np.sin(2 * t)[:, None]
+    c2, s2 = np.cos(2 * beta)[None, :], np.sin(2 * beta)[None, :]
+    g = {"G11": even + odd * c2, "G22": even - odd * c2, "G12": 0.0 * even + odd * s2}[name]
+    y = np.asarray(y, float)
+    out = np.zeros(len(y))
+    phase = {}
+    for lo in range(0, len(y), 8):  # a few values at a time: [values, nr, nb] arrays
+        value = y[lo:lo + 8][:, None, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = value / g[None]  # e^sigma or rho^2; no solution where <= 0 or infinite
+        ok = np.isfinite(scale) & (scale > 0) & (value != 0)
+        scale = np.where(ok, scale, 1.0)
+        if model == "haar2":
+            coords = np.stack([np.broadcast_to(t[None, :, None], scale.shape), np.log(scale)],
+                              -1)
+            factor = 1.0 / np.where(value != 0, np.abs(value), 1.0)
+        else:
+            rho = np.sqrt(scale)
+            coords = np.stack([rho * np.cos(t)[None, :, None], rho * np.sin(t)[None, :, None]],
+                              -1)
+            factor = scale / (2 * np.where(value != 0, np.abs(value), 1.0))
+        total = np.zeros(scale.shape)
+        for coef, _, dk, values in _cross_terms(pure, coords):
+            if dk not in phase:
+                phase[dk] = np.exp(-1j * dk * beta)[None, None, :]
+            total += (coef * phase[dk]).real * values
+        total = np.where(ok, total * factor, 0.0)
+        out[lo:lo + 8] = np.einsum("vrb,r,b->v", total, wt, wbeta) / (2 * np.pi)
+    return out
+
+
+def g_component_densities(mixture, points: int = 51, tolerance: float = G_TOLERANCE,
+                          components=G_COMPONENTS) -> dict[str, Marginal]:
+    """Densities of the ``components`` (of G11, G22, G12; G = phi^T phi) of a mixture
+    [(probability, PureState)] (n = 2): :func:`_g_density` summed with the probabilities on
+    ``points`` values over the support (Tr G bounds |G_ab|), each rule of
+    :data:`ORIENTATION_NODES` checked against the one before (``error``: the largest change).
+    States whose probability is below 1e-3 ``tolerance`` x the largest are left out.
+    ``integral``: the trapezoid integral over the points (y = 0 and the tails beyond the
+    support excluded)."""
+    top_weight = max(w for w, _ in mixture)
+    mixture = [(w, pure) for w, pure in mixture if w >= 1e-3 * tolerance * top_weight]
+    # the range: Tr G (which bounds |G_ab|) below which all but 1e-10 of each state's mass
+    # lies, and for the affine models (log-normal-like tails) the smallest squared singular
+    # value above which all but 1e-10 lies, with a geometric grid between them
+    hi, low = 0.0, np.inf
+    for _, pure in mixture:
+        for joint in pure.joints:
+            mass = np.abs(joint.weights * joint(joint.nodes))
+            xs = joint.nodes
+            if joint.model == "haar2":
+                trg = 2 * np.exp(xs[:, 1]) * np.cosh(xs[:, 0])
+                small = np.exp(xs[:, 1] - xs[:, 0])
+            else:
+                trg = 2 * (xs[:, 0] ** 2 + xs[:, 1] ** 2)
+                small = np.zeros_like(trg)
+            for values, upper in ((trg, True), (small, False)):
+                order = np.argsort(values)
+                below = np.cumsum(mass[order]) / np.sum(mass)
+                at = np.searchsorted(below, 1 - 1e-10 if upper else 1e-10)
+                value = float(values[order][min(at, len(order) - 1)])
+                hi, low = (max(hi, value), low) if upper else (hi, min(low, value))
+    geometric = mixture[0][1].joints[0].model == "haar2"
+    out = {}
+    for name in components:
+        # y = 0 (where the densities of G11, G22 are limits and that of G12 has a logarithmic
+        # peak) is left out of the grid
+        if geometric:
+            lo = low
+            top = hi if name != "G12" else hi / 2
+            half = np.geomspace(lo, top, points if name != "G12" else points // 2 + 1)
+            y = half if name != "G12" else np.concatenate([-half[::-1], half])
+        elif name == "G12":
+            y = np.linspace(-hi / 2, hi / 2, 2 * (points // 2) + 2)[1:-1]
+        else:
+            y = np.linspace(0.0, hi, points + 1)[1:]
+        previous = None
+        for nb, nr in ORIENTATION_NODES:
+            p = sum(w * _g_density(pure, name, y, nb, nr) for w, pure in mixture)
+            if previous is not None:
+                err = float(np.max(np.abs(p - previous)))
+                if err <= tolerance * np.max(np.abs(p)):
+                    break
+            previous = p
+        if geometric:  # trapezoid in ln|y| on each side of 0
+            integral = sum(float(np.sum((f[1:] + f[:-1]) * np.diff(np.log(t))) / 2)
+                           for t, f in ((np.abs(y[y > 0]), (y * p)[y > 0]),
+                                        (np.abs(y[y < 0])[::-1], np.abs(y * p)[y < 0][::-1]))
+                           if len(t) > 1)
+        else:
+            integral = float(np.sum((p[1:] + p[:-1]) * np.diff(y)) / 2)
+        out[name] = Marginal(y, p, err, integral, nr,
+                             bool(err <= tolerance * np.max(np.abs(p))))
+    return out
+
+
+def orientation_densities(spectrum: Spectrum, state: int | None = None,
+                          superposition: dict[int, complex] | None = None,
+                          temperature: float | None = None, points: int = 51,
+                          tolerance: float = G_TOLERANCE) -> dict:
+    """Densities of the orientations of the principal axes of C and G (the angles of L and R,
+    phi = L D R^T) and of the components of G for one state, a superposition {state index:
+    amplitude} or the thermal mixture at ``temperature`` (exactly one of them).
+
+    n = 2: the angle densities of :func:`angle_densities` (uniform for a sector state and for
+    the thermal mixture, a sum of sector states) and :func:`g_component_densities`. n = 3: a
+    multiplet summed over its states and the thermal mixture (a function of H, which commutes
+    with SO(3) x SO(3)) are invariant under L -> U L, R -> V R: L and R are Haar-distributed
+    (:func:`orientation`); single states of a multiplet, superpositions and the G components
+    are refused (ValueError)."""
+    if sum(v is not None for v in (state, superposition, temperature)) != 1:
+        raise ValueError("give exactly one of a state, a superposition or a temperature")
+    if spectrum.n == 3:
+        if superposition is not None or temperature is None:
+            raise ValueError("n = 3: only the thermal mixture has orientation densities here "
+                             "(Haar); a single state's density is its multiplet's (densities)")
+        if not temperature > 0:
+            raise ValueError(f"the temperature must be > 0 (got {temperature})")
+        return {"kind": "thermal", "orientation": orientation(3), "G": {}, "warnings": []}
+    warnings = []
+    if temperature is not None:
+        states, probabilities, tail = thermal_states(spectrum, temperature)
+        mixture = list(zip(probabilities, states, strict=True))
+        if tail > tolerance:
+            warnings.append(f"thermal mixture truncated at the {len(states)} states computed: "
+                            f"the last has {tail:.1e} of the Boltzmann weight of the first "
+                            f"(compute more levels)")
+        kind = "thermal"
+    else:
+        amplitudes = superposition if superposition is not None else {state: 1.0}
+        mixture = [(1.0, pure_state(spectrum, amplitudes))]
+        kind = "superposition" if superposition is not None else "state"
+    angle = np.linspace(0.0, 2 * np.pi, 361)
+    sums = {"L_angle": np.zeros_like(angle), "R_angle": np.zeros_like(angle)}
+    for w, pure in mixture:
+        for key, value in angle_densities(pure, angle).items():
+            sums[key] += w * value
+    details = g_component_densities(mixture, points, tolerance)
+    for name, m in details.items():
+        if not m.converged:
+            warnings.append(f"density of {name}: quadrature error {m.error:.1e} above "
+                            f"tolerance {tolerance:g} x peak {np.max(np.abs(m.density)):.3g}")
+    return {"kind": kind, "orientation": {"angle": angle, **sums}, "G": details,
+            "warnings": warnings}

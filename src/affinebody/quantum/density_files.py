@@ -59,9 +59,84 @@ def write_densities(spectrum: Spectrum, state: int, directory: str | Path,
         ax.plot(orient["angle"], orient[key], label=key.replace("_", " "))
     ax.set_xlabel(label)
     ax.legend()
+    return _save(fig, directory / "density_orientation.png", directory / "densities", arrays,
+                 payload)
+
+
+def _save(fig, png: Path, stem: Path, arrays: dict, payload: dict) -> dict:
+    """Write the figure, STEM.npz (the arrays) and STEM.json (the payload); return payload."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
-    fig.savefig(directory / "density_orientation.png", dpi=100)
+    fig.savefig(png, dpi=100)
     plt.close(fig)
-    np.savez(directory / "densities.npz", **arrays)
-    (directory / "densities.json").write_text(json.dumps(payload))
+    np.savez(stem.with_suffix(".npz"), **arrays)
+    stem.with_suffix(".json").write_text(json.dumps(payload))
     return payload
+
+
+def parse_superposition(text: str) -> dict[int, complex]:
+    """``"0:1,8:0.5j"`` -> {0: 1, 8: 0.5j} (state index: amplitude, Python complex syntax);
+    ValueError with the expected form otherwise."""
+    out: dict[int, complex] = {}
+    try:
+        for item in text.split(","):
+            index, amplitude = item.split(":")
+            out[int(index)] = complex(amplitude.replace(" ", ""))
+    except ValueError:
+        raise ValueError(f"--superpose must be index:amplitude pairs like 0:1,8:0.5j (got "
+                         f"{text!r})") from None
+    return out
+
+
+def write_orientation(spectrum: Spectrum, directory: str | Path, state: int | None = None,
+                      superposition: dict[int, complex] | None = None,
+                      temperature: float | None = None, points: int | None = None,
+                      tolerance: float | None = None) -> dict:
+    """Write orientation.json, orientation.npz and orientation.png: the densities of the
+    angles of L and R (principal axes of C and G) and of G11, G22, G12 of a state, a
+    superposition or the thermal mixture (:func:`orientation_densities`); returns the JSON
+    payload."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from affinebody.quantum.densities import G_TOLERANCE, orientation_densities
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    tolerance = G_TOLERANCE if tolerance is None else tolerance
+    data = orientation_densities(spectrum, state, superposition, temperature,
+                                 points=min(points or 51, 201), tolerance=tolerance)
+    orient = data["orientation"]
+    payload = {"kind": data["kind"], "state": state, "temperature": temperature,
+               "superposition": None if superposition is None else
+               {str(k): [v.real, v.imag] for k, v in superposition.items()},
+               "angle_note": ("angle of L = rot(alpha) (principal axes of C) and of "
+                              "R = rot(beta) (principal axes of G), phi = L D R^T, rad"
+                              if spectrum.n == 2 else "rotation angle of L and R (Haar)"),
+               "tolerance": tolerance, "densities": {}, "warnings": data["warnings"]}
+    arrays = {"angle": orient["angle"]}
+    for key in ("L_angle", "R_angle"):
+        arrays[key] = orient[key]
+        payload["densities"][key] = {"x": orient["angle"].tolist(),
+                                     "density": orient[key].tolist()}
+    for name, m in data["G"].items():
+        arrays[f"{name}_x"], arrays[f"{name}_density"] = m.x, m.density
+        payload["densities"][name] = m.as_dict()
+    panels = 1 + bool(data["G"])
+    fig, axes = plt.subplots(1, panels, figsize=(5 * panels, 3.5), squeeze=False)
+    for key in ("L_angle", "R_angle"):
+        axes[0, 0].plot(orient["angle"], orient[key], label=key.replace("_", " "))
+    axes[0, 0].set_xlabel("angle (rad)")
+    axes[0, 0].set_ylabel("probability density")
+    axes[0, 0].legend()
+    for name, m in data["G"].items():
+        axes[0, 1].plot(m.x, m.density, label=f"{name} (error {m.error:.1e})")
+    if data["G"]:
+        axes[0, 1].set_xlabel("component of G")
+        axes[0, 1].legend()
+    fig.suptitle(f"{data['kind']}" + (f" {state}" if state is not None else "")
+                 + (f", T = {temperature:g}" if temperature is not None else ""))
+    return _save(fig, directory / "orientation.png", directory / "orientation", arrays, payload)

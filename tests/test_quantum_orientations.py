@@ -1,0 +1,132 @@
+"""Orientation densities and densities of the components of G (quantum/densities.py, n = 2)
+against closed forms of the d'Alembert oscillator (phi's entries Gaussian): sector states,
+a superposition across sectors and the thermal mixture."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from affinebody.quantum import spectra as sp
+from affinebody.quantum.cli import density
+from affinebody.quantum.densities import (
+    angle_densities,
+    g_component_densities,
+    orientation_densities,
+    pure_state,
+    state_components,
+    thermal_states,
+)
+
+HBAR, INERTIA, K = 0.8, 1.3, 2.0
+OMEGA = math.sqrt(K / INERTIA)
+#: variance of each entry of phi in the ground state: hbar / (2 I omega)
+S2 = HBAR / (2 * INERTIA * OMEGA)
+
+
+@pytest.fixture(scope="module")
+def oscillator():
+    """Levels N = 0, 1, 2 of the R^4 oscillator (1 + 4 + 10 states)."""
+    spectrum = sp.solve("dalembert", 2, lambda q: 0.5 * K * np.sum(q**2, axis=-1), HBAR,
+                        inertia=INERTIA, levels=15, settings=sp.Settings(basis_size=9))
+    assert len(spectrum.energies()) >= 15
+    return spectrum
+
+
+def _fourier(angle, density, m):
+    """int_0^2pi p(a) e^{-i m a} da (the grid's end point repeats its start)."""
+    return np.sum((density * np.exp(-1j * m * angle))[:-1]) * (angle[1] - angle[0])
+
+
+def test_sector_states_have_uniform_orientations_and_gaussian_g(oscillator):
+    """Ground state: phi's entries are iid N(0, s^2), so G11 = |phi e1|^2 is exponential with
+    mean 2 s^2, and G12 = a b + c d (a sum of two products of independent normals) is Laplace,
+    e^{-|y|/s^2} / (2 s^2); every sector state's L and R are uniform."""
+    d = orientation_densities(oscillator, state=0, points=9)
+    assert d["warnings"] == []
+    for key in ("L_angle", "R_angle"):
+        assert np.abs(d["orientation"][key] - 1 / (2 * np.pi)).max() < 1e-12
+    g11, g12 = d["G"]["G11"], d["G"]["G12"]
+    exact11 = np.exp(-g11.x / (2 * S2)) / (2 * S2)
+    peak = 1 / (2 * S2)  # both densities' values at y = 0
+    assert np.abs(g11.density - exact11).max() < 1e-6 * peak
+    exact12 = np.exp(-np.abs(g12.x) / S2) / (2 * S2)
+    assert np.abs(g12.density - exact12).max() < 1e-6 * peak
+    assert np.abs(d["G"]["G22"].density - g11.density).max() < 1e-9 * exact11.max()
+    table = state_components(oscillator, 14)
+    angle = np.linspace(0, 2 * np.pi, 73)
+    for k in (1, 7, 14):
+        one = angle_densities(pure_state(oscillator, {k: 1.0}), angle)
+        assert np.abs(one["L_angle"] - 1 / (2 * np.pi)).max() < 1e-10, table[k][1]
+        assert np.abs(one["R_angle"] - 1 / (2 * np.pi)).max() < 1e-10, table[k][1]
+
+
+def test_superposition_across_sectors(oscillator):
+    """Psi = (psi_0 + psi_zw) / sqrt 2 with psi_zw the (s, k) = (2, 0) state of level N = 2:
+    in the complex coordinates z = (a + d) + i(c - b), w = (a - d) + i(c + b) of phi, psi_zw
+    is z w e^{-|phi|^2 / 4 s^2} / (4 s^2) (normalised against psi_0), and z w = (Q1^2 - Q2^2)
+    e^{2 i alpha}. So <e^{-2 i alpha}> = <psi_0| |z w| |psi_0> / (2 * 4 s^2) = pi s^2 / (8 s^2)
+    = pi / 8 (|z|, |w| independent Rayleigh, mean sqrt(pi s^2)), and R stays uniform (the two
+    states have equal vorticity)."""
+    table = state_components(oscillator, 14)
+    k2 = next(k for k, (_, sec) in enumerate(table) if (sec.spin, sec.vorticity) == (2, 0))
+    angle = np.linspace(0, 2 * np.pi, 361)
+    d = angle_densities(pure_state(oscillator, {0: 1.0, k2: 1.0}), angle)
+    assert abs(_fourier(angle, d["L_angle"], 0) - 1) < 1e-12
+    assert abs(abs(_fourier(angle, d["L_angle"], 2)) - np.pi / 8) < 1e-9
+    assert np.abs(d["R_angle"] - 1 / (2 * np.pi)).max() < 1e-12
+    assert d["L_angle"].min() > 0
+
+
+def test_thermal_mixture(oscillator):
+    """At temperature T the oscillator's phi entries are Gaussian with variance
+    s^2 coth(hbar omega / 2T): G11 is exponential with mean twice that; orientations uniform."""
+    temperature = 0.15
+    states, weights, tail = thermal_states(oscillator, temperature)
+    # the last state computed is in N = 2; each state left out (N >= 3) weighs e^{-hbar omega
+    # / T} ~ 1e-3 of it
+    assert len(states) == 15
+    assert tail == pytest.approx(math.exp(-2 * HBAR * OMEGA / temperature), rel=1e-6)
+    g11 = g_component_densities(list(zip(weights, states, strict=True)), points=7,
+                                components=("G11",))["G11"]
+    s2t = S2 / math.tanh(HBAR * OMEGA / (2 * temperature))
+    exact = np.exp(-g11.x / (2 * s2t)) / (2 * s2t)
+    peak = 1 / (2 * s2t)  # the density at y = 0
+    assert g11.converged and np.abs(g11.density - exact).max() < 1e-6 * peak
+    with pytest.raises(ValueError, match="exactly one"):
+        orientation_densities(oscillator, state=0, temperature=1.0)
+
+
+def test_density_command_superposition(tmp_path):
+    """affinebody density --superpose: the ground state and an N = 1 state (s = +-1, k = +-1:
+    both labels differ, so no cross term survives either angle integral): uniform angles,
+    and each G density is the mean of the two states' (Laplace for the ground state's G12 at
+    large |y| is not asserted here); orientation.json / .npz / .png written, exit 0."""
+    path = tmp_path / "osc.toml"
+    path.write_text(f"""
+[system]
+n = 2
+[quantum]
+hbar = {HBAR}
+kinetic = "dalembert"
+inertia = {INERTIA}
+potential = "0.5*{K}*trG"
+basis_size = 9
+density_points = 11
+""")
+    out = tmp_path / "o"
+    result = CliRunner().invoke(density, [str(path), "--superpose", "0:1,1:1j", "-o", str(out),
+                                          "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    assert doc["kind"] == "superposition" and doc["warnings"] == []
+    for key in ("L_angle", "R_angle"):
+        assert np.abs(np.asarray(doc["densities"][key]["density"]) - 1 / (2 * np.pi)).max() < 1e-12
+    assert {"G11", "G22", "G12"} <= set(doc["densities"])
+    assert all((out / name).exists() for name in ("orientation.json", "orientation.npz",
+                                                  "orientation.png"))
+    result = CliRunner().invoke(density, [str(path), "--state", "0", "--temperature", "1",
+                                          "-o", str(out)])
+    assert result.exit_code == 2 and "exactly one of --state" in result.output
