@@ -212,6 +212,24 @@ def _chunk_contributions(pot, space: Space, n, x, phi, binv, det, i, j, valid):
     return jnp.sum(energies), (g_u, g_phik, g_phil, g_bk, g_bl, g_detk, g_detl)
 
 
+def _pair_chunks(i, j, chunk: int):
+    """The pair indices (i, j) and their positions, padded and cut into [chunks, chunk]."""
+    capacity = i.shape[0]
+    chunk = max(1, min(chunk, capacity))
+    chunks = -(-capacity // chunk)
+    fill = chunks * chunk - capacity
+    index = jnp.arange(chunks * chunk).reshape(chunks, chunk)
+    i_all = jnp.concatenate([i, jnp.zeros(fill, i.dtype)]).reshape(chunks, chunk)
+    j_all = jnp.concatenate([j, jnp.zeros(fill, j.dtype)]).reshape(chunks, chunk)
+    return i_all, j_all, index
+
+
+def _valid_pairs(ii, jj, idx, count, bodies: int):
+    """(i, j, valid) of a chunk: pairs at positions >= count become a harmless pair (0, 1)."""
+    valid = idx < count
+    return (jnp.where(valid, ii, 0), jnp.where(valid, jj, jnp.minimum(1, bodies - 1)), valid)
+
+
 def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int = PAIR_CHUNK):
     """(E, dV/dx [N, n], dV/dphi [N, n, n]) of ``pot`` summed over the pairs (i[p], j[p]),
     p < count (JAX; jit with ``pot``, ``space``, ``chunk`` static). Pairs beyond ``count`` are
@@ -220,20 +238,12 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int = PA
     bodies, n = x.shape
     binv = linalg.inv(phi)
     det = linalg.det(phi)
-    capacity = i.shape[0]
-    chunk = max(1, min(chunk, capacity))
-    chunks = -(-capacity // chunk)
-    fill = chunks * chunk - capacity
-    index = jnp.arange(chunks * chunk).reshape(chunks, chunk)
-    i_all = jnp.concatenate([i, jnp.zeros(fill, i.dtype)]).reshape(chunks, chunk)
-    j_all = jnp.concatenate([j, jnp.zeros(fill, j.dtype)]).reshape(chunks, chunk)
+    i_all, j_all, index = _pair_chunks(i, j, chunk)
 
     def step(carry, block):
         energy, g_x, g_phi, g_b, g_det = carry
         ii, jj, idx = block
-        valid = idx < count
-        ii = jnp.where(valid, ii, 0)
-        jj = jnp.where(valid, jj, jnp.minimum(1, bodies - 1))
+        ii, jj, valid = _valid_pairs(ii, jj, idx, count, bodies)
         e, (g_u, g_phik, g_phil, g_bk, g_bl, g_detk, g_detl) = _chunk_contributions(
             pot, space, n, x, phi, binv, det, ii, jj, valid)
         g_x = g_x.at[ii].add(g_u).at[jj].add(-g_u)
@@ -249,6 +259,33 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int = PA
 
 
 energy_and_gradients_jit = jax.jit(energy_and_gradients, static_argnums=(0, 1, 7))
+
+
+def pair_virial(pot, space: Space, x, phi, i, j, count, chunk: int = PAIR_CHUNK):
+    """The configurational virial W [n, n] of ``pot`` over the pairs (i[p], j[p]), p < count:
+
+        W_ab = - sum_p u_a (dV_p/du)_b,   u = x_K - x_L (minimum image),
+
+    that is -dV/d(eps) for the strain x -> (Id + eps)^T x of the centres and of the box at
+    fixed phi (docs/pressure.md). dV_p/du is the same closed-form per-pair gradient the
+    forces of :func:`energy_and_gradients` scatter (r and D (75) both depend on u); memory:
+    one chunk of pairs at a time."""
+    _require_cutoff(pot)
+    bodies, n = x.shape
+    binv = linalg.inv(phi)
+    det = linalg.det(phi)
+    i_all, j_all, index = _pair_chunks(i, j, chunk)
+
+    def step(total, block):
+        ii, jj, idx = block
+        ii, jj, valid = _valid_pairs(ii, jj, idx, count, bodies)
+        _, (g_u, *_) = _chunk_contributions(pot, space, n, x, phi, binv, det, ii, jj, valid)
+        u = space.displacement(x[ii], x[jj])
+        g_u = jnp.where(valid[:, None], g_u, 0.0)
+        return total - jnp.einsum("pa,pb->ab", u, g_u), None
+
+    total, _ = lax.scan(step, jnp.zeros((n, n), dtype=x.dtype), (i_all, j_all, index))
+    return total
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(0, 1))
@@ -503,5 +540,6 @@ def pair_sum(pot, space: Space, x, phi, i, j, count):
 
 __all__ = [
     "PAIR_CHUNK", "energy_and_gradients", "energy_and_gradients_host", "host_kernel_in_use",
-    "host_threads", "neighbor_energy", "padding_value", "pair_sum", "scalar_columns",
+    "host_threads", "neighbor_energy", "padding_value", "pair_sum", "pair_virial",
+    "scalar_columns",
 ]
