@@ -151,10 +151,11 @@ def _finish(phi, binv, det, g_phi, g_binv, g_det):
 # JAX kernel
 
 
-def _chunk_contributions(pot, space: Space, n, x, phi, binv, det, i, j, valid):
-    """Energy and per-pair gradient pieces for one chunk of pairs."""
+def _chunk_contributions(pot, space: Space, n, x, phi, binv, det, i, j, valid, cell=None):
+    """Energy and per-pair gradient pieces for one chunk of pairs (``cell``: the current cell
+    of a box a barostat deforms, or None)."""
     plain, k_powers, m_powers, swapped = _requirements(pot, n)
-    u = space.displacement(x[i], x[j])
+    u = space.displacement(x[i], x[j], cell)
     phi_k, phi_l, b_k, b_l = phi[i], phi[j], binv[i], binv[j]
     base = {}
     r2 = jnp.sum(u * u, axis=-1)
@@ -261,7 +262,7 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int = PA
 energy_and_gradients_jit = jax.jit(energy_and_gradients, static_argnums=(0, 1, 7))
 
 
-def pair_virial(pot, space: Space, x, phi, i, j, count, chunk: int = PAIR_CHUNK):
+def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int = PAIR_CHUNK):
     """The configurational virial W [n, n] of ``pot`` over the pairs (i[p], j[p]), p < count:
 
         W_ab = - sum_p u_a (dV_p/du)_b,   u = x_K - x_L (minimum image),
@@ -269,7 +270,8 @@ def pair_virial(pot, space: Space, x, phi, i, j, count, chunk: int = PAIR_CHUNK)
     that is -dV/d(eps) for the strain x -> (Id + eps)^T x of the centres and of the box at
     fixed phi (docs/pressure.md). dV_p/du is the same closed-form per-pair gradient the
     forces of :func:`energy_and_gradients` scatter (r and D (75) both depend on u); memory:
-    one chunk of pairs at a time."""
+    one chunk of pairs at a time. ``cell``: the current cell of a box that a barostat deforms
+    (``space`` is then its reference), or None."""
     _require_cutoff(pot)
     bodies, n = x.shape
     binv = linalg.inv(phi)
@@ -279,8 +281,9 @@ def pair_virial(pot, space: Space, x, phi, i, j, count, chunk: int = PAIR_CHUNK)
     def step(total, block):
         ii, jj, idx = block
         ii, jj, valid = _valid_pairs(ii, jj, idx, count, bodies)
-        _, (g_u, *_) = _chunk_contributions(pot, space, n, x, phi, binv, det, ii, jj, valid)
-        u = space.displacement(x[ii], x[jj])
+        _, (g_u, *_) = _chunk_contributions(pot, space, n, x, phi, binv, det, ii, jj, valid,
+                                            cell)
+        u = space.displacement(x[ii], x[jj], cell)
         g_u = jnp.where(valid[:, None], g_u, 0.0)
         return total - jnp.einsum("pa,pb->ab", u, g_u), None
 

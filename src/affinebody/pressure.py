@@ -30,17 +30,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from affinebody import _linalg as linalg
 from affinebody import pair_kernels
 from affinebody.potentials import PairTerm, TotalPotential
 from affinebody.space import Space, as_space
 
 
-def volume(space: Space) -> float:
-    """V = det H of a periodic box (ValueError in free space: no volume, no pressure)."""
+def volume(space: Space, cell=None):
+    """V = det H of a periodic box (ValueError in free space: no volume, no pressure);
+    ``cell``: the current cell matrix of a box that a barostat deforms (``space`` is then its
+    reference), or None."""
     space = as_space(space)
     if not space.periodic:
         raise ValueError("pressure and volume need a periodic box: set system.box")
-    return space.volume
+    return space.volume if cell is None else linalg.det(jnp.asarray(cell))
 
 
 def kinetic_tensor(system, state) -> jax.Array:
@@ -73,6 +76,7 @@ def virial(system, state, space: Space, neighbors=None) -> jax.Array:
 
     neighbors: None (pair terms over all pairs, O(N^2)) or a ``neighbors.NeighborList`` valid
     for ``state`` that covers the pair cut-off (O(N)), as in a neighbour-list run.
+    With ``system.cell`` set (a barostat), the minimum images are those of that cell.
     """
     space = check_space(system, space)
     x, phi = state.x, state.phi
@@ -87,7 +91,8 @@ def virial(system, state, space: Space, neighbors=None) -> jax.Array:
                 i, j = neighbors.i, neighbors.j
                 count = jnp.minimum(neighbors.count, neighbors.i.shape[0])
             if x.shape[0] > 1:
-                total = total + pair_kernels.pair_virial(term, space, x, phi, i, j, count)
+                total = total + pair_kernels.pair_virial(term, space, x, phi, i, j, count,
+                                                         system.cell)
         else:  # one-body terms (and any other energy of x): W = -sum_K x_K (dV/dx_K)^T
             g = jax.grad(lambda y, t=term: jnp.sum(t.energy(y, phi)))(x)
             total = total - jnp.einsum("ka,kb->ab", x, g)
@@ -97,7 +102,7 @@ def virial(system, state, space: Space, neighbors=None) -> jax.Array:
 def pressure_tensor(system, state, space: Space, neighbors=None) -> jax.Array:
     """P = (sum_K v_K p_K^T + W) / V [n, n] (module docstring); ``neighbors`` as in
     :func:`virial`."""
-    v = volume(space)
+    v = volume(space, system.cell)
     return (kinetic_tensor(system, state) + virial(system, state, space, neighbors)) / v
 
 
