@@ -66,23 +66,6 @@ def test_triclinic_ito_drift_is_the_divergence_of_the_mobility():
     np.testing.assert_allclose(got, dh @ np.linalg.inv(np.asarray(h)), rtol=1e-12, atol=1e-14)
 
 
-def test_resume_from_the_last_frame_is_bit_exact():
-    system, state, space = ideal_gas()
-    baro = barostat.StochasticCellRescaling(((P0, 0.0), (0.0, P0)), tau=0.5,
-                                            compressibility=1.0, temperature=KT,
-                                            coupling="anisotropic")
-    run = lambda s, cell, k, steps: barostat.run(  # noqa: E731
-        system, s, space, baro, 0.01, steps, seed=7, cell=cell, first_step=k, every=5,
-        thermostat=langevin_momenta)
-    whole = run(state, None, 0, 40)
-    first = run(state, None, 0, 20)
-    second = run(first.final_state, first.cells[-1], 20, 20)
-    np.testing.assert_array_equal(second.cells, whole.cells[4:])
-    for a, b in zip(second.states, whole.states, strict=True):
-        np.testing.assert_array_equal(a, b[4:])
-    np.testing.assert_array_equal(second.times, whole.times[4:])
-
-
 def test_one_line_errors():
     with pytest.raises(ValueError, match="barostat.tau must be > 0"):
         barostat.StochasticCellRescaling(((1.0,),), tau=0.0, compressibility=1.0,
@@ -90,3 +73,76 @@ def test_one_line_errors():
     with pytest.raises(ValueError, match="barostat.coupling must be one of"):
         barostat.StochasticCellRescaling(((1.0,),), tau=1.0, compressibility=1.0,
                                          temperature=1.0, coupling="semi")
+
+
+NPT_CONFIG = """
+[system]
+n = 2
+bodies = 4
+box = [3.0, 3.2]
+[body]
+mass = 1.0
+inertia = 0.5
+[kinetic]
+translational = "dalembert"
+internal = "dalembert"
+[[potential]]
+kind = "pair"
+expr = "exp(-D**2) + 0.5 * exp(-r**2)"
+r_cut = 1.4
+[[potential]]
+kind = "one-body"
+expr = "2*(det - 1)**2 + 0.5*(trG - 2)**2"
+[initial]
+x = [[0.2, 0.3], [1.7, 0.2], [0.4, 1.8], [1.9, 1.6]]
+momentum = [[0.5, 0.0], [0.0, -0.5], [-0.5, 0.5], [0.0, 0.0]]
+[run]
+dt = 0.01
+steps = 400
+every = 50
+checkpoint = 200
+seed = 11
+[barostat]
+pressure = 0.8
+tau = 0.5
+compressibility = 1.0
+temperature = 0.3
+coupling = "anisotropic"
+"""
+
+
+def test_npt_run_writes_the_box_pressure_and_volume_and_resumes_bit_for_bit(tmp_path):
+    from affinebody.config import check_config, parse_config
+    from affinebody.h5md import read_trajectory
+    from affinebody.runner import run_simulation
+
+    config = check_config(parse_config(NPT_CONFIG))
+    run_simulation(config, tmp_path / "whole.h5")
+    run_simulation(config, tmp_path / "resumed.h5", steps=200)
+    run_simulation(config, tmp_path / "resumed.h5", resume=True)
+    whole, resumed = (read_trajectory(tmp_path / f"{k}.h5") for k in ("whole", "resumed"))
+    assert whole.frames == 9
+    for name in ("x", "phi", "p", "pi", "boxes", "step", "time"):
+        np.testing.assert_array_equal(getattr(resumed, name), getattr(whole, name))
+    for name, value in whole.observables.items():
+        np.testing.assert_array_equal(resumed.observables[name], value)
+    # the box moves with the barostat (each edge on its own), volume = det of the cell
+    assert np.all(np.ptp(whole.boxes, axis=0) > 1e-4)
+    np.testing.assert_allclose(whole.observables["volume"], np.prod(whole.boxes, axis=1),
+                               rtol=1e-12)
+    assert whole.observables["pressure"].shape == (9, 2, 2)
+
+
+def test_barostat_config_errors_are_one_line():
+    from affinebody.config import ConfigError, check_config, parse_config
+
+    cases = {
+        "tau = 0.5": ("tau = -1.0", "barostat.tau must be > 0"),
+        "pressure = 0.8": ("pressure = [[1.0, 0.0]]", "barostat.pressure"),
+        "box = [3.0, 3.2]\n": ("", "barostat needs a periodic box"),
+        'coupling = "anisotropic"': ('coupling = "sheared"', "barostat.coupling"),
+    }
+    for old, (new, message) in cases.items():
+        with pytest.raises(ConfigError, match=message) as err:
+            check_config(parse_config(NPT_CONFIG.replace(old, new)))
+        assert "\n" not in str(err.value)

@@ -141,6 +141,14 @@ class StochasticCellRescaling:
         return h_of(div) @ linalg.inv(cell)  # as a strain increment: dh H^-1
 
 
+def c_rescale(pressure, n: int, *, tau: float, compressibility: float, temperature: float,
+              coupling: str = "isotropic") -> StochasticCellRescaling:
+    """The barostat of a ``[barostat]`` table: ``pressure`` a number (P0 Id) or an n x n
+    tensor; ValueError (one line) for a value out of range."""
+    return StochasticCellRescaling(_target(pressure, n), float(tau), float(compressibility),
+                                   float(temperature), coupling)
+
+
 @dataclass(frozen=True)
 class NPTTrajectory:
     """Frames of an NPT run: ``times`` [F], ``states``, ``cells`` [F, n, n], ``observables``
@@ -229,4 +237,5 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
                          {k: np.asarray(v) for k, v in values.items()})
 
 
-__all__ = ["COUPLINGS", "NPTTrajectory", "StochasticCellRescaling", "run", "step_key"]
+__all__ = ["COUPLINGS", "NPTTrajectory", "StochasticCellRescaling", "c_rescale", "run",
+           "step_key"]

@@ -26,6 +26,8 @@ neighbour list (O(N)) or over all pairs.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -106,11 +108,30 @@ def pressure_tensor(system, state, space: Space, neighbors=None) -> jax.Array:
     return (kinetic_tensor(system, state) + virial(system, state, space, neighbors)) / v
 
 
+@dataclass(frozen=True)
+class Observer:
+    """An observer of the run driver (``simulate.run(..., observers={name: Observer(...)})``):
+    ``quantity`` "pressure" (the tensor) or "volume" in the periodic box ``space``, evaluated
+    with the run's system and, in a neighbour-list run, its list (O(N))."""
+
+    quantity: str
+    space: Space
+
+    #: the driver calls it as f(system, state, neighbors) rather than f(state)
+    takes_system = True
+
+    def __call__(self, system, state, neighbors=None):
+        if self.quantity == "volume":
+            return jnp.asarray(volume(self.space, system.cell), dtype=state.x.dtype)
+        return pressure_tensor(system, state, self.space, neighbors)
+
+
 def scalar_pressure(tensor: jax.Array) -> jax.Array:
     """The isotropic pressure Tr P / n."""
     return jnp.trace(tensor, axis1=-2, axis2=-1) / tensor.shape[-1]
 
 
 __all__ = [
-    "check_space", "kinetic_tensor", "pressure_tensor", "scalar_pressure", "virial", "volume",
+    "Observer", "check_space", "kinetic_tensor", "pressure_tensor", "scalar_pressure",
+    "virial", "volume",
 ]
