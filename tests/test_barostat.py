@@ -131,6 +131,11 @@ def test_npt_run_writes_the_box_pressure_and_volume_and_resumes_bit_for_bit(tmp_
     np.testing.assert_allclose(whole.observables["volume"], np.prod(whole.boxes, axis=1),
                                rtol=1e-12)
     assert whole.observables["pressure"].shape == (9, 2, 2)
+    from affinebody.plotting import plot_all
+
+    written = plot_all(whole, tmp_path / "plots")
+    assert (tmp_path / "plots" / "pressure.png") in written
+    assert (tmp_path / "plots" / "pressure.png").stat().st_size > 10_000
 
 
 def test_barostat_config_errors_are_one_line():

@@ -362,6 +362,7 @@ class H5MDWriter:
     """Append-only writer of an affinebody trajectory in the H5MD layout of this module.
 
     Use as a context manager. ``append`` writes a block of frames and flushes them to disk.
+    ``pressure``: the file also holds :data:`PERIODIC_OBSERVABLES` (a periodic ``box``).
     ``parameters`` are stored under /parameters (strings and numbers only). ``units`` names
     the unit system (a key of :data:`UNIT_SYSTEMS`).
     """
@@ -377,6 +378,7 @@ class H5MDWriter:
         parameters: Mapping[str, object] | None = None,
         author: str = "affinebody user",
         units: str = "reduced",
+        pressure: bool = False,
     ):
         self.path = Path(path)
         if units not in UNIT_SYSTEMS:
@@ -386,9 +388,10 @@ class H5MDWriter:
             unit.update(pressure=f"{unit['energy']} {unit['length']}-{n}",
                         volume=f"{unit['length']}+{n}")
         self.box = None if box is None else np.asarray(box, dtype=np.float64)
-        #: the observables this file holds (those of periodic runs with a box)
-        self.observables = dict(OBSERVABLES, **(PERIODIC_OBSERVABLES if box is not None
-                                                else {}))
+        if pressure and box is None:
+            raise ValueError("pressure and volume are observables of a periodic box: give box")
+        #: the observables this file holds (with ``pressure``: PERIODIC_OBSERVABLES too)
+        self.observables = dict(OBSERVABLES, **(PERIODIC_OBSERVABLES if pressure else {}))
         mass = np.asarray(mass, dtype=np.float64)
         bodies = mass.shape[0]
         self.n, self.bodies = int(n), int(bodies)

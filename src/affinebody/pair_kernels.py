@@ -225,6 +225,13 @@ def _pair_chunks(i, j, chunk: int):
     return i_all, j_all, index
 
 
+def _pair_pass(pot, x, phi, i, j, chunk: int):
+    """What a chunked pass over pairs needs: N, n, phi^-1, det phi, the chunked indices."""
+    _require_cutoff(pot)
+    bodies, n = x.shape
+    return bodies, n, linalg.inv(phi), linalg.det(phi), _pair_chunks(i, j, chunk)
+
+
 def _valid_pairs(ii, jj, idx, count, bodies: int):
     """(i, j, valid) of a chunk: pairs at positions >= count become a harmless pair (0, 1)."""
     valid = idx < count
@@ -235,11 +242,7 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int = PA
     """(E, dV/dx [N, n], dV/dphi [N, n, n]) of ``pot`` summed over the pairs (i[p], j[p]),
     p < count (JAX; jit with ``pot``, ``space``, ``chunk`` static). Pairs beyond ``count`` are
     padding. Memory: one chunk of pairs at a time."""
-    _require_cutoff(pot)
-    bodies, n = x.shape
-    binv = linalg.inv(phi)
-    det = linalg.det(phi)
-    i_all, j_all, index = _pair_chunks(i, j, chunk)
+    bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
 
     def step(carry, block):
         energy, g_x, g_phi, g_b, g_det = carry
@@ -272,11 +275,7 @@ def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int = 
     forces of :func:`energy_and_gradients` scatter (r and D (75) both depend on u); memory:
     one chunk of pairs at a time. ``cell``: the current cell of a box that a barostat deforms
     (``space`` is then its reference), or None."""
-    _require_cutoff(pot)
-    bodies, n = x.shape
-    binv = linalg.inv(phi)
-    det = linalg.det(phi)
-    i_all, j_all, index = _pair_chunks(i, j, chunk)
+    bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
 
     def step(total, block):
         ii, jj, idx = block

@@ -189,7 +189,7 @@ def run_simulation(
         base_spec = built.neighbors[0]
     writer_args = dict(mass=built.inertia.mass, radius=built.inertia.radius, n=config.n,
                        box=config.system.box, parameters=parameters,
-                       units=config.system.units)
+                       units=config.system.units, pressure=config.system.box is not None)
     if resume:
         checkpoint = load_checkpoint(ckpt_file, config_hash)
         if checkpoint.step > total:
