@@ -158,10 +158,34 @@ class NPTTrajectory:
     states: State
     cells: np.ndarray
     observables: dict
+    #: the first step (1-based, counted like ``first_step``) whose state or cell was not
+    #: finite or whose cell lost its positive diagonal; from there on the frames repeat the
+    #: last good state (None: every step was kept)
+    failed_step: int | None = None
 
     @property
     def final_state(self) -> State:
         return jax.tree.map(lambda a: a[-1], self.states)
+
+
+def first_narrow_frame(system, cells) -> int | None:
+    """The first of ``cells`` [F, n, n] whose half smallest perpendicular width is below the
+    largest pair cut-off of ``system`` (the minimum image stops being exact there: the box
+    shrank too far), or None."""
+    from affinebody.potentials import PairTerm, TotalPotential
+
+    potential = system.potential
+    terms = () if potential is None else (
+        potential.terms if isinstance(potential, TotalPotential) else (potential,))
+    cuts = [t.cutoff.r_cut for t in terms if isinstance(t, PairTerm) and t.cutoff is not None]
+    if not cuts:
+        return None
+    if len(cells) == 0:
+        return None
+    with np.errstate(all="ignore"):
+        reciprocal = np.linalg.norm(np.linalg.inv(np.asarray(cells)), axis=-1)
+        narrow = ~(0.5 / np.max(reciprocal, axis=-1) >= max(cuts) * (1 - 1e-12))
+    return int(np.argmax(narrow)) if np.any(narrow) else None
 
 
 def step_key(seed: int, step):
@@ -179,24 +203,30 @@ def _npt(system, state, cell, first_step, seed, dt, *, method, barostat, space, 
         return values
 
     def one_step(carry, _):
-        state, cell, k = carry
+        old_state, old_cell, k, failed = carry
         key_thermo, key_baro = jax.random.split(step_key(seed, k))
-        state = method.step(system.replace(cell=cell), state, dt)
+        state = method.step(system.replace(cell=old_cell), old_state, dt)
         if thermostat is not None:
-            state = thermostat(system.replace(cell=cell), state, key_thermo, dt)
-        state, cell = barostat.move(system, state, cell, space, key_baro, dt)
-        return (state, cell, k + 1), None
+            state = thermostat(system.replace(cell=old_cell), state, key_thermo, dt)
+        state, cell = barostat.move(system, state, old_cell, space, key_baro, dt)
+        ok = jnp.all(jnp.diagonal(cell) > 0) & jnp.all(jnp.isfinite(cell))
+        for leaf in jax.tree.leaves(state):
+            ok &= jnp.all(jnp.isfinite(leaf))
+        failed = jnp.where((failed < 0) & ~ok, k + 1, failed)
+        keep = lambda old, new: jnp.where(failed < 0, new, old)  # noqa: E731
+        state, cell = jax.tree.map(keep, old_state, state), keep(old_cell, cell)
+        return (state, cell, k + 1, failed), None
 
     def chunk(carry, _):
         carry, _ = lax.scan(one_step, carry, None, length=every)
         return carry, (carry[0], carry[1], measure(carry[0], carry[1]))
 
-    init = (state, cell, first_step)
-    _, (states, cells, values) = lax.scan(chunk, init, None, length=n_chunks)
+    init = (state, cell, first_step, -jnp.ones_like(first_step))
+    (*_, failed), (states, cells, values) = lax.scan(chunk, init, None, length=n_chunks)
     first = measure(state, cell)
     join = lambda a, f: jnp.concatenate([a[None], f])  # noqa: E731
     return (jax.tree.map(join, state, states), join(cell, cells),
-            jax.tree.map(join, first, values))
+            jax.tree.map(join, first, values), failed)
 
 
 _npt_jit = jax.jit(_npt, static_argnames=("method", "barostat", "space", "thermostat",
@@ -214,6 +244,8 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
     space: the reference periodic box (that of the pair terms); cell: the box now (default
     ``space``'s cell); first_step: the index of the first step (keys: :func:`step_key`).
     observers: (name, function(system, state)) pairs recorded with the pressure and volume.
+    A step that makes the state or the cell non-finite, or the cell's diagonal non-positive
+    (the barostat's step too large), is not kept: ``failed_step`` says where.
     The pair terms are summed over all pairs (a neighbour list does not follow the box yet).
     """
     space = pressure_module.check_space(system, as_space(space))
@@ -228,14 +260,15 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
     method.check(system)
     state = system.check(state)
     cell = jnp.asarray(space.matrix if cell is None else cell, dtype=state.x.dtype)
-    states, cells, values = _npt_jit(
+    states, cells, values, failed = _npt_jit(
         system, state, cell, jnp.asarray(first_step), int(seed), jnp.asarray(float(dt)),
         method=method, barostat=barostat, space=space, thermostat=thermostat,
         n_chunks=int(steps) // int(every), every=int(every), observers=tuple(observers))
     times = (first_step + np.arange(int(steps) // int(every) + 1) * int(every)) * float(dt)
     return NPTTrajectory(times, jax.tree.map(np.asarray, states), np.asarray(cells),
-                         {k: np.asarray(v) for k, v in values.items()})
+                         {k: np.asarray(v) for k, v in values.items()},
+                         None if int(failed) < 0 else int(failed))
 
 
-__all__ = ["COUPLINGS", "NPTTrajectory", "StochasticCellRescaling", "c_rescale", "run",
-           "step_key"]
+__all__ = ["COUPLINGS", "NPTTrajectory", "StochasticCellRescaling", "c_rescale",
+           "first_narrow_frame", "run", "step_key"]

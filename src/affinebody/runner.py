@@ -320,15 +320,20 @@ class _NPT:
         npt = barostat.run(self.system, state, self.space, self.barostat, c.run.dt, length,
                            seed=c.run.seed, cell=self.cell, first_step=step,
                            integrator=c.run.integrator, every=every, observers=self.observers)
-        finite = np.array([np.all(np.isfinite(np.asarray(a).reshape(len(npt.times), -1)),
-                                  axis=1) for a in (*npt.states, npt.cells)]).all(axis=0)
+        frame_steps = np.rint(npt.times / c.run.dt).astype(np.int64)
+        finite = (np.ones(len(frame_steps), dtype=bool) if npt.failed_step is None
+                  else frame_steps < npt.failed_step)
         keep = len(finite) if finite.all() else int(np.argmin(finite))
+        narrow = barostat.first_narrow_frame(self.system, npt.cells[:keep])
         stop = None
-        if keep < len(finite):
-            bad = step + int(np.rint((npt.times[keep] - npt.times[0]) / c.run.dt))
-            stop = StopReport(bad, bad * c.run.dt, 0, "non-finite state",
-                              "non-finite state or box under the barostat: reduce run.dt or "
-                              "raise barostat.tau")
+        if keep < len(finite) or narrow is not None:
+            reason = ("non-finite state or box under the barostat: reduce run.dt or raise "
+                      "barostat.tau") if narrow is None else (
+                      "the box shrank below twice the pair cut-off (the minimum image is no "
+                      "longer exact): lower barostat.pressure or start from a larger system.box")
+            keep = keep if narrow is None else narrow
+            bad = (npt.failed_step if narrow is None else int(frame_steps[keep])) - step
+            stop = StopReport(bad, (step + bad) * c.run.dt, 0, reason, reason)
         cut = lambda a: np.asarray(a)[:keep]  # noqa: E731
         trajectory = Trajectory(times=cut(npt.times) - step * c.run.dt,
                                 states=jax.tree.map(cut, npt.states),
