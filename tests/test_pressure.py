@@ -110,9 +110,12 @@ def test_kinetic_part_is_minus_the_strain_derivative_of_the_kinetic_energy():
     system, state, _, _ = setup(2, "triclinic")
     k = np.asarray(pressure.kinetic_tensor(system, state))
 
-    def energy(eps):
+    @jax.jit
+    def strained(eps):
         p = jnp.einsum("ab,kb->ka", jnp.linalg.inv(jnp.eye(2) + eps), state.p)
-        return float(system.kinetic_energy(state._replace(p=p)))
+        return system.kinetic_energy(state._replace(p=p))
+
+    energy = lambda eps: float(strained(jnp.asarray(eps)))  # noqa: E731
 
     h = 1e-5
     fd = np.array([[-(energy(h * np.eye(2)[a][:, None] * np.eye(2)[b][None])
@@ -129,5 +132,4 @@ def test_pressure_refuses_free_space_and_a_foreign_box():
         pressure.pressure_tensor(system, state, None)
     with pytest.raises(ValueError, match="not in the box"):
         pressure.virial(system, state, triclinic([[5.0, 0.0], [0.0, 5.0]]))
-    assert jax.numpy.ndim(pressure.scalar_pressure(
-        pressure.pressure_tensor(system, state, space))) == 0
+    assert float(pressure.scalar_pressure(jnp.diag(jnp.asarray([1.0, 2.0])))) == 1.5
