@@ -9,7 +9,7 @@ transformation) and the internal configurations phi_K (and pi_K) left alone,
          = (1/V) [ sum_K v_Ka p_Kb  +  W_ab ],       W = -dV/d(eps)   (the virial),
 
 with V = det H, v_K = dT/dp_K the velocity of the centre given by the model's Legendre map
-(any translational model, d'Alembert or the phi-dependent af-is one (69)), and for pair terms
+(any translational model, d'Alembert or the phi-dependent af-is one (64)), and for pair terms
 
     W_ab = sum_{pairs} u_a F_b,   u = x_K - x_L (minimum image),  F = -dV_KL/du,
 
