@@ -31,8 +31,9 @@ makes the target stationary; it is computed by automatic differentiation of M (a
 A non-hydrostatic P0 drives the mean stress to P0; the ensemble is exact for a hydrostatic P0.
 
 Random numbers: the noise of step k (counted from the start of the run, resumed runs
-included) comes from ``jax.random.fold_in(PRNGKey(seed), k)``, so a run resumed from its
-checkpoint repeats the uninterrupted one bit for bit.
+included) comes from :func:`step_key` (``fold_in`` of the seed, of the barostat's own stream
+:data:`STREAM` and of k), so a run resumed from its checkpoint repeats the uninterrupted one
+bit for bit, and a thermostat drawing from the same seed gets independent numbers.
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ from affinebody.integrators import get_integrator
 from affinebody.space import Space, as_space
 from affinebody.state import State
 
-#: Barostat kinds (config name -> class) and couplings.
+#: The couplings of the box to the pressure (``[barostat] coupling``).
 COUPLINGS = ("isotropic", "anisotropic")
 
 
@@ -188,9 +189,14 @@ def first_narrow_frame(system, cells) -> int | None:
     return int(np.argmax(narrow)) if np.any(narrow) else None
 
 
+#: The barostat's own random stream (folded into the seed), apart from a thermostat's.
+STREAM = 0x62617273
+
+
 def step_key(seed: int, step):
-    """The key of step ``step`` of a run with ``seed``: fold_in(PRNGKey(seed), step)."""
-    return jax.random.fold_in(jax.random.PRNGKey(seed), step)
+    """The key of step ``step`` of a run with ``seed``:
+    fold_in(fold_in(PRNGKey(seed), STREAM), step)."""
+    return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), STREAM), step)
 
 
 def _npt(system, state, cell, first_step, seed, dt, *, method, barostat, space, thermostat,
@@ -256,6 +262,11 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
                          f"(got {barostat.target.shape})")
     if int(steps) != steps or steps < 1 or int(every) != every or every < 1 or steps % every:
         raise ValueError(f"steps must be a positive multiple of every (got {steps}, {every})")
+    if (barostat.coupling == "anisotropic" and not space.orthorhombic
+            and np.any(np.tril(space.matrix, -1) != 0)):
+        raise ValueError("anisotropic coupling of a triclinic box needs an upper-triangular "
+                         "cell matrix (lattice vectors as columns: a along x, b in the xy "
+                         "plane, ...)")
     method = get_integrator(integrator)
     method.check(system)
     state = system.check(state)
@@ -270,5 +281,5 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
                          None if int(failed) < 0 else int(failed))
 
 
-__all__ = ["COUPLINGS", "NPTTrajectory", "StochasticCellRescaling", "c_rescale",
+__all__ = ["COUPLINGS", "NPTTrajectory", "STREAM", "StochasticCellRescaling", "c_rescale",
            "first_narrow_frame", "run", "step_key"]
