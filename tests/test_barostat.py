@@ -152,3 +152,10 @@ def test_barostat_config_errors_are_one_line():
         with pytest.raises(ConfigError, match=message) as err:
             check_config(parse_config(NPT_CONFIG.replace(old, new)))
         assert "\n" not in str(err.value)
+    from affinebody.sweep import SweepSpec
+
+    with pytest.raises(ConfigError, match="sweep integrates at constant volume"):
+        SweepSpec.from_config(check_config(parse_config(NPT_CONFIG)))
+    with pytest.raises(ConfigError, match='run.neighbor_list = "on" does not follow a box'):
+        check_config(parse_config(NPT_CONFIG.replace("seed = 11", "seed = 11\nneighbor_list "
+                                                                   '= "on"')))
