@@ -173,6 +173,8 @@ class RunSection(_Section):
         "auto", description="sum pair forces over a neighbour list: on, off (all pairs), or "
                             f"auto (on for >= {AUTO_NEIGHBOR_LIST_BODIES} bodies if possible)")
     neighbor_skin: float = Field(0.3, description="skin of the neighbour list (> 0)")
+    pressure: bool = Field(False, description="record the pressure tensor and the volume of "
+                                              "the periodic box (always with a [barostat])")
 
 
 class ScanRange(_Section):
@@ -283,7 +285,8 @@ class Config(_Section):
         the [sweep] and [phonons] tables (which do not change a single run)."""
         data = self.model_dump(exclude={"source_text": True, "sweep": True, "phonons": True,
                                         "run": {"steps"}})
-        for key, default in (("neighbor_list", "auto"), ("neighbor_skin", 0.3)):
+        for key, default in (("neighbor_list", "auto"), ("neighbor_skin", 0.3),
+                             ("pressure", False)):
             if data["run"][key] == default:  # hashes of configs written before these keys
                 del data["run"][key]
         if data["system"]["units"] == "reduced":  # the same, for system.units
@@ -800,6 +803,8 @@ def check_memory(config: Config) -> None:
 
 
 def check_barostat(config: Config) -> None:
+    if config.run.pressure and config.system.box is None:
+        raise ConfigError("run.pressure = true needs a periodic box: set system.box")
     b, n = config.barostat, config.n
     if b is None:
         return
@@ -811,6 +816,13 @@ def check_barostat(config: Config) -> None:
         _array(b.pressure, "barostat.pressure", (n, n))
     elif not math.isfinite(b.pressure):
         raise ConfigError(f"barostat.pressure must be finite (got {b.pressure})")
+
+
+def records_pressure(config: Config) -> bool:
+    """Whether a run of ``config`` records the pressure and the volume (h5md
+    PERIODIC_OBSERVABLES): with ``run.pressure = true`` or a ``[barostat]``."""
+    return config.system.box is not None and (config.run.pressure
+                                              or config.barostat is not None)
 
 
 def check_config(config: Config) -> Config:

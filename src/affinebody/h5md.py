@@ -15,9 +15,9 @@ The layout is a public contract::
     /observables/linear_momentum/...      value [T, n]      sum_K p_K              (103)
     /observables/affine_momentum/...      value [T, n, n]   sum_K (x_K p_K^T + phi_K pi_K)  (109)
     /observables/angular_momentum/...     value [T, n, n]   J - J^T of the affine momentum J
-    /observables/pressure/...             value [T, n, n]   pressure tensor (periodic runs only;
-                                          docs/pressure.md)
-    /observables/volume/...               value [T]         det of the cell (periodic runs only)
+    /observables/pressure/...             value [T, n, n]   pressure tensor (run.pressure or a
+                                          barostat, periodic box; docs/pressure.md)
+    /observables/volume/...               value [T]         det of the cell (the same runs)
     /parameters/{config, seed, version, dt, steps, config_hash}
     /parameters/frames_committed  [1] int64: frames whose every element is on disk
     /h5md/modules/units                   attrs version=[1, 0], system="reduced" | "gromacs"

@@ -44,6 +44,7 @@ from affinebody.config import (
     ConfigError,
     build,
     frame_bytes,
+    records_pressure,
 )
 from affinebody.h5md import (
     DRIVER_NAMES,
@@ -189,7 +190,7 @@ def run_simulation(
         base_spec = built.neighbors[0]
     writer_args = dict(mass=built.inertia.mass, radius=built.inertia.radius, n=config.n,
                        box=config.system.box, parameters=parameters,
-                       units=config.system.units, pressure=config.system.box is not None)
+                       units=config.system.units, pressure=records_pressure(config))
     if resume:
         checkpoint = load_checkpoint(ckpt_file, config_hash)
         if checkpoint.step > total:
@@ -225,7 +226,7 @@ def run_simulation(
     step = start
     lists = None  # (spec, list) valid for `state`, or None: all pairs
     observers = dict(_OBSERVERS)
-    if config.system.box is not None:  # pressure and volume (docs/pressure.md)
+    if records_pressure(config):  # pressure and volume (docs/pressure.md)
         space = as_space(tuple(config.system.box))
         observers.update((name, pressure.Observer(name, space))
                          for name in PERIODIC_OBSERVABLES)
