@@ -36,6 +36,8 @@ class Checkpoint:
     state: State
     frames: int
     config_hash: str
+    #: the cell matrix [n, n] of a box that a barostat changes (None: the config's box)
+    cell: np.ndarray | None = None
 
 
 def checkpoint_path(output: str | Path) -> Path:
@@ -59,6 +61,8 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
         phi=np.asarray(state.phi, dtype=np.float64),
         p=np.asarray(state.p, dtype=np.float64),
         pi=np.asarray(state.pi, dtype=np.float64),
+        **({} if checkpoint.cell is None else {"cell": np.asarray(checkpoint.cell,
+                                                                   dtype=np.float64)}),
     )
     descriptor, temporary = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
@@ -101,6 +105,7 @@ def load_checkpoint(path: str | Path, config_hash: str | None = None) -> Checkpo
                 frames=int(data["frames"]),
                 config_hash=str(data["config_hash"]),
                 state=State(*(np.array(data[k]) for k in ("x", "phi", "p", "pi"))),
+                cell=np.array(data["cell"]) if "cell" in data else None,
             )
     except CheckpointError:
         raise

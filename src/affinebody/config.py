@@ -173,6 +173,8 @@ class RunSection(_Section):
         "auto", description="sum pair forces over a neighbour list: on, off (all pairs), or "
                             f"auto (on for >= {AUTO_NEIGHBOR_LIST_BODIES} bodies if possible)")
     neighbor_skin: float = Field(0.3, description="skin of the neighbour list (> 0)")
+    pressure: bool = Field(False, description="record the pressure tensor and the volume of "
+                                              "the periodic box (always with a [barostat])")
 
 
 class ScanRange(_Section):
@@ -228,6 +230,24 @@ class PhononsSection(_Section):
                                                       "(default: found from the bodies)")
 
 
+class BarostatSection(_Section):
+    """``[barostat]``: constant pressure by stochastic cell rescaling (docs/pressure.md,
+    :mod:`affinebody.barostat`)."""
+
+    kind: Literal["c-rescale"] = Field("c-rescale", description="stochastic cell rescaling "
+                                                                 "(Bernetti and Bussi 2020)")
+    pressure: float | Matrix = Field(description="target pressure P0: a number or an n x n "
+                                                 "tensor")
+    tau: float = Field(description="time constant of the pressure relaxation")
+    compressibility: float = Field(description="isothermal compressibility beta_T (sets the "
+                                               "relaxation rate, not the distribution)")
+    coupling: Literal["isotropic", "anisotropic"] = Field(
+        "isotropic", description="isotropic: the box scales as a whole; anisotropic: each "
+                                 "edge of the orthorhombic box moves")
+    temperature: float = Field(description="kT of the barostat's noise (the temperature of "
+                                           "the ensemble)")
+
+
 class Config(_Section):
     """A whole configuration file."""
 
@@ -241,6 +261,7 @@ class Config(_Section):
     constraints: ConstraintsSection = ConstraintsSection()
     sweep: SweepSection | None = None
     phonons: PhononsSection | None = None
+    barostat: BarostatSection | None = None
     # the text the config was read from (not a TOML key)
     source_text: str = Field("", exclude=True, repr=False)
 
@@ -264,11 +285,14 @@ class Config(_Section):
         the [sweep] and [phonons] tables (which do not change a single run)."""
         data = self.model_dump(exclude={"source_text": True, "sweep": True, "phonons": True,
                                         "run": {"steps"}})
-        for key, default in (("neighbor_list", "auto"), ("neighbor_skin", 0.3)):
+        for key, default in (("neighbor_list", "auto"), ("neighbor_skin", 0.3),
+                             ("pressure", False)):
             if data["run"][key] == default:  # hashes of configs written before these keys
                 del data["run"][key]
         if data["system"]["units"] == "reduced":  # the same, for system.units
             del data["system"]["units"]
+        if data.get("barostat") is None:  # the same, for runs without a barostat
+            data.pop("barostat", None)
         canonical = json.dumps(data, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()
 
@@ -603,7 +627,12 @@ def uses_neighbor_list(config: Config, terms=None) -> bool:
     ``terms``: the built [[potential]] entries (built here when None).
     """
     mode = config.run.neighbor_list
-    if mode == "off" or (mode == "auto" and config.bodies_count < AUTO_NEIGHBOR_LIST_BODIES):
+    if config.barostat is not None and mode == "on":
+        raise ConfigError('run.neighbor_list = "on" does not follow a box that a [barostat] '
+                          'changes (pair forces are summed over all pairs): set '
+                          'run.neighbor_list = "off"')
+    if mode == "off" or config.barostat is not None or (
+            mode == "auto" and config.bodies_count < AUTO_NEIGHBOR_LIST_BODIES):
         return False
     if terms is None:
         terms = [build_potential_entry(e, k, config) for k, e in enumerate(config.potential)]
@@ -773,6 +802,29 @@ def check_memory(config: Config) -> None:
                           f"than the {_gib(have)} available: {hint}")
 
 
+def check_barostat(config: Config) -> None:
+    if config.run.pressure and config.system.box is None:
+        raise ConfigError("run.pressure = true needs a periodic box: set system.box")
+    b, n = config.barostat, config.n
+    if b is None:
+        return
+    if config.system.box is None:
+        raise ConfigError("barostat needs a periodic box: set system.box")
+    for name in ("tau", "compressibility", "temperature"):
+        _positive(getattr(b, name), f"barostat.{name}")
+    if isinstance(b.pressure, list):
+        _array(b.pressure, "barostat.pressure", (n, n))
+    elif not math.isfinite(b.pressure):
+        raise ConfigError(f"barostat.pressure must be finite (got {b.pressure})")
+
+
+def records_pressure(config: Config) -> bool:
+    """Whether a run of ``config`` records the pressure and the volume (h5md
+    PERIODIC_OBSERVABLES): with ``run.pressure = true`` or a ``[barostat]``."""
+    return config.system.box is not None and (config.run.pressure
+                                              or config.barostat is not None)
+
+
 def check_config(config: Config) -> Config:
     """Second pass: the meaning of every field (see the module docstring)."""
     check_system(config)
@@ -783,6 +835,7 @@ def check_config(config: Config) -> Config:
     check_initial(config)
     check_run(config)
     check_potentials(config)
+    check_barostat(config)
     return config
 
 

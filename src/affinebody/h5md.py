@@ -15,11 +15,15 @@ The layout is a public contract::
     /observables/linear_momentum/...      value [T, n]      sum_K p_K              (103)
     /observables/affine_momentum/...      value [T, n, n]   sum_K (x_K p_K^T + phi_K pi_K)  (109)
     /observables/angular_momentum/...     value [T, n, n]   J - J^T of the affine momentum J
+    /observables/pressure/...             value [T, n, n]   pressure tensor (run.pressure or a
+                                          barostat, periodic box; docs/pressure.md)
+    /observables/volume/...               value [T]         det of the cell (the same runs)
     /parameters/{config, seed, version, dt, steps, config_hash}
     /parameters/frames_committed  [1] int64: frames whose every element is on disk
     /h5md/modules/units                   attrs version=[1, 0], system="reduced" | "gromacs"
 
-The box is stored once per frame (an H5MD time-dependent element), the form MDAnalysis reads;
+The box is stored once per frame (an H5MD time-dependent element), the form MDAnalysis reads
+(a barostat changes it from frame to frame);
 files of earlier versions stored ``box/edges`` once, as a dataset, and are still read here.
 The string attributes of H5MD 1.1 proper (author and creator names, creator version, box
 boundary) are fixed-length ASCII strings; the ``unit`` attributes of the units module are
@@ -78,7 +82,7 @@ ELEMENT_UNITS = {"position": "length", "momentum": "momentum", "phi": None,
                  "phi_momentum": "action", "total_energy": "energy",
                  "kinetic_energy": "energy", "potential_energy": "energy",
                  "linear_momentum": "momentum", "affine_momentum": "action",
-                 "angular_momentum": "action"}
+                 "angular_momentum": "action", "pressure": "pressure", "volume": "volume"}
 
 #: State fields -> H5MD element names under /particles/bodies.
 STATE_ELEMENTS = {"x": "position", "p": "momentum", "phi": "phi", "pi": "phi_momentum"}
@@ -91,6 +95,8 @@ OBSERVABLES = {
     "affine_momentum": 2,
     "angular_momentum": 2,
 }
+#: Observables of periodic runs only (same convention as :data:`OBSERVABLES`).
+PERIODIC_OBSERVABLES = {"pressure": 2, "volume": 0}
 #: File observables recorded under another name by the run driver
 #: (``simulate.NAMED_OBSERVABLES``); the others have the same name in both.
 DRIVER_NAMES = {"total_energy": "energy"}
@@ -356,6 +362,7 @@ class H5MDWriter:
     """Append-only writer of an affinebody trajectory in the H5MD layout of this module.
 
     Use as a context manager. ``append`` writes a block of frames and flushes them to disk.
+    ``pressure``: the file also holds :data:`PERIODIC_OBSERVABLES` (a periodic ``box``).
     ``parameters`` are stored under /parameters (strings and numbers only). ``units`` names
     the unit system (a key of :data:`UNIT_SYSTEMS`).
     """
@@ -371,12 +378,20 @@ class H5MDWriter:
         parameters: Mapping[str, object] | None = None,
         author: str = "affinebody user",
         units: str = "reduced",
+        pressure: bool = False,
     ):
         self.path = Path(path)
         if units not in UNIT_SYSTEMS:
             raise ValueError(f"units must be one of {sorted(UNIT_SYSTEMS)} (got {units!r})")
-        unit = UNIT_SYSTEMS[units]
+        unit = dict(UNIT_SYSTEMS[units])
+        if unit:  # pressure and volume in n dimensions
+            unit.update(pressure=f"{unit['energy']} {unit['length']}-{n}",
+                        volume=f"{unit['length']}+{n}")
         self.box = None if box is None else np.asarray(box, dtype=np.float64)
+        if pressure and box is None:
+            raise ValueError("pressure and volume are observables of a periodic box: give box")
+        #: the observables this file holds (with ``pressure``: PERIODIC_OBSERVABLES too)
+        self.observables = dict(OBSERVABLES, **(PERIODIC_OBSERVABLES if pressure else {}))
         mass = np.asarray(mass, dtype=np.float64)
         bodies = mass.shape[0]
         self.n, self.bodies = int(n), int(bodies)
@@ -424,7 +439,7 @@ class H5MDWriter:
                           "length", unit)
 
             observables = f.create_group("observables")
-            for name, rank in OBSERVABLES.items():
+            for name, rank in self.observables.items():
                 _time_series(observables, name, (n,) * rank, max(chunk, 64), unit)
 
             params = f.create_group("parameters")
@@ -454,8 +469,10 @@ class H5MDWriter:
         time: np.ndarray,
         state: State,
         observables: Mapping[str, np.ndarray],
+        boxes: np.ndarray | None = None,
     ) -> None:
-        """Append frames: ``step`` [F], ``time`` [F], ``state`` with [F, N, ...] arrays."""
+        """Append frames: ``step`` [F], ``time`` [F], ``state`` with [F, N, ...] arrays;
+        ``boxes`` [F, n]: the box edges of each frame (default: the writer's fixed box)."""
         step = np.atleast_1d(np.asarray(step, dtype=np.int64))
         time = np.atleast_1d(np.asarray(time, dtype=np.float64))
         count = step.shape[0]
@@ -467,7 +484,8 @@ class H5MDWriter:
             (self.file["particles"][PARTICLE_GROUP][element], getattr(state, name))
             for name, element in STATE_ELEMENTS.items()
         ]
-        groups += [(self.file["observables"][name], observables[name]) for name in OBSERVABLES]
+        groups += [(self.file["observables"][name], observables[name])
+                   for name in self.observables]
         for group, value in groups:
             value = np.asarray(value, dtype=np.float64)
             if value.shape[0] != count:
@@ -479,7 +497,8 @@ class H5MDWriter:
         if self.box is not None:  # step and time are position's (hard links): written above
             edges = self.file["particles"][PARTICLE_GROUP]["box"]["edges"]["value"]
             edges.resize(stop, axis=0)
-            edges[start:stop] = np.broadcast_to(self.box, (count, self.n))
+            edges[start:stop] = np.broadcast_to(self.box if boxes is None else boxes,
+                                                (count, self.n))
         self.flush()  # the frames are on disk ...
         self.file["parameters"][COMMITTED][0] = stop
         self.flush()  # ... before the count that makes readers see them
@@ -529,7 +548,7 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
     Used by ``--resume``. Returns the number of frames copied and their total energies.
     """
     with open_trajectory(path) as source:
-        missing = [k for k in OBSERVABLES if k not in source.observables]
+        missing = [k for k in writer.observables if k not in source.observables]
         if missing:
             raise TrajectoryFileError(f"missing observables {missing} in the file to resume")
         keep = source.step <= through_step
@@ -545,7 +564,8 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
                 writer.append(source.step[lo:hi], source.time[lo:hi],
                               State(*(getattr(source, name)[lo:hi]
                                       for name in ("x", "phi", "p", "pi"))),
-                              {k: source.observables[k][lo:hi] for k in OBSERVABLES})
+                              {k: source.observables[k][lo:hi] for k in writer.observables},
+                              None if source.boxes is None else source.boxes[lo:hi])
         except (OSError, KeyError, ValueError, TypeError) as err:
             raise TrajectoryFileError(
                 f"{path}: cannot read the trajectory (truncated or corrupt: {_short(err)})"

@@ -163,10 +163,11 @@ def _finish(phi, binv, det, g_phi, g_binv, g_det):
 # JAX kernel
 
 
-def _chunk_contributions(pot, space: Space, n, x, phi, binv, det, i, j, valid):
-    """Energy and per-pair gradient pieces for one chunk of pairs."""
+def _chunk_contributions(pot, space: Space, n, x, phi, binv, det, i, j, valid, cell=None):
+    """Energy and per-pair gradient pieces for one chunk of pairs (``cell``: the current cell
+    of a box a barostat deforms, or None)."""
     plain, k_powers, m_powers, swapped = _requirements(pot, n)
-    u = space.displacement(x[i], x[j])
+    u = space.displacement(x[i], x[j], cell)
     phi_k, phi_l, b_k, b_l = phi[i], phi[j], binv[i], binv[j]
     base = {}
     r2 = jnp.sum(u * u, axis=-1)
@@ -224,15 +225,8 @@ def _chunk_contributions(pot, space: Space, n, x, phi, binv, det, i, j, valid):
     return jnp.sum(energies), (g_u, g_phik, g_phil, g_bk, g_bl, g_detk, g_detl)
 
 
-def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | None = None):
-    """(E, dV/dx [N, n], dV/dphi [N, n, n]) of ``pot`` summed over the pairs (i[p], j[p]),
-    p < count (JAX; jit with ``pot``, ``space``, ``chunk`` static). Pairs beyond ``count`` are
-    padding. Memory: one chunk of pairs at a time (default :func:`pair_chunk`)."""
-    _require_cutoff(pot)
-    chunk = pair_chunk() if chunk is None else chunk
-    bodies, n = x.shape
-    binv = linalg.inv(phi)
-    det = linalg.det(phi)
+def _pair_chunks(i, j, chunk: int):
+    """The pair indices (i, j) and their positions, padded and cut into [chunks, chunk]."""
     capacity = i.shape[0]
     chunk = max(1, min(chunk, capacity))
     chunks = -(-capacity // chunk)
@@ -240,14 +234,36 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | No
     index = jnp.arange(chunks * chunk).reshape(chunks, chunk)
     i_all = jnp.concatenate([i, jnp.zeros(fill, i.dtype)]).reshape(chunks, chunk)
     j_all = jnp.concatenate([j, jnp.zeros(fill, j.dtype)]).reshape(chunks, chunk)
+    return i_all, j_all, index
+
+
+def _pair_pass(pot, x, phi, i, j, chunk: int | None):
+    """What a chunked pass over pairs needs: N, n, phi^-1, det phi, the chunked indices
+    (``chunk`` pairs per pass, default :func:`pair_chunk`)."""
+    _require_cutoff(pot)
+    chunk = pair_chunk() if chunk is None else chunk
+    bodies, n = x.shape
+    return bodies, n, linalg.inv(phi), linalg.det(phi), _pair_chunks(i, j, chunk)
+
+
+def _valid_pairs(ii, jj, idx, count, bodies: int):
+    """(i, j, valid) of a chunk: pairs at positions >= count become a harmless pair (0, 1)."""
+    valid = idx < count
+    return (jnp.where(valid, ii, 0), jnp.where(valid, jj, jnp.minimum(1, bodies - 1)), valid)
+
+
+def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | None = None):
+    """(E, dV/dx [N, n], dV/dphi [N, n, n]) of ``pot`` summed over the pairs (i[p], j[p]),
+    p < count (JAX; jit with ``pot``, ``space``, ``chunk`` static). Pairs beyond ``count`` are
+    padding. Memory: one chunk of pairs at a time (default :func:`pair_chunk`)."""
+    bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
 
     def step(carry, block):
         energy, g_x, g_phi, g_b, g_det = carry
         ii, jj, idx = block
-        valid = idx < count
+        ii, jj, valid = _valid_pairs(ii, jj, idx, count, bodies)
         e, (g_u, g_phik, g_phil, g_bk, g_bl, g_detk, g_detl) = _chunk_contributions(
-            pot, space, n, x, phi, binv, det, jnp.where(valid, ii, 0),
-            jnp.where(valid, jj, jnp.minimum(1, bodies - 1)), valid)
+            pot, space, n, x, phi, binv, det, ii, jj, valid)
         # padding pairs add nothing: their index is out of range and dropped (sending them to
         # one body instead serialises millions of atomic adds on a GPU)
         ii, jj = jnp.where(valid, ii, bodies), jnp.where(valid, jj, bodies)
@@ -265,6 +281,31 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | No
 
 
 energy_and_gradients_jit = jax.jit(energy_and_gradients, static_argnums=(0, 1, 7))
+
+
+def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int | None = None):
+    """The configurational virial W [n, n] of ``pot`` over the pairs (i[p], j[p]), p < count:
+
+        W_ab = - sum_p u_a (dV_p/du)_b,   u = x_K - x_L (minimum image),
+
+    that is -dV/d(eps) for the strain x -> (Id + eps)^T x of the centres and of the box at
+    fixed phi (docs/pressure.md). dV_p/du is the same closed-form per-pair gradient the
+    forces of :func:`energy_and_gradients` scatter (r and D (75) both depend on u); memory:
+    one chunk of pairs at a time. ``cell``: the current cell of a box that a barostat deforms
+    (``space`` is then its reference), or None."""
+    bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
+
+    def step(total, block):
+        ii, jj, idx = block
+        ii, jj, valid = _valid_pairs(ii, jj, idx, count, bodies)
+        _, (g_u, *_) = _chunk_contributions(pot, space, n, x, phi, binv, det, ii, jj, valid,
+                                            cell)
+        u = space.displacement(x[ii], x[jj], cell)
+        g_u = jnp.where(valid[:, None], g_u, 0.0)
+        return total - jnp.einsum("pa,pb->ab", u, g_u), None
+
+    total, _ = lax.scan(step, jnp.zeros((n, n), dtype=x.dtype), (i_all, j_all, index))
+    return total
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(0, 1))
@@ -520,5 +561,5 @@ def pair_sum(pot, space: Space, x, phi, i, j, count):
 __all__ = [
     "ACCELERATOR_PAIR_CHUNK", "PAIR_CHUNK", "energy_and_gradients", "energy_and_gradients_host",
     "host_kernel_in_use", "host_threads", "neighbor_energy", "padding_value", "pair_chunk",
-    "pair_sum", "scalar_columns",
+    "pair_sum", "pair_virial", "scalar_columns",
 ]

@@ -95,6 +95,27 @@ def plot_energy(trajectory: Trajectory, path: str | Path) -> Path:
     return _save(fig, Path(path))
 
 
+def plot_pressure(trajectory: Trajectory, path: str | Path) -> Path:
+    """The scalar pressure Tr P / n with the diagonal of the pressure tensor, and the volume,
+    versus time (periodic runs; docs/pressure.md)."""
+    t, obs, n = trajectory.time, trajectory.observables, trajectory.n
+    tensor = np.asarray(obs["pressure"])
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    for a in range(n):
+        top.plot(t, tensor[:, a, a], alpha=0.5, lw=0.8, label=f"P_{_axis(n, a) * 2}")
+    top.plot(t, np.trace(tensor, axis1=1, axis2=2) / n, color="k", label="Tr P / n")
+    labels = UNIT_LABELS.get(trajectory.units, {})
+    length, energy = labels.get("length"), labels.get("energy")
+    top.set_ylabel(f"pressure [{energy}/{length}^{n}]" if length and energy else "pressure")
+    top.legend(loc="best")
+    bottom.plot(t, obs["volume"], color="C2")
+    bottom.set_ylabel(f"volume [{length}^{n}]" if length else "volume")
+    bottom.set_xlabel(f"time{_unit(trajectory, 'time')}")
+    top.set_title("pressure tensor and volume of the box")
+    fig.tight_layout()
+    return _save(fig, Path(path))
+
+
 def _components(values: np.ndarray, symbol: str, skew: bool = False):
     """(label, series) of the entries of [T, n] or [T, n, n] arrays (upper triangle if skew),
     labelled by the symbol and axis names, e.g. P_x, J_xy."""
@@ -336,6 +357,8 @@ def plot_all(trajectory: Trajectory, folder: str | Path, *, animate: str | None 
         plot_momenta(trajectory, folder / "momenta.png"),
         plot_deformation(trajectory, folder / "deformation.png"),
     ]
+    if "pressure" in trajectory.observables and "volume" in trajectory.observables:
+        paths.append(plot_pressure(trajectory, folder / "pressure.png"))
     if trajectory.n == 2:
         paths.append(plot_bodies(trajectory, folder / "bodies.png"))
         if animate:

@@ -30,8 +30,10 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+import jax
 import numpy as np
 
+from affinebody import barostat, pressure
 from affinebody import neighbors as nb
 from affinebody._checks import enable_x64
 from affinebody._timing import CompileClock, Phases
@@ -42,14 +44,17 @@ from affinebody.config import (
     ConfigError,
     build,
     frame_bytes,
+    records_pressure,
 )
 from affinebody.h5md import (
     DRIVER_NAMES,
     OBSERVABLES,
+    PERIODIC_OBSERVABLES,
     H5MDWriter,
     copy_frames_from_file,
 )
-from affinebody.simulate import relative_error
+from affinebody.simulate import NAMED_OBSERVABLES, relative_error
+from affinebody.space import as_space
 from affinebody.state import State
 
 #: Largest number of steps integrated by one compiled call (the progress bar's resolution).
@@ -185,7 +190,7 @@ def run_simulation(
         base_spec = built.neighbors[0]
     writer_args = dict(mass=built.inertia.mass, radius=built.inertia.radius, n=config.n,
                        box=config.system.box, parameters=parameters,
-                       units=config.system.units)
+                       units=config.system.units, pressure=records_pressure(config))
     if resume:
         checkpoint = load_checkpoint(ckpt_file, config_hash)
         if checkpoint.step > total:
@@ -220,6 +225,14 @@ def run_simulation(
     interval = config.checkpoint_every
     step = start
     lists = None  # (spec, list) valid for `state`, or None: all pairs
+    observers = dict(_OBSERVERS)
+    if records_pressure(config):  # pressure and volume (docs/pressure.md)
+        space = as_space(tuple(config.system.box))
+        observers.update((name, pressure.Observer(name, space))
+                         for name in PERIODIC_OBSERVABLES)
+    npt = None if config.barostat is None else _NPT(config, built)
+    if npt is not None and resume:
+        npt.cell = checkpoint.cell
     if progress is not None:
         progress(step, total, math.nan)  # before the first (compiling) chunk
     with writer, compiling.installed():
@@ -234,12 +247,16 @@ def run_simulation(
             if (end - step) % every:
                 pieces.append(((end - step) % every, (end - step) % every))
             for length, stride in pieces:
+                boxes = None
                 try:
                     with phases("integrate"):
-                        trajectory = integrate(built.system, state, dt, length,
-                                               config.run.integrator, every=stride,
-                                               observers=_OBSERVERS, neighbors=lists)
-                    stop = None
+                        if npt is not None:
+                            trajectory, boxes, stop = npt.run(state, step, length, stride)
+                        else:
+                            trajectory = integrate(built.system, state, dt, length,
+                                                   config.run.integrator, every=stride,
+                                                   observers=observers, neighbors=lists)
+                            stop = None
                 except IntegrationStopped as stopped:
                     trajectory, stop = stopped.trajectory, stopped.report
                 frame_steps = step + np.rint(np.asarray(trajectory.times) / dt).astype(np.int64)
@@ -253,6 +270,7 @@ def run_simulation(
                         frame_steps[first:] * dt,
                         State(*(np.asarray(a)[first:] for a in trajectory.states)),
                         {k: np.asarray(v)[first:] for k, v in trajectory.observables.items()},
+                        None if boxes is None else boxes[first:],
                     )
                 max_error = max(max_error, float(np.max(relative_error(energy, initial_energy))))
                 last_energy = float(energy[-1])
@@ -265,7 +283,8 @@ def run_simulation(
             if step % interval == 0 or step == total:
                 with phases("output"):
                     save_checkpoint(ckpt_file, Checkpoint(step, state, writer.frames,
-                                                          config_hash))
+                                                          config_hash,
+                                                          None if npt is None else npt.cell))
             if progress is not None:
                 progress(step, total, float(relative_error(np.asarray([last_energy]),
                                                              initial_energy)[0]))
@@ -273,6 +292,55 @@ def run_simulation(
     return RunSummary(output, start, total, frames, time.perf_counter() - started,
                       initial_energy, last_energy, max_error, bodies=config.bodies_count,
                       phases=phases.seconds, compile_seconds=compiling.seconds)
+
+
+class _NPT:
+    """The constant-pressure driver of a run with a ``[barostat]``: ``affinebody.barostat.run``
+    over the run's pieces, carrying the cell from piece to piece (and through checkpoints)."""
+
+    def __init__(self, config: Config, built):
+        b = config.barostat
+        self.config, self.system = config, built.system
+        self.space = as_space(tuple(config.system.box))
+        try:
+            self.barostat = barostat.c_rescale(
+                b.pressure, config.n, tau=b.tau, compressibility=b.compressibility,
+                temperature=b.temperature, coupling=b.coupling)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
+        self.cell = self.space.matrix
+        self.observers = tuple((name, NAMED_OBSERVABLES[driver])
+                               for name, driver in _OBSERVERS.items())
+
+    def run(self, state, step: int, length: int, every: int):
+        """(trajectory, box edges of its frames, stop report or None) of ``length`` steps
+        from ``state`` at ``step``; the frames stop before the first non-finite one."""
+        from affinebody.simulate import StopReport, Trajectory
+
+        c = self.config
+        npt = barostat.run(self.system, state, self.space, self.barostat, c.run.dt, length,
+                           seed=c.run.seed, cell=self.cell, first_step=step,
+                           integrator=c.run.integrator, every=every, observers=self.observers)
+        frame_steps = np.rint(npt.times / c.run.dt).astype(np.int64)
+        finite = (np.ones(len(frame_steps), dtype=bool) if npt.failed_step is None
+                  else frame_steps < npt.failed_step)
+        keep = len(finite) if finite.all() else int(np.argmin(finite))
+        narrow = barostat.first_narrow_frame(self.system, npt.cells[:keep])
+        stop = None
+        if keep < len(finite) or narrow is not None:
+            reason = ("non-finite state or box under the barostat: reduce run.dt or raise "
+                      "barostat.tau") if narrow is None else (
+                      "the box shrank below twice the pair cut-off (the minimum image is no "
+                      "longer exact): lower barostat.pressure or start from a larger system.box")
+            keep = keep if narrow is None else narrow
+            bad = (npt.failed_step if narrow is None else int(frame_steps[keep])) - step
+            stop = StopReport(bad, (step + bad) * c.run.dt, 0, reason, reason)
+        cut = lambda a: np.asarray(a)[:keep]  # noqa: E731
+        trajectory = Trajectory(times=cut(npt.times) - step * c.run.dt,
+                                states=jax.tree.map(cut, npt.states),
+                                observables={k: cut(v) for k, v in npt.observables.items()})
+        self.cell = np.asarray(npt.cells[keep - 1])
+        return trajectory, np.diagonal(npt.cells[:keep], axis1=1, axis2=2), stop
 
 
 def _stop_message(report, offset: int, dt: float, labels, frames: int, output: Path) -> str:

@@ -145,7 +145,12 @@ def _evaluate(system, state, items, neighbors=None):
             return NAMED_OBSERVABLES[spec](system, state)
         return NAMED_OBSERVABLES[spec](system, state, neighbors)
 
-    return {name: (named(spec) if isinstance(spec, str) else spec(state))
+    def call(spec):  # a function of the state, or of (system, state, list) if it says so
+        if getattr(spec, "takes_system", False):
+            return spec(system, state, neighbors)
+        return spec(state)
+
+    return {name: (named(spec) if isinstance(spec, str) else call(spec))
             for name, spec in items}
 
 

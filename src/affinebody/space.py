@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from affinebody import _pytree
+from affinebody import _linalg, _pytree
 
 
 @_pytree.dataclass(static=True)
@@ -123,11 +123,17 @@ class Space:
             )
 
     # ------------------------------------------------------------------ maps
-    def displacement(self, x_k: jax.Array, x_l: jax.Array) -> jax.Array:
-        """u = x_K - x_L, the minimum image in a periodic box; shape broadcast of the inputs."""
+    def displacement(self, x_k: jax.Array, x_l: jax.Array, cell=None) -> jax.Array:
+        """u = x_K - x_L, the minimum image in a periodic box; shape broadcast of the inputs.
+
+        cell: None (this box) or the cell matrix [n, n] of the box as it is now, an array that
+        may be traced (a box that a barostat deforms; the static box is then its reference)."""
         u = x_k - x_l
         if self.cell is None:
             return u
+        if cell is not None:
+            s = u @ _linalg.inv(cell).T
+            return (s - jnp.round(s)) @ cell.T
         if self.orthorhombic:
             edges = jnp.asarray(self.edges)
             return u - edges * jnp.round(u / edges)

@@ -129,6 +129,9 @@ class SweepSpec:
     @classmethod
     def from_config(cls, config: Config, samples: int | None = None,
                     seed: int | None = None) -> SweepSpec:
+        if config.barostat is not None:
+            raise ConfigError("sweep integrates at constant volume: remove [barostat] (its "
+                              "constant-pressure runs are made by affinebody run)")
         s = config.sweep
         spec = cls() if s is None else cls(
             s.samples, s.seed, s.initial_velocity, s.velocity_scale, s.x_velocity,

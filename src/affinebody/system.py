@@ -100,6 +100,9 @@ class HamiltonianSystem:
     potential: Any = pytree.static_field(default=None)
     group: str = pytree.static_field(default="GL+")
     rotationless: str | None = pytree.static_field(default=None)
+    #: None, or the current cell matrix [n, n] of a periodic box that a barostat deforms (an
+    #: array leaf: the pair terms' own box is then only the reference; all pairs are summed)
+    cell: Any = None
 
     def __post_init__(self):
         if self.group not in SYSTEM_GROUPS:
@@ -140,6 +143,10 @@ class HamiltonianSystem:
         return self._potential_energy(state.x, state.phi, neighbors)
 
     def _potential_energy(self, x, phi, neighbors):
+        if self.cell is not None:
+            from affinebody.potentials import total_potential
+
+            return total_potential([self.potential]).energy(x, phi, neighbors, cell=self.cell)
         if neighbors is None:  # potentials written as energy(x, phi) keep working
             return self.potential.energy(x, phi)
         return self.potential.energy(x, phi, neighbors)

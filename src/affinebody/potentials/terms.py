@@ -274,14 +274,17 @@ class PairTerm(AbstractPotentialTerm):
             total = total + jnp.where(inside, self.term(safe) * switch, 0.0)
         return total / len(orders)
 
-    def pair_energies(self, x, phi) -> jax.Array:
-        """Energies of the unordered pairs K < L (order of ``numpy.triu_indices``), [..., P]."""
+    def pair_energies(self, x, phi, cell=None) -> jax.Array:
+        """Energies of the unordered pairs K < L (order of ``numpy.triu_indices``), [..., P].
+
+        cell: None, or the current cell matrix [n, n] of a box that a barostat deforms (may be
+        traced; :meth:`affinebody.space.Space.displacement`)."""
         x, phi = _coordinates(x, phi)
         n, bodies = phi.shape[-1], phi.shape[-3]
         check_variable_indices(self.variables, n, type(self).__name__)
         self.check_dimension(n)
         k, l = np.triu_indices(bodies, 1)
-        u = self.space.displacement(x[..., k, :], x[..., l, :])
+        u = self.space.displacement(x[..., k, :], x[..., l, :], cell)
         return self.bond_energies(u, phi[..., k, :, :], phi[..., l, :, :])
 
     def bond_energies(self, u, phi_k, phi_l) -> jax.Array:
@@ -302,13 +305,19 @@ class PairTerm(AbstractPotentialTerm):
                 base["Ms"] = affine_invariants(phi_l, phi_k)[..., :m_powers]
         return self.energy_from_scalars(base, n)
 
-    def energy(self, x, phi, neighbors=None) -> jax.Array:
+    def energy(self, x, phi, neighbors=None, cell=None) -> jax.Array:
         """Total pair energy sum_{K<L} V_KL, shape [...] (0 for a single body).
 
         With a ``neighbors`` list (:mod:`affinebody.neighbors`) the sum runs over its pairs
         only, through the closed-form kernel of :mod:`affinebody.pair_kernels` (its gradient
         is that kernel's, not autodiff through the geometry); the list must cover every pair
-        within the cut-off (``neighbors.check``)."""
+        within the cut-off (``neighbors.check``). ``cell``: as in :meth:`pair_energies` (all
+        pairs only)."""
+        if cell is not None:
+            if neighbors is not None:
+                raise ValueError("a box that changes (barostat) is summed over all pairs: "
+                                 "run without a neighbour list")
+            return jnp.sum(self.pair_energies(x, phi, cell), axis=-1)
         if neighbors is not None:
             from affinebody.pair_kernels import neighbor_energy
 
@@ -356,14 +365,14 @@ class TotalPotential:
 
     terms: tuple[Any, ...]
 
-    def energy(self, x, phi, neighbors=None) -> jax.Array:
-        """Sum of the terms' energies; ``neighbors`` goes to the pair terms (see
+    def energy(self, x, phi, neighbors=None, cell=None) -> jax.Array:
+        """Sum of the terms' energies; ``neighbors`` and ``cell`` go to the pair terms (see
         :meth:`PairTerm.energy`)."""
         x, phi = _coordinates(x, phi)
         total = jnp.zeros(phi.shape[:-3])
         for term in self.terms:
-            if neighbors is not None and isinstance(term, PairTerm):
-                total = total + term.energy(x, phi, neighbors)
+            if (neighbors is not None or cell is not None) and isinstance(term, PairTerm):
+                total = total + term.energy(x, phi, neighbors, cell)
             else:
                 total = total + term.energy(x, phi)
         return total

@@ -1,0 +1,285 @@
+"""Stochastic cell rescaling (Bernetti and Bussi 2020): a barostat for periodic systems of affine
+bodies, isotropic or anisotropic, and the NPT run driver (docs/pressure.md).
+
+The box is the cell matrix H (columns: lattice vectors), carried as an array beside the state
+(``HamiltonianSystem.cell``): the pair terms' own box is only its reference. A barostat move
+deforms the box by a matrix mu close to Id and moves the centres and their momenta with it,
+
+    H -> mu H,   x_K -> mu x_K,   p_K -> mu^-T p_K,   phi_K, pi_K unchanged
+
+(a canonical point transformation of the centres, fixed shapes: the convention of the pressure
+tensor, :mod:`affinebody.pressure`).
+
+Isotropic coupling: with eps = ln V, P the instantaneous scalar pressure (Tr P / n, kinetic part
+included) and P0 the target (Tr P0 / n), one Euler-Maruyama step of
+
+    d eps = (beta_T / tau) (P - P0) dt + sqrt(2 kT beta_T / (V tau)) dW,   mu = exp(d eps / n) Id.
+
+Its stationary law is exp(-(H + P0 V)/kT) with the Lebesgue measure dV (Ito calculus: the
+drift of the V-dependent noise cancels the Jacobian of eps = ln V; docs/pressure.md), so an
+ideal gas has <V> = (N + 1) kT / P0.
+
+Anisotropic coupling: the n(n+1)/2 entries of an upper-triangular cell (h_ab, a <= b) move,
+or only the n edges of an orthorhombic box (which then stays orthorhombic), with the same
+target exp(-(H + P0 V)/kT) dh (Lebesgue in those entries): in the strain coordinates
+delta = dh H^-1,
+
+    d delta_ab = (beta_T / tau) (P - P0)_ba dt + (Ito drift) + sqrt(2 kT beta_T / (V tau)) dW_ab,
+
+where the Ito drift div(M) of the mobility M = (kT beta_T / (V tau)) J J^T (J: delta -> delta H)
+makes the target stationary; it is computed by automatic differentiation of M (at most 6 x 6).
+A non-hydrostatic P0 drives the mean stress to P0; the ensemble is exact for a hydrostatic P0.
+
+Random numbers: the noise of step k (counted from the start of the run, resumed runs
+included) comes from :func:`step_key` (``fold_in`` of the seed, of the barostat's own stream
+:data:`STREAM` and of k), so a run resumed from its checkpoint repeats the uninterrupted one
+bit for bit, and a thermostat drawing from the same seed gets independent numbers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from affinebody import _linalg as linalg
+from affinebody import _pytree as pytree
+from affinebody import pressure as pressure_module
+from affinebody.integrators import get_integrator
+from affinebody.space import Space, as_space
+from affinebody.state import State
+
+#: The couplings of the box to the pressure (``[barostat] coupling``).
+COUPLINGS = ("isotropic", "anisotropic")
+
+
+def _target(value, n: int) -> tuple[tuple[float, ...], ...]:
+    array = np.asarray(value, dtype=np.float64)
+    if array.ndim == 0:
+        array = float(array) * np.eye(n)
+    if array.shape != (n, n) or not np.all(np.isfinite(array)):
+        raise ValueError(f"barostat.pressure must be a finite number or an {n} x {n} tensor "
+                         f"(got {value!r})")
+    return tuple(map(tuple, array))
+
+
+@pytree.dataclass(static=True)
+class StochasticCellRescaling:
+    """c-rescale barostat (module docstring): target ``pressure`` P0 ([n, n]; a scalar means
+    P0 Id), time constant ``tau``, isothermal ``compressibility`` beta_T (only sets the
+    relaxation time, not the sampled distribution), temperature kT of the noise, ``coupling``
+    "isotropic" or "anisotropic"."""
+
+    pressure: tuple[tuple[float, ...], ...]
+    tau: float
+    compressibility: float
+    temperature: float
+    coupling: str = "isotropic"
+
+    def __post_init__(self):
+        for name in ("tau", "compressibility", "temperature"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"barostat.{name} must be > 0 (got {value})")
+        if self.coupling not in COUPLINGS:
+            raise ValueError(f"barostat.coupling must be one of {', '.join(COUPLINGS)} "
+                             f"(got {self.coupling!r})")
+
+    @property
+    def target(self) -> np.ndarray:
+        return np.asarray(self.pressure)
+
+    def move(self, system, state: State, cell, space: Space, key, dt):
+        """(state, cell) after one barostat move of length ``dt`` (module docstring)."""
+        n = cell.shape[-1]
+        p_inst = pressure_module.pressure_tensor(system.replace(cell=cell), state, space)
+        volume = linalg.det(cell)
+        rate = self.compressibility / self.tau
+        diffusion = self.temperature * rate / volume
+        if self.coupling == "isotropic":
+            drift = rate * (jnp.trace(p_inst) - float(np.trace(self.target))) / n
+            d_eps = drift * dt + jnp.sqrt(2.0 * diffusion * dt) * jax.random.normal(key)
+            mu = jnp.exp(d_eps / n) * jnp.eye(n)
+        else:
+            mask = self._moving(space)
+            stress = rate * (p_inst - jnp.asarray(self.target)).T
+            noise = jax.random.normal(key, (n, n)) * jnp.sqrt(2.0 * diffusion * dt)
+            d_delta = mask * (stress * dt + noise) + self._ito_drift(cell, mask) * dt
+            mu = jnp.eye(n) + d_delta
+        new_cell = mu @ cell
+        mu_inv_t = linalg.inv(mu).T
+        state = state._replace(x=state.x @ mu.T, p=state.p @ mu_inv_t.T)
+        return state, new_cell
+
+    @staticmethod
+    def _moving(space: Space) -> np.ndarray:
+        """Which strain components move: the diagonal of an orthorhombic box, the upper
+        triangle of a triclinic one."""
+        n = space.dimension
+        return np.eye(n) if space.orthorhombic else np.triu(np.ones((n, n)))
+
+    def _ito_drift(self, cell, mask: np.ndarray):
+        """div(M) in strain coordinates (module docstring): the drift that makes
+        exp(-(H + P0 V)/kT) dh stationary for the V-dependent mobility."""
+        rows, cols = np.nonzero(mask)
+        n = cell.shape[-1]
+        scale = self.temperature * self.compressibility / self.tau
+
+        def h_of(q):
+            return jnp.zeros((n, n), dtype=cell.dtype).at[rows, cols].set(q)
+
+        def mobility(q):
+            h = h_of(q)
+            jac = jax.jacfwd(lambda d: (h_of(d) @ h)[rows, cols])(jnp.zeros_like(q))
+            return scale / linalg.det(h) * jac @ jac.T
+
+        q = cell[rows, cols]
+        div = jnp.einsum("ijj->i", jax.jacfwd(mobility)(q))  # sum_j dM_ij / dq_j, in h
+        return h_of(div) @ linalg.inv(cell)  # as a strain increment: dh H^-1
+
+
+def c_rescale(pressure, n: int, *, tau: float, compressibility: float, temperature: float,
+              coupling: str = "isotropic") -> StochasticCellRescaling:
+    """The barostat of a ``[barostat]`` table: ``pressure`` a number (P0 Id) or an n x n
+    tensor; ValueError (one line) for a value out of range."""
+    return StochasticCellRescaling(_target(pressure, n), float(tau), float(compressibility),
+                                   float(temperature), coupling)
+
+
+@dataclass(frozen=True)
+class NPTTrajectory:
+    """Frames of an NPT run: ``times`` [F], ``states``, ``cells`` [F, n, n], ``observables``
+    (``pressure`` [F, n, n] and ``volume`` [F] among them)."""
+
+    times: np.ndarray
+    states: State
+    cells: np.ndarray
+    observables: dict
+    #: the first step (1-based, counted like ``first_step``) whose state or cell was not
+    #: finite or whose cell lost its positive diagonal; from there on the frames repeat the
+    #: last good state (None: every step was kept)
+    failed_step: int | None = None
+
+    @property
+    def final_state(self) -> State:
+        return jax.tree.map(lambda a: a[-1], self.states)
+
+
+def first_narrow_frame(system, cells) -> int | None:
+    """The first of ``cells`` [F, n, n] whose half smallest perpendicular width is below the
+    largest pair cut-off of ``system`` (the minimum image stops being exact there: the box
+    shrank too far), or None."""
+    from affinebody.potentials import PairTerm, TotalPotential
+
+    potential = system.potential
+    terms = () if potential is None else (
+        potential.terms if isinstance(potential, TotalPotential) else (potential,))
+    cuts = [t.cutoff.r_cut for t in terms if isinstance(t, PairTerm) and t.cutoff is not None]
+    if not cuts:
+        return None
+    if len(cells) == 0:
+        return None
+    with np.errstate(all="ignore"):
+        reciprocal = np.linalg.norm(np.linalg.inv(np.asarray(cells)), axis=-1)
+        narrow = ~(0.5 / np.max(reciprocal, axis=-1) >= max(cuts) * (1 - 1e-12))
+    return int(np.argmax(narrow)) if np.any(narrow) else None
+
+
+#: The barostat's own random stream (folded into the seed), apart from a thermostat's.
+STREAM = 0x62617273
+
+
+def step_key(seed: int, step):
+    """The key of step ``step`` of a run with ``seed``:
+    fold_in(fold_in(PRNGKey(seed), STREAM), step)."""
+    return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), STREAM), step)
+
+
+def _npt(system, state, cell, first_step, seed, dt, *, method, barostat, space, thermostat,
+         n_chunks, every, observers):
+    def measure(state, cell):
+        boxed = system.replace(cell=cell)
+        values = {name: f(boxed, state) for name, f in observers}
+        values["pressure"] = pressure_module.pressure_tensor(boxed, state, space)
+        values["volume"] = linalg.det(cell)
+        return values
+
+    def one_step(carry, _):
+        old_state, old_cell, k, failed = carry
+        key_thermo, key_baro = jax.random.split(step_key(seed, k))
+        state = method.step(system.replace(cell=old_cell), old_state, dt)
+        if thermostat is not None:
+            state = thermostat(system.replace(cell=old_cell), state, key_thermo, dt)
+        state, cell = barostat.move(system, state, old_cell, space, key_baro, dt)
+        ok = jnp.all(jnp.diagonal(cell) > 0) & jnp.all(jnp.isfinite(cell))
+        for leaf in jax.tree.leaves(state):
+            ok &= jnp.all(jnp.isfinite(leaf))
+        failed = jnp.where((failed < 0) & ~ok, k + 1, failed)
+        keep = lambda old, new: jnp.where(failed < 0, new, old)  # noqa: E731
+        state, cell = jax.tree.map(keep, old_state, state), keep(old_cell, cell)
+        return (state, cell, k + 1, failed), None
+
+    def chunk(carry, _):
+        carry, _ = lax.scan(one_step, carry, None, length=every)
+        return carry, (carry[0], carry[1], measure(carry[0], carry[1]))
+
+    init = (state, cell, first_step, -jnp.ones_like(first_step))
+    (*_, failed), (states, cells, values) = lax.scan(chunk, init, None, length=n_chunks)
+    first = measure(state, cell)
+    join = lambda a, f: jnp.concatenate([a[None], f])  # noqa: E731
+    return (jax.tree.map(join, state, states), join(cell, cells),
+            jax.tree.map(join, first, values), failed)
+
+
+_npt_jit = jax.jit(_npt, static_argnames=("method", "barostat", "space", "thermostat",
+                                          "n_chunks", "every", "observers"))
+
+
+def run(system, state: State, space, barostat: StochasticCellRescaling, dt: float, steps: int,
+        *, seed: int, cell=None, first_step: int = 0, integrator="strang", every: int = 1,
+        thermostat: Callable | None = None,
+        observers: Sequence[tuple[str, Callable]] = ()) -> NPTTrajectory:
+    """Integrate ``steps`` steps at constant pressure: each step is one step of the
+    integrator in the current box, the ``thermostat`` (a function
+    ``(system, state, key, dt) -> state``, or None) and a barostat move.
+
+    space: the reference periodic box (that of the pair terms); cell: the box now (default
+    ``space``'s cell); first_step: the index of the first step (keys: :func:`step_key`).
+    observers: (name, function(system, state)) pairs recorded with the pressure and volume.
+    A step that makes the state or the cell non-finite, or the cell's diagonal non-positive
+    (the barostat's step too large), is not kept: ``failed_step`` says where.
+    The pair terms are summed over all pairs (a neighbour list does not follow the box yet).
+    """
+    space = pressure_module.check_space(system, as_space(space))
+    if not isinstance(barostat, StochasticCellRescaling):
+        raise ValueError("barostat must be a StochasticCellRescaling")
+    if barostat.target.shape != (space.dimension,) * 2:
+        raise ValueError(f"barostat.pressure must be {space.dimension} x {space.dimension} "
+                         f"(got {barostat.target.shape})")
+    if int(steps) != steps or steps < 1 or int(every) != every or every < 1 or steps % every:
+        raise ValueError(f"steps must be a positive multiple of every (got {steps}, {every})")
+    if (barostat.coupling == "anisotropic" and not space.orthorhombic
+            and np.any(np.tril(space.matrix, -1) != 0)):
+        raise ValueError("anisotropic coupling of a triclinic box needs an upper-triangular "
+                         "cell matrix (lattice vectors as columns: a along x, b in the xy "
+                         "plane, ...)")
+    method = get_integrator(integrator)
+    method.check(system)
+    state = system.check(state)
+    cell = jnp.asarray(space.matrix if cell is None else cell, dtype=state.x.dtype)
+    states, cells, values, failed = _npt_jit(
+        system, state, cell, jnp.asarray(first_step), int(seed), jnp.asarray(float(dt)),
+        method=method, barostat=barostat, space=space, thermostat=thermostat,
+        n_chunks=int(steps) // int(every), every=int(every), observers=tuple(observers))
+    times = (first_step + np.arange(int(steps) // int(every) + 1) * int(every)) * float(dt)
+    return NPTTrajectory(times, jax.tree.map(np.asarray, states), np.asarray(cells),
+                         {k: np.asarray(v) for k, v in values.items()},
+                         None if int(failed) < 0 else int(failed))
+
+
+__all__ = ["COUPLINGS", "NPTTrajectory", "STREAM", "StochasticCellRescaling", "c_rescale",
+           "first_narrow_frame", "run", "step_key"]

@@ -1,0 +1,137 @@
+"""Instantaneous pressure tensor and volume of N affine bodies in a periodic box
+(docs/pressure.md).
+
+For a strain eps [n, n] acting on the centres and on the box as x -> (Id + eps)^T x,
+H -> (Id + eps)^T H, with conjugate momenta p -> (Id + eps)^-1 p (a canonical point
+transformation) and the internal configurations phi_K (and pi_K) left alone,
+
+    P_ab = -(1/V) dH/d(eps_ab) at eps = 0
+         = (1/V) [ sum_K v_Ka p_Kb  +  W_ab ],       W = -dV/d(eps)   (the virial),
+
+with V = det H, v_K = dT/dp_K the velocity of the centre given by the model's Legendre map
+(any translational model, d'Alembert or the phi-dependent af-is one (64)), and for pair terms
+
+    W_ab = sum_{pairs} u_a F_b,   u = x_K - x_L (minimum image),  F = -dV_KL/du,
+
+where dV_KL/du collects the dependence through r and through the affine distance D (75) (whose
+metric (C[phi_K] + C[phi_L])/2 is held fixed with phi). One-body terms of the centres contribute
+-sum_K x_K (dV/dx_K)^T. The body shapes phi are not strained with the box: they are internal
+degrees of freedom the ensemble integrates over at every volume, as molecular orientations are
+(docs/pressure.md gives the argument). The isotropic pressure is Tr P / n.
+
+The virial of pair terms is computed by :func:`affinebody.pair_kernels.pair_virial` from the
+same per-pair gradient dV_KL/du that the forces of a neighbour-list run use, over the run's
+neighbour list (O(N)) or over all pairs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from affinebody import _linalg as linalg
+from affinebody import pair_kernels
+from affinebody.potentials import PairTerm, TotalPotential
+from affinebody.space import Space, as_space
+
+
+def volume(space: Space, cell=None):
+    """V = det H of a periodic box (ValueError in free space: no volume, no pressure);
+    ``cell``: the current cell matrix of a box that a barostat deforms (``space`` is then its
+    reference), or None."""
+    space = as_space(space)
+    if not space.periodic:
+        raise ValueError("pressure and volume need a periodic box: set system.box")
+    return space.volume if cell is None else linalg.det(jnp.asarray(cell))
+
+
+def kinetic_tensor(system, state) -> jax.Array:
+    """sum_K v_K p_K^T [..., n, n] with v_K = dT/dp_K (the model's Legendre map)."""
+    velocity = jax.grad(lambda p: jnp.sum(system.kinetic_energy(state._replace(p=p))))(state.p)
+    return jnp.einsum("...ka,...kb->...ab", velocity, state.p)
+
+
+def _terms(potential):
+    if potential is None:
+        return ()
+    return potential.terms if isinstance(potential, TotalPotential) else (potential,)
+
+
+def check_space(system, space: Space) -> Space:
+    """``space`` as a periodic Space that every pair term of ``system`` lives in (ValueError
+    otherwise: the virial of a term in another box would not be this box's)."""
+    space = as_space(space)
+    volume(space)
+    for term in _terms(system.potential):
+        if isinstance(term, PairTerm) and term.space != space:
+            raise ValueError(
+                f"pressure: the pair term {type(term).__name__} lives in {term.space}, not in "
+                f"the box {space} of the pressure (give the pair terms the system's box)")
+    return space
+
+
+def virial(system, state, space: Space, neighbors=None) -> jax.Array:
+    """W = -dV/d(eps) [n, n] of one system (x [N, n]); see the module docstring.
+
+    neighbors: None (pair terms over all pairs, O(N^2)) or a ``neighbors.NeighborList`` valid
+    for ``state`` that covers the pair cut-off (O(N)), as in a neighbour-list run.
+    With ``system.cell`` set (a barostat), the minimum images are those of that cell.
+    """
+    space = check_space(system, space)
+    x, phi = state.x, state.phi
+    n = x.shape[-1]
+    total = jnp.zeros((n, n), dtype=x.dtype)
+    for term in _terms(system.potential):
+        if isinstance(term, PairTerm):
+            if neighbors is None:
+                i, j = (jnp.asarray(a, dtype=jnp.int32) for a in np.triu_indices(x.shape[0], 1))
+                count = i.shape[0]
+            else:
+                i, j = neighbors.i, neighbors.j
+                count = jnp.minimum(neighbors.count, neighbors.i.shape[0])
+            if x.shape[0] > 1:
+                total = total + pair_kernels.pair_virial(term, space, x, phi, i, j, count,
+                                                         system.cell)
+        else:  # one-body terms (and any other energy of x): W = -sum_K x_K (dV/dx_K)^T
+            g = jax.grad(lambda y, t=term: jnp.sum(t.energy(y, phi)))(x)
+            total = total - jnp.einsum("ka,kb->ab", x, g)
+    return total
+
+
+def pressure_tensor(system, state, space: Space, neighbors=None) -> jax.Array:
+    """P = (sum_K v_K p_K^T + W) / V [n, n] (module docstring); ``neighbors`` as in
+    :func:`virial`."""
+    v = volume(space, system.cell)
+    return (kinetic_tensor(system, state) + virial(system, state, space, neighbors)) / v
+
+
+@dataclass(frozen=True)
+class Observer:
+    """An observer of the run driver (``simulate.run(..., observers={name: Observer(...)})``):
+    ``quantity`` "pressure" (the tensor) or "volume" in the periodic box ``space``, evaluated
+    with the run's system and, in a neighbour-list run, its list (O(N))."""
+
+    quantity: str
+    space: Space
+
+    #: the driver calls it as f(system, state, neighbors) rather than f(state)
+    takes_system = True
+
+    def __call__(self, system, state, neighbors=None):
+        if self.quantity == "volume":
+            return jnp.asarray(volume(self.space, system.cell), dtype=state.x.dtype)
+        return pressure_tensor(system, state, self.space, neighbors)
+
+
+def scalar_pressure(tensor: jax.Array) -> jax.Array:
+    """The isotropic pressure Tr P / n."""
+    return jnp.trace(tensor, axis1=-2, axis2=-1) / tensor.shape[-1]
+
+
+__all__ = [
+    "Observer", "check_space", "kinetic_tensor", "pressure_tensor", "scalar_pressure",
+    "virial", "volume",
+]

@@ -1,0 +1,161 @@
+"""Stochastic cell rescaling: an ideal gas follows the isobaric law <V> = (N + 1) kT / P of the
+ensemble exp(-(H + P V)/kT) dV (isotropic, and the volume of the anisotropic orthorhombic
+coupling); the Ito drift of the triclinic coupling is the divergence worked out by hand; a
+run continued from its last frame repeats the uninterrupted one bit for bit."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from affinebody import barostat
+from affinebody.kinetic import DAlembert, DAlembertTranslational, KineticEnergy
+from affinebody.space import orthorhombic
+from affinebody.state import State
+from affinebody.system import HamiltonianSystem
+
+N, KT, P0, GAMMA = 4, 1.0, 1.0, 5.0
+
+
+def langevin_momenta(system, state, key, dt):
+    """Exact Ornstein-Uhlenbeck step of the centres' momenta (unit mass) at temperature KT."""
+    c = jnp.exp(-GAMMA * dt)
+    noise = jax.random.normal(key, state.p.shape)
+    return state._replace(p=c * state.p + jnp.sqrt((1 - c * c) * KT) * noise)
+
+
+def ideal_gas(n=2):
+    system = HamiltonianSystem(KineticEnergy(DAlembertTranslational(1.0), DAlembert(jnp.eye(n))))
+    rng = np.random.default_rng(0)
+    state = State(jnp.asarray(rng.uniform(0, 2, (N, n))), jnp.broadcast_to(jnp.eye(n), (N, n, n)),
+                  jnp.asarray(rng.normal(size=(N, n))), jnp.zeros((N, n, n)))
+    return system, state, orthorhombic((2.0, 2.5, 2.2)[:n])
+
+
+@pytest.mark.parametrize("coupling", ["isotropic", "anisotropic"])
+def test_ideal_gas_follows_the_isobaric_law(coupling):
+    system, state, space = ideal_gas()
+    baro = barostat.StochasticCellRescaling(((P0, 0.0), (0.0, P0)), tau=0.5,
+                                            compressibility=1.0, temperature=KT,
+                                            coupling=coupling)
+    trajectory = barostat.run(system, state, space, baro, 0.01, 40_000, seed=3, every=10,
+                              thermostat=langevin_momenta)
+    volume = trajectory.observables["volume"][400:]
+    blocks = volume[: len(volume) // 20 * 20].reshape(20, -1).mean(axis=1)
+    error = blocks.std(ddof=1) / np.sqrt(len(blocks))
+    expected = (N + 1) * KT / P0
+    assert abs(volume.mean() - expected) < 4 * error + 0.01 * expected, (volume.mean(), error)
+    assert error < 0.03 * expected  # the test can tell N kT / P = 4 from (N + 1) kT / P = 5
+    np.testing.assert_allclose(trajectory.observables["volume"],
+                               np.linalg.det(trajectory.cells), rtol=1e-12)
+    # positions moved with the box: the fractional coordinates stay in range of the cell
+    if coupling == "anisotropic":  # an orthorhombic box stays orthorhombic
+        assert np.all(trajectory.cells[:, 0, 1] == 0) and np.all(trajectory.cells[:, 1, 0] == 0)
+
+
+def test_triclinic_ito_drift_is_the_divergence_of_the_mobility():
+    """n = 2, q = (h11, h12, h22), M = c/V J J^T: div M = (2c/h22, 2c h12/(h11 h22), c/h11)
+    (worked by hand), as a strain increment dh H^-1."""
+    baro = barostat.StochasticCellRescaling(((P0, 0.0), (0.0, P0)), tau=0.7,
+                                            compressibility=1.3, temperature=0.9,
+                                            coupling="anisotropic")
+    h = jnp.asarray([[2.1, 0.4], [0.0, 1.7]])
+    c = 0.9 * 1.3 / 0.7
+    dh = np.array([[2 * c / 1.7, 2 * c * 0.4 / (2.1 * 1.7)], [0.0, c / 2.1]])
+    got = np.asarray(jax.jit(lambda a: baro._ito_drift(a, np.triu(np.ones((2, 2)))))(h))
+    np.testing.assert_allclose(got, dh @ np.linalg.inv(np.asarray(h)), rtol=1e-12, atol=1e-14)
+
+
+def test_one_line_errors():
+    with pytest.raises(ValueError, match="barostat.tau must be > 0"):
+        barostat.StochasticCellRescaling(((1.0,),), tau=0.0, compressibility=1.0,
+                                         temperature=1.0)
+    with pytest.raises(ValueError, match="barostat.coupling must be one of"):
+        barostat.StochasticCellRescaling(((1.0,),), tau=1.0, compressibility=1.0,
+                                         temperature=1.0, coupling="semi")
+
+
+NPT_CONFIG = """
+[system]
+n = 2
+bodies = 4
+box = [4.0, 4.2]
+[body]
+mass = 1.0
+inertia = 0.5
+[kinetic]
+translational = "dalembert"
+internal = "dalembert"
+[[potential]]
+kind = "pair"
+expr = "exp(-D**2) + 0.5 * exp(-r**2)"
+r_cut = 1.0
+[[potential]]
+kind = "one-body"
+expr = "2*(det - 1)**2 + 0.5*(trG - 2)**2"
+[initial]
+x = [[0.2, 0.3], [2.2, 0.2], [0.4, 2.3], [2.4, 2.1]]
+momentum = [[0.5, 0.0], [0.0, -0.5], [-0.5, 0.5], [0.0, 0.0]]
+[run]
+dt = 0.01
+steps = 400
+every = 50
+checkpoint = 200
+seed = 11
+[barostat]
+pressure = 0.1
+tau = 2.0
+compressibility = 1.0
+temperature = 0.3
+coupling = "anisotropic"
+"""
+
+
+def test_npt_run_writes_the_box_pressure_and_volume_and_resumes_bit_for_bit(tmp_path):
+    from affinebody.config import check_config, parse_config
+    from affinebody.h5md import read_trajectory
+    from affinebody.runner import run_simulation
+
+    config = check_config(parse_config(NPT_CONFIG))
+    run_simulation(config, tmp_path / "whole.h5")
+    run_simulation(config, tmp_path / "resumed.h5", steps=200)
+    run_simulation(config, tmp_path / "resumed.h5", resume=True)
+    whole, resumed = (read_trajectory(tmp_path / f"{k}.h5") for k in ("whole", "resumed"))
+    assert whole.frames == 9
+    for name in ("x", "phi", "p", "pi", "boxes", "step", "time"):
+        np.testing.assert_array_equal(getattr(resumed, name), getattr(whole, name))
+    for name, value in whole.observables.items():
+        np.testing.assert_array_equal(resumed.observables[name], value)
+    # the box moves with the barostat (each edge on its own), volume = det of the cell
+    assert np.all(np.ptp(whole.boxes, axis=0) > 1e-4)
+    assert np.ptp(whole.boxes[:, 0] / whole.boxes[:, 1]) > 1e-4  # anisotropic: not one scale
+    np.testing.assert_allclose(whole.observables["volume"], np.prod(whole.boxes, axis=1),
+                               rtol=1e-12)
+    assert whole.observables["pressure"].shape == (9, 2, 2)
+    from affinebody.plotting import plot_all
+
+    written = plot_all(whole, tmp_path / "plots")
+    assert (tmp_path / "plots" / "pressure.png") in written
+    assert (tmp_path / "plots" / "pressure.png").stat().st_size > 10_000
+
+
+def test_barostat_config_errors_are_one_line():
+    from affinebody.config import ConfigError, check_config, parse_config
+
+    cases = {
+        "tau = 2.0": ("tau = -1.0", "barostat.tau must be > 0"),
+        "pressure = 0.1": ("pressure = [[1.0, 0.0]]", "barostat.pressure"),
+        "box = [4.0, 4.2]\n": ("", "barostat needs a periodic box"),
+        'coupling = "anisotropic"': ('coupling = "sheared"', "barostat.coupling"),
+    }
+    for old, (new, message) in cases.items():
+        with pytest.raises(ConfigError, match=message) as err:
+            check_config(parse_config(NPT_CONFIG.replace(old, new)))
+        assert "\n" not in str(err.value)
+    from affinebody.sweep import SweepSpec
+
+    with pytest.raises(ConfigError, match="sweep integrates at constant volume"):
+        SweepSpec.from_config(check_config(parse_config(NPT_CONFIG)))
+    with pytest.raises(ConfigError, match='run.neighbor_list = "on" does not follow a box'):
+        check_config(parse_config(NPT_CONFIG.replace("seed = 11", "seed = 11\nneighbor_list "
+                                                                   '= "on"')))
