@@ -112,11 +112,15 @@ coupling = "anisotropic"
 
 
 def test_npt_run_writes_the_box_pressure_and_volume_and_resumes_bit_for_bit(tmp_path):
-    from affinebody.config import check_config, parse_config
+    """With a neighbour list that follows the box (its agreement with all pairs:
+    tests/test_npt_neighbors.py)."""
+    from affinebody.config import check_config, parse_config, uses_neighbor_list
     from affinebody.h5md import read_trajectory
     from affinebody.runner import run_simulation
 
-    config = check_config(parse_config(NPT_CONFIG))
+    config = check_config(parse_config(NPT_CONFIG.replace(
+        "seed = 11", 'seed = 11\nneighbor_list = "on"\nneighbor_skin = 0.2')))
+    assert uses_neighbor_list(config)
     run_simulation(config, tmp_path / "whole.h5")
     run_simulation(config, tmp_path / "resumed.h5", steps=200)
     run_simulation(config, tmp_path / "resumed.h5", resume=True)
@@ -156,6 +160,4 @@ def test_barostat_config_errors_are_one_line():
 
     with pytest.raises(ConfigError, match="sweep integrates at constant volume"):
         SweepSpec.from_config(check_config(parse_config(NPT_CONFIG)))
-    with pytest.raises(ConfigError, match='run.neighbor_list = "on" does not follow a box'):
-        check_config(parse_config(NPT_CONFIG.replace("seed = 11", "seed = 11\nneighbor_list "
-                                                                   '= "on"')))
+

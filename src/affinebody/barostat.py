@@ -48,8 +48,10 @@ from jax import lax
 
 from affinebody import _linalg as linalg
 from affinebody import _pytree as pytree
+from affinebody import neighbors as nb
 from affinebody import pressure as pressure_module
 from affinebody.integrators import get_integrator
+from affinebody.integrators.splitting import update_neighbors
 from affinebody.space import Space, as_space
 from affinebody.state import State
 
@@ -93,10 +95,13 @@ class StochasticCellRescaling:
     def target(self) -> np.ndarray:
         return np.asarray(self.pressure)
 
-    def move(self, system, state: State, cell, space: Space, key, dt):
-        """(state, cell) after one barostat move of length ``dt`` (module docstring)."""
+    def move(self, system, state: State, cell, space: Space, key, dt, neighbors=None):
+        """(state, cell) after one barostat move of length ``dt`` (module docstring);
+        ``neighbors``: None (the virial over all pairs) or a list valid for ``state`` in
+        ``cell``."""
         n = cell.shape[-1]
-        p_inst = pressure_module.pressure_tensor(system.replace(cell=cell), state, space)
+        p_inst = pressure_module.pressure_tensor(system.replace(cell=cell), state, space,
+                                                 neighbors)
         volume = linalg.det(cell)
         rate = self.compressibility / self.tau
         diffusion = self.temperature * rate / volume
@@ -163,6 +168,9 @@ class NPTTrajectory:
     #: finite or whose cell lost its positive diagonal; from there on the frames repeat the
     #: last good state (None: every step was kept)
     failed_step: int | None = None
+    #: (spec, list) of the run's neighbour list, valid for the last state and cell (None: all
+    #: pairs)
+    neighbors: tuple | None = None
 
     @property
     def final_state(self) -> State:
@@ -199,60 +207,114 @@ def step_key(seed: int, step):
     return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), STREAM), step)
 
 
-def _npt(system, state, cell, first_step, seed, dt, *, method, barostat, space, thermostat,
-         n_chunks, every, observers):
-    def measure(state, cell):
+def _npt(system, state, cell, first_step, seed, dt, neighbors, *, method, barostat, space,
+         thermostat, n_chunks, every, observers, spec):
+    """The compiled NPT run; with a neighbour list (``spec`` not None) the carry holds the
+    list, valid for the carried state in the carried cell, and a step whose list overflowed
+    is not kept (``lost``: what the reallocation must hold, as in ``simulate.run``)."""
+    def measure(state, cell, nbrs):
         boxed = system.replace(cell=cell)
-        values = {name: f(boxed, state) for name, f in observers}
-        values["pressure"] = pressure_module.pressure_tensor(boxed, state, space)
+        extra = () if spec is None else (nbrs,)
+        values = {name: f(boxed, state, *extra) for name, f in observers}
+        values["pressure"] = pressure_module.pressure_tensor(boxed, state, space, nbrs)
         values["volume"] = linalg.det(cell)
         return values
 
     def one_step(carry, _):
-        old_state, old_cell, k, failed = carry
+        old_state, old_cell, old_nbrs, k, failed, overflowed, lost = carry
         key_thermo, key_baro = jax.random.split(step_key(seed, k))
-        state = method.step(system.replace(cell=old_cell), old_state, dt)
+        boxed = system.replace(cell=old_cell)
+        if spec is None:
+            state, nbrs = method.step(boxed, old_state, dt), None
+        else:
+            state, tracked, _ = method.advance(boxed, old_state, boxed.forces(old_state, old_nbrs),
+                                               dt, spec, old_nbrs)
+            nbrs = tracked.neighbors
         if thermostat is not None:
-            state = thermostat(system.replace(cell=old_cell), state, key_thermo, dt)
-        state, cell = barostat.move(system, state, old_cell, space, key_baro, dt)
+            state = thermostat(boxed, state, key_thermo, dt)
+        state, cell = barostat.move(system, state, old_cell, space, key_baro, dt, nbrs)
         ok = jnp.all(jnp.diagonal(cell) > 0) & jnp.all(jnp.isfinite(cell))
         for leaf in jax.tree.leaves(state):
             ok &= jnp.all(jnp.isfinite(leaf))
+        if spec is not None:  # the list follows the box (rebuilt when it may miss a pair)
+            tracked = update_neighbors(spec, tracked, state, cell)
+            nbrs = tracked.neighbors
+            over = (tracked.overflow != 0) & ok & (failed < 0)
+            seen = (tracked.overflow, tracked.most_pairs, tracked.largest_reach)
+            lost = jax.tree.map(lambda old, new: jnp.where(over, new, old), lost, seen)
+            overflowed = overflowed | over
+            ok &= ~over
         failed = jnp.where((failed < 0) & ~ok, k + 1, failed)
         keep = lambda old, new: jnp.where(failed < 0, new, old)  # noqa: E731
         state, cell = jax.tree.map(keep, old_state, state), keep(old_cell, cell)
-        return (state, cell, k + 1, failed), None
+        nbrs = jax.tree.map(keep, old_nbrs, nbrs)
+        return (state, cell, nbrs, k + 1, failed, overflowed, lost), None
 
     def chunk(carry, _):
         carry, _ = lax.scan(one_step, carry, None, length=every)
-        return carry, (carry[0], carry[1], measure(carry[0], carry[1]))
+        return carry, (carry[0], carry[1], measure(carry[0], carry[1], carry[2]))
 
-    init = (state, cell, first_step, -jnp.ones_like(first_step))
-    (*_, failed), (states, cells, values) = lax.scan(chunk, init, None, length=n_chunks)
-    first = measure(state, cell)
+    int0 = jnp.zeros((), dtype=jnp.int32)
+    lost = (int0, int0, jnp.zeros((), dtype=state.x.dtype))
+    init = (state, cell, neighbors, first_step, -jnp.ones_like(first_step), jnp.asarray(False),
+            lost)
+    (_, _, last_list, _, failed, overflowed, lost), (states, cells, values) = lax.scan(
+        chunk, init, None, length=n_chunks)
+    first = measure(state, cell, neighbors)
     join = lambda a, f: jnp.concatenate([a[None], f])  # noqa: E731
     return (jax.tree.map(join, state, states), join(cell, cells),
-            jax.tree.map(join, first, values), failed)
+            jax.tree.map(join, first, values), failed, overflowed, lost, last_list)
 
 
 _npt_jit = jax.jit(_npt, static_argnames=("method", "barostat", "space", "thermostat",
-                                          "n_chunks", "every", "observers"))
+                                          "n_chunks", "every", "observers", "spec"))
+
+
+def _initial_list(system, method, state, cell, neighbors):
+    """(spec, list) valid for ``state`` in ``cell``, from the (spec, list) pair given (built
+    again in ``cell`` when it may miss a pair, reallocated when it overflows); (None, None)
+    for all pairs."""
+    if neighbors is None:
+        return None, None
+    if not method.uses_neighbor_lists:
+        raise ValueError(f"integrator {method.name!r} sums over all pairs: neighbour lists work "
+                         f"with the splitting integrators")
+    try:
+        spec, lst = neighbors
+    except (TypeError, ValueError):
+        raise ValueError("neighbors must be the (spec, list) pair of neighbors.allocate(..., "
+                         "cell=...)") from None
+    if not isinstance(spec, nb.NeighborSpec) or not isinstance(lst, nb.NeighborList):
+        raise ValueError("neighbors must be the (spec, list) pair of neighbors.allocate")
+    space, cutoff, variable = system.neighbor_range()
+    if spec.space != space or spec.variable != variable or spec.cutoff < cutoff:
+        raise ValueError("the neighbour list does not fit the system's pair cut-off and box")
+    if lst.cell is None or bool(nb.needs_rebuild(spec, lst, state.x, state.phi, cell)):
+        lst = nb.build_jit(spec, state.x, state.phi, cell)
+    if int(lst.overflow):
+        return nb.list_at(spec, state.x, state.phi, cell)
+    return spec, lst
 
 
 def run(system, state: State, space, barostat: StochasticCellRescaling, dt: float, steps: int,
         *, seed: int, cell=None, first_step: int = 0, integrator="strang", every: int = 1,
         thermostat: Callable | None = None,
-        observers: Sequence[tuple[str, Callable]] = ()) -> NPTTrajectory:
+        observers: Sequence[tuple[str, Callable]] = (), neighbors=None) -> NPTTrajectory:
     """Integrate ``steps`` steps at constant pressure: each step is one step of the
     integrator in the current box, the ``thermostat`` (a function
     ``(system, state, key, dt) -> state``, or None) and a barostat move.
 
     space: the reference periodic box (that of the pair terms); cell: the box now (default
     ``space``'s cell); first_step: the index of the first step (keys: :func:`step_key`).
-    observers: (name, function(system, state)) pairs recorded with the pressure and volume.
+    observers: (name, function(system, state)) pairs recorded with the pressure and volume
+    (with a neighbour list: function(system, state, list)).
     A step that makes the state or the cell non-finite, or the cell's diagonal non-positive
     (the barostat's step too large), is not kept: ``failed_step`` says where.
-    The pair terms are summed over all pairs (a neighbour list does not follow the box yet).
+    neighbors: None (pair terms over all pairs) or the (spec, list) pair of
+    ``neighbors.allocate(space, x, phi, cutoff, variable, skin, cell=cell)`` (splitting
+    integrators): forces, virial and observables are then summed over the list, which follows
+    the box (rebuilt after a drift or a barostat move when it may miss a pair); an overflow of
+    its capacities is recovered by reallocating at the last frame, as in ``simulate.run``.
     """
     space = pressure_module.check_space(system, as_space(space))
     if not isinstance(barostat, StochasticCellRescaling):
@@ -271,14 +333,45 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
     method.check(system)
     state = system.check(state)
     cell = jnp.asarray(space.matrix if cell is None else cell, dtype=state.x.dtype)
-    states, cells, values, failed = _npt_jit(
-        system, state, cell, jnp.asarray(first_step), int(seed), jnp.asarray(float(dt)),
-        method=method, barostat=barostat, space=space, thermostat=thermostat,
-        n_chunks=int(steps) // int(every), every=int(every), observers=tuple(observers))
-    times = (first_step + np.arange(int(steps) // int(every) + 1) * int(every)) * float(dt)
-    return NPTTrajectory(times, jax.tree.map(np.asarray, states), np.asarray(cells),
-                         {k: np.asarray(v) for k, v in values.items()},
-                         None if int(failed) < 0 else int(failed))
+    spec, nbrs = _initial_list(system, method, state, cell, neighbors)
+    every = int(every)
+    segments = []  # (times, states, cells, values) of each compiled call, numpy
+    start, in_a_row, failed = int(first_step), 0, -1
+    end = int(first_step) + int(steps)
+    while True:
+        states, cells, values, failed, overflowed, lost, last_list = _npt_jit(
+            system, state, cell, jnp.asarray(start), int(seed), jnp.asarray(float(dt)), nbrs,
+            method=method, barostat=barostat, space=space, thermostat=thermostat,
+            n_chunks=(end - start) // every, every=every, observers=tuple(observers),
+            spec=spec)
+        part = (jax.tree.map(np.asarray, states), np.asarray(cells),
+                {k: np.asarray(v) for k, v in values.items()})
+        first = 0 if not segments else 1  # a restart's frame 0 is the last kept frame
+        failed = int(failed)
+        if not bool(overflowed):
+            segments.append((start, part, first, len(part[1])))
+            break
+        aligned = (failed - 1 - start) // every  # the last frame before the overflow
+        segments.append((start, part, first, aligned + 1))
+        in_a_row = in_a_row + 1 if aligned == 0 else 1
+        if in_a_row > nb.MAX_REALLOCATIONS_IN_A_ROW:
+            raise nb.NeighborListOverflow(
+                f"{in_a_row - 1} reallocations of the neighbour list at step "
+                f"{start + aligned * every} did not get past step {failed}")
+        state = jax.tree.map(lambda a, j=aligned: jnp.asarray(a[j]), part[0])
+        cell = jnp.asarray(part[1][aligned])
+        spec, nbrs = nb.reallocate(spec, state.x, state.phi, flags=int(lost[0]),
+                                   pairs=int(lost[1]), reach=float(lost[2]), cell=cell)
+        start += aligned * every
+    pieces = [(p, f, u) for _, p, f, u in segments]
+    states = jax.tree.map(lambda *a: np.concatenate([x[f:u] for x, (_, f, u) in
+                                                     zip(a, pieces, strict=True)]),
+                          *[p[0] for p, _, _ in pieces])
+    cells = np.concatenate([p[1][f:u] for p, f, u in pieces])
+    values = {k: np.concatenate([p[2][k][f:u] for p, f, u in pieces]) for k in pieces[0][0][2]}
+    times = (first_step + np.arange(len(cells)) * every) * float(dt)
+    return NPTTrajectory(times, states, cells, values, None if failed < 0 else failed,
+                         None if spec is None else (spec, last_list))
 
 
 __all__ = ["COUPLINGS", "NPTTrajectory", "STREAM", "StochasticCellRescaling", "c_rescale",

@@ -627,12 +627,7 @@ def uses_neighbor_list(config: Config, terms=None) -> bool:
     ``terms``: the built [[potential]] entries (built here when None).
     """
     mode = config.run.neighbor_list
-    if config.barostat is not None and mode == "on":
-        raise ConfigError('run.neighbor_list = "on" does not follow a box that a [barostat] '
-                          'changes (pair forces are summed over all pairs): set '
-                          'run.neighbor_list = "off"')
-    if mode == "off" or config.barostat is not None or (
-            mode == "auto" and config.bodies_count < AUTO_NEIGHBOR_LIST_BODIES):
+    if mode == "off" or (mode == "auto" and config.bodies_count < AUTO_NEIGHBOR_LIST_BODIES):
         return False
     if terms is None:
         terms = [build_potential_entry(e, k, config) for k, e in enumerate(config.potential)]
@@ -1006,7 +1001,8 @@ def build(config: Config) -> Built:
         space, cutoff, variable = system.neighbor_range()
         try:
             lists = nb.allocate(space, state.x, state.phi, cutoff, variable,
-                                config.run.neighbor_skin)
+                                config.run.neighbor_skin,  # a [barostat]: cells that follow
+                                cell=None if config.barostat is None else space.matrix)
         except ValueError as err:
             raise ConfigError(f"initial: {err}") from None
         lap("neighbour list")

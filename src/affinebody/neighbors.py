@@ -15,6 +15,22 @@ and the list holds every pair K < L with |x_K - x_L| < rho + skin at the time of
 
 which :func:`needs_rebuild` tests; :func:`update` rebuilds inside compiled code when it fails.
 
+A box that changes (a barostat, ``HamiltonianSystem.cell``). The spec's box is then only the
+reference; build, update and check take the current cell matrix H_t, and the list remembers the
+cell H_0 of its build. Cells are a grid in fractional coordinates s = H^-1 x, so a move of the
+barostat (x -> mu x, H -> mu H) moves no body between cells. With A = H_0 H_t^-1 and
+m_K = H_0 (s_K(t) - s_K(build)) (the motion relative to the box, in the build's frame), a pair
+in range now, |u_t| < rho(t), had at the build the image u_0 = A u_t - (m_K - m_L) with
+|u_0| <= |A| rho(t) + 2 max_K |m_K|, so the list stays complete while
+
+    |A| rho(t) + 2 max_K |m_K| <= rho(build) + skin,     |A| the largest singular value,
+
+(the fixed-box rule when A = Id), and while rho(t) + skin <= half the smallest perpendicular
+width of H_t (the minimum image, :mod:`affinebody.space`). A build checks that its cells are
+at least rho + skin wide in the current cell; :func:`allocate` with ``cell`` chooses cells
+:data:`BOX_HEADROOM` wider than needed, so that the box may shrink by that much before a
+reallocation (``REACH_OVERFLOW``) gives a finer grid for the box as it is.
+
 Fixed shapes. A list is a pytree of arrays of fixed capacity (:class:`NeighborList`), so
 building and using it compiles once. Capacities are chosen by :func:`allocate` from the actual
 configuration with some room to spare; a build that does not fit sets ``overflow`` (bit 1: pair
@@ -57,6 +73,9 @@ _CANDIDATES_PER_CHUNK = 1 << 18
 #: The same on a GPU, where each pass is a trip of a device loop (its condition read by the
 #: host) and a few launches: 10^6 bodies take ~12 passes instead of ~800 (~0.3 GB per pass).
 _ACCELERATOR_CANDIDATES_PER_CHUNK = 1 << 24
+#: Relative room in the cells' widths of a list for a box that changes (``allocate(...,
+#: cell=...)``): the box may shrink by this factor before a reallocation gives new cells.
+BOX_HEADROOM = 0.1
 
 
 def candidates_per_chunk() -> int:
@@ -74,6 +93,9 @@ class NeighborList(NamedTuple):
     overflow: jax.Array  # [] int32: bit flags PAIR/CELL/REACH_OVERFLOW
     reference_x: jax.Array  # [N, n] centres at the build
     reach: jax.Array  # [] spatial reach rho at the build
+    #: the cell matrix [n, n] at the build of a box that a barostat deforms (None: the
+    #: spec's static box; "A box that changes" in the module docstring)
+    cell: jax.Array | None = None
 
 
 @dataclass(frozen=True)
@@ -141,9 +163,13 @@ def spatial_reach(cutoff: float, variable: str, phi: jax.Array) -> jax.Array:
 # cells
 
 
-def _cell_coordinates(spec: NeighborSpec, x: jax.Array) -> jax.Array:
+def _cell_coordinates(spec: NeighborSpec, x: jax.Array, cell=None) -> jax.Array:
     grid = jnp.asarray(spec.grid)
-    if spec.space.periodic:
+    if cell is not None:
+        s = x @ linalg.inv(cell).T
+        s = s - jnp.floor(s)
+        c = jnp.floor(s * grid).astype(jnp.int32)
+    elif spec.space.periodic:
         s = spec.space.fractional(x)
         s = s - jnp.floor(s)
         c = jnp.floor(s * grid).astype(jnp.int32)
@@ -169,11 +195,12 @@ def _stencil(spec: NeighborSpec) -> np.ndarray:
     return np.stack([m.ravel() for m in mesh], axis=-1).astype(np.int32)
 
 
-def cell_table(spec: NeighborSpec, x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+def cell_table(spec: NeighborSpec, x: jax.Array,
+               cell=None) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(cell coordinates [N, n], table [N_cells, cell_capacity] of body indices padded with N,
-    largest occupancy)."""
+    largest occupancy); ``cell``: the current cell of a box that changes, or None."""
     bodies = x.shape[0]
-    coords = _cell_coordinates(spec, x)
+    coords = _cell_coordinates(spec, x, cell)
     flat = coords @ jnp.asarray(_strides(spec.grid))
     order = jnp.argsort(flat).astype(jnp.int32)
     ordered = flat[order]
@@ -190,25 +217,43 @@ def cell_table(spec: NeighborSpec, x: jax.Array) -> tuple[jax.Array, jax.Array, 
 # build, update, check
 
 
-def build(spec: NeighborSpec, x: jax.Array, phi: jax.Array) -> NeighborList:
+def perpendicular_widths(cell: jax.Array) -> jax.Array:
+    """w_a = 1 / |row a of H^-1| of a (possibly traced) cell matrix H [n, n]."""
+    return 1.0 / jnp.sqrt(jnp.sum(linalg.inv(cell) ** 2, axis=-1))
+
+
+def _reach_overflow(spec: NeighborSpec, radius, cell) -> jax.Array:
+    """Whether cells of ``spec`` cannot hold a list of ``radius``: beyond ``max_radius`` in
+    the static box; in a box that changes (``cell``), wider than a cell of the grid or than
+    half the box's smallest perpendicular width, now."""
+    if cell is None:
+        return radius > spec.max_radius
+    widths = perpendicular_widths(cell)
+    return ((radius > jnp.min(widths / jnp.asarray(spec.grid)))
+            | (radius > 0.5 * jnp.min(widths)))
+
+
+def build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> NeighborList:
     """The half list of ``spec`` for centres x [N, n] and configurations phi [N, n, n]
-    (jit-compatible; ``spec`` is static). Check ``overflow`` before using it.
+    (jit-compatible; ``spec`` is static). Check ``overflow`` before using it. ``cell``: the
+    current cell matrix of a box that a barostat deforms (the spec's box is its reference;
+    module docstring), or None.
 
     On a CPU backend with Numba this is :func:`_host_build` (compiled loops, no cell
     capacity to fill: ~50x faster at 4096 bodies); elsewhere the JAX build below. Both give
     the same pairs in the same order (tested)."""
     if _host.in_use():
-        return _host_build(spec, x, phi)
-    return build_jax(spec, x, phi)
+        return _host_build(spec, x, phi, cell)
+    return build_jax(spec, x, phi, cell)
 
 
-def build_jax(spec: NeighborSpec, x: jax.Array, phi: jax.Array) -> NeighborList:
+def build_jax(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> NeighborList:
     """:func:`build` in JAX (a GPU: no host round trip). Pairs in order of K, then of the
     stencil cell, then of L within a cell."""
     bodies, n = x.shape
     reach = spatial_reach(spec.cutoff, spec.variable, phi)
     radius = reach + spec.skin
-    coords, table, occupancy = cell_table(spec, x)
+    coords, table, occupancy = cell_table(spec, x, cell)
     stencil = jnp.asarray(_stencil(spec))
     strides = jnp.asarray(_strides(spec.grid))
     grid = jnp.asarray(spec.grid)
@@ -232,7 +277,7 @@ def build_jax(spec: NeighborSpec, x: jax.Array, phi: jax.Array) -> NeighborList:
             neighbour = jnp.clip(neighbour, 0, grid - 1)
         candidate = table[neighbour @ strides]  # [chunk, S, cap]
         candidate = jnp.where(inside[..., None], candidate, bodies).reshape(body.shape[0], -1)
-        u = spec.space.displacement(x_pad[body][:, None, :], x_pad[candidate])
+        u = spec.space.displacement(x_pad[body][:, None, :], x_pad[candidate], cell)
         keep = (
             (candidate < bodies)
             & (candidate > body[:, None])
@@ -254,9 +299,9 @@ def build_jax(spec: NeighborSpec, x: jax.Array, phi: jax.Array) -> NeighborList:
     overflow = (
         jnp.where(total > capacity, PAIR_OVERFLOW, 0)
         | jnp.where(occupancy > spec.cell_capacity, CELL_OVERFLOW, 0)
-        | jnp.where(radius > spec.max_radius, REACH_OVERFLOW, 0)
+        | jnp.where(_reach_overflow(spec, radius, cell), REACH_OVERFLOW, 0)
     ).astype(jnp.int32)
-    return NeighborList(pairs_i, pairs_j, total, overflow, x, reach)
+    return NeighborList(pairs_i, pairs_j, total, overflow, x, reach, cell)
 
 
 build_jit = jax.jit(build, static_argnums=0)
@@ -269,58 +314,77 @@ def _host_kernel(n: int, periodic: bool):
     return _host.specialized("cells", N=n, PERIODIC=bool(periodic)).pairs
 
 
-def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array) -> NeighborList:
+def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> NeighborList:
     """:func:`build` with compiled CPU loops through ``jax.pure_callback``: a counting sort of
     the bodies by cell (no cell capacity), then, for each body K in order, the cells of the
     stencil in order and their bodies L > K in index order, as :func:`build_jax`."""
     bodies, n = x.shape
     reach = spatial_reach(spec.cutoff, spec.variable, phi)
     radius = reach + spec.skin
-    coords = _cell_coordinates(spec, x)
+    coords = _cell_coordinates(spec, x, cell)
     flat = coords @ jnp.asarray(_strides(spec.grid))
     space = spec.space
-    if space.periodic:
+    if cell is not None:  # the current cell, an operand (the general minimum image)
+        mode, h, h_inv, edges = 2, cell, linalg.inv(cell), np.ones(n)
+    elif space.periodic:
         mode = 1 if space.orthorhombic else 2
         h, h_inv, edges = space.matrix, space.inverse, space.edges
     else:
         mode, h, h_inv, edges = 0, np.eye(n), np.eye(n), np.ones(n)
     statics = (np.asarray(spec.grid, np.int64), _strides(spec.grid).astype(np.int64),
-               _stencil(spec).astype(np.int64), mode, np.asarray(h, np.float64),
-               np.asarray(h_inv, np.float64), np.asarray(edges, np.float64))
+               _stencil(spec).astype(np.int64), mode, np.asarray(edges, np.float64))
 
-    def host(flat, coords, x, radius):
+    def host(flat, coords, x, radius, h, h_inv):
         pairs_i = np.full(spec.capacity, bodies, np.int32)
         pairs_j = np.full(spec.capacity, bodies, np.int32)
-        grid, strides, stencil, mode, h, h_inv, edges = statics
+        grid, strides, stencil, mode, edges = statics
         total = _host_kernel(n, space.periodic)(
             np.asarray(flat, np.int64), np.asarray(coords, np.int64), np.asarray(x), grid,
-            strides, stencil, mode, h, h_inv, edges, float(radius) ** 2, spec.capacity,
-            pairs_i, pairs_j)
+            strides, stencil, mode, np.asarray(h, np.float64), np.asarray(h_inv, np.float64),
+            edges, float(radius) ** 2, spec.capacity, pairs_i, pairs_j)
         return pairs_i, pairs_j, np.asarray(min(total, np.iinfo(np.int32).max), np.int32)
 
     shapes = (jax.ShapeDtypeStruct((spec.capacity,), jnp.int32),) * 2 + (
         jax.ShapeDtypeStruct((), jnp.int32),)
-    pairs_i, pairs_j, total = jax.pure_callback(host, shapes, flat, coords, x, radius,
-                                                vmap_method="sequential")
+    pairs_i, pairs_j, total = jax.pure_callback(
+        host, shapes, flat, coords, x, radius, jnp.asarray(h, x.dtype),
+        jnp.asarray(h_inv, x.dtype), vmap_method="sequential")
     overflow = (jnp.where(total > spec.capacity, PAIR_OVERFLOW, 0)
-                | jnp.where(radius > spec.max_radius, REACH_OVERFLOW, 0)).astype(jnp.int32)
-    return NeighborList(pairs_i, pairs_j, total, overflow, x, reach)
+                | jnp.where(_reach_overflow(spec, radius, cell), REACH_OVERFLOW, 0)
+                ).astype(jnp.int32)
+    return NeighborList(pairs_i, pairs_j, total, overflow, x, reach, cell)
 
 
-def needs_rebuild(spec: NeighborSpec, neighbors: NeighborList, x, phi) -> jax.Array:
+def needs_rebuild(spec: NeighborSpec, neighbors: NeighborList, x, phi,
+                  cell=None) -> jax.Array:
     """True when 2 max_K |x_K - x_K(build)| + rho - rho(build) exceeds the skin (the list
-    might miss a pair in range), or the list overflowed."""
-    moved = spec.space.displacement(x, neighbors.reference_x)
+    might miss a pair in range), or the list overflowed. ``cell``: the current cell of a box
+    that changes (the list must have been built with one): then the rule of the module
+    docstring, |A| rho + 2 max_K |m_K| > rho(build) + skin, or rho + skin beyond half the
+    box's smallest perpendicular width."""
+    reach = spatial_reach(spec.cutoff, spec.variable, phi)
+    if cell is None:
+        moved = spec.space.displacement(x, neighbors.reference_x)
+        largest = jnp.sqrt(jnp.max(jnp.sum(moved * moved, axis=-1)))
+        growth = reach - neighbors.reach
+        return (2.0 * largest + growth > spec.skin) | (neighbors.overflow != 0)
+    if neighbors.cell is None:
+        raise ValueError("neighbors.needs_rebuild: a list for a box that changes must be "
+                         "built with its cell (neighbors.build(spec, x, phi, cell))")
+    stretch = neighbors.cell @ linalg.inv(cell)  # A = H_0 H_t^-1
+    moved = spec.space.displacement(x @ stretch.T, neighbors.reference_x, neighbors.cell)
     largest = jnp.sqrt(jnp.max(jnp.sum(moved * moved, axis=-1)))
-    growth = spatial_reach(spec.cutoff, spec.variable, phi) - neighbors.reach
-    return (2.0 * largest + growth > spec.skin) | (neighbors.overflow != 0)
+    grown = largest_singular_values(stretch[None])[0] * reach + 2.0 * largest
+    narrow = reach + spec.skin > 0.5 * jnp.min(perpendicular_widths(cell))
+    return (grown > neighbors.reach + spec.skin) | narrow | (neighbors.overflow != 0)
 
 
-def update(spec: NeighborSpec, neighbors: NeighborList, x, phi) -> NeighborList:
-    """``neighbors`` if still complete, else a fresh build (jit-compatible, one lax.cond)."""
+def update(spec: NeighborSpec, neighbors: NeighborList, x, phi, cell=None) -> NeighborList:
+    """``neighbors`` if still complete, else a fresh build (jit-compatible, one lax.cond);
+    ``cell`` as in :func:`needs_rebuild`."""
     return lax.cond(
-        needs_rebuild(spec, neighbors, x, phi),
-        lambda: build(spec, x, phi),
+        needs_rebuild(spec, neighbors, x, phi, cell),
+        lambda: build(spec, x, phi, cell),
         lambda: neighbors,
     )
 
@@ -362,6 +426,7 @@ def allocate(
     reach_headroom: float | None = None,
     capacity: int | None = None,
     cell_capacity: int | None = None,
+    cell=None,
 ) -> tuple[NeighborSpec, NeighborList]:
     """Choose capacities for the configuration (x, phi) and build the list (eager).
 
@@ -373,6 +438,9 @@ def allocate(
     (default 0 for r, 0.25 for D, where stretching bodies reach farther).
     capacity, cell_capacity: fixed capacities instead of measured ones (the same capacities
     give the same spec, hence no recompilation, for different configurations).
+    cell: the current cell matrix [n, n] of a box that a barostat deforms (``space`` is its
+    reference box): the cells are then a grid of this cell, :data:`BOX_HEADROOM` wider than
+    the radius needs, and the list is built in it (module docstring).
     """
     space = as_space(space)
     x = jnp.asarray(x, dtype=jnp.float64)
@@ -389,13 +457,19 @@ def allocate(
     if reach_headroom is None:
         reach_headroom = 0.0 if variable == "r" else 0.25
     radius = float(spatial_reach(cutoff, variable, phi)) + skin
-    space.check_cutoff(radius, "neighbour-list radius (reach + skin)")
-    max_radius = min(radius * (1.0 + reach_headroom), space.max_cutoff)
+    now, room = space, 1.0
+    if cell is not None:
+        if not space.periodic:
+            raise ValueError("neighbors.allocate: a cell needs a periodic reference box")
+        cell = jnp.asarray(cell, dtype=jnp.float64)
+        now, room = as_space(np.asarray(cell)), 1.0 + BOX_HEADROOM
+    now.check_cutoff(radius, "neighbour-list radius (reach + skin)")
+    max_radius = min(radius * (1.0 + reach_headroom), now.max_cutoff)
     x_np = np.asarray(x)
     if space.periodic:
-        grid = tuple(int(max(1, math.floor(w / max_radius))) for w in space.widths)
+        grid = tuple(int(max(1, math.floor(w / (max_radius * room)))) for w in now.widths)
         origin = size = None
-        s = x_np @ space.inverse.T
+        s = x_np @ now.inverse.T
         coords = np.clip(np.floor((s - np.floor(s)) * grid).astype(int), 0, np.array(grid) - 1)
     else:
         lo, hi = x_np.min(axis=0), x_np.max(axis=0)
@@ -415,13 +489,13 @@ def allocate(
     if capacity is None:
         probe = NeighborSpec(space, float(cutoff), variable, float(skin), bodies, 1,
                              cell_capacity, grid, max_radius, origin, size)
-        count = int(build_jit(probe, x, phi).count)
+        count = int(build_jit(probe, x, phi, cell).count)
         if space.periodic:  # a crystal that melts fills its shells: room for a uniform fluid
-            count = max(count, uniform_pair_count(space, bodies, radius))
+            count = max(count, uniform_pair_count(now, bodies, radius))
         capacity = max(64, int(math.ceil(count * capacity_factor)))
     spec = NeighborSpec(space, float(cutoff), variable, float(skin), bodies, capacity,
                         cell_capacity, grid, max_radius, origin, size)
-    return spec, check(build_jit(spec, x, phi))
+    return spec, check(build_jit(spec, x, phi, cell))
 
 
 #: Reallocations in a row (no step kept in between) before a run gives up on its list.
@@ -429,7 +503,7 @@ MAX_REALLOCATIONS_IN_A_ROW = 8
 
 
 def reallocate(spec: NeighborSpec, x, phi, *, flags: int, pairs: int,
-               reach: float | None = None) -> tuple[NeighborSpec, NeighborList]:
+               reach: float | None = None, cell=None) -> tuple[NeighborSpec, NeighborList]:
     """The one capacity policy: a list for (x, phi) after ``spec`` overflowed with ``flags``
     (``PAIR_/CELL_/REACH_OVERFLOW``), having seen ``pairs`` pairs and a spatial ``reach``.
 
@@ -438,7 +512,8 @@ def reallocate(spec: NeighborSpec, x, phi, *, flags: int, pairs: int,
     cells gets 5/4 of the room it needed as headroom (a new grid). Deterministic in its
     arguments, so a resumed run rebuilds exactly the list of the uninterrupted one. Raises
     ``NeighborListOverflow`` (or the space's ValueError for a reach beyond half the box) when
-    no list can be built.
+    no list can be built. ``cell``: the current cell of a box that changes (the new grid is
+    one of it), or None.
     """
     x, phi = jnp.asarray(x), jnp.asarray(phi)
     capacity, cell_capacity, headroom = spec.capacity, spec.cell_capacity, None
@@ -453,24 +528,26 @@ def reallocate(spec: NeighborSpec, x, phi, *, flags: int, pairs: int,
     args = (spec.space, x, phi, spec.cutoff, spec.variable, spec.skin)
     try:  # one build at the grown capacities
         return allocate(*args, capacity=capacity, cell_capacity=cell_capacity,
-                        reach_headroom=headroom)
+                        reach_headroom=headroom, cell=cell)
     except NeighborListOverflow:  # other cells (a new grid): measure them
-        measured, _ = allocate(*args, reach_headroom=headroom)
+        measured, _ = allocate(*args, reach_headroom=headroom, cell=cell)
         return allocate(*args, capacity=max(capacity, measured.capacity),
                         cell_capacity=max(cell_capacity, measured.cell_capacity),
-                        reach_headroom=headroom)
+                        reach_headroom=headroom, cell=cell)
 
 
-def list_at(base: NeighborSpec, x, phi) -> tuple[NeighborSpec, NeighborList]:
+def list_at(base: NeighborSpec, x, phi, cell=None) -> tuple[NeighborSpec, NeighborList]:
     """A list for (x, phi) with ``base``'s capacities, or :func:`reallocate`'s when they do
-    not hold it: a function of ``base`` and the configuration alone (checkpoints, resume)."""
+    not hold it: a function of ``base`` and the configuration alone (checkpoints, resume);
+    ``cell``: the current cell of a box that changes, or None."""
     x, phi = jnp.asarray(x), jnp.asarray(phi)
-    built = build_jit(base, x, phi)
+    cell = None if cell is None else jnp.asarray(cell, dtype=x.dtype)
+    built = build_jit(base, x, phi, cell)
     flags = int(built.overflow)
     if not flags:
         return base, built
     return reallocate(base, x, phi, flags=flags, pairs=int(built.count),
-                      reach=float(built.reach))
+                      reach=float(built.reach), cell=cell)
 
 
 def uniform_pair_count(space: Space, bodies: int, radius: float) -> int:

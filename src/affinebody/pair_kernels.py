@@ -252,10 +252,12 @@ def _valid_pairs(ii, jj, idx, count, bodies: int):
     return (jnp.where(valid, ii, 0), jnp.where(valid, jj, jnp.minimum(1, bodies - 1)), valid)
 
 
-def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | None = None):
+def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | None = None,
+                         cell=None):
     """(E, dV/dx [N, n], dV/dphi [N, n, n]) of ``pot`` summed over the pairs (i[p], j[p]),
     p < count (JAX; jit with ``pot``, ``space``, ``chunk`` static). Pairs beyond ``count`` are
-    padding. Memory: one chunk of pairs at a time (default :func:`pair_chunk`)."""
+    padding. Memory: one chunk of pairs at a time (default :func:`pair_chunk`). ``cell``: the
+    current cell of a box that a barostat deforms (``space`` its reference), or None."""
     bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
 
     def step(carry, block):
@@ -263,7 +265,7 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | No
         ii, jj, idx = block
         ii, jj, valid = _valid_pairs(ii, jj, idx, count, bodies)
         e, (g_u, g_phik, g_phil, g_bk, g_bl, g_detk, g_detl) = _chunk_contributions(
-            pot, space, n, x, phi, binv, det, ii, jj, valid)
+            pot, space, n, x, phi, binv, det, ii, jj, valid, cell)
         # padding pairs add nothing: their index is out of range and dropped (sending them to
         # one body instead serialises millions of atomic adds on a GPU)
         ii, jj = jnp.where(valid, ii, bodies), jnp.where(valid, jj, bodies)
@@ -309,36 +311,43 @@ def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int | 
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(0, 1))
-def _energy_over_pairs(pot, space, x, phi, i, j, count):
+def _energy_over_pairs(pot, space, x, phi, i, j, count, cell):
     if host_kernel_in_use():  # the energy alone: no chain rule (observables, checks)
-        return _host_pair_sum(pot, space, x, phi, i, j, count, gradients=False)
-    return energy_and_gradients(pot, space, x, phi, i, j, count)[0]  # XLA drops the rest
+        return _host_pair_sum(pot, space, x, phi, i, j, count, gradients=False, cell=cell)
+    # XLA drops the gradients
+    return energy_and_gradients(pot, space, x, phi, i, j, count, cell=cell)[0]
 
 
-def _energy_over_pairs_fwd(pot, space, x, phi, i, j, count):
-    energy, g_x, g_phi = pair_sum(pot, space, x, phi, i, j, count)
-    return energy, (g_x, g_phi, i, j, count)
+def _energy_over_pairs_fwd(pot, space, x, phi, i, j, count, cell):
+    energy, g_x, g_phi = pair_sum(pot, space, x, phi, i, j, count, cell)
+    return energy, (g_x, g_phi, i, j, count, cell)
 
 
 def _energy_over_pairs_bwd(pot, space, residuals, cotangent):
-    g_x, g_phi, i, j, count = residuals
+    g_x, g_phi, i, j, count, cell = residuals
     zero_int = np.zeros((), dtype=jax.dtypes.float0)
+    # the cell enters held fixed (neighbor_energy stops its gradient): its cotangent is 0
     return (cotangent * g_x, cotangent * g_phi,
             np.zeros(i.shape, dtype=jax.dtypes.float0),
-            np.zeros(j.shape, dtype=jax.dtypes.float0), zero_int)
+            np.zeros(j.shape, dtype=jax.dtypes.float0), zero_int,
+            None if cell is None else jnp.zeros_like(cell))
 
 
 _energy_over_pairs.defvjp(_energy_over_pairs_fwd, _energy_over_pairs_bwd)
 
 
-def neighbor_energy(pot, x, phi, neighbors) -> jax.Array:
+def neighbor_energy(pot, x, phi, neighbors, cell=None) -> jax.Array:
     """sum over the list's pairs of V_KL for x [N, n], phi [N, n, n]; differentiable
-    (``jax.grad``) with the closed-form gradients of this module."""
+    (``jax.grad``) in x and phi with the closed-form gradients of this module. ``cell``: the
+    current cell of a box that a barostat deforms (the list built in it), or None; it enters
+    held fixed (``lax.stop_gradient``): the strain derivative is :func:`pair_virial`."""
     if x.ndim != 2:
         raise ValueError(f"a neighbour list serves one system: x must be [N, n] (got {x.shape})")
     _require_cutoff(pot)
+    if cell is not None:
+        cell = lax.stop_gradient(jnp.asarray(cell, dtype=x.dtype))
     return _energy_over_pairs(pot, pot.space, x, phi, neighbors.i, neighbors.j,
-                              jnp.minimum(neighbors.count, neighbors.i.shape[0]))
+                              jnp.minimum(neighbors.count, neighbors.i.shape[0]), cell)
 
 
 # --------------------------------------------------------------------------------------------
@@ -398,9 +407,13 @@ class _HostGeometry(NamedTuple):
     r_cut: float  # the potential's cut-off (padding pairs lie beyond it)
 
     @classmethod
-    def of(cls, pot, space: Space, n: int) -> _HostGeometry:
+    def of(cls, pot, space: Space, n: int, moving: bool = False) -> _HostGeometry:
+        """``moving``: the box is a cell that a barostat deforms, given to the kernels as an
+        operand (the general minimum image, mode 2)."""
         plain, k_powers, m_powers, swapped = _requirements(pot, n)
-        if space.periodic:
+        if moving:
+            mode, h, h_inv, edges = 2, np.eye(n), np.eye(n), np.ones(n)
+        elif space.periodic:
             mode = 1 if space.orthorhombic else 2
             h, h_inv, edges = space.matrix, space.inverse, space.edges
         else:
@@ -414,7 +427,7 @@ class _HostGeometry(NamedTuple):
         return scalar_columns(self.plain, self.k_powers, self.m_powers, self.swapped, rows)
 
 
-def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid):
+def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid, h, h_inv):
     """The pair scalars of the chunk (i, j): computed for its first ``valid`` pairs, the
     harmless padding values (beyond the cut-off, identity configurations) in the other rows.
     Only the scalars cross back to XLA (the displacements are recomputed by the scatter):
@@ -422,7 +435,7 @@ def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid):
     kernels = _numba_kernels(g.n)
     # callbacks receive jax.Arrays: as NumPy arrays (no copy on a CPU) Numba indexes them
     # as typed arrays, not as generic buffers (which made the kernels ~2x slower)
-    x, phi, binv, det = (np.asarray(a) for a in (x, phi, binv, det))
+    x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
     rows = i.shape[0]
     valid = int(valid)
     out = {key: np.empty(shape) for key, shape in g.columns(rows).items()}
@@ -434,8 +447,8 @@ def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid):
 
     def work(lo, hi):
         view = {key: a[lo:hi] for key, a in out.items()}
-        kernels.geometry(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, g.h,
-                         g.h_inv, g.edges, "r" in g.plain, "D" in g.plain, "det" in g.plain,
+        kernels.geometry(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, h,
+                         h_inv, g.edges, "r" in g.plain, "D" in g.plain, "det" in g.plain,
                          g.k_powers, g.m_powers, g.swapped,
                          view.get("r", empty1), view.get("D", empty1),
                          view.get("det", empty1), view.get("K", empty2),
@@ -445,14 +458,14 @@ def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid):
     return tuple(out[key] for key in g.columns(rows))
 
 
-def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partials):
+def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partials, h, h_inv):
     """``sums`` (dV/dx, dV/dphi direct, dV/dB, dV/d det per body) plus the closed-form
     geometric derivatives of the chunk's first ``valid`` pairs, from df/dq (``partials``)."""
     kernels = _numba_kernels(g.n)
     valid = int(valid)
     i = np.ascontiguousarray(i)
     j = np.ascontiguousarray(j)
-    x, phi, binv, det = (np.asarray(a) for a in (x, phi, binv, det))
+    x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
     keys = list(g.columns(i.shape[0]))
     partials = dict(zip(keys, (np.asarray(a) for a in partials), strict=True))
     empty1, empty2 = np.zeros(1), np.zeros((1, 1))
@@ -460,8 +473,8 @@ def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partia
     def work(lo, hi):
         acc = tuple(np.zeros(np.shape(a)) for a in sums)
         rows = lambda key, empty: partials[key][lo:hi] if key in partials else empty  # noqa: E731
-        kernels.scatter(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, g.h,
-                        g.h_inv, g.edges, rows("r", empty1), rows("D", empty1),
+        kernels.scatter(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, h,
+                        h_inv, g.edges, rows("r", empty1), rows("D", empty1),
                         rows("det", empty1), rows("K", empty2), rows("M", empty2),
                         rows("Ms", empty2), "r" in g.plain, "D" in g.plain,
                         "det" in g.plain, g.k_powers, g.m_powers, g.swapped, *acc)
@@ -480,16 +493,23 @@ def _host_chunk(capacity: int) -> int:
     return max(1, min(capacity, HOST_CHUNK_PAIRS))
 
 
-def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = True):
+def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = True,
+                   cell=None):
     """(E, dV/dx, dV/dphi) with the compiled host kernel, from compiled JAX code: per chunk of
     pairs, a ``jax.pure_callback`` computes the geometry (Numba), XLA the scalar function f
     and its partial derivatives (fused, elementwise), a second callback the closed-form chain
     rule and the per-body sums; the per-body chain rule through B = phi^-1 and det phi
     finishes in JAX. No JAX runs inside a callback (that could wait on the thread that
-    called it). ``gradients=False``: the energy alone (no chain rule, no second callback)."""
+    called it). ``gradients=False``: the energy alone (no chain rule, no second callback).
+    ``cell``: the current cell of a box that a barostat deforms (an operand of the kernels:
+    one compilation serves every box), or None."""
     _require_cutoff(pot)
     bodies, n = x.shape
-    g = _HostGeometry.of(pot, space, n)
+    g = _HostGeometry.of(pot, space, n, moving=cell is not None)
+    if cell is None:
+        h, h_inv = jnp.asarray(g.h, x.dtype), jnp.asarray(g.h_inv, x.dtype)
+    else:
+        h, h_inv = cell, linalg.inv(cell)
     binv, det = linalg.inv(phi), linalg.det(phi)
     capacity = i.shape[0]
     chunk = _host_chunk(capacity)
@@ -511,7 +531,7 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
         jj = lax.dynamic_slice(j_all, (lo,), (chunk,))
         valid = jnp.clip(count - lo, 0, chunk).astype(jnp.int32)
         scalars = jax.pure_callback(partial(_host_geometry, g), geometry_shapes, x, phi, binv,
-                                    det, ii, jj, valid, vmap_method="sequential")
+                                    det, ii, jj, valid, h, h_inv, vmap_method="sequential")
         base = dict(zip(columns, scalars, strict=True))  # padding rows: beyond the cut-off
         inside = rows < valid
         if not gradients:
@@ -520,7 +540,7 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
         energies, partials = partials_of(base)
         sums = jax.pure_callback(
             partial(_host_scatter, g), sum_shapes, sums, x, phi, binv, det, ii, jj, valid,
-            tuple(partials[key] for key in columns), vmap_method="sequential")
+            tuple(partials[key] for key in columns), h, h_inv, vmap_method="sequential")
         return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
 
     init = (jnp.zeros((), x.dtype), (jnp.zeros_like(x), jnp.zeros_like(phi),
@@ -531,14 +551,15 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     return energy, g_x, _finish(phi, binv, det, g_phi, g_b, g_det)
 
 
-def energy_and_gradients_host(pot, space: Space, x, phi, i, j, count):
+def energy_and_gradients_host(pot, space: Space, x, phi, i, j, count, cell=None):
     """The compiled-CPU twin of :func:`energy_and_gradients`: the host kernel, jitted (the
-    path ``simulate.run`` takes on a CPU). Needs Numba."""
+    path ``simulate.run`` takes on a CPU). Needs Numba. ``cell`` as in :func:`pair_sum`."""
     if _host.numba is None:
         raise ValueError("pair_kernels: the compiled CPU kernel needs numba (pip install numba)")
     _require_cutoff(pot)
     return _host_pair_sum_jit(pot, space, jnp.asarray(x), jnp.asarray(phi), jnp.asarray(i),
-                              jnp.asarray(j), jnp.asarray(count))
+                              jnp.asarray(j), jnp.asarray(count),
+                              cell=None if cell is None else jnp.asarray(cell))
 
 
 _host_pair_sum_jit = jax.jit(_host_pair_sum, static_argnums=(0, 1))
@@ -549,13 +570,14 @@ def host_kernel_in_use() -> bool:
     return _host_in_use()
 
 
-def pair_sum(pot, space: Space, x, phi, i, j, count):
+def pair_sum(pot, space: Space, x, phi, i, j, count, cell=None):
     """(E, dV/dx, dV/dphi) over the list's pairs, with the kernel for the backend: the
     compiled host kernel on a CPU (when Numba is installed), the JAX kernel otherwise (a GPU:
-    no host round trip). Both are tested against all-pairs autodiff."""
+    no host round trip). Both are tested against all-pairs autodiff. ``cell``: the current
+    cell of a box that a barostat deforms (``space`` its reference), or None."""
     if host_kernel_in_use():
-        return _host_pair_sum(pot, space, x, phi, i, j, count)
-    return energy_and_gradients(pot, space, x, phi, i, j, count)
+        return _host_pair_sum(pot, space, x, phi, i, j, count, cell=cell)
+    return energy_and_gradients(pot, space, x, phi, i, j, count, cell=cell)
 
 
 __all__ = [

@@ -241,7 +241,8 @@ def run_simulation(
                 lists = built.neighbors  # allocated for the initial state (= list_at's)
             elif base_spec is not None and (step == start or step % interval == 0):
                 with phases("neighbour lists"):
-                    lists = nb.list_at(base_spec, state.x, state.phi)
+                    lists = nb.list_at(base_spec, state.x, state.phi,
+                                       None if npt is None else npt.cell)
             end = min((step // chunk + 1) * chunk, total)
             pieces = [(end - step - (end - step) % every, every)] if end - step >= every else []
             if (end - step) % every:
@@ -251,7 +252,8 @@ def run_simulation(
                 try:
                     with phases("integrate"):
                         if npt is not None:
-                            trajectory, boxes, stop = npt.run(state, step, length, stride)
+                            trajectory, boxes, stop = npt.run(state, step, length, stride,
+                                                              lists)
                         else:
                             trajectory = integrate(built.system, state, dt, length,
                                                    config.run.integrator, every=stride,
@@ -312,15 +314,18 @@ class _NPT:
         self.observers = tuple((name, NAMED_OBSERVABLES[driver])
                                for name, driver in _OBSERVERS.items())
 
-    def run(self, state, step: int, length: int, every: int):
+    def run(self, state, step: int, length: int, every: int, lists=None):
         """(trajectory, box edges of its frames, stop report or None) of ``length`` steps
-        from ``state`` at ``step``; the frames stop before the first non-finite one."""
+        from ``state`` at ``step``; the frames stop before the first non-finite one.
+        ``lists``: the (spec, list) of a neighbour-list run, valid for ``state`` in the
+        current cell, or None."""
         from affinebody.simulate import StopReport, Trajectory
 
         c = self.config
         npt = barostat.run(self.system, state, self.space, self.barostat, c.run.dt, length,
                            seed=c.run.seed, cell=self.cell, first_step=step,
-                           integrator=c.run.integrator, every=every, observers=self.observers)
+                           integrator=c.run.integrator, every=every, observers=self.observers,
+                           neighbors=lists)
         frame_steps = np.rint(npt.times / c.run.dt).astype(np.int64)
         finite = (np.ones(len(frame_steps), dtype=bool) if npt.failed_step is None
                   else frame_steps < npt.failed_step)
@@ -338,7 +343,8 @@ class _NPT:
         cut = lambda a: np.asarray(a)[:keep]  # noqa: E731
         trajectory = Trajectory(times=cut(npt.times) - step * c.run.dt,
                                 states=jax.tree.map(cut, npt.states),
-                                observables={k: cut(v) for k, v in npt.observables.items()})
+                                observables={k: cut(v) for k, v in npt.observables.items()},
+                                neighbors=npt.neighbors)
         self.cell = np.asarray(npt.cells[keep - 1])
         return trajectory, np.diagonal(npt.cells[:keep], axis1=1, axis2=2), stop
 

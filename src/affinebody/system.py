@@ -101,7 +101,8 @@ class HamiltonianSystem:
     group: str = pytree.static_field(default="GL+")
     rotationless: str | None = pytree.static_field(default=None)
     #: None, or the current cell matrix [n, n] of a periodic box that a barostat deforms (an
-    #: array leaf: the pair terms' own box is then only the reference; all pairs are summed)
+    #: array leaf: the pair terms' own box is then only the reference; a neighbour list must
+    #: be built in this cell, docs/pressure.md)
     cell: Any = None
 
     def __post_init__(self):

@@ -112,7 +112,7 @@ class Splitting(AbstractIntegrator):
             s = system.drift(s, d * h)
             current = None
             if spec is not None:
-                tracked = update_neighbors(spec, tracked, s)
+                tracked = update_neighbors(spec, tracked, s, system.cell)
                 current = tracked.neighbors
             f = system.forces(s, current)
             return (system.kick(s, c * h, forces=f), tracked, f), None
@@ -137,10 +137,11 @@ class NeighborStep(NamedTuple):
     largest_reach: jax.Array
 
 
-def update_neighbors(spec, tracked: NeighborStep, state: State) -> NeighborStep:
-    """``neighbors.update`` that also counts rebuilds and keeps every overflow flag."""
-    stale = nb.needs_rebuild(spec, tracked.neighbors, state.x, state.phi)
-    fresh = lax.cond(stale, lambda: nb.build(spec, state.x, state.phi),
+def update_neighbors(spec, tracked: NeighborStep, state: State, cell=None) -> NeighborStep:
+    """``neighbors.update`` that also counts rebuilds and keeps every overflow flag; ``cell``:
+    the current cell of a box that a barostat deforms, or None."""
+    stale = nb.needs_rebuild(spec, tracked.neighbors, state.x, state.phi, cell)
+    fresh = lax.cond(stale, lambda: nb.build(spec, state.x, state.phi, cell),
                      lambda: tracked.neighbors)
     return NeighborStep(fresh, tracked.rebuilds + stale.astype(jnp.int32),
                         tracked.overflow | fresh.overflow,

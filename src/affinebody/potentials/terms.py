@@ -311,19 +311,14 @@ class PairTerm(AbstractPotentialTerm):
         With a ``neighbors`` list (:mod:`affinebody.neighbors`) the sum runs over its pairs
         only, through the closed-form kernel of :mod:`affinebody.pair_kernels` (its gradient
         is that kernel's, not autodiff through the geometry); the list must cover every pair
-        within the cut-off (``neighbors.check``). ``cell``: as in :meth:`pair_energies` (all
-        pairs only)."""
-        if cell is not None:
-            if neighbors is not None:
-                raise ValueError("a box that changes (barostat) is summed over all pairs: "
-                                 "run without a neighbour list")
-            return jnp.sum(self.pair_energies(x, phi, cell), axis=-1)
+        within the cut-off (``neighbors.check``). ``cell``: as in :meth:`pair_energies` (with a
+        list: one built in that cell, ``neighbors.build(spec, x, phi, cell)``)."""
         if neighbors is not None:
             from affinebody.pair_kernels import neighbor_energy
 
             x, phi = _coordinates(x, phi)
-            return neighbor_energy(self, x, phi, neighbors)
-        return jnp.sum(self.pair_energies(x, phi), axis=-1)
+            return neighbor_energy(self, x, phi, neighbors, cell)
+        return jnp.sum(self.pair_energies(x, phi, cell), axis=-1)
 
     @property
     def symmetry(self) -> frozenset[str]:
