@@ -19,8 +19,13 @@ the end) for each N, and the memory per body.
 ``--bodies N --steps S``: one run at N bodies on whatever JAX backend is installed (a GPU
 when there is one: the same command, nothing else to change), printing body-steps/s.
 
+``--npt``: the same lattice (``--side``, ``--steps``) at constant volume and under the
+stochastic cell-rescaling barostat (:data:`BAROSTAT`, isotropic; the neighbour list follows
+the box), both on all the cores, printing steps/s in the loop and their ratio.
+
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py            # vs LAMMPS, 2 cores
     .venv/bin/python benchmarks/run_scale.py --memory 1000 10000 100000 1000000
+    .venv/bin/python benchmarks/run_scale.py --npt --steps 200         # NPT vs NVT, 4096
 """
 
 from __future__ import annotations
@@ -89,9 +94,21 @@ neighbor_list = "on"
 """
 
 
-def write_config(folder: Path, side: int, steps: int, every: int) -> Path:
-    path = folder / f"lattice{side}.toml"
-    path.write_text(CONFIG.format(bodies=side**3, side=side, steps=steps, every=every))
+#: The barostat of ``--npt`` (appended to :data:`CONFIG`).
+BAROSTAT = """
+[barostat]
+pressure = 0.0
+tau = 1.0
+compressibility = 0.05
+temperature = 0.01
+coupling = "isotropic"
+"""
+
+
+def write_config(folder: Path, side: int, steps: int, every: int, npt: bool = False) -> Path:
+    path = folder / f"lattice{side}{'-npt' if npt else ''}.toml"
+    path.write_text(CONFIG.format(bodies=side**3, side=side, steps=steps, every=every)
+                    + (BAROSTAT if npt else ""))
     return path
 
 
@@ -199,14 +216,34 @@ def single(bodies: int, steps: int) -> None:
     print(result["text"])
 
 
+def npt_versus_nvt(side: int, steps: int) -> None:
+    cores = ",".join(map(str, sorted(os.sched_getaffinity(0))))
+    threads = len(os.sched_getaffinity(0))
+    rates = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for npt in (False, True):
+            config = write_config(Path(tmp), side, steps, every=steps // 2, npt=npt)
+            rates[npt] = ours(config, Path(tmp) / f"{npt}.h5", cores, threads)
+    print(f"affinebody run, {side**3} bodies, {steps} steps, {threads} cores, neighbour list on:")
+    print("| ensemble | steps/s in the loop | whole command (s) | compile (s) |")
+    print("|---|---|---|---|")
+    for npt, name in ((False, "NVT (constant box)"), (True, "NPT (c-rescale, isotropic)")):
+        r = rates[npt]
+        print(f"| {name} | {r['rate'] / side**3:.3g} | {r['wall']:.1f} | {r['compile']:.1f} |")
+    print(f"NPT / NVT steps/s: {rates[True]['rate'] / rates[False]['rate']:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--side", type=int, default=16)
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--memory", type=int, nargs="*")
     parser.add_argument("--bodies", type=int)
+    parser.add_argument("--npt", action="store_true")
     args = parser.parse_args()
-    if args.memory:
+    if args.npt:
+        npt_versus_nvt(args.side, args.steps)
+    elif args.memory:
         memory(args.memory)
     elif args.bodies:
         single(args.bodies, args.steps)

@@ -112,15 +112,11 @@ coupling = "anisotropic"
 
 
 def test_npt_run_writes_the_box_pressure_and_volume_and_resumes_bit_for_bit(tmp_path):
-    """With a neighbour list that follows the box (its agreement with all pairs:
-    tests/test_npt_neighbors.py)."""
-    from affinebody.config import check_config, parse_config, uses_neighbor_list
+    from affinebody.config import check_config, parse_config
     from affinebody.h5md import read_trajectory
     from affinebody.runner import run_simulation
 
-    config = check_config(parse_config(NPT_CONFIG.replace(
-        "seed = 11", 'seed = 11\nneighbor_list = "on"\nneighbor_skin = 0.2')))
-    assert uses_neighbor_list(config)
+    config = check_config(parse_config(NPT_CONFIG))
     run_simulation(config, tmp_path / "whole.h5")
     run_simulation(config, tmp_path / "resumed.h5", steps=200)
     run_simulation(config, tmp_path / "resumed.h5", resume=True)
@@ -161,3 +157,26 @@ def test_barostat_config_errors_are_one_line():
     with pytest.raises(ConfigError, match="sweep integrates at constant volume"):
         SweepSpec.from_config(check_config(parse_config(NPT_CONFIG)))
 
+
+def test_npt_run_with_a_neighbour_list_resumes_bit_for_bit(tmp_path):
+    """The list follows the box and is rebuilt from the state and the cell at checkpoints, so
+    a resumed run repeats the uninterrupted one (its agreement with all pairs:
+    tests/test_npt_neighbors.py)."""
+    from affinebody.config import check_config, parse_config, uses_neighbor_list
+    from affinebody.h5md import read_trajectory
+    from affinebody.runner import run_simulation
+
+    text = (NPT_CONFIG.replace("seed = 11", 'seed = 11\nneighbor_list = "on"\nneighbor_skin = 0.1')
+            .replace('coupling = "anisotropic"', 'coupling = "isotropic"')
+            .replace("steps = 400", "steps = 200").replace("checkpoint = 200", "checkpoint = 100"))
+    config = check_config(parse_config(text))
+    assert uses_neighbor_list(config)
+    run_simulation(config, tmp_path / "whole.h5")
+    run_simulation(config, tmp_path / "resumed.h5", steps=100)
+    run_simulation(config, tmp_path / "resumed.h5", resume=True)
+    whole, resumed = (read_trajectory(tmp_path / f"{k}.h5") for k in ("whole", "resumed"))
+    assert whole.frames == 5 and np.ptp(whole.boxes[:, 0]) > 1e-3  # the box moved
+    for name in ("x", "phi", "p", "pi", "boxes"):
+        np.testing.assert_array_equal(getattr(resumed, name), getattr(whole, name))
+    for name, value in whole.observables.items():
+        np.testing.assert_array_equal(resumed.observables[name], value)

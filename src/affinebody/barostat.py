@@ -171,6 +171,8 @@ class NPTTrajectory:
     #: (spec, list) of the run's neighbour list, valid for the last state and cell (None: all
     #: pairs)
     neighbors: tuple | None = None
+    #: why ``failed_step`` failed when it was not a non-finite state or cell
+    stop_reason: str | None = None
 
     @property
     def final_state(self) -> State:
@@ -221,7 +223,7 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, *, method, barost
         return values
 
     def one_step(carry, _):
-        old_state, old_cell, old_nbrs, k, failed, overflowed, lost = carry
+        old_state, old_cell, old_nbrs, k, failed, overflowed, narrow, lost = carry
         key_thermo, key_baro = jax.random.split(step_key(seed, k))
         boxed = system.replace(cell=old_cell)
         if spec is None:
@@ -239,6 +241,9 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, *, method, barost
         if spec is not None:  # the list follows the box (rebuilt when it may miss a pair)
             tracked = update_neighbors(spec, tracked, state, cell)
             nbrs = tracked.neighbors
+            fits = nb.fits_box(spec, state.phi, cell)  # else the list cannot be rebuilt
+            narrow = narrow | (~fits & ok & (failed < 0))
+            ok &= fits
             over = (tracked.overflow != 0) & ok & (failed < 0)
             seen = (tracked.overflow, tracked.most_pairs, tracked.largest_reach)
             lost = jax.tree.map(lambda old, new: jnp.where(over, new, old), lost, seen)
@@ -248,7 +253,7 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, *, method, barost
         keep = lambda old, new: jnp.where(failed < 0, new, old)  # noqa: E731
         state, cell = jax.tree.map(keep, old_state, state), keep(old_cell, cell)
         nbrs = jax.tree.map(keep, old_nbrs, nbrs)
-        return (state, cell, nbrs, k + 1, failed, overflowed, lost), None
+        return (state, cell, nbrs, k + 1, failed, overflowed, narrow, lost), None
 
     def chunk(carry, _):
         carry, _ = lax.scan(one_step, carry, None, length=every)
@@ -256,14 +261,14 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, *, method, barost
 
     int0 = jnp.zeros((), dtype=jnp.int32)
     lost = (int0, int0, jnp.zeros((), dtype=state.x.dtype))
-    init = (state, cell, neighbors, first_step, -jnp.ones_like(first_step), jnp.asarray(False),
-            lost)
-    (_, _, last_list, _, failed, overflowed, lost), (states, cells, values) = lax.scan(
+    no = jnp.asarray(False)
+    init = (state, cell, neighbors, first_step, -jnp.ones_like(first_step), no, no, lost)
+    (_, _, last_list, _, failed, overflowed, narrow, lost), (states, cells, values) = lax.scan(
         chunk, init, None, length=n_chunks)
     first = measure(state, cell, neighbors)
     join = lambda a, f: jnp.concatenate([a[None], f])  # noqa: E731
     return (jax.tree.map(join, state, states), join(cell, cells),
-            jax.tree.map(join, first, values), failed, overflowed, lost, last_list)
+            jax.tree.map(join, first, values), failed, overflowed, narrow, lost, last_list)
 
 
 _npt_jit = jax.jit(_npt, static_argnames=("method", "barostat", "space", "thermostat",
@@ -309,7 +314,8 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
     observers: (name, function(system, state)) pairs recorded with the pressure and volume
     (with a neighbour list: function(system, state, list)).
     A step that makes the state or the cell non-finite, or the cell's diagonal non-positive
-    (the barostat's step too large), is not kept: ``failed_step`` says where.
+    (the barostat's step too large), or with a list the box narrower than twice its radius,
+    is not kept: ``failed_step`` says where (``stop_reason`` why, in the last case).
     neighbors: None (pair terms over all pairs) or the (spec, list) pair of
     ``neighbors.allocate(space, x, phi, cutoff, variable, skin, cell=cell)`` (splitting
     integrators): forces, virial and observables are then summed over the list, which follows
@@ -339,7 +345,7 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
     start, in_a_row, failed = int(first_step), 0, -1
     end = int(first_step) + int(steps)
     while True:
-        states, cells, values, failed, overflowed, lost, last_list = _npt_jit(
+        states, cells, values, failed, overflowed, narrow, lost, last_list = _npt_jit(
             system, state, cell, jnp.asarray(start), int(seed), jnp.asarray(float(dt)), nbrs,
             method=method, barostat=barostat, space=space, thermostat=thermostat,
             n_chunks=(end - start) // every, every=every, observers=tuple(observers),
@@ -360,8 +366,10 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
                 f"{start + aligned * every} did not get past step {failed}")
         state = jax.tree.map(lambda a, j=aligned: jnp.asarray(a[j]), part[0])
         cell = jnp.asarray(part[1][aligned])
+        # a box that keeps shrinking past the new cells' room: coarser cells at each retry
         spec, nbrs = nb.reallocate(spec, state.x, state.phi, flags=int(lost[0]),
-                                   pairs=int(lost[1]), reach=float(lost[2]), cell=cell)
+                                   pairs=int(lost[1]), reach=float(lost[2]), cell=cell,
+                                   box_headroom=nb.BOX_HEADROOM * 2 ** (in_a_row - 1))
         start += aligned * every
     pieces = [(p, f, u) for _, p, f, u in segments]
     states = jax.tree.map(lambda *a: np.concatenate([x[f:u] for x, (_, f, u) in
@@ -370,8 +378,11 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
     cells = np.concatenate([p[1][f:u] for p, f, u in pieces])
     values = {k: np.concatenate([p[2][k][f:u] for p, f, u in pieces]) for k in pieces[0][0][2]}
     times = (first_step + np.arange(len(cells)) * every) * float(dt)
+    reason = None if not bool(narrow) else (
+        "the box shrank below twice the neighbour-list radius (reach + skin; the minimum image "
+        "is no longer exact): use a larger box, a lower pressure or a smaller skin")
     return NPTTrajectory(times, states, cells, values, None if failed < 0 else failed,
-                         None if spec is None else (spec, last_list))
+                         None if spec is None else (spec, last_list), reason)
 
 
 __all__ = ["COUPLINGS", "NPTTrajectory", "STREAM", "StochasticCellRescaling", "c_rescale",

@@ -375,8 +375,15 @@ def needs_rebuild(spec: NeighborSpec, neighbors: NeighborList, x, phi,
     moved = spec.space.displacement(x @ stretch.T, neighbors.reference_x, neighbors.cell)
     largest = jnp.sqrt(jnp.max(jnp.sum(moved * moved, axis=-1)))
     grown = largest_singular_values(stretch[None])[0] * reach + 2.0 * largest
-    narrow = reach + spec.skin > 0.5 * jnp.min(perpendicular_widths(cell))
-    return (grown > neighbors.reach + spec.skin) | narrow | (neighbors.overflow != 0)
+    return ((grown > neighbors.reach + spec.skin) | ~fits_box(spec, phi, cell)
+            | (neighbors.overflow != 0))
+
+
+def fits_box(spec: NeighborSpec, phi, cell) -> jax.Array:
+    """Whether reach + skin is at most half the smallest perpendicular width of the (traced)
+    cell: the largest list radius for which the minimum image is exact."""
+    reach = spatial_reach(spec.cutoff, spec.variable, phi)
+    return reach + spec.skin <= 0.5 * jnp.min(perpendicular_widths(cell))
 
 
 def update(spec: NeighborSpec, neighbors: NeighborList, x, phi, cell=None) -> NeighborList:
@@ -427,6 +434,7 @@ def allocate(
     capacity: int | None = None,
     cell_capacity: int | None = None,
     cell=None,
+    box_headroom: float = BOX_HEADROOM,
 ) -> tuple[NeighborSpec, NeighborList]:
     """Choose capacities for the configuration (x, phi) and build the list (eager).
 
@@ -439,8 +447,8 @@ def allocate(
     capacity, cell_capacity: fixed capacities instead of measured ones (the same capacities
     give the same spec, hence no recompilation, for different configurations).
     cell: the current cell matrix [n, n] of a box that a barostat deforms (``space`` is its
-    reference box): the cells are then a grid of this cell, :data:`BOX_HEADROOM` wider than
-    the radius needs, and the list is built in it (module docstring).
+    reference box): the cells are then a grid of this cell, ``box_headroom`` (relative) wider
+    than the radius needs, and the list is built in it (module docstring).
     """
     space = as_space(space)
     x = jnp.asarray(x, dtype=jnp.float64)
@@ -462,7 +470,7 @@ def allocate(
         if not space.periodic:
             raise ValueError("neighbors.allocate: a cell needs a periodic reference box")
         cell = jnp.asarray(cell, dtype=jnp.float64)
-        now, room = as_space(np.asarray(cell)), 1.0 + BOX_HEADROOM
+        now, room = as_space(np.asarray(cell)), 1.0 + box_headroom
     now.check_cutoff(radius, "neighbour-list radius (reach + skin)")
     max_radius = min(radius * (1.0 + reach_headroom), now.max_cutoff)
     x_np = np.asarray(x)
@@ -473,15 +481,15 @@ def allocate(
         coords = np.clip(np.floor((s - np.floor(s)) * grid).astype(int), 0, np.array(grid) - 1)
     else:
         lo, hi = x_np.min(axis=0), x_np.max(axis=0)
-        cell = max_radius
+        edge = max_radius
         while True:  # at most ~2 cells per body (memory linear in N)
             extent = hi - lo
-            grid = tuple(int(max(1, math.ceil(e / cell + 1e-9))) for e in extent)
+            grid = tuple(int(max(1, math.ceil(e / edge + 1e-9))) for e in extent)
             if np.prod(grid) <= max(8, 2 * bodies):
                 break
-            cell *= 1.26
-        origin, size = tuple(map(float, lo)), (float(cell),) * n
-        coords = np.clip(np.floor((x_np - lo) / cell).astype(int), 0, np.array(grid) - 1)
+            edge *= 1.26
+        origin, size = tuple(map(float, lo)), (float(edge),) * n
+        coords = np.clip(np.floor((x_np - lo) / edge).astype(int), 0, np.array(grid) - 1)
     flat = coords @ _strides(grid)
     occupancy = int(np.bincount(flat, minlength=int(np.prod(grid))).max())
     if cell_capacity is None:
@@ -503,7 +511,8 @@ MAX_REALLOCATIONS_IN_A_ROW = 8
 
 
 def reallocate(spec: NeighborSpec, x, phi, *, flags: int, pairs: int,
-               reach: float | None = None, cell=None) -> tuple[NeighborSpec, NeighborList]:
+               reach: float | None = None, cell=None,
+               box_headroom: float = BOX_HEADROOM) -> tuple[NeighborSpec, NeighborList]:
     """The one capacity policy: a list for (x, phi) after ``spec`` overflowed with ``flags``
     (``PAIR_/CELL_/REACH_OVERFLOW``), having seen ``pairs`` pairs and a spatial ``reach``.
 
@@ -513,7 +522,7 @@ def reallocate(spec: NeighborSpec, x, phi, *, flags: int, pairs: int,
     arguments, so a resumed run rebuilds exactly the list of the uninterrupted one. Raises
     ``NeighborListOverflow`` (or the space's ValueError for a reach beyond half the box) when
     no list can be built. ``cell``: the current cell of a box that changes (the new grid is
-    one of it), or None.
+    one of it, with ``box_headroom`` as in :func:`allocate`), or None.
     """
     x, phi = jnp.asarray(x), jnp.asarray(phi)
     capacity, cell_capacity, headroom = spec.capacity, spec.cell_capacity, None
@@ -528,12 +537,15 @@ def reallocate(spec: NeighborSpec, x, phi, *, flags: int, pairs: int,
     args = (spec.space, x, phi, spec.cutoff, spec.variable, spec.skin)
     try:  # one build at the grown capacities
         return allocate(*args, capacity=capacity, cell_capacity=cell_capacity,
-                        reach_headroom=headroom, cell=cell)
+                        reach_headroom=headroom, cell=cell,
+                        box_headroom=box_headroom)
     except NeighborListOverflow:  # other cells (a new grid): measure them
-        measured, _ = allocate(*args, reach_headroom=headroom, cell=cell)
+        measured, _ = allocate(*args, reach_headroom=headroom, cell=cell,
+                        box_headroom=box_headroom)
         return allocate(*args, capacity=max(capacity, measured.capacity),
                         cell_capacity=max(cell_capacity, measured.cell_capacity),
-                        reach_headroom=headroom, cell=cell)
+                        reach_headroom=headroom, cell=cell,
+                        box_headroom=box_headroom)
 
 
 def list_at(base: NeighborSpec, x, phi, cell=None) -> tuple[NeighborSpec, NeighborList]:

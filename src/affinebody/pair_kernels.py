@@ -294,7 +294,11 @@ def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int | 
     fixed phi (docs/pressure.md). dV_p/du is the same closed-form per-pair gradient the
     forces of :func:`energy_and_gradients` scatter (r and D (75) both depend on u); memory:
     one chunk of pairs at a time. ``cell``: the current cell of a box that a barostat deforms
-    (``space`` is then its reference), or None."""
+    (``space`` is then its reference), or None. On a CPU with Numba (and ``chunk`` None) the
+    host kernel computes it (:func:`pair_sum`'s choice), else the JAX kernel."""
+    if chunk is None and host_kernel_in_use():
+        _require_cutoff(pot)
+        return _host_pair_sum(pot, space, x, phi, i, j, count, cell=cell, virial=True)
     bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
 
     def step(total, block):
@@ -363,7 +367,7 @@ def _numba_kernels(n: int):
     to n and cached on disk by :func:`affinebody._host.specialized`)."""
     kernels = _host.specialized("pair", N=n)
     return types.SimpleNamespace(geometry=kernels._geometry, scatter=kernels._scatter,
-                                 finish=kernels._finish_numba)
+                                 finish=kernels._finish_numba, virial=kernels._virial)
 
 
 def host_threads() -> int:
@@ -487,6 +491,30 @@ def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partia
     return out
 
 
+def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
+    """-sum u (dV/du)^T [n, n] of the chunk's first ``valid`` pairs (parts summed in a fixed
+    order, as :func:`_host_scatter`)."""
+    kernels = _numba_kernels(g.n)
+    valid = int(valid)
+    i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
+    x, binv, h, h_inv = (np.asarray(a) for a in (x, binv, h, h_inv))
+    partials = dict(zip(list(g.columns(i.shape[0])), (np.asarray(a) for a in partials),
+                        strict=True))
+    empty1 = np.zeros(1)
+
+    def work(lo, hi):
+        out = np.zeros((g.n, g.n))
+        rows = lambda key: partials[key][lo:hi] if key in partials else empty1  # noqa: E731
+        kernels.virial(0, hi - lo, i[lo:hi], j[lo:hi], x, binv, g.mode, h, h_inv, g.edges,
+                       rows("r"), rows("D"), "r" in g.plain, "D" in g.plain, out)
+        return out
+
+    total = np.zeros((g.n, g.n))
+    for part in _in_parts(work, valid):
+        total += part
+    return total
+
+
 def _host_chunk(capacity: int) -> int:
     """Pairs per host-kernel pass for a list of ``capacity`` pairs (a function of the
     capacity only, so the summation order, hence every bit, is the same on every run)."""
@@ -494,7 +522,7 @@ def _host_chunk(capacity: int) -> int:
 
 
 def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = True,
-                   cell=None):
+                   cell=None, virial: bool = False):
     """(E, dV/dx, dV/dphi) with the compiled host kernel, from compiled JAX code: per chunk of
     pairs, a ``jax.pure_callback`` computes the geometry (Numba), XLA the scalar function f
     and its partial derivatives (fused, elementwise), a second callback the closed-form chain
@@ -502,7 +530,8 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     finishes in JAX. No JAX runs inside a callback (that could wait on the thread that
     called it). ``gradients=False``: the energy alone (no chain rule, no second callback).
     ``cell``: the current cell of a box that a barostat deforms (an operand of the kernels:
-    one compilation serves every box), or None."""
+    one compilation serves every box), or None. ``virial=True``: the virial W [n, n] of
+    :func:`pair_virial` instead (a third kernel after the geometry and f's partials)."""
     _require_cutoff(pot)
     bodies, n = x.shape
     g = _HostGeometry.of(pot, space, n, moving=cell is not None)
@@ -538,15 +567,21 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
             energies = pot.energy_from_scalars(base, n)
             return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
         energies, partials = partials_of(base)
+        if virial:
+            w = jax.pure_callback(
+                partial(_host_virial, g), f64((n, n)), x, binv, ii, jj, valid,
+                tuple(partials[key] for key in columns), h, h_inv, vmap_method="sequential")
+            return (energy + w, sums), None
         sums = jax.pure_callback(
             partial(_host_scatter, g), sum_shapes, sums, x, phi, binv, det, ii, jj, valid,
             tuple(partials[key] for key in columns), h, h_inv, vmap_method="sequential")
         return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
 
-    init = (jnp.zeros((), x.dtype), (jnp.zeros_like(x), jnp.zeros_like(phi),
-                                      jnp.zeros_like(phi), jnp.zeros((bodies,), x.dtype)))
+    init = (jnp.zeros((n, n) if virial else (), x.dtype),
+            (jnp.zeros_like(x), jnp.zeros_like(phi), jnp.zeros_like(phi),
+             jnp.zeros((bodies,), x.dtype)))
     (energy, (g_x, g_phi, g_b, g_det)), _ = lax.scan(step, init, jnp.arange(chunks))
-    if not gradients:
+    if not gradients or virial:
         return energy
     return energy, g_x, _finish(phi, binv, det, g_phi, g_b, g_det)
 

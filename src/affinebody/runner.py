@@ -333,8 +333,8 @@ class _NPT:
         narrow = barostat.first_narrow_frame(self.system, npt.cells[:keep])
         stop = None
         if keep < len(finite) or narrow is not None:
-            reason = ("non-finite state or box under the barostat: reduce run.dt or raise "
-                      "barostat.tau") if narrow is None else (
+            reason = (npt.stop_reason or "non-finite state or box under the barostat: reduce "
+                      "run.dt or raise barostat.tau") if narrow is None else (
                       "the box shrank below twice the pair cut-off (the minimum image is no "
                       "longer exact): lower barostat.pressure or start from a larger system.box")
             keep = keep if narrow is None else narrow

@@ -275,3 +275,65 @@ def _finish_numba(binv, det, gphi, gb, gdet, out):
                     acc += tmp[r, k] * binv[body, c, k]
                 out[body, r, c] = (gphi[body, r, c] - acc
                                    + gdet[body] * det[body] * binv[body, c, r])
+
+@_jit
+def _virial(start, stop, i, j, x, binv, mode, h, h_inv, edges, g_r, g_d, need_r, need_d,
+            w_out):
+    """w_out -= sum over pairs start..stop-1 of u (dV/du)^T, dV/du from the partials df/dr
+    and df/dD (the configurational virial, pair_kernels.pair_virial)."""
+    u = np.empty(N)
+    s = np.empty(N)
+    gu = np.empty(N)
+    ak = np.empty(N)
+    al = np.empty(N)
+    for p in range(start, stop):
+        q = p - start
+        a, b = i[p], j[p]
+        for d in range(N):  # u = x_K - x_L, minimum image (space.Space.displacement)
+            u[d] = x[a, d] - x[b, d]
+        if mode == 1:
+            for d in range(N):
+                u[d] -= edges[d] * np.round(u[d] / edges[d])
+        elif mode == 2:
+            for d in range(N):
+                acc = 0.0
+                for e in range(N):
+                    acc += h_inv[d, e] * u[e]
+                s[d] = acc - np.round(acc)
+            for d in range(N):
+                acc = 0.0
+                for e in range(N):
+                    acc += h[d, e] * s[e]
+                u[d] = acc
+        for d in range(N):
+            gu[d] = 0.0
+        if need_r and g_r[q] != 0.0:
+            r2 = 0.0
+            for d in range(N):
+                r2 += u[d] * u[d]
+            r = np.sqrt(r2)
+            if r > 0:
+                for d in range(N):
+                    gu[d] += g_r[q] / r * u[d]
+        if need_d and g_d[q] != 0.0:
+            d2 = 0.0
+            for r in range(N):
+                sk = 0.0
+                sl = 0.0
+                for k in range(N):
+                    sk += binv[a, r, k] * u[k]
+                    sl += binv[b, r, k] * u[k]
+                ak[r] = sk
+                al[r] = sl
+                d2 += sk * sk + sl * sl
+            dist = np.sqrt(0.5 * d2)
+            if dist > 0:
+                c = g_d[q] / (2.0 * dist)
+                for k in range(N):
+                    acc = 0.0
+                    for r in range(N):
+                        acc += binv[a, r, k] * ak[r] + binv[b, r, k] * al[r]
+                    gu[k] += c * acc
+        for r in range(N):
+            for c in range(N):
+                w_out[r, c] -= u[r] * gu[c]
