@@ -168,11 +168,12 @@ def test_npt_run_with_a_neighbour_list_resumes_bit_for_bit(tmp_path):
 
     text = (NPT_CONFIG.replace("seed = 11", 'seed = 11\nneighbor_list = "on"\nneighbor_skin = 0.1')
             .replace('coupling = "anisotropic"', 'coupling = "isotropic"')
-            .replace("steps = 400", "steps = 200").replace("checkpoint = 200", "checkpoint = 100"))
+            .replace("steps = 400", "steps = 100").replace("checkpoint = 200", "checkpoint = 50")
+            .replace("every = 50", "every = 25"))
     config = check_config(parse_config(text))
     assert uses_neighbor_list(config)
     run_simulation(config, tmp_path / "whole.h5")
-    run_simulation(config, tmp_path / "resumed.h5", steps=100)
+    run_simulation(config, tmp_path / "resumed.h5", steps=50)
     run_simulation(config, tmp_path / "resumed.h5", resume=True)
     whole, resumed = (read_trajectory(tmp_path / f"{k}.h5") for k in ("whole", "resumed"))
     assert whole.frames == 5 and np.ptp(whole.boxes[:, 0]) > 1e-3  # the box moved

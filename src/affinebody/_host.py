@@ -19,6 +19,7 @@ import importlib.util
 import os
 import re
 import sys
+import threading
 import types
 from importlib import resources
 from pathlib import Path
@@ -60,6 +61,16 @@ def specialized(kernel: str, **constants) -> types.ModuleType:
         raise RuntimeError(f"_host_kernels/{kernel}.py has no block of constants")
     key = hashlib.sha256(f"{text}{numba.__version__}{sys.version}".encode()).hexdigest()[:16]
     name = f"affinebody_kernel_{kernel}_{key}"
+    # one loader at a time: callbacks of one compiled function may run on several threads,
+    # and a module is in sys.modules before it has finished executing
+    with _LOADING:
+        return _load(name, text)
+
+
+_LOADING = threading.RLock()
+
+
+def _load(name: str, text: str) -> types.ModuleType:
     if name in sys.modules:
         return sys.modules[name]
     path = cache_folder() / f"{name}.py"
