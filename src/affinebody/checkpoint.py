@@ -1,11 +1,12 @@
 """Atomic checkpoints of a running simulation, for ``affinebody run --resume``.
 
 A checkpoint holds the exact float64 state (x, phi, p, pi) at a step, the step itself, the
-number of frames written up to it, and a hash of the configuration that produced it. It is
-written to a temporary file in the same folder, fsync'ed and then renamed over the previous
-checkpoint (``os.replace`` is atomic on POSIX), so a run killed at any moment leaves either the
-old or the new checkpoint, never a half-written one. Restarting the same compiled chunk function
-from this state reproduces the uninterrupted run bit for bit.
+number of frames written up to it, the heat a thermostat put in up to it, and a hash of the
+configuration that produced it. It is written to a temporary file in the same folder, fsync'ed
+and then renamed over the previous checkpoint (``os.replace`` is atomic on POSIX), so a run
+killed at any moment leaves either the old or the new checkpoint, never a half-written one.
+Restarting the same compiled chunk function from this state reproduces the uninterrupted run
+bit for bit.
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ class Checkpoint:
     state: State
     frames: int
     config_hash: str
+    #: heat put in by a thermostat up to ``step`` (0 for NVE runs)
+    heat: float = 0.0
 
 
 def checkpoint_path(output: str | Path) -> Path:
@@ -59,6 +62,7 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
         phi=np.asarray(state.phi, dtype=np.float64),
         p=np.asarray(state.p, dtype=np.float64),
         pi=np.asarray(state.pi, dtype=np.float64),
+        heat=np.float64(checkpoint.heat),
     )
     descriptor, temporary = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
@@ -101,6 +105,7 @@ def load_checkpoint(path: str | Path, config_hash: str | None = None) -> Checkpo
                 frames=int(data["frames"]),
                 config_hash=str(data["config_hash"]),
                 state=State(*(np.array(data[k]) for k in ("x", "phi", "p", "pi"))),
+                heat=float(data["heat"]) if "heat" in data else 0.0,
             )
     except CheckpointError:
         raise

@@ -175,6 +175,17 @@ class RunSection(_Section):
     neighbor_skin: float = Field(0.3, description="skin of the neighbour list (> 0)")
 
 
+class ThermostatSection(_Section):
+    """``[thermostat]``: NVT by a Langevin or a stochastic velocity rescaling (Bussi) thermostat
+    (:mod:`affinebody.thermostats`, docs/thermostats.md)."""
+
+    kind: Literal["langevin", "bussi"]
+    temperature: float = Field(description="kT in energy units (k_B = 1)")
+    friction: float | None = Field(None, description="langevin: friction gamma, 1/time")
+    tau: float | None = Field(None, description="bussi: relaxation time of the kinetic energy")
+    seed: int = Field(0, ge=0, lt=2**32, description="step k draws from fold_in(key(seed), k)")
+
+
 class ScanRange(_Section):
     """A range of values for one scanned field: ``num`` values from ``start`` to ``stop``
     (both included), evenly spaced, or geometrically spaced with ``log = true``."""
@@ -241,6 +252,7 @@ class Config(_Section):
     constraints: ConstraintsSection = ConstraintsSection()
     sweep: SweepSection | None = None
     phonons: PhononsSection | None = None
+    thermostat: ThermostatSection | None = None
     # the text the config was read from (not a TOML key)
     source_text: str = Field("", exclude=True, repr=False)
 
@@ -269,6 +281,8 @@ class Config(_Section):
                 del data["run"][key]
         if data["system"]["units"] == "reduced":  # the same, for system.units
             del data["system"]["units"]
+        if data["thermostat"] is None:  # the same, for NVE configs
+            del data["thermostat"]
         canonical = json.dumps(data, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()
 
@@ -541,6 +555,46 @@ def check_kinetic(config: Config) -> None:
                                   f"n^2 x n^2 matrix")
 
 
+def check_thermostat(config: Config) -> None:
+    """``[thermostat]``: its parameters, a splitting integrator, a positive definite T."""
+    t = config.thermostat
+    if t is None:
+        return
+    needed, other = ("friction", "tau") if t.kind == "langevin" else ("tau", "friction")
+    for name in ("temperature", needed):
+        value = getattr(t, name)
+        if value is None:
+            raise ConfigError(f"thermostat.{name} is required by the {t.kind} thermostat")
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"thermostat.{name} must be a finite number > 0 (got {value})")
+    if getattr(t, other) is not None:
+        raise ConfigError(f"thermostat.{other} is not a parameter of the {t.kind} thermostat "
+                          f"(it uses temperature, {needed}, seed)")
+    if config.kinetic.internal == "af-af":
+        raise ConfigError("thermostat: kinetic.internal 'af-af' (72) has an indefinite kinetic "
+                          "energy, so no canonical ensemble exists; use a positive definite model")
+    if config.constraints.rotationless is not None:
+        raise ConfigError("thermostat: not available with constraints.rotationless (its "
+                          "integrator, nonholonomic-rattle, is not a splitting to compose "
+                          "the thermostat into); remove [thermostat] or the constraint")
+    if config.run.integrator not in SPLITTING_INTEGRATORS:
+        raise ConfigError(f"thermostat: run.integrator must be a splitting integrator "
+                          f"({', '.join(SPLITTING_INTEGRATORS)}), the thermostat is composed "
+                          f"into its middle drift (got {config.run.integrator!r})")
+
+
+def build_thermostat(config: Config):
+    """The ``thermostats.Langevin`` / ``Bussi`` of ``[thermostat]``, or None (NVE)."""
+    from affinebody import thermostats
+
+    t = config.thermostat
+    if t is None:
+        return None
+    if t.kind == "langevin":
+        return thermostats.Langevin(t.temperature, t.friction, t.seed)
+    return thermostats.Bussi(t.temperature, t.tau, t.seed)
+
+
 def check_run(config: Config) -> None:
     r = config.run
     if not (math.isfinite(r.dt) and r.dt > 0):
@@ -782,6 +836,7 @@ def check_config(config: Config) -> Config:
     check_kinetic(config)
     check_initial(config)
     check_run(config)
+    check_thermostat(config)
     check_potentials(config)
     return config
 
@@ -799,6 +854,8 @@ class Built:
     neighbors: Any = None
     #: seconds spent in each stage of :func:`build` (what ``affinebody run --verbose`` prints)
     timings: dict = dataclass_field(default_factory=dict)
+    #: the ``thermostats.Langevin`` / ``Bussi`` of ``[thermostat]``, None for NVE
+    thermostat: Any = None
 
 
 def _kinetic_parameter(name: str, config: Config, inertia: Inertia):
@@ -962,4 +1019,5 @@ def build(config: Config) -> Built:
     if not math.isfinite(energy):
         raise ConfigError(f"initial: the energy of the initial state is {energy} (bodies on top "
                           f"of each other in a singular potential, or det phi = 0?)")
-    return Built(system, state, inertia, neighbor_list, lists, timings)
+    return Built(system, state, inertia, neighbor_list, lists, timings,
+                 build_thermostat(config))

@@ -15,6 +15,10 @@ The layout is a public contract::
     /observables/linear_momentum/...      value [T, n]      sum_K p_K              (103)
     /observables/affine_momentum/...      value [T, n, n]   sum_K (x_K p_K^T + phi_K pi_K)  (109)
     /observables/angular_momentum/...     value [T, n, n]   J - J^T of the affine momentum J
+    /observables/{translational_temperature, internal_temperature}/...  value [T]
+                                          2 T_tr / (N n) and 2 T_int / (N d), d the internal
+                                          momentum degrees of freedom per body (thermostats.py)
+    /observables/effective_energy/...     value [T]   thermostatted runs: H minus the heat
     /parameters/{config, seed, version, dt, steps, config_hash}
     /parameters/frames_committed  [1] int64: frames whose every element is on disk
     /h5md/modules/units                   attrs version=[1, 0], system="reduced" | "gromacs"
@@ -78,7 +82,8 @@ ELEMENT_UNITS = {"position": "length", "momentum": "momentum", "phi": None,
                  "phi_momentum": "action", "total_energy": "energy",
                  "kinetic_energy": "energy", "potential_energy": "energy",
                  "linear_momentum": "momentum", "affine_momentum": "action",
-                 "angular_momentum": "action"}
+                 "angular_momentum": "action", "translational_temperature": "energy",
+                 "internal_temperature": "energy", "effective_energy": "energy"}
 
 #: State fields -> H5MD element names under /particles/bodies.
 STATE_ELEMENTS = {"x": "position", "p": "momentum", "phi": "phi", "pi": "phi_momentum"}
@@ -90,7 +95,11 @@ OBSERVABLES = {
     "linear_momentum": 1,
     "affine_momentum": 2,
     "angular_momentum": 2,
+    "translational_temperature": 0,
+    "internal_temperature": 0,
 }
+#: Observables written by thermostatted runs only: H minus the heat the thermostat put in.
+THERMOSTAT_OBSERVABLES = {"effective_energy": 0}
 #: File observables recorded under another name by the run driver
 #: (``simulate.NAMED_OBSERVABLES``); the others have the same name in both.
 DRIVER_NAMES = {"total_energy": "energy"}
@@ -371,8 +380,11 @@ class H5MDWriter:
         parameters: Mapping[str, object] | None = None,
         author: str = "affinebody user",
         units: str = "reduced",
+        thermostat: bool = False,
     ):
         self.path = Path(path)
+        #: the observables this file holds (with THERMOSTAT_OBSERVABLES when ``thermostat``)
+        self.observables = dict(OBSERVABLES, **(THERMOSTAT_OBSERVABLES if thermostat else {}))
         if units not in UNIT_SYSTEMS:
             raise ValueError(f"units must be one of {sorted(UNIT_SYSTEMS)} (got {units!r})")
         unit = UNIT_SYSTEMS[units]
@@ -424,7 +436,7 @@ class H5MDWriter:
                           "length", unit)
 
             observables = f.create_group("observables")
-            for name, rank in OBSERVABLES.items():
+            for name, rank in self.observables.items():
                 _time_series(observables, name, (n,) * rank, max(chunk, 64), unit)
 
             params = f.create_group("parameters")
@@ -467,7 +479,8 @@ class H5MDWriter:
             (self.file["particles"][PARTICLE_GROUP][element], getattr(state, name))
             for name, element in STATE_ELEMENTS.items()
         ]
-        groups += [(self.file["observables"][name], observables[name]) for name in OBSERVABLES]
+        groups += [(self.file["observables"][name], observables[name])
+                   for name in self.observables]
         for group, value in groups:
             value = np.asarray(value, dtype=np.float64)
             if value.shape[0] != count:
@@ -526,10 +539,11 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
     """Append the frames of the file ``path`` with step <= ``through_step`` to ``writer``,
     a block of frames at a time (memory: about ``block_bytes``, not the whole trajectory).
 
-    Used by ``--resume``. Returns the number of frames copied and their total energies.
+    Used by ``--resume``. Returns the number of frames copied and their total energies (their
+    effective energies in a thermostatted run's file).
     """
     with open_trajectory(path) as source:
-        missing = [k for k in OBSERVABLES if k not in source.observables]
+        missing = [k for k in writer.observables if k not in source.observables]
         if missing:
             raise TrajectoryFileError(f"missing observables {missing} in the file to resume")
         keep = source.step <= through_step
@@ -545,9 +559,11 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
                 writer.append(source.step[lo:hi], source.time[lo:hi],
                               State(*(getattr(source, name)[lo:hi]
                                       for name in ("x", "phi", "p", "pi"))),
-                              {k: source.observables[k][lo:hi] for k in OBSERVABLES})
+                              {k: source.observables[k][lo:hi] for k in writer.observables})
         except (OSError, KeyError, ValueError, TypeError) as err:
             raise TrajectoryFileError(
                 f"{path}: cannot read the trajectory (truncated or corrupt: {_short(err)})"
             ) from None
-        return count, np.asarray(source.observables["total_energy"][:count])
+        conserved = ("effective_energy" if "effective_energy" in writer.observables
+                     else "total_energy")
+        return count, np.asarray(source.observables[conserved][:count])

@@ -185,7 +185,7 @@ def run_simulation(
         base_spec = built.neighbors[0]
     writer_args = dict(mass=built.inertia.mass, radius=built.inertia.radius, n=config.n,
                        box=config.system.box, parameters=parameters,
-                       units=config.system.units)
+                       units=config.system.units, thermostat=built.thermostat is not None)
     if resume:
         checkpoint = load_checkpoint(ckpt_file, config_hash)
         if checkpoint.step > total:
@@ -204,19 +204,21 @@ def run_simulation(
             raise
         temporary.replace(output)
         writer.path = output
-        start, state = checkpoint.step, checkpoint.state
+        start, state, heat = checkpoint.step, checkpoint.state, checkpoint.heat
         initial_energy = float(energies[0])
         max_error = float(np.max(relative_error(energies, initial_energy)))
         last_energy = float(energies[-1])
     else:
         ckpt_file.unlink(missing_ok=True)
         writer = H5MDWriter(output, **writer_args)
-        start, state = 0, built.state
+        start, state, heat = 0, built.state, 0.0
         initial_energy = math.nan
         max_error = 0.0
         last_energy = math.nan
 
     chunk = chunk_steps(config)
+    # the conserved quantity whose error is reported: H, or H minus the heat under a thermostat
+    energy_key = "total_energy" if built.thermostat is None else "effective_energy"
     interval = config.checkpoint_every
     step = start
     lists = None  # (spec, list) valid for `state`, or None: all pairs
@@ -238,13 +240,15 @@ def run_simulation(
                     with phases("integrate"):
                         trajectory = integrate(built.system, state, dt, length,
                                                config.run.integrator, every=stride,
-                                               observers=_OBSERVERS, neighbors=lists)
+                                               observers=_OBSERVERS, neighbors=lists,
+                                               thermostat=built.thermostat, first_step=step,
+                                               heat=heat)
                     stop = None
                 except IntegrationStopped as stopped:
                     trajectory, stop = stopped.trajectory, stopped.report
                 frame_steps = step + np.rint(np.asarray(trajectory.times) / dt).astype(np.int64)
                 first = 1 if step > 0 or writer.frames > 0 else 0
-                energy = np.asarray(trajectory.observables["total_energy"])
+                energy = np.asarray(trajectory.observables[energy_key])
                 if math.isnan(initial_energy):
                     initial_energy = float(energy[0])
                 with phases("output"):
@@ -260,12 +264,14 @@ def run_simulation(
                     raise SimulationStopped(_stop_message(stop, step, dt, built.inertia.labels,
                                                           writer.frames, output))
                 state = State(*(np.asarray(a)[-1] for a in trajectory.states))
+                if "heat" in trajectory.observables:
+                    heat = float(trajectory.observables["heat"][-1])
                 lists = trajectory.neighbors
                 step += length
             if step % interval == 0 or step == total:
                 with phases("output"):
                     save_checkpoint(ckpt_file, Checkpoint(step, state, writer.frames,
-                                                          config_hash))
+                                                          config_hash, heat))
             if progress is not None:
                 progress(step, total, float(relative_error(np.asarray([last_energy]),
                                                              initial_energy)[0]))
