@@ -211,6 +211,11 @@ def ornstein_uhlenbeck(system, thermostat, state: State, h, key, noise_factors,
     """O(h): the exact Ornstein-Uhlenbeck step of the momenta at fixed x, phi (module
     docstring), then the constraint projection. ``damping`` overrides c = exp(-gamma h)
     (c = 0 draws fresh momenta from the Maxwell distribution of the momentum coordinates)."""
+    return _ornstein_uhlenbeck(system, thermostat, state, h, key, noise_factors, damping)[0]
+
+
+def _ornstein_uhlenbeck(system, thermostat, state: State, h, key, noise_factors, damping=None):
+    """:func:`ornstein_uhlenbeck` and the kinetic energy it put in."""
     c = jnp.exp(-thermostat.friction * h) if damping is None else jnp.asarray(damping)
     scale = jnp.sqrt((1.0 - c * c) * thermostat.temperature)
     kinetic = system.kinetic
@@ -225,7 +230,16 @@ def ornstein_uhlenbeck(system, thermostat, state: State, h, key, noise_factors,
     xi = jax.random.normal(key_int, flat.shape, flat.dtype)
     flat = c * flat + scale * jnp.einsum("...ij,...j->...i", f_int, xi)
     pi = from_coordinates(kinetic.internal, state.phi, flat.reshape(w.shape))
-    return system.constrain(state._replace(p=p, pi=pi))
+    new = system.constrain(state._replace(p=p, pi=pi))
+    if system.constrained or system.nonholonomic:
+        return new, system.kinetic_energy(new) - system.kinetic_energy(state)
+    # on GL+, GL, L: T = T(Id, z), the constant-coefficient form (no inverse of phi)
+    eye = jnp.eye(state.n, dtype=z.dtype)
+    energy = (kinetic.translational.hamiltonian(eye, z) - kinetic.translational.hamiltonian(
+        eye, to_coordinates(kinetic.translational, state.phi, state.p))
+        + kinetic.internal.hamiltonian(eye, flat.reshape(w.shape))
+        - kinetic.internal.hamiltonian(eye, w))
+    return new, jnp.sum(energy, axis=-1)
 
 
 def bussi_kinetic_energy(kinetic_energy, thermostat: Bussi, dof: int, h, key) -> jax.Array:
@@ -234,9 +248,8 @@ def bussi_kinetic_energy(kinetic_energy, thermostat: Bussi, dof: int, h, key) ->
     c = exp(-h/tau), K_bar = N_f kT/2, R1 ~ N(0, 1), S ~ chi^2 with N_f - 1 degrees."""
     c = jnp.exp(-h / thermostat.tau)
     target = 0.5 * dof * thermostat.temperature
-    key_1, key_s = jax.random.split(key)
-    r1 = jax.random.normal(key_1, (), kinetic_energy.dtype)
-    s = 2.0 * jax.random.gamma(key_s, 0.5 * (dof - 1), (), kinetic_energy.dtype)
+    r = jax.random.normal(key, (dof,), kinetic_energy.dtype)  # a sum, not a rejection loop
+    r1, s = r[0], jnp.sum(r[1:] ** 2)
     return (c * kinetic_energy + (1.0 - c) * target * (r1 * r1 + s) / dof
             + 2.0 * r1 * jnp.sqrt(c * (1.0 - c) * kinetic_energy * target / dof))
 
@@ -263,8 +276,7 @@ def thermostat_step(system, thermostat, state: State, h, key,
     """O(h) of ``thermostat`` (Langevin or Bussi) at fixed configuration: the new state and
     the kinetic energy it put in (the heat of this step)."""
     if thermostat.kind == "langevin":
-        new = ornstein_uhlenbeck(system, thermostat, state, h, key, noise_factors)
-        return new, system.kinetic_energy(new) - system.kinetic_energy(state)
+        return _ornstein_uhlenbeck(system, thermostat, state, h, key, noise_factors)
     return velocity_rescaling(system, thermostat, state, h, key, noise_factors)
 
 
