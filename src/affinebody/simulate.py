@@ -518,13 +518,9 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
 
 def _thermostatted(system, method, thermostat, state):
     """``method`` with ``thermostat`` composed in (``integrators.Thermostatted``), or a
-    one-line ValueError: thermostats need a splitting integrator and a positive definite T."""
-    from affinebody.integrators import Splitting, Thermostatted
+    one-line ValueError: thermostats need a positive definite T."""
+    from affinebody.integrators import Thermostatted
 
-    if not isinstance(method, Splitting):
-        raise ValueError(
-            f"thermostats are composed into the splitting integrators (strang, yoshida4, "
-            f"suzuki4, yoshida6), not {getattr(method, 'name', method)!r}")
     th.check(system, thermostat, np.shape(state.phi)[-1])
     return Thermostatted(method, thermostat)
 

@@ -1,9 +1,11 @@
-"""A splitting integrator with a thermostat step in the middle of its middle drift.
+"""An integrator with a thermostat's O step composed in.
 
-``Thermostatted(splitting, thermostat)`` is the splitting ``S`` with the thermostat's O step
-(``affinebody.thermostats``) composed as K D(h/2) O(h) D(h/2) K (BAOAB for Strang), so the
-exact drifts and kicks, the neighbour lists and the forces carried from step to step ("first
-same as last") are those of ``S``. What it carries instead of the forces is a
+``Thermostatted(splitting, thermostat)`` with a splitting ``S`` puts the thermostat's O step
+(``affinebody.thermostats``) in the middle of its middle drift, K D(h/2) O(h) D(h/2) K (BAOAB
+for Strang), so the exact drifts and kicks, the neighbour lists and the forces carried from
+step to step ("first same as last") are those of ``S``. With any other integrator ``I`` (the
+nonholonomic RATTLE of rotationless motion, implicit midpoint) the step is the symmetric
+O(h/2) I(h) O(h/2). What it carries instead of the forces is a
 ``thermostats.ThermostatCarry``: the forces, the global index of the last step (the step k
 draws its noise from ``fold_in(PRNGKey(seed), k)``), the heat put in so far, and the constant
 noise factors of the momentum coordinates.
@@ -14,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
+import jax
 import jax.numpy as jnp
 
 from affinebody import thermostats as th
@@ -24,12 +27,16 @@ from affinebody.state import State
 
 @dataclass(frozen=True)
 class Thermostatted(AbstractIntegrator):
-    """``splitting`` with ``thermostat`` (a ``thermostats.Langevin`` or ``Bussi``)."""
+    """``splitting`` (any integrator, module docstring) with ``thermostat`` (a
+    ``thermostats.Langevin`` or ``Bussi``)."""
 
-    splitting: Splitting
+    splitting: AbstractIntegrator
     thermostat: object
     carries_forces: ClassVar[bool] = True
-    uses_neighbor_lists: ClassVar[bool] = True
+
+    @property
+    def uses_neighbor_lists(self) -> bool:  # type: ignore[override]
+        return self.splitting.uses_neighbor_lists
 
     @property
     def name(self) -> str:
@@ -63,10 +70,18 @@ class Thermostatted(AbstractIntegrator):
             exchanged.append(heat)
             return new
 
-        state, tracked, forces = self.splitting.advance(system, state, carry.forces, h, spec,
-                                                        neighbors, middle=middle)
-        return state, tracked, carry._replace(forces=forces, step=step,
-                                              heat=carry.heat + exchanged[0])
+        if isinstance(self.splitting, Splitting):
+            state, tracked, forces = self.splitting.advance(system, state, carry.forces, h,
+                                                            spec, neighbors, middle=middle)
+            return state, tracked, carry._replace(forces=forces, step=step,
+                                                  heat=carry.heat + exchanged[0])
+        first, last = (jax.random.fold_in(key, k) for k in (0, 1))
+        state, heat_1 = th.thermostat_step(system, self.thermostat, state, 0.5 * h, first,
+                                           carry.factors)
+        state = self.splitting.step(system, state, h)
+        state, heat_2 = th.thermostat_step(system, self.thermostat, state, 0.5 * h, last,
+                                           carry.factors)
+        return state, None, carry._replace(step=step, heat=carry.heat + heat_1 + heat_2)
 
     def step_with_neighbors(self, system, state: State, h, spec, neighbors):
         """The splitting's step over a neighbour list, without the thermostat (what the
