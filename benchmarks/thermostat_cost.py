@@ -1,9 +1,9 @@
 """What a thermostat costs, measured through the command users run: ``affinebody run``.
 
-The same config run three times, NVE and with ``[thermostat]`` Langevin and Bussi: a 3D simple
-cubic lattice of affine bodies (default 8^3 = 512) in a periodic box, d'Alembert translational +
-af-is internal kinetic energy, a Morse-like pair potential with a shape coupling cut at 2.5
-(neighbour list on) and a dilatation term, Strang, dt = 0.002. Reported: the seconds inside
+The same config run three times, NVE and with ``[thermostat]`` Langevin and Bussi: the lattice
+of ``run_scale.py`` (default 8^3 = 512 bodies in a periodic box, d'Alembert translational +
+af-is internal kinetic energy, a Morse-like pair potential with a shape coupling cut at 2.5,
+neighbour list on, a dilatation term, Strang, dt = 0.002). Reported: the seconds inside
 the compiled loop (compilation excluded, the summary line of ``affinebody run``) and the
 ratio of each thermostatted run to the NVE one (the goal of issue 15: at most 1.3). Each run
 is repeated ``--repeat`` times and the fastest kept (the machine may be shared).
@@ -20,48 +20,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-AFFINEBODY = [str(Path(sys.executable).parent / "affinebody")]
-
-CONFIG = """\
-[system]
-n = 3
-bodies = {bodies}
-box = [{side}.0, {side}.0, {side}.0]
-
-[body]
-mass = 1.0
-inertia = 1.0
-
-[kinetic]
-translational = "dalembert"
-internal = "af-is"
-I = 1.0
-A = 0.2
-B = 0.1
-
-[[potential]]
-kind = "pair"
-expr = "(1 - exp(-3*(r - 1)))**2 - 1 + 0.5*exp(-D**2/4)*(M1 - 3)**2"
-r_cut = 2.5
-
-[[potential]]
-kind = "dilatation"
-stiffness = 5.0
-
-[initial]
-generator = "lattice"
-spacing = 1.0
-jitter = 0.03
-phi_noise = 0.05
-momentum_scale = 0.1
-phi_momentum_scale = 0.05
-
-[run]
-dt = 0.002
-steps = {steps}
-every = {steps}
-neighbor_list = "on"
-{thermostat}"""
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from run_scale import AFFINEBODY, CONFIG  # noqa: E402 - the same lattice as the scale benchmark
 
 THERMOSTATS = {
     "NVE": "",
@@ -89,7 +49,7 @@ def main() -> None:
         for name, table in THERMOSTATS.items():
             config = folder / f"{name}.toml"
             config.write_text(CONFIG.format(bodies=args.side**3, side=args.side,
-                                            steps=args.steps, thermostat=table))
+                                            steps=args.steps, every=args.steps) + table)
             seconds[name] = min(loop_seconds(config, folder / f"{name}.h5")
                                 for _ in range(args.repeat))
     print(f"{args.side**3} bodies, {args.steps} steps (fastest of {args.repeat}):")
