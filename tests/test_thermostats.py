@@ -296,6 +296,10 @@ def test_af_af_and_incomplete_thermostats_are_refused_in_one_line():
         with pytest.raises(ConfigError) as err:
             check(parse_config(text))
         assert words in str(err.value) and "\n" not in str(err.value)
+    from affinebody.sweep import run_sweep
+
+    with pytest.raises(ConfigError, match="not by affinebody sweep"):
+        run_sweep(check(parse_config(base)), workers=0)
     system = HamiltonianSystem(K.KineticEnergy(K.DAlembertTranslational(1.0),
                                                K.AffineAffine(1.0)))
     with pytest.raises(ValueError, match="no canonical ensemble"):
