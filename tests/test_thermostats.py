@@ -217,11 +217,11 @@ def test_the_configurational_marginal_is_boltzmann_times_the_kinetic_volume(mode
 
 
 def test_bussi_kinetic_energy_has_the_gamma_law():
-    """Free rigid bodies (V = 0, is-af on SO(2): bounded free motion): the drift keeps T, the
-    rescaling samples K ~ Gamma(N_f/2, kT) with N_f = N (n + 1)."""
+    """Free d'Alembert bodies on L (V = 0): the exact drift keeps T, the rescaling samples
+    K ~ Gamma(N_f/2, kT) with N_f = N (n + n^2)."""
     system = HamiltonianSystem(K.KineticEnergy(K.DAlembertTranslational(1.0),
-                                               K.IsotropicAffine(1.0, 0.2)), None, "SO")
-    bodies = 4
+                                               K.DAlembert(SPD)), None, "L")
+    bodies = 2
     traj = run(system, rest(bodies), 0.1, 4000, every=2, observers=("kinetic_energy",),
                thermostat=th.Bussi(KT, 0.1, seed=4))
     k = traj.observables["kinetic_energy"][50:]
