@@ -76,7 +76,9 @@ def synthetic3(frames=4, bodies=3, seed=3):
            "potential_energy": rng.normal(size=frames),
            "linear_momentum": rng.normal(size=(frames, 3)),
            "affine_momentum": rng.normal(size=(frames, 3, 3)),
-           "angular_momentum": rng.normal(size=(frames, 3, 3))}
+           "angular_momentum": rng.normal(size=(frames, 3, 3)),
+           "translational_temperature": rng.normal(size=frames),
+           "internal_temperature": rng.normal(size=frames)}
     return state, obs
 
 

@@ -18,6 +18,10 @@ The layout is a public contract::
     /observables/pressure/...             value [T, n, n]   pressure tensor (run.pressure or a
                                           barostat, periodic box; docs/pressure.md)
     /observables/volume/...               value [T]         det of the cell (the same runs)
+    /observables/{translational_temperature, internal_temperature}/...  value [T]
+                                          2 T_tr / (N n) and 2 T_int / (N d), d the internal
+                                          momentum degrees of freedom per body (thermostats.py)
+    /observables/effective_energy/...     value [T]   thermostatted runs: H minus the heat
     /parameters/{config, seed, version, dt, steps, config_hash}
     /parameters/frames_committed  [1] int64: frames whose every element is on disk
     /h5md/modules/units                   attrs version=[1, 0], system="reduced" | "gromacs"
@@ -82,7 +86,9 @@ ELEMENT_UNITS = {"position": "length", "momentum": "momentum", "phi": None,
                  "phi_momentum": "action", "total_energy": "energy",
                  "kinetic_energy": "energy", "potential_energy": "energy",
                  "linear_momentum": "momentum", "affine_momentum": "action",
-                 "angular_momentum": "action", "pressure": "pressure", "volume": "volume"}
+                 "angular_momentum": "action", "pressure": "pressure", "volume": "volume",
+                 "translational_temperature": "energy", "internal_temperature": "energy",
+                 "effective_energy": "energy"}
 
 #: State fields -> H5MD element names under /particles/bodies.
 STATE_ELEMENTS = {"x": "position", "p": "momentum", "phi": "phi", "pi": "phi_momentum"}
@@ -94,9 +100,13 @@ OBSERVABLES = {
     "linear_momentum": 1,
     "affine_momentum": 2,
     "angular_momentum": 2,
+    "translational_temperature": 0,
+    "internal_temperature": 0,
 }
 #: Observables of periodic runs only (same convention as :data:`OBSERVABLES`).
 PERIODIC_OBSERVABLES = {"pressure": 2, "volume": 0}
+#: Observables written by thermostatted runs only: H minus the heat the thermostat put in.
+THERMOSTAT_OBSERVABLES = {"effective_energy": 0}
 #: File observables recorded under another name by the run driver
 #: (``simulate.NAMED_OBSERVABLES``); the others have the same name in both.
 DRIVER_NAMES = {"total_energy": "energy"}
@@ -379,8 +389,11 @@ class H5MDWriter:
         author: str = "affinebody user",
         units: str = "reduced",
         pressure: bool = False,
+        thermostat: bool = False,
     ):
         self.path = Path(path)
+        #: the observables this file holds (with THERMOSTAT_OBSERVABLES when ``thermostat``)
+        self.observables = dict(OBSERVABLES, **(THERMOSTAT_OBSERVABLES if thermostat else {}))
         if units not in UNIT_SYSTEMS:
             raise ValueError(f"units must be one of {sorted(UNIT_SYSTEMS)} (got {units!r})")
         unit = dict(UNIT_SYSTEMS[units])
@@ -545,7 +558,8 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
     """Append the frames of the file ``path`` with step <= ``through_step`` to ``writer``,
     a block of frames at a time (memory: about ``block_bytes``, not the whole trajectory).
 
-    Used by ``--resume``. Returns the number of frames copied and their total energies.
+    Used by ``--resume``. Returns the number of frames copied and their total energies (their
+    effective energies in a thermostatted run's file).
     """
     with open_trajectory(path) as source:
         missing = [k for k in writer.observables if k not in source.observables]
@@ -570,4 +584,6 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
             raise TrajectoryFileError(
                 f"{path}: cannot read the trajectory (truncated or corrupt: {_short(err)})"
             ) from None
-        return count, np.asarray(source.observables["total_energy"][:count])
+        conserved = ("effective_energy" if "effective_energy" in writer.observables
+                     else "total_energy")
+        return count, np.asarray(source.observables[conserved][:count])
