@@ -13,22 +13,22 @@ from affinebody.quantum.cli import density
 from affinebody.quantum.intervals import ExpressionPotential
 from affinebody.quantum.orientations3 import multiplet_orientations, wigner
 
-HBAR, INERTIA, K = 0.8, 1.3, 2.0
+HBAR, INERTIA, K = 0.7, 1.3, 0.8
 
 
 @pytest.fixture(scope="module")
 def oscillator3():
-    """R^9 oscillator, sectors scalar and spin 1: the ground state and the 9 states of N = 1."""
+    """R^9 oscillator, every sector up to max(j, j') = 2: levels N = 0, 1, 2 with 1, 9 and 45
+    states (N = 1: (1, 1); N = 2: (0, 0) + (1, 1) + (2, 0) + (0, 2) + (2, 2))."""
     s = sp.solve("dalembert", 3, ExpressionPotential(f"0.5*{K}*trG", 3), HBAR, inertia=INERTIA,
-                 levels=10, sectors="scalar+spin1",
-                 settings=sp.Settings(basis_size=5, check_shrink=2))
-    assert [lv.multiplicity for lv in s.levels][:2] == [1, 9]
+                 levels=55, settings=sp.Settings(basis_size=4, check_shrink=2, max_spin=2))
+    assert [lv.multiplicity for lv in s.levels] == [1, 9, 45]
     return s
 
 
-def chamber_weights() -> np.ndarray:
-    """w_k = <Q_k^2> / <|Q|^2> under the ground state's singular-value density prod_{a<b}
-    (Q_a^2 - Q_b^2) e^{-|Q|^2/2} on Q1 > Q2 > |Q3| (the 3 x 3 real Ginibre matrix), by a
+def chamber_moments(f) -> np.ndarray:
+    """int f(Q) rho(Q) dQ / int rho, rho = prod_{a<b} (Q_a^2 - Q_b^2) e^{-|Q|^2/2} on Q1 > Q2
+    > |Q3| (the singular values of a 3 x 3 matrix of independent standard normals), by a
     Gauss-Legendre product rule in Cartesian coordinates (exact in Q2, Q3; Q1 cut at 12)."""
     x, w = np.polynomial.legendre.leggauss(80)
     u, wu = np.polynomial.legendre.leggauss(12)
@@ -40,7 +40,13 @@ def chamber_weights() -> np.ndarray:
     Q = np.stack(np.broadcast_arrays(q1[:, None, None], q2[..., None], q3), -1)
     rho = w3 * np.exp(-np.sum(Q * Q, -1) / 2) * np.prod(
         [Q[..., a] ** 2 - Q[..., b] ** 2 for a, b in ((0, 1), (0, 2), (1, 2))], 0)
-    moments = np.array([np.sum(rho * Q[..., k] ** 2) for k in range(3)])
+    values = f(Q)
+    return np.tensordot(values, rho, axes=rho.ndim) / np.sum(rho)
+
+
+def chamber_weights() -> np.ndarray:
+    """w_k = <Q_k^2> / <|Q|^2> under the ground state's singular-value density."""
+    moments = chamber_moments(lambda Q: np.moveaxis(Q * Q, -1, 0))
     return moments / moments.sum()
 
 
@@ -137,3 +143,79 @@ density_points = 11
                                      for k in ("angle", "axis1", "axis2", "axis3")}
     assert all(abs(v - 1) < 1e-12 for v in doc["integrals"].values())
     assert (out / "orientation.png").exists() and (out / "orientation.npz").exists()
+
+
+def frames(k: int, t: np.ndarray, twist: np.ndarray) -> np.ndarray:
+    """Rotations [t, twist, 3, 3] whose column k is n = (sqrt(1 - t^2), 0, t) and whose other
+    columns are u = cos(twist) e1 + sin(twist) e2 (e1, e2 completing n) and n x u, cyclically."""
+    st = np.sqrt(1 - t * t)
+    n = np.stack([st, 0 * t, t], -1)[:, None]
+    e1 = np.stack([t, 0 * t, -st], -1)[:, None]
+    e2 = np.broadcast_to([0.0, 1.0, 0.0], e1.shape)
+    u = np.cos(twist)[None, :, None] * e1 + np.sin(twist)[None, :, None] * e2
+    L = np.zeros(u.shape[:2] + (3, 3))
+    L[..., k], L[..., (k + 1) % 3], L[..., (k + 2) % 3] = n, u, np.cross(n, u)
+    return L
+
+
+def test_quadrupole_multiplets_against_their_wave_functions(oscillator3):
+    """N = 2, sector (2, 0): psi ~ <T_m, phi phi^T> e^{-|phi|^2/4s^2} with T_m the traceless
+    tensor of the harmonic Y_2m (T_0 = diag(-1, -1, 2), T_{+-1} ~ e_3 (e_1 +- i e_2)^T +
+    transpose, T_{+-2} ~ (e_1 +- i e_2)(e_1 +- i e_2)^T); with phi phi^T = L diag(Q^2) L^T,
+    p(L) ~ sum_kl <Q_k^2 Q_l^2> X_k conj(X_l), X_k = (L^T conj(T_m) L)_kk, evaluated here on
+    explicit rotations (no Wigner matrices), normalised by its Haar mean and integrated over
+    the twist about each axis and over the rotation axes. (0, 2): the same with R (psi ~
+    <T_m, phi^T phi>), and the other side is Haar."""
+    M = chamber_moments(lambda Q: np.einsum("...k,...l->kl...", Q * Q, Q * Q))
+    e = np.eye(3)
+    plus = e[0] + 1j * e[1]
+    tensors = {0: np.diag([-1.0, -1.0, 2.0]), 1: np.outer(e[2], plus) + np.outer(plus, e[2]),
+               2: np.outer(plus, plus)}
+
+    def density(m, L):  # unnormalised p at rotations [..., 3, 3]
+        T = tensors[abs(m)] if m >= 0 else tensors[-m].conj()
+        X = np.einsum("...ik,ij,...jk->...k", L, T.conj(), L)
+        return np.einsum("kl,...k,...l->...", M, X, X.conj()).real
+
+    # Haar mean by Euler angles z-y-z: Gauss-Legendre in cos(beta), trapezoid in the others
+    c, wc = np.polynomial.legendre.leggauss(8)
+    ang = 2 * np.pi * np.arange(12) / 12
+    haar = frames(2, c, ang)  # column 3 at cos(beta) = c, the first Euler angle is 0 ...
+    rz = np.stack([[np.cos(ang), -np.sin(ang), 0 * ang], [np.sin(ang), np.cos(ang), 0 * ang],
+                   [0 * ang, 0 * ang, 1 + 0 * ang]]).transpose(2, 0, 1)
+    haar = np.einsum("aij,tbjk->tabik", rz, haar)  # ... and here the azimuth
+    twist = 2 * np.pi * np.arange(12) / 12
+    level = oscillator3.levels[2]
+    first = 10 + sum(s.dimension for s in level.sectors[:[(s.spin, s.vorticity) for s in
+                                                          level.sectors].index((2, 0))])
+    for sector, side in (((2, 0), "L"), ((0, 2), "R")):
+        start = first if sector == (2, 0) else None
+        if start is None:
+            names = [(s.spin, s.vorticity) for s in level.sectors]
+            start = 10 + sum(s.dimension for s in level.sectors[:names.index((0, 2))])
+        multiplet = multiplet_orientations(oscillator3, start, points=21)
+        assert len(multiplet) == 5
+        for d in multiplet:
+            m = d["m"] if side == "L" else d["m_prime"]
+            o = d["orientation"]
+            assert (d["sector"]["spin"], d["sector"]["vorticity"]) == sector
+            norm = np.einsum("t,tab->", wc, density(m, haar)) / (2 * 12 * 12)
+            for k in range(3):
+                exact = 0.5 * density(m, frames(k, o["t"], twist)).mean(1) / norm
+                assert np.abs(o[f"{side}_axis{k + 1}"] - exact).max() < 1e-7, (m, k)
+            # rotation angle: mean over the axes n (cos theta Gauss, azimuth trapezoid)
+            st = np.sqrt(1 - c * c)
+            n = np.stack([st[:, None] * np.cos(ang), st[:, None] * np.sin(ang),
+                          c[:, None] + 0 * ang], -1)
+            cw, sw = np.cos(o["angle"]), np.sin(o["angle"])
+            nx = np.swapaxes(np.cross(n[..., None, :], np.eye(3)), -1, -2)
+            rot = (cw[:, None, None, None, None] * np.eye(3)
+                   + sw[:, None, None, None, None] * nx
+                   + (1 - cw)[:, None, None, None, None] * np.einsum("...i,...j->...ij", n, n))
+            mean = np.einsum("t,wta->w", wc, density(m, rot)) / (2 * 12)
+            exact = (1 - cw) / np.pi * mean / norm
+            assert np.abs(o[f"{side}_angle"] - exact).max() < 1e-7, m
+            other = "R" if side == "L" else "L"
+            haar_angle = (1 - cw) / np.pi
+            assert np.abs(o[f"{other}_angle"] - haar_angle).max() < 1e-12
+            assert abs(d["integrals"][f"{side}_angle"] - 1) < 1e-12

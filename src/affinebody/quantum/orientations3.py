@@ -27,10 +27,10 @@ Reported marginals (each a trigonometric polynomial, integrated exactly by the r
   degree 4j of p in the axis);
 * the direction of each principal axis, the column k of L (axes of the Cauchy tensor C, in
   space) and of R (axes of the Green tensor G, in the body), as the density of its cosine t
-  with the third axis on [-1, 1]: (1/2) x the mean of p over the azimuth and the twist about
-  the axis (trapezoid rules, exact). For |j m> the density does not depend on the azimuth
-  (p_L is invariant under L -> R_3(gamma) L), and it is even in t (the sign matrices M fix
-  diag Q: p is invariant under (L, R) -> (L M, R M), which reverses two axes).
+  with the third axis on [-1, 1] (the azimuth is uniform: p_L is invariant under
+  L -> R_3(gamma) L): (2j + 1)/2 sum_mu |d^j_{m mu}(theta)|^2 Y_mu (:func:`axis_density`),
+  even in t (the sign matrices M fix diag Q: p is invariant under (L, R) -> (L M, R M),
+  which reverses two axes).
 """
 
 from __future__ import annotations
@@ -91,14 +91,6 @@ def magnetic_states(j: int) -> np.ndarray:
     return v[:, order]
 
 
-def _z_rotation(angle: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    out = np.zeros(np.shape(angle) + (3, 3))
-    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = c, -s, s, c
-    out[..., 2, 2] = 1.0
-    return out
-
-
 def _y_rotation(angle: np.ndarray) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     out = np.zeros(np.shape(angle) + (3, 3))
@@ -138,16 +130,22 @@ _TO_THIRD = (np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]]),
              np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]]), np.eye(3))
 
 
-def axis_density(j: int, state: np.ndarray, phi: np.ndarray, axis: int, t: np.ndarray
-                 ) -> np.ndarray:
-    """Density of the cosine t in [-1, 1] of the angle between the column ``axis`` of L and the
-    third axis: (1/2) x the mean of p_L over L = R_3(az) R_2(theta) R_3(chi) S_k (cos theta =
-    t) in the azimuth az and the twist chi (trapezoid rules, exact for p's degree 2j in each)."""
-    nodes = 2 * np.pi * np.arange(4 * j + 2) / (4 * j + 2)
+def axis_density(j: int, m: int, phi: np.ndarray, axis: int, t: np.ndarray) -> np.ndarray:
+    """Density of the cosine t in [-1, 1] of the angle between the column ``axis`` (k) of L and
+    the third axis, for the state |j m>: L = R_3(a) R_2(theta) R_3(chi) S_k (cos theta = t,
+    S_k e_k = e_3) is Haar with the measure dt da dchi / (8 pi^2); R_3(a) multiplies |j m> by
+    a phase and the mean over chi keeps the diagonal of Y = D(S_k) Phi D(S_k)^T in the basis
+    |j mu>, so
+
+        p_k(t) = (2j + 1)/2 sum_mu |<j m| D^j(R_2(theta)) |j mu>|^2 <j mu| Y |j mu>,
+
+    the |d^j_{m mu}(theta)|^2 pattern weighted by the body-frame shares of axis k."""
+    U = magnetic_states(j)
+    S = wigner(j, _TO_THIRD[axis])
+    shares = np.einsum("am,ab,bm->m", U.conj(), S @ phi @ S.T, U).real
     theta = np.arccos(np.clip(np.asarray(t, float), -1.0, 1.0))
-    rot = (_z_rotation(nodes)[None, :, None] @ _y_rotation(theta)[:, None, None]
-           @ _z_rotation(nodes)[None, None, :] @ _TO_THIRD[axis])
-    return 0.5 * _quadratic(j, state, phi, rot).mean(axis=(1, 2))
+    d = np.einsum("a,...ab,bm->...m", U[:, j - m].conj(), wigner(j, _y_rotation(theta)), U)
+    return (2 * j + 1) / 2 * np.abs(d) ** 2 @ shares
 
 
 def _integral(density, lo: float, hi: float) -> float:
@@ -203,15 +201,15 @@ def multiplet_orientations(spectrum: Spectrum, state: int, points: int = POINTS,
         index = {"L": position // (2 * jp + 1), "R": position % (2 * jp + 1)}
         orient, integrals = {"angle": omega, "t": t}, {}
         for side, (spin, moments) in phi.items():
-            vec = basis[side][:, index[side]]
+            vec, m = basis[side][:, index[side]], spin - index[side]
             orient[f"{side}_angle"] = rotation_angle_density(spin, vec, moments, omega)
             integrals[f"{side}_angle"] = _integral(
                 lambda x, s=spin, v=vec, p=moments: rotation_angle_density(s, v, p, x),
                 0.0, np.pi)
             for k in range(3):
-                orient[f"{side}_axis{k + 1}"] = axis_density(spin, vec, moments, k, t)
+                orient[f"{side}_axis{k + 1}"] = axis_density(spin, m, moments, k, t)
                 integrals[f"{side}_axis{k + 1}"] = _integral(
-                    lambda x, s=spin, v=vec, p=moments, k=k: axis_density(s, v, p, k, x),
+                    lambda x, s=spin, m=m, p=moments, k=k: axis_density(s, m, p, k, x),
                     -1.0, 1.0)
         out.append({"state": first + position, "sector": sector.as_dict(),
                     "m": j - index["L"], "m_prime": jp - index["R"], "energy": level.energy,
