@@ -160,7 +160,8 @@ def multiplet_of_state(spectrum: Spectrum, state: int):
     table = state_components(spectrum, state)
     level, sector = table[state]
     before = sum(1 for lv, sec in table[:state] if lv is level and sec == sector)
-    pairs = [(c, k) for c in level_components(spectrum, level) for k, s in enumerate(c.sectors)
+    pairs = [(c, k) for c in level_components(spectrum, level, sector=sector)
+             for k, s in enumerate(c.sectors)
              if s == sector]
     component, k = pairs[before // sector.dimension]
     y, w = reduced_quadrature([component])
