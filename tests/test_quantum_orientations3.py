@@ -128,7 +128,7 @@ kinetic = "dalembert"
 inertia = {INERTIA}
 potential = "0.5*{K}*trG"
 sectors = "scalar+spin1"
-basis_size = 5
+basis_size = 4
 density_points = 11
 """)
     out = tmp_path / "o"
