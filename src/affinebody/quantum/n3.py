@@ -637,7 +637,8 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
             bounds = lebesgue3_shell_bounds(potential, hbar, inertia_scalar, max_shell,
                                             setup.scale)
         else:
-            bounds = haar3_shell_bounds(potential, hbar, inertia, max_shell, setup.centre)
+            bounds = haar3_shell_bounds(potential, hbar, inertia, max_shell, setup.centre,
+                                            setup.scale_sigma, setup.scale)
     except Unsupported as err:
         reason = str(err)
 
