@@ -337,12 +337,18 @@ def haar3_centrifugal_min(j_free: int, j_paid: int, x_hi: list[np.ndarray], c0: 
     decreasing. The weights w_g = |u_g|^2 / |f|^2 sum to j(j+1) = j^2 + j and each is <= j^2
     (the largest eigenvalue of -K_g^2 on V_j), so sum_g mu_g w_g >= mu_(1) j^2 + mu_(2) j with
     mu_(1) <= mu_(2) the two smallest of the mu_g >= 0 (likewise for lambda with j^2 + j'^2,
-    j + j'); sum_g |v_g|^2 = j_paid (j_paid + 1). The best of these forms per cell;
+    j + j'); sum_g |v_g|^2 = j_paid (j_paid + 1). The best of these forms per cell; for
+    j_paid = 0 (v = 0) the form is exactly sum_g A_g |u_g|^2, for j_free = 0 (u = 0)
+    sum_g (A_g + e) |v_g|^2, bounded the same way;
     ``monotone``: only those non-decreasing in both spins (f >= 4 c0 and lambda)."""
     jf, jp = j_free, j_paid
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
         a = [np.where(np.isfinite(x), 4 * c0 / np.sinh(np.minimum(x, 700.0)) ** 2, 0.0)
              for x in x_hi]
+        if jp == 0 or jf == 0:  # v = 0 (resp. u = 0): the form is A |u|^2 (resp. (A + e) |v|^2)
+            low, second = _two_smallest(a)
+            j = jf or jp
+            return low * j * j + second * j + (e * jp * (jp + 1) if jp else 0.0)
         lam = [np.where(np.isfinite(x), max(c0 * (e - 4 * c0), 0.0)
                         / (2 * c0 + 0.25 * e * np.sinh(np.minimum(x, 700.0)) ** 2), 0.0)
                for x in x_hi]
@@ -437,10 +443,12 @@ def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell
         cent = v + haar3_centrifugal_min(*spins, pairs, c0, e)
         return float(_lowered(max(np.min(cent + k) for k in kinetic)))
     L = max_shell + 1
-    # every sector beyond has j_free >= L or j_paid >= L; the forms non-decreasing in both
-    # spins bound it by their value at (L, 0) or (0, L)
-    tail_cent = np.minimum(haar3_centrifugal_min(L, 0, pairs, c0, e, monotone=True),
-                           haar3_centrifugal_min(0, L, pairs, c0, e, monotone=True))
+    # every sector beyond has j_free >= L or j_paid >= L: (j_free, 0) and (0, j_paid) exactly
+    # (increasing in the spin), else the forms non-decreasing in both spins at (L, 1), (1, L)
+    tail_cent = np.minimum.reduce([haar3_centrifugal_min(L, 0, pairs, c0, e),
+                                   haar3_centrifugal_min(L, 1, pairs, c0, e, monotone=True),
+                                   haar3_centrifugal_min(1, L, pairs, c0, e, monotone=True),
+                                   haar3_centrifugal_min(0, L, pairs, c0, e)])
     tail = float(_lowered(max(np.min(v + tail_cent + k) for k in kinetic)))
     return _by_shell(bound, max_shell, tail,
                      "certified: dilatation oscillator and shear ground-state representation "
