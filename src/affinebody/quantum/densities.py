@@ -187,6 +187,8 @@ def _grid3_joint(spectrum: Spectrum, basis, coeff: np.ndarray) -> Joint:
         sb = values.__self__
 
         def amplitude(p):
+            if hasattr(sb, "combination"):  # n3.HarmonicBasis: radial sums per harmonic first
+                return sb.combination(coeff, p)
             return np.einsum("prk,k->pr", replace(sb, nodes=p).values(), coeff)
         degree, scale, scale_sigma, centre = sb.candidate_args
     else:
