@@ -53,7 +53,11 @@ def make_system(internal, group, potential=ELASTIC):
 
 
 def tracker(system, integrator="strang"):
-    """Jitted (state, dt, steps) -> (final, max |E - E0|, max constraint residual)."""
+    """Jitted (state, dt, steps) -> (final, max |E - E0|, max constraint residual, (E0, E_end)).
+
+    The energies at both ends come from the compiled graph too: the same H evaluated eagerly,
+    op by op, costs more than the compilation (constrained H solves for the metric lift).
+    """
     method = INTEGRATORS[integrator]
 
     @jax.jit
@@ -67,7 +71,9 @@ def tracker(system, integrator="strang"):
             res = jnp.max(jnp.abs(constraints.constraint_residual(s.phi, system.group)))
             return s, emax, jnp.maximum(rmax, res)
 
-        return lax.fori_loop(0, steps, body, (state, jnp.zeros(()), jnp.zeros(())))
+        final, emax, rmax = lax.fori_loop(0, steps, body,
+                                          (state, jnp.zeros(()), jnp.zeros(())))
+        return final, emax, rmax, (e0, system.hamiltonian(final))
 
     return evolve
 
@@ -105,13 +111,13 @@ def test_algebra_preserving_exact_flows_stay_on_every_subgroup(group, internal):
     assert all(constraints.drift_mode(t) == "exact"
                for t in (system.kinetic.translational, internal))
     state = system.check(group_state(1, group))
-    final, energy_error, residual = tracker(system)(state, 0.02, 1000)
+    final, energy_error, residual, (e0, _) = tracker(system)(state, 0.02, 1000)
     assert float(residual) < 1e-12  # round-off accumulated over 1000 products of expm
     assert bool(jnp.all(is_member(final.phi, group, tol=1e-12)))
     np.testing.assert_array_equal(np.sign(np.linalg.det(final.phi)),
                                   np.sign(np.linalg.det(state.phi)))  # component kept
     assert in_algebra_defect(final, group) < 1e-12
-    assert float(energy_error) / abs(float(system.hamiltonian(state))) < 1e-3
+    assert float(energy_error) / abs(float(e0)) < 1e-3
 
 
 # ------------------------------------------------------------------ RATTLE and Lie-group drifts
@@ -133,9 +139,9 @@ def test_constrained_drift_residual_round_off_energy_bounded_order_two(group, in
     assert constraints.drift_mode(internal) == expected
     state = system.check(group_state(2, group))
     evolve = tracker(system)
-    e0 = abs(float(system.hamiltonian(state)))
-    mid, first_error, residual_first = evolve(state, 0.04, 500)
-    final, later_error, residual_later = evolve(mid, 0.04, 1000)
+    mid, first_error, residual_first, (start, _) = evolve(state, 0.04, 500)
+    final, later_error, residual_later, (_, end) = evolve(mid, 0.04, 1000)
+    e0 = abs(float(start))
     # the constraint holds to round-off at every step (RATTLE solves it to round-off each
     # step; the splitting multiplies 2 dim(g) - 1 exponentials per step, whose round-off adds
     # up over the 1500 steps); the component of phi is kept
@@ -144,7 +150,7 @@ def test_constrained_drift_residual_round_off_energy_bounded_order_two(group, in
     np.testing.assert_array_equal(np.sign(np.linalg.det(final.phi)),
                                   np.sign(np.linalg.det(state.phi)))
     # bounded energy error: the later 1000 steps stay in the band of the first 500 ...
-    drift = abs(float(system.hamiltonian(final)) - float(system.hamiltonian(state)))
+    drift = abs(float(end) - float(start))
     assert 1e-9 < float(first_error) / e0 < 1e-2
     assert drift < 3.0 * float(first_error) + 1e-12
     # ... and it converges at order 2 (a wrong restricted Hamiltonian would not converge)
