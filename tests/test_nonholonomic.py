@@ -47,7 +47,9 @@ def random_state(seed, group="GL+", bodies=2, n=3):
 
 
 def tracker(system):
-    """Jitted (state, dt, steps) -> (final, max |E - E0|, max constraint residual)."""
+    """Jitted (state, dt, steps) -> (final, max |E - E0|, max constraint residual, (E0, E_end)).
+
+    The end energies come from the compiled graph (an eager H, op by op, costs more)."""
 
     @jax.jit
     def evolve(state, dt, steps):
@@ -60,7 +62,9 @@ def tracker(system):
             res = nh.residuals(system.kinetic, s, system.rotationless, system.group)
             return s, emax, jnp.maximum(rmax, res)
 
-        return lax.fori_loop(0, steps, body, (state, jnp.zeros(()), jnp.zeros(())))
+        final, emax, rmax = lax.fori_loop(0, steps, body,
+                                          (state, jnp.zeros(()), jnp.zeros(())))
+        return final, emax, rmax, (e0, system.hamiltonian(final))
 
     return evolve
 
@@ -101,15 +105,15 @@ def test_constraint_at_round_off_and_energy_bounded(internal, group, kind):
     system, evolve = case(internal, group, kind)
     state = system.check(random_state(1, group))
     assert float(nh.residuals(system.kinetic, state, kind, group)) < 1e-14
-    e0 = float(system.hamiltonian(state))
-    mid, first_error, first_res = evolve(state, 0.05, 150)
-    final, later_error, later_res = evolve(mid, 0.05, 450)
+    mid, first_error, first_res, (e0, _) = evolve(state, 0.05, 150)
+    final, later_error, later_res, (_, end) = evolve(mid, 0.05, 450)
+    e0 = float(e0)
     assert max(float(first_res), float(later_res)) < 1e-13
     if group == "SL":
         assert float(jnp.max(jnp.abs(jnp.linalg.det(final.phi) - 1.0))) < 1e-13
     # ideal, time-independent constraints: energy is conserved; the scheme's error is bounded
     assert 1e-9 < float(first_error) / e0 < 1e-2
-    drift = abs(float(system.hamiltonian(final)) - e0)
+    drift = abs(float(end) - e0)
     assert drift < 3.0 * float(first_error)
     # time-reversible: a step back returns the state
     one = evolve(state, 0.05, 1)[0]
