@@ -255,8 +255,9 @@ def test_plot_of_a_3d_run_draws_the_ellipsoids_with_units(gromacs_run, tmp_path,
         figures = []
         monkeypatch.setattr(plotting, "_save", lambda fig, path: figures.append(fig) or path)
         plotting.plot_all(trajectory, tmp_path)
-    energy, momenta, deformation, bodies = figures
+    energy, momenta, deformation, temperature, bodies = figures
     assert energy.axes[0].get_ylabel() == "energy [kJ/mol]"
+    assert temperature.axes[0].get_ylabel() == "kT [kJ/mol]"  # the temperatures, in units
     assert energy.axes[1].get_xlabel() == "time [ps]"
     assert [bodies.axes[0].get_xlabel(), bodies.axes[0].get_ylabel(),
             bodies.axes[0].get_zlabel()] == ["x [nm]", "y [nm]", "z [nm]"]

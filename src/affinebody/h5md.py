@@ -372,7 +372,8 @@ class H5MDWriter:
     """Append-only writer of an affinebody trajectory in the H5MD layout of this module.
 
     Use as a context manager. ``append`` writes a block of frames and flushes them to disk.
-    ``pressure``: the file also holds :data:`PERIODIC_OBSERVABLES` (a periodic ``box``).
+    ``pressure``: the file also holds :data:`PERIODIC_OBSERVABLES` (a periodic ``box``);
+    ``thermostat``: :data:`THERMOSTAT_OBSERVABLES`.
     ``parameters`` are stored under /parameters (strings and numbers only). ``units`` names
     the unit system (a key of :data:`UNIT_SYSTEMS`).
     """
@@ -392,8 +393,6 @@ class H5MDWriter:
         thermostat: bool = False,
     ):
         self.path = Path(path)
-        #: the observables this file holds (with THERMOSTAT_OBSERVABLES when ``thermostat``)
-        self.observables = dict(OBSERVABLES, **(THERMOSTAT_OBSERVABLES if thermostat else {}))
         if units not in UNIT_SYSTEMS:
             raise ValueError(f"units must be one of {sorted(UNIT_SYSTEMS)} (got {units!r})")
         unit = dict(UNIT_SYSTEMS[units])
@@ -403,8 +402,10 @@ class H5MDWriter:
         self.box = None if box is None else np.asarray(box, dtype=np.float64)
         if pressure and box is None:
             raise ValueError("pressure and volume are observables of a periodic box: give box")
-        #: the observables this file holds (with ``pressure``: PERIODIC_OBSERVABLES too)
-        self.observables = dict(OBSERVABLES, **(PERIODIC_OBSERVABLES if pressure else {}))
+        #: the observables this file holds (with ``pressure``: PERIODIC_OBSERVABLES too, with
+        #: ``thermostat``: THERMOSTAT_OBSERVABLES)
+        self.observables = dict(OBSERVABLES, **(PERIODIC_OBSERVABLES if pressure else {}),
+                                **(THERMOSTAT_OBSERVABLES if thermostat else {}))
         mass = np.asarray(mass, dtype=np.float64)
         bodies = mass.shape[0]
         self.n, self.bodies = int(n), int(bodies)
