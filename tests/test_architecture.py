@@ -24,7 +24,7 @@ LAYERS = {
                    "inertia", "actions", "brackets", "observables"),
     "models": ("kinetic", "potentials", "pair_kernels", "neighbors"),
     "mechanics": ("constraints", "nonholonomic", "system", "integrators", "simulate", "phonons",
-                  "pressure", "barostat"),
+                  "pressure", "barostat", "thermostats"),
     "quantum": ("quantum",),
     "application": ("_timing", "config", "runner", "sweep", "studies", "h5md", "checkpoint",
                     "plotting", "export", "examples", "units", "quantum.config",

@@ -116,7 +116,10 @@ def test_npt_run_writes_the_box_pressure_and_volume_and_resumes_bit_for_bit(tmp_
     from affinebody.h5md import read_trajectory
     from affinebody.runner import run_simulation
 
-    config = check_config(parse_config(NPT_CONFIG))
+    # NPT as users run it: a [thermostat] for the bodies, whose kT the barostat takes
+    text = NPT_CONFIG.replace("temperature = 0.3\n", "") + (
+        '[thermostat]\nkind = "langevin"\ntemperature = 0.3\nfriction = 1.0\nseed = 5\n')
+    config = check_config(parse_config(text))
     run_simulation(config, tmp_path / "whole.h5")
     run_simulation(config, tmp_path / "resumed.h5", steps=200)
     run_simulation(config, tmp_path / "resumed.h5", resume=True)
@@ -147,6 +150,10 @@ def test_barostat_config_errors_are_one_line():
         "pressure = 0.1": ("pressure = [[1.0, 0.0]]", "barostat.pressure"),
         "box = [4.0, 4.2]\n": ("", "barostat needs a periodic box"),
         'coupling = "anisotropic"': ('coupling = "sheared"', "barostat.coupling"),
+        "temperature = 0.3\n": ("", "barostat.temperature is required without a"),
+        'coupling = "anisotropic"\n': ('coupling = "anisotropic"\n[thermostat]\nkind = '
+                                       '"bussi"\ntemperature = 0.5\ntau = 1.0\n',
+                                       "barostat.temperature must equal thermostat.temperature"),
     }
     for old, (new, message) in cases.items():
         with pytest.raises(ConfigError, match=message) as err:

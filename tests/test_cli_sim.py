@@ -171,7 +171,7 @@ def test_a_blow_up_stops_with_step_body_and_cause_and_keeps_the_frames(folder):
 def test_plot_writes_nonempty_images(folder, reference):
     result = invoke("plot", reference, "-o", folder / "plots")
     assert result.exit_code == 0, result.stderr
-    names = {"energy.png", "momenta.png", "deformation.png", "bodies.png"}
+    names = {"energy.png", "momenta.png", "deformation.png", "bodies.png", "temperature.png"}
     assert names <= {p.name for p in (folder / "plots").iterdir()}
     for name in names:
         image = imread(folder / "plots" / name)

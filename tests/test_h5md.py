@@ -31,6 +31,8 @@ def synthetic(frames=5, bodies=3, n=2, seed=0):
         "linear_momentum": rng.normal(size=(frames, n)),
         "affine_momentum": rng.normal(size=(frames, n, n)),
         "angular_momentum": rng.normal(size=(frames, n, n)),
+        "translational_temperature": rng.normal(size=frames),
+        "internal_temperature": rng.normal(size=frames),
     }
     return state, obs
 
@@ -72,7 +74,8 @@ def test_layout_follows_the_contract(tmp_path):
         assert box["edges/time"] == f["particles/bodies/position/time"]
         obs_shapes = {"total_energy": (8,), "kinetic_energy": (8,), "potential_energy": (8,),
                       "linear_momentum": (8, 2), "affine_momentum": (8, 2, 2),
-                      "angular_momentum": (8, 2, 2)}
+                      "angular_momentum": (8, 2, 2), "translational_temperature": (8,),
+                      "internal_temperature": (8,)}
         for name, shape in obs_shapes.items():
             assert f[f"observables/{name}/value"].shape == shape
             assert f[f"observables/{name}/step"].shape == (8,)
@@ -115,7 +118,8 @@ WRITER = textwrap.dedent('''
                   np.zeros((1, 3, 2)), np.zeros((1, 3, 2, 2)))
         obs = {"total_energy": np.zeros(1), "kinetic_energy": np.zeros(1),
                "potential_energy": np.zeros(1), "linear_momentum": np.zeros((1, 2)),
-               "affine_momentum": np.zeros((1, 2, 2)), "angular_momentum": np.zeros((1, 2, 2))}
+               "affine_momentum": np.zeros((1, 2, 2)), "angular_momentum": np.zeros((1, 2, 2)),
+               "translational_temperature": np.zeros(1), "internal_temperature": np.zeros(1)}
         w.append(np.array([k]), np.array([k * 0.5]), s, obs)
         if k == 20:
             print("ready", flush=True)

@@ -76,7 +76,9 @@ def synthetic3(frames=4, bodies=3, seed=3):
            "potential_energy": rng.normal(size=frames),
            "linear_momentum": rng.normal(size=(frames, 3)),
            "affine_momentum": rng.normal(size=(frames, 3, 3)),
-           "angular_momentum": rng.normal(size=(frames, 3, 3))}
+           "angular_momentum": rng.normal(size=(frames, 3, 3)),
+           "translational_temperature": rng.normal(size=frames),
+           "internal_temperature": rng.normal(size=frames)}
     return state, obs
 
 
@@ -253,8 +255,9 @@ def test_plot_of_a_3d_run_draws_the_ellipsoids_with_units(gromacs_run, tmp_path,
         figures = []
         monkeypatch.setattr(plotting, "_save", lambda fig, path: figures.append(fig) or path)
         plotting.plot_all(trajectory, tmp_path)
-    energy, momenta, deformation, bodies = figures
+    energy, momenta, deformation, temperature, bodies = figures
     assert energy.axes[0].get_ylabel() == "energy [kJ/mol]"
+    assert temperature.axes[0].get_ylabel() == "kT [kJ/mol]"  # the temperatures, in units
     assert energy.axes[1].get_xlabel() == "time [ps]"
     assert [bodies.axes[0].get_xlabel(), bodies.axes[0].get_ylabel(),
             bodies.axes[0].get_zlabel()] == ["x [nm]", "y [nm]", "z [nm]"]

@@ -313,3 +313,21 @@ def test_n2_marginal_moments_equal_joint_moments_for_an_asymmetric_anharmonic_st
     # the second state found, converged or not: the identity holds for any eigenvector
     level = sorted(s.levels + s.unconverged, key=lambda lv: lv.energy)[1]
     _moments_agree(s, level, names, 108, 1e-11)
+
+
+def test_n3_harmonic_basis_density_of_an_excited_state_matches_the_chi_squared():
+    """quantum.radial_size (n3.HarmonicBasis, amplitudes summed per harmonic by
+    HarmonicBasis.combination): for the R^9 oscillator the (0, 0) state with one radial node
+    (energy 13/2 hbar omega: 2 quanta in rho, none in the angles) has Tr G = s^2 t with t
+    distributed as (t/2 - 9/2)^2 / (9/2) times the chi^2_9 density (the radial function
+    L_1^(7/2)(t/2) e^(-t/4) squared, normalised); pointwise to 1e-8."""
+    s = sp.solve("dalembert", 3, oscillator(1.0), 1.0, inertia=1.0, levels=12,
+                 settings=sp.Settings(basis_size=2, radial_size=6, scale=1.0))
+    key = ("sector", 0, 0, 1)  # the second level of (0, 0)
+    assert abs(s.blocks[key].energies[0] - 6.5) < 1e-10
+    d = marginal_densities(s, _level(s, key))
+    _check(d)
+    x, p = d["marginals"]["trG"]
+    t = x / 0.5
+    chi = t**3.5 * np.exp(-t / 2) / (2**4.5 * special.gamma(4.5)) / 0.5
+    assert np.max(np.abs(p - chi * (t / 2 - 4.5) ** 2 / 4.5)) < 1e-8

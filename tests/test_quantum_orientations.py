@@ -129,4 +129,4 @@ density_points = 11
                                                   "orientation.png"))
     result = CliRunner().invoke(density, [str(path), "--state", "0", "--temperature", "1",
                                           "-o", str(out)])
-    assert result.exit_code == 2 and "exactly one of --state" in result.output
+    assert result.exit_code == 1 and "exactly one of --state" in result.output

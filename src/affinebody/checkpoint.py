@@ -1,11 +1,12 @@
 """Atomic checkpoints of a running simulation, for ``affinebody run --resume``.
 
 A checkpoint holds the exact float64 state (x, phi, p, pi) at a step, the step itself, the
-number of frames written up to it, and a hash of the configuration that produced it. It is
-written to a temporary file in the same folder, fsync'ed and then renamed over the previous
-checkpoint (``os.replace`` is atomic on POSIX), so a run killed at any moment leaves either the
-old or the new checkpoint, never a half-written one. Restarting the same compiled chunk function
-from this state reproduces the uninterrupted run bit for bit.
+number of frames written up to it, the heat a thermostat put in up to it, and a hash of the
+configuration that produced it. It is written to a temporary file in the same folder, fsync'ed
+and then renamed over the previous checkpoint (``os.replace`` is atomic on POSIX), so a run
+killed at any moment leaves either the old or the new checkpoint, never a half-written one.
+Restarting the same compiled chunk function from this state reproduces the uninterrupted run
+bit for bit.
 """
 
 from __future__ import annotations
@@ -38,6 +39,8 @@ class Checkpoint:
     config_hash: str
     #: the cell matrix [n, n] of a box that a barostat changes (None: the config's box)
     cell: np.ndarray | None = None
+    #: heat put in by a thermostat up to ``step`` (0 for NVE runs)
+    heat: float = 0.0
 
 
 def checkpoint_path(output: str | Path) -> Path:
@@ -63,6 +66,7 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
         pi=np.asarray(state.pi, dtype=np.float64),
         **({} if checkpoint.cell is None else {"cell": np.asarray(checkpoint.cell,
                                                                    dtype=np.float64)}),
+        heat=np.float64(checkpoint.heat),
     )
     descriptor, temporary = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
@@ -106,6 +110,7 @@ def load_checkpoint(path: str | Path, config_hash: str | None = None) -> Checkpo
                 config_hash=str(data["config_hash"]),
                 state=State(*(np.array(data[k]) for k in ("x", "phi", "p", "pi"))),
                 cell=np.array(data["cell"]) if "cell" in data else None,
+                heat=float(data["heat"]) if "heat" in data else 0.0,
             )
     except CheckpointError:
         raise

@@ -177,6 +177,17 @@ class RunSection(_Section):
                                               "the periodic box (always with a [barostat])")
 
 
+class ThermostatSection(_Section):
+    """``[thermostat]``: NVT by a Langevin or a stochastic velocity rescaling (Bussi) thermostat
+    (:mod:`affinebody.thermostats`, docs/thermostats.md)."""
+
+    kind: Literal["langevin", "bussi"]
+    temperature: float = Field(description="kT in energy units (k_B = 1)")
+    friction: float | None = Field(None, description="langevin: friction gamma, 1/time")
+    tau: float | None = Field(None, description="bussi: relaxation time of the kinetic energy")
+    seed: int = Field(0, ge=0, lt=2**32, description="step k draws from fold_in(key(seed), k)")
+
+
 class ScanRange(_Section):
     """A range of values for one scanned field: ``num`` values from ``start`` to ``stop``
     (both included), evenly spaced, or geometrically spaced with ``log = true``."""
@@ -244,8 +255,9 @@ class BarostatSection(_Section):
     coupling: Literal["isotropic", "anisotropic"] = Field(
         "isotropic", description="isotropic: the box scales as a whole; anisotropic: each "
                                  "edge of the orthorhombic box moves")
-    temperature: float = Field(description="kT of the barostat's noise (the temperature of "
-                                           "the ensemble)")
+    temperature: float | None = Field(None, description="kT of the barostat's noise (the "
+                                                      "temperature of the ensemble); default: "
+                                                      "thermostat.temperature")
 
 
 class Config(_Section):
@@ -262,6 +274,7 @@ class Config(_Section):
     sweep: SweepSection | None = None
     phonons: PhononsSection | None = None
     barostat: BarostatSection | None = None
+    thermostat: ThermostatSection | None = None
     # the text the config was read from (not a TOML key)
     source_text: str = Field("", exclude=True, repr=False)
 
@@ -293,6 +306,8 @@ class Config(_Section):
             del data["system"]["units"]
         if data.get("barostat") is None:  # the same, for runs without a barostat
             data.pop("barostat", None)
+        if data["thermostat"] is None:  # the same, for NVE configs
+            del data["thermostat"]
         canonical = json.dumps(data, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()
 
@@ -565,6 +580,38 @@ def check_kinetic(config: Config) -> None:
                                   f"n^2 x n^2 matrix")
 
 
+def check_thermostat(config: Config) -> None:
+    """``[thermostat]``: its parameters and a positive definite T."""
+    t = config.thermostat
+    if t is None:
+        return
+    needed, other = ("friction", "tau") if t.kind == "langevin" else ("tau", "friction")
+    for name in ("temperature", needed):
+        value = getattr(t, name)
+        if value is None:
+            raise ConfigError(f"thermostat.{name} is required by the {t.kind} thermostat")
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"thermostat.{name} must be a finite number > 0 (got {value})")
+    if getattr(t, other) is not None:
+        raise ConfigError(f"thermostat.{other} is not a parameter of the {t.kind} thermostat "
+                          f"(it uses temperature, {needed}, seed)")
+    if config.kinetic.internal == "af-af":
+        raise ConfigError("thermostat: kinetic.internal 'af-af' (72) has an indefinite kinetic "
+                          "energy, so no canonical ensemble exists; use a positive definite model")
+
+
+def build_thermostat(config: Config):
+    """The ``thermostats.Langevin`` / ``Bussi`` of ``[thermostat]``, or None (NVE)."""
+    from affinebody import thermostats
+
+    t = config.thermostat
+    if t is None:
+        return None
+    if t.kind == "langevin":
+        return thermostats.Langevin(t.temperature, t.friction, t.seed)
+    return thermostats.Bussi(t.temperature, t.tau, t.seed)
+
+
 def check_run(config: Config) -> None:
     r = config.run
     if not (math.isfinite(r.dt) and r.dt > 0):
@@ -805,8 +852,18 @@ def check_barostat(config: Config) -> None:
         return
     if config.system.box is None:
         raise ConfigError("barostat needs a periodic box: set system.box")
-    for name in ("tau", "compressibility", "temperature"):
+    for name in ("tau", "compressibility"):
         _positive(getattr(b, name), f"barostat.{name}")
+    thermostat = config.thermostat
+    if b.temperature is None and thermostat is None:
+        raise ConfigError("barostat.temperature is required without a [thermostat] (give kT, "
+                          "or add a [thermostat] whose temperature it then takes)")
+    if b.temperature is not None:
+        _positive(b.temperature, "barostat.temperature")
+        if thermostat is not None and b.temperature != thermostat.temperature:
+            raise ConfigError(f"barostat.temperature must equal thermostat.temperature (one "
+                              f"ensemble; got {b.temperature} and {thermostat.temperature}): "
+                              f"leave barostat.temperature out")
     if isinstance(b.pressure, list):
         _array(b.pressure, "barostat.pressure", (n, n))
     elif not math.isfinite(b.pressure):
@@ -829,6 +886,7 @@ def check_config(config: Config) -> Config:
     check_kinetic(config)
     check_initial(config)
     check_run(config)
+    check_thermostat(config)
     check_potentials(config)
     check_barostat(config)
     return config
@@ -847,6 +905,8 @@ class Built:
     neighbors: Any = None
     #: seconds spent in each stage of :func:`build` (what ``affinebody run --verbose`` prints)
     timings: dict = dataclass_field(default_factory=dict)
+    #: the ``thermostats.Langevin`` / ``Bussi`` of ``[thermostat]``, None for NVE
+    thermostat: Any = None
 
 
 def _kinetic_parameter(name: str, config: Config, inertia: Inertia):
@@ -1011,4 +1071,5 @@ def build(config: Config) -> Built:
     if not math.isfinite(energy):
         raise ConfigError(f"initial: the energy of the initial state is {energy} (bodies on top "
                           f"of each other in a singular potential, or det phi = 0?)")
-    return Built(system, state, inertia, neighbor_list, lists, timings)
+    return Built(system, state, inertia, neighbor_list, lists, timings,
+                 build_thermostat(config))

@@ -18,6 +18,10 @@ The layout is a public contract::
     /observables/pressure/...             value [T, n, n]   pressure tensor (run.pressure or a
                                           barostat, periodic box; docs/pressure.md)
     /observables/volume/...               value [T]         det of the cell (the same runs)
+    /observables/{translational_temperature, internal_temperature}/...  value [T]
+                                          2 T_tr / (N n) and 2 T_int / (N d), d the internal
+                                          momentum degrees of freedom per body (thermostats.py)
+    /observables/effective_energy/...     value [T]   thermostatted runs: H minus the heat
     /parameters/{config, seed, version, dt, steps, config_hash}
     /parameters/frames_committed  [1] int64: frames whose every element is on disk
     /h5md/modules/units                   attrs version=[1, 0], system="reduced" | "gromacs"
@@ -82,7 +86,9 @@ ELEMENT_UNITS = {"position": "length", "momentum": "momentum", "phi": None,
                  "phi_momentum": "action", "total_energy": "energy",
                  "kinetic_energy": "energy", "potential_energy": "energy",
                  "linear_momentum": "momentum", "affine_momentum": "action",
-                 "angular_momentum": "action", "pressure": "pressure", "volume": "volume"}
+                 "angular_momentum": "action", "pressure": "pressure", "volume": "volume",
+                 "translational_temperature": "energy", "internal_temperature": "energy",
+                 "effective_energy": "energy"}
 
 #: State fields -> H5MD element names under /particles/bodies.
 STATE_ELEMENTS = {"x": "position", "p": "momentum", "phi": "phi", "pi": "phi_momentum"}
@@ -94,9 +100,13 @@ OBSERVABLES = {
     "linear_momentum": 1,
     "affine_momentum": 2,
     "angular_momentum": 2,
+    "translational_temperature": 0,
+    "internal_temperature": 0,
 }
 #: Observables of periodic runs only (same convention as :data:`OBSERVABLES`).
 PERIODIC_OBSERVABLES = {"pressure": 2, "volume": 0}
+#: Observables written by thermostatted runs only: H minus the heat the thermostat put in.
+THERMOSTAT_OBSERVABLES = {"effective_energy": 0}
 #: File observables recorded under another name by the run driver
 #: (``simulate.NAMED_OBSERVABLES``); the others have the same name in both.
 DRIVER_NAMES = {"total_energy": "energy"}
@@ -362,7 +372,8 @@ class H5MDWriter:
     """Append-only writer of an affinebody trajectory in the H5MD layout of this module.
 
     Use as a context manager. ``append`` writes a block of frames and flushes them to disk.
-    ``pressure``: the file also holds :data:`PERIODIC_OBSERVABLES` (a periodic ``box``).
+    ``pressure``: the file also holds :data:`PERIODIC_OBSERVABLES` (a periodic ``box``);
+    ``thermostat``: :data:`THERMOSTAT_OBSERVABLES`.
     ``parameters`` are stored under /parameters (strings and numbers only). ``units`` names
     the unit system (a key of :data:`UNIT_SYSTEMS`).
     """
@@ -379,6 +390,7 @@ class H5MDWriter:
         author: str = "affinebody user",
         units: str = "reduced",
         pressure: bool = False,
+        thermostat: bool = False,
     ):
         self.path = Path(path)
         if units not in UNIT_SYSTEMS:
@@ -390,8 +402,10 @@ class H5MDWriter:
         self.box = None if box is None else np.asarray(box, dtype=np.float64)
         if pressure and box is None:
             raise ValueError("pressure and volume are observables of a periodic box: give box")
-        #: the observables this file holds (with ``pressure``: PERIODIC_OBSERVABLES too)
-        self.observables = dict(OBSERVABLES, **(PERIODIC_OBSERVABLES if pressure else {}))
+        #: the observables this file holds (with ``pressure``: PERIODIC_OBSERVABLES too, with
+        #: ``thermostat``: THERMOSTAT_OBSERVABLES)
+        self.observables = dict(OBSERVABLES, **(PERIODIC_OBSERVABLES if pressure else {}),
+                                **(THERMOSTAT_OBSERVABLES if thermostat else {}))
         mass = np.asarray(mass, dtype=np.float64)
         bodies = mass.shape[0]
         self.n, self.bodies = int(n), int(bodies)
@@ -545,7 +559,8 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
     """Append the frames of the file ``path`` with step <= ``through_step`` to ``writer``,
     a block of frames at a time (memory: about ``block_bytes``, not the whole trajectory).
 
-    Used by ``--resume``. Returns the number of frames copied and their total energies.
+    Used by ``--resume``. Returns the number of frames copied and their total energies (their
+    effective energies in a thermostatted run's file).
     """
     with open_trajectory(path) as source:
         missing = [k for k in writer.observables if k not in source.observables]
@@ -570,4 +585,6 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
             raise TrajectoryFileError(
                 f"{path}: cannot read the trajectory (truncated or corrupt: {_short(err)})"
             ) from None
-        return count, np.asarray(source.observables["total_energy"][:count])
+        conserved = ("effective_energy" if "effective_energy" in writer.observables
+                     else "total_energy")
+        return count, np.asarray(source.observables[conserved][:count])

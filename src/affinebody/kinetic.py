@@ -153,6 +153,9 @@ class AbstractKineticTerm(abc.ABC):
       ``"exact"`` (its own flow keeps the group: phi fixed, or g mapped into g), ``"lie-group"``
       (a left/right-invariant term restricted to G: rank-one splitting in g) or ``"rattle"``
       (d'Alembert's constant inertia);
+    - ``thermal_coordinates``: the momentum coordinates z in which T has constant coefficients,
+      T(phi, momentum) = T(Id, z) (``affinebody.thermostats``): ``"canonical"`` (z = p or pi),
+      ``"material"`` (z = phi^T p), ``"left"`` (z = pi phi) or ``"right"`` (z = phi pi);
     - ``invariance_side``: ``"left"`` when T depends on xi through Omega_hat = phi^-1 xi (34)
       (spatially affine), ``"right"`` through Omega = xi phi^-1 (materially affine), else None;
     - ``symmetry``: its invariance groups, labels of ``SYMMETRIES`` closed under inclusion.
@@ -168,6 +171,7 @@ class AbstractKineticTerm(abc.ABC):
     flow_moves_only_x: ClassVar[bool] = False
     constrained_drift: ClassVar[str]
     invariance_side: ClassVar[str | None] = None
+    thermal_coordinates: ClassVar[str] = "canonical"
 
     @property
     @abc.abstractmethod
@@ -259,6 +263,7 @@ class AffineTranslational(AbstractKineticTerm):
     parameters = ("mass",)
     exact_flow = True
     constrained_drift = "exact"  # phi is fixed: the projected momentum change is exact
+    thermal_coordinates = "material"  # T = |phi^T p|^2 / (2M)
     symmetry = _closed({"spatial-affine", "material-euclidean"})
 
     def _m(self) -> jax.Array:
@@ -314,6 +319,7 @@ class _LeftInvariantModel(AbstractKineticTerm):
     """
 
     invariance_side = "left"
+    thermal_coordinates = "left"
 
     def lagrangian(self, phi, xi):
         return self._energy_of_velocity(linalg.solve(phi, xi))
@@ -332,6 +338,7 @@ class _RightInvariantModel(AbstractKineticTerm):
     """T depends on xi only through Omega = xi phi^-1; H only through Sigma = phi pi."""
 
     invariance_side = "right"
+    thermal_coordinates = "right"
 
     def lagrangian(self, phi, xi):
         return self._energy_of_velocity(xi @ linalg.inv(phi))

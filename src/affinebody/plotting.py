@@ -75,20 +75,26 @@ def _save(fig, path: Path) -> Path:
 
 
 def plot_energy(trajectory: Trajectory, path: str | Path) -> Path:
-    """Energies and the relative energy error |E(t) - E(0)| / |E(0)| versus time."""
+    """Energies and the relative energy error |E(t) - E(0)| / |E(0)| versus time; in a
+    thermostatted run the error of the effective energy (H minus the heat), the conserved
+    quantity there."""
     t = trajectory.time
     obs = trajectory.observables
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
     top.plot(t, obs["total_energy"], label="total E", color="k")
     top.plot(t, obs["kinetic_energy"], label="kinetic T", alpha=0.8)
     top.plot(t, obs["potential_energy"], label="potential V", alpha=0.8)
+    conserved = "effective_energy" if "effective_energy" in obs else "total_energy"
+    if conserved == "effective_energy":
+        top.plot(t, obs[conserved], label="effective E (H − heat)", color="k", ls="--")
     top.set_ylabel(f"energy{_unit(trajectory, 'energy')}")
     top.legend(loc="best")
-    e = obs["total_energy"]
+    e = obs[conserved]
     scale = max(abs(float(e[0])), np.finfo(float).tiny)
     error = np.abs(e - e[0]) / scale
     bottom.semilogy(t[1:], np.maximum(error[1:], 1e-17), color="C3")
-    bottom.set_ylabel("|E - E(0)| / |E(0)|")
+    bottom.set_ylabel("|E - E(0)| / |E(0)|" if conserved == "total_energy"
+                      else "effective E: relative error")
     bottom.set_xlabel(f"time{_unit(trajectory, 'time')}")
     top.set_title("energy: E = T + V and its relative error")
     fig.tight_layout()
@@ -112,6 +118,22 @@ def plot_pressure(trajectory: Trajectory, path: str | Path) -> Path:
     bottom.set_ylabel(f"volume [{length}^{n}]" if length else "volume")
     bottom.set_xlabel(f"time{_unit(trajectory, 'time')}")
     top.set_title("pressure tensor and volume of the box")
+    fig.tight_layout()
+    return _save(fig, Path(path))
+
+
+def plot_temperature(trajectory: Trajectory, path: str | Path) -> Path:
+    """Translational and internal temperatures 2 T_tr/(N n) and 2 T_int/(N d) versus time
+    (with the thermostat's kT when the config has one)."""
+    t = trajectory.time
+    obs = trajectory.observables
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    ax.plot(t, obs["translational_temperature"], label="translational 2 T_tr / (N n)", lw=1)
+    ax.plot(t, obs["internal_temperature"], label="internal 2 T_int / (N d)", lw=1)
+    ax.set_xlabel(f"time{_unit(trajectory, 'time')}")
+    ax.set_ylabel(f"kT{_unit(trajectory, 'energy')}")
+    ax.set_title("temperatures")
+    ax.legend(loc="best")
     fig.tight_layout()
     return _save(fig, Path(path))
 
@@ -359,6 +381,8 @@ def plot_all(trajectory: Trajectory, folder: str | Path, *, animate: str | None 
     ]
     if "pressure" in trajectory.observables and "volume" in trajectory.observables:
         paths.append(plot_pressure(trajectory, folder / "pressure.png"))
+    if "internal_temperature" in trajectory.observables:  # files of earlier versions: none
+        paths.append(plot_temperature(trajectory, folder / "temperature.png"))
     if trajectory.n == 2:
         paths.append(plot_bodies(trajectory, folder / "bodies.png"))
         if animate:

@@ -27,6 +27,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from importlib import resources
 from pathlib import Path
 
@@ -190,7 +191,8 @@ def run_simulation(
         base_spec = built.neighbors[0]
     writer_args = dict(mass=built.inertia.mass, radius=built.inertia.radius, n=config.n,
                        box=config.system.box, parameters=parameters,
-                       units=config.system.units, pressure=records_pressure(config))
+                       units=config.system.units, pressure=records_pressure(config),
+                       thermostat=_tracks_heat(config, built))
     if resume:
         checkpoint = load_checkpoint(ckpt_file, config_hash)
         if checkpoint.step > total:
@@ -209,19 +211,21 @@ def run_simulation(
             raise
         temporary.replace(output)
         writer.path = output
-        start, state = checkpoint.step, checkpoint.state
+        start, state, heat = checkpoint.step, checkpoint.state, checkpoint.heat
         initial_energy = float(energies[0])
         max_error = float(np.max(relative_error(energies, initial_energy)))
         last_energy = float(energies[-1])
     else:
         ckpt_file.unlink(missing_ok=True)
         writer = H5MDWriter(output, **writer_args)
-        start, state = 0, built.state
+        start, state, heat = 0, built.state, 0.0
         initial_energy = math.nan
         max_error = 0.0
         last_energy = math.nan
 
     chunk = chunk_steps(config)
+    # the conserved quantity whose error is reported: H, or H minus the heat under a thermostat
+    energy_key = "effective_energy" if _tracks_heat(config, built) else "total_energy"
     interval = config.checkpoint_every
     step = start
     lists = None  # (spec, list) valid for `state`, or None: all pairs
@@ -257,13 +261,15 @@ def run_simulation(
                         else:
                             trajectory = integrate(built.system, state, dt, length,
                                                    config.run.integrator, every=stride,
-                                                   observers=observers, neighbors=lists)
+                                                   observers=observers, neighbors=lists,
+                                                   thermostat=built.thermostat,
+                                                   first_step=step, heat=heat)
                             stop = None
                 except IntegrationStopped as stopped:
                     trajectory, stop = stopped.trajectory, stopped.report
                 frame_steps = step + np.rint(np.asarray(trajectory.times) / dt).astype(np.int64)
                 first = 1 if step > 0 or writer.frames > 0 else 0
-                energy = np.asarray(trajectory.observables["total_energy"])
+                energy = np.asarray(trajectory.observables[energy_key])
                 if math.isnan(initial_energy):
                     initial_energy = float(energy[0])
                 with phases("output"):
@@ -280,13 +286,16 @@ def run_simulation(
                     raise SimulationStopped(_stop_message(stop, step, dt, built.inertia.labels,
                                                           writer.frames, output))
                 state = State(*(np.asarray(a)[-1] for a in trajectory.states))
+                if "heat" in trajectory.observables:
+                    heat = float(trajectory.observables["heat"][-1])
                 lists = trajectory.neighbors
                 step += length
             if step % interval == 0 or step == total:
                 with phases("output"):
                     save_checkpoint(ckpt_file, Checkpoint(step, state, writer.frames,
                                                           config_hash,
-                                                          None if npt is None else npt.cell))
+                                                          None if npt is None else npt.cell,
+                                                          heat))
             if progress is not None:
                 progress(step, total, float(relative_error(np.asarray([last_energy]),
                                                              initial_energy)[0]))
@@ -294,6 +303,12 @@ def run_simulation(
     return RunSummary(output, start, total, frames, time.perf_counter() - started,
                       initial_energy, last_energy, max_error, bodies=config.bodies_count,
                       phases=phases.seconds, compile_seconds=compiling.seconds)
+
+
+def _tracks_heat(config: Config, built) -> bool:
+    """Whether the run records the heat and the effective energy: a thermostat at constant
+    volume (the NPT driver does not book the heat of its thermostat yet)."""
+    return built.thermostat is not None and config.barostat is None
 
 
 class _NPT:
@@ -304,13 +319,17 @@ class _NPT:
         b = config.barostat
         self.config, self.system = config, built.system
         self.space = as_space(tuple(config.system.box))
+        thermostat = built.thermostat
+        temperature = b.temperature if b.temperature is not None else thermostat.temperature
         try:
             self.barostat = barostat.c_rescale(
                 b.pressure, config.n, tau=b.tau, compressibility=b.compressibility,
-                temperature=b.temperature, coupling=b.coupling)
+                temperature=temperature, coupling=b.coupling)
         except ValueError as err:
             raise ConfigError(str(err)) from None
         self.cell = self.space.matrix
+        # the thermostat's O step after each step, with its own keys (barostat.run folds them)
+        self.thermostat = None if thermostat is None else partial(_thermostat_hook, thermostat)
         self.observers = tuple((name, NAMED_OBSERVABLES[driver])
                                for name, driver in _OBSERVERS.items())
 
@@ -325,7 +344,7 @@ class _NPT:
         npt = barostat.run(self.system, state, self.space, self.barostat, c.run.dt, length,
                            seed=c.run.seed, cell=self.cell, first_step=step,
                            integrator=c.run.integrator, every=every, observers=self.observers,
-                           neighbors=lists)
+                           neighbors=lists, thermostat=self.thermostat)
         frame_steps = np.rint(npt.times / c.run.dt).astype(np.int64)
         finite = (np.ones(len(frame_steps), dtype=bool) if npt.failed_step is None
                   else frame_steps < npt.failed_step)
@@ -347,6 +366,14 @@ class _NPT:
                                 neighbors=npt.neighbors)
         self.cell = np.asarray(npt.cells[keep - 1])
         return trajectory, np.diagonal(npt.cells[:keep], axis1=1, axis2=2), stop
+
+
+def _thermostat_hook(thermostat, system, state, key, dt):
+    """The ``[thermostat]``'s O(dt) step in the form ``barostat.run`` takes."""
+    from affinebody import thermostats
+
+    noise = thermostats.factors(system, state)
+    return thermostats.thermostat_step(system, thermostat, state, dt, key, noise)[0]
 
 
 def _stop_message(report, offset: int, dt: float, labels, frames: int, output: Path) -> str:

@@ -32,6 +32,7 @@ from jax import lax
 from affinebody import _linalg as linalg
 from affinebody import neighbors as nb
 from affinebody import observables as obs
+from affinebody import thermostats as th
 from affinebody.integrators import get_integrator
 from affinebody.state import State
 from affinebody.system import OPEN_GROUPS, HamiltonianSystem
@@ -50,6 +51,9 @@ NAMED_OBSERVABLES: Mapping[str, Callable[..., jax.Array]] = {
     "vorticity": lambda system, s, neighbors=None: obs.vorticity(s),
     "volumes": lambda system, s, neighbors=None: obs.volumes(s),
     "relative_volumes": lambda system, s, neighbors=None: obs.relative_volumes(s),
+    "translational_temperature":
+        lambda system, s, neighbors=None: th.translational_temperature(system, s),
+    "internal_temperature": lambda system, s, neighbors=None: th.internal_temperature(system, s),
 }
 
 
@@ -204,13 +208,29 @@ def watched_step(system, method, dt, spec=None, *, sign0, watch_det: bool):
     return step
 
 
-def initial_forces(system, method, state, neighbors=None):
+def initial_forces(system, method, state, neighbors=None, first_step=0, heat=0.0):
     """What :func:`watched_step` carries in at the first step: the forces at ``state`` for an
-    integrator that carries them, else ``()``."""
-    return system.forces(state, neighbors) if getattr(method, "carries_forces", False) else ()
+    integrator that carries them, else ``()``; a thermostatted integrator's carry
+    (``integrators.Thermostatted.initial_carry``) at global step ``first_step`` with the heat
+    ``heat`` exchanged so far."""
+    if not getattr(method, "carries_forces", False):
+        return ()
+    forces = system.forces(state, neighbors)
+    if hasattr(method, "initial_carry"):
+        return method.initial_carry(system, state, forces, first_step, heat)
+    return forces
 
 
-def _simulate(system, state, dt, neighbors, *, n_chunks, every, method, observers, spec):
+def _thermostat_values(system, method, state, carried, neighbors) -> dict:
+    """``heat`` and ``effective_energy`` (H minus the heat) of a thermostatted run, else {}."""
+    if not hasattr(method, "initial_carry"):
+        return {}
+    return {"heat": carried.heat,
+            "effective_energy": system.hamiltonian(state, neighbors) - carried.heat}
+
+
+def _simulate(system, state, dt, neighbors, start=(0, 0.0), *, n_chunks, every, method,
+              observers, spec):
     """The compiled run. With a neighbour list (``spec`` not None) the carry holds the list,
     valid for the carried state; a step whose list overflowed is discarded like a non-finite
     one (status _OVERFLOW), recording what the reallocation must hold in ``lost``."""
@@ -238,18 +258,21 @@ def _simulate(system, state, dt, neighbors, *, n_chunks, every, method, observer
 
     def chunk(carry, _):
         carry, _ = lax.scan(one_step, carry, None, length=every)
-        state, nbrs, _, status, bad_step = carry[:5]
+        state, nbrs, carried, status, bad_step = carry[:5]
         k = carry[6]
         done = jnp.where(status == _OK, k, bad_step - 1)
-        return carry, (state, _evaluate(system, state, observers, nbrs), done)
+        values = _evaluate(system, state, observers, nbrs)
+        values.update(_thermostat_values(system, method, state, carried, nbrs))
+        return carry, (state, values, done)
 
     flags_and_count = jnp.zeros((), dtype=jnp.int32)
     lost = (flags_and_count, flags_and_count, jnp.zeros((), dtype=state.x.dtype))
-    forces = initial_forces(system, method, state, neighbors)
+    forces = initial_forces(system, method, state, neighbors, *start)
     init = (state, neighbors, forces, zero, zero, zero, zero, zero, lost)
     carry, (frames, values, done) = lax.scan(chunk, init, None, length=n_chunks)
     _, last_list, _, status, bad_step, bad_body, _, rebuilds, lost = carry
     first_values = _evaluate(system, state, observers, neighbors)
+    first_values.update(_thermostat_values(system, method, state, forces, neighbors))
     frames = jax.tree.map(lambda a, f: jnp.concatenate([a[None], f]), state, frames)
     values = jax.tree.map(lambda a, f: jnp.concatenate([a[None], f]), first_values, values)
     done = jnp.concatenate([zero[None], done])
@@ -269,11 +292,11 @@ def _is_array_pytree(obj) -> bool:
                for leaf in jax.tree.leaves(obj))
 
 
-def _compiled_call(system, state, dt, neighbors, **static):
+def _compiled_call(system, state, dt, neighbors, start, **static):
     if _is_array_pytree(system):
-        return _simulate_jit(system, state, dt, neighbors, **static)
+        return _simulate_jit(system, state, dt, neighbors, start, **static)
     # models that are not pytrees: close over them (compiles per call)
-    return jax.jit(partial(_simulate, system, **static))(state, dt, neighbors)
+    return jax.jit(partial(_simulate, system, **static))(state, dt, neighbors, start)
 
 
 # --------------------------------------------------------------------------------------------
@@ -367,7 +390,8 @@ def _diagnose_non_finite(system, method, initial, state, dt, spec=None) -> str:
 
 def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrator="strang",
         every: int = 1, observers=("energy",), on_stop: str = "raise", neighbors=None,
-        neighbor_skin: float | None = None) -> Trajectory:
+        neighbor_skin: float | None = None, thermostat=None, first_step: int = 0,
+        heat: float = 0.0) -> Trajectory:
     """Integrate ``steps`` steps of size ``dt``, recording a frame every ``every`` steps.
 
     observers: names from NAMED_OBSERVABLES, or a mapping name -> (name or function(state)).
@@ -384,6 +408,12 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
     discarded; the run reallocates the list at the last recorded frame and goes on from there,
     so the frames are those of an all-pairs run (to round-off). ``trajectory`` reports
     ``neighbor_rebuilds`` and ``neighbor_reallocations``.
+
+    thermostat: None (NVE) or a ``thermostats.Langevin`` / ``thermostats.Bussi``, composed
+    into the splitting integrator (``integrators.Thermostatted``); the observables then also
+    hold ``heat`` and ``effective_energy`` per frame. first_step: the global index of the
+    step ``state`` is at (the noise of step k comes from fold_in(PRNGKey(seed), k), so a
+    resumed run repeats an uninterrupted one); heat: the heat exchanged before it.
     """
     dt = float(dt)
     if not np.isfinite(dt) or dt == 0.0:
@@ -396,6 +426,8 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
         raise ValueError(f"on_stop must be 'raise' or 'return' (got {on_stop!r})")
     method = get_integrator(integrator)
     method.check(system)  # a one-line ValueError before any work
+    if thermostat is not None:
+        method = _thermostatted(system, method, thermostat, state)
     state = system.check(state)
     if state.phi.ndim != 3:
         raise ValueError(f"run integrates one system: state.phi must be [N, n, n] "
@@ -405,12 +437,15 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
     every, n_chunks = int(every), int(steps) // int(every)
     segments = []  # (frames, values, done) of each compiled call, numpy
     start, start_state = 0, state  # start: the chunk the segment starts at
+    start_heat = float(heat)
     reallocations = rebuilds = in_a_row = 0
     failed_reallocation = None
     while True:
         frames, values, done, status, bad_step, bad_body, last_list, more, lost = _compiled_call(
-            system, start_state, jnp.asarray(dt), nbrs, n_chunks=n_chunks - start, every=every,
-            method=method, observers=items, spec=spec)
+            system, start_state, jnp.asarray(dt), nbrs,
+            (jnp.asarray(int(first_step) + start * every, dtype=jnp.int64),
+             jnp.asarray(start_heat)),
+            n_chunks=n_chunks - start, every=every, method=method, observers=items, spec=spec)
         frames = jax.tree.map(np.asarray, frames)
         values = {k: np.asarray(v) for k, v in values.items()}
         done = np.asarray(done) + start * every
@@ -437,6 +472,8 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
             break
         reallocations += 1
         start, start_state = start + aligned, restart_state
+        if "heat" in values:
+            start_heat = float(values["heat"][aligned])
     frames = jax.tree.map(lambda *parts: np.concatenate(
         [p[f:u] for p, (_, _, _, f, u) in zip(parts, segments, strict=True)]),
         *[seg[0] for seg in segments])
@@ -482,6 +519,15 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
     if report is not None and on_stop == "raise":
         raise IntegrationStopped(report, trajectory)
     return trajectory
+
+
+def _thermostatted(system, method, thermostat, state):
+    """``method`` with ``thermostat`` composed in (``integrators.Thermostatted``), or a
+    one-line ValueError: thermostats need a positive definite T."""
+    from affinebody.integrators import Thermostatted
+
+    th.check(system, thermostat, np.shape(state.phi)[-1])
+    return Thermostatted(method, thermostat)
 
 
 def relative_error(values, reference) -> np.ndarray:

@@ -789,6 +789,9 @@ def run_sweep(
     ``progress(done_samples, total_samples)`` is called as tasks complete.
     """
     clock = time.perf_counter()
+    if config.thermostat is not None:  # sampled NVE orbits would silently ignore it
+        raise ConfigError("[thermostat] is applied by affinebody run, not by affinebody sweep "
+                          "(its samples are NVE orbits): remove [thermostat] for a sweep")
     spec = SweepSpec.from_config(config, samples, seed)
     points = scan_points(config)
     tasks = make_tasks(points, spec)

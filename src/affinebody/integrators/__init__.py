@@ -26,6 +26,7 @@ from affinebody.integrators.splitting import (
     NeighborStep,
     Splitting,
 )
+from affinebody.integrators.thermostatted import Thermostatted
 from affinebody.state import State
 
 Step = Callable[[State, jax.Array], State]
@@ -63,6 +64,7 @@ def step_function(system, integrator="strang") -> Step:
 __all__ = [
     "AbstractIntegrator", "IMPLICIT_MIDPOINT", "INTEGRATORS", "ImplicitMidpoint",
     "NEIGHBOR_LIST_INTEGRATORS", "NONHOLONOMIC_RATTLE", "NeighborStep", "NonholonomicRattle",
-    "STRANG", "SUZUKI4", "Splitting", "Step", "YOSHIDA4", "YOSHIDA6", "get_integrator",
+    "STRANG", "SUZUKI4", "Splitting", "Step", "Thermostatted", "YOSHIDA4", "YOSHIDA6",
+    "get_integrator",
     "step_function",
 ]

@@ -88,7 +88,7 @@ class Splitting(AbstractIntegrator):
         return state, tracked
 
     def advance(self, system: HamiltonianSystem, state: State, forces, h, spec=None,
-                neighbors=None) -> tuple[State, NeighborStep | None, tuple]:
+                neighbors=None, middle=None) -> tuple[State, NeighborStep | None, tuple]:
         """One step from ``state`` whose forces (``system.forces``) are ``forces``, returning
         (new state, :class:`NeighborStep` or None, forces at the new state).
 
@@ -97,6 +97,11 @@ class Splitting(AbstractIntegrator):
         twice ("first same as last"); the result is :meth:`step`'s to round-off. With
         ``spec`` and ``neighbors`` the pair forces are summed over the list, updated after
         every drift as in :meth:`step_with_neighbors`.
+
+        middle: None, or a map of the momenta at fixed configuration (a thermostat's O step)
+        done in the middle of the middle drift, D(d h/2) O D(d h/2): with Strang this is
+        BAOAB, K(h/2) D(h/2) O(h) D(h/2) K(h/2) (Leimkuhler and Matthews 2013), and every
+        composition stays symmetric.
         """
         self.check(system)
         kicks = self.kicks
@@ -106,10 +111,13 @@ class Splitting(AbstractIntegrator):
             zero = jnp.zeros((), dtype=jnp.int32)
             tracked = NeighborStep(neighbors, zero, zero, neighbors.count, neighbors.reach)
 
-        def stage(carry, coefficients):
+        def stage(carry, coefficients, inner=None):
             s, tracked, _ = carry
             d, c = coefficients
-            s = system.drift(s, d * h)
+            if inner is None:
+                s = system.drift(s, d * h)
+            else:
+                s = system.drift(inner(system.drift(s, 0.5 * d * h)), 0.5 * d * h)
             current = None
             if spec is not None:
                 tracked = update_neighbors(spec, tracked, s, system.cell)
@@ -117,12 +125,23 @@ class Splitting(AbstractIntegrator):
             f = system.forces(s, current)
             return (system.kick(s, c * h, forces=f), tracked, f), None
 
+        def stages(carry, first, last):
+            if last - first == 1:
+                return stage(carry, (self.drifts[first], kicks[first + 1]))[0]
+            if last - first > 1:
+                coefficients = (jnp.asarray(self.drifts[first:last]),
+                                jnp.asarray(kicks[first + 1:last + 1]))
+                return lax.scan(stage, carry, coefficients)[0]
+            return carry
+
         carry = (state, tracked, forces)
-        if len(self.drifts) == 1:
-            return stage(carry, (self.drifts[0], kicks[1]))[0]
-        coefficients = (jnp.asarray(self.drifts), jnp.asarray(kicks[1:]))
-        carry, _ = lax.scan(stage, carry, coefficients)
-        return carry
+        m = len(self.drifts)
+        if middle is None:
+            return stages(carry, 0, m)
+        mid = m // 2
+        carry = stages(carry, 0, mid)
+        carry = stage(carry, (self.drifts[mid], kicks[mid + 1]), middle)[0]
+        return stages(carry, mid + 1, m)
 
 
 class NeighborStep(NamedTuple):

@@ -272,58 +272,193 @@ def lebesgue3_shell_bounds(potential, hbar: float, inertia: float, max_shell: in
                      "(docs/theory/two-polar.md, 'Lower bounds of an n = 3 sector')")
 
 
+#: (gamma, beta b^2, R / b) of the trial functions h = exp(-gamma rho . q - beta psi_R(|y|))
+TRIALS = ((0.5, 0.0, 1.0), (1.0, 0.0, 1.0)) + tuple(
+    (g, bb, rr) for g in (0.0, 0.5, 1.0) for bb in (0.25, 0.5, 1.0, 2.0) for rr in (2.0, 4.0, 8.0))
+
+
+def haar3_kinetic_min(gamma: float, beta: float, R: float, x_lo: np.ndarray, x_hi: np.ndarray,
+                      r_lo: np.ndarray, r_hi: np.ndarray, x12_hi: np.ndarray | None = None,
+                      x23_hi: np.ndarray | None = None) -> np.ndarray:
+    """Lower bound of L h / h on cells where x13 = q_1 - q_3 lies in [x_lo, x_hi] and the shear
+    radius |y| in [r_lo, r_hi], for h = exp(-phi), phi = gamma rho . q + beta psi(|y|),
+    rho = (1, 0, -1) (half the sum of the roots q_a - q_b), y the traceless part of q,
+    psi(r) = r^2/2 for r <= R and R r - R^2/2 beyond (C^1, convex). Then
+    int |grad_perp F|^2 J dq >= int (L h / h) F^2 J dq (ground-state representation,
+    docs/theory/two-polar.md, "Lower bounds of an n = 3 sector"), with
+    L h / h = -|grad phi|^2 + Lap phi + grad ln J . grad phi, i.e. for r <= R
+
+        gamma (coth x12 + coth x23 + 2 coth x13) - 2 gamma^2
+        + beta (2 + sum_ab x_ab coth x_ab) - 2 gamma beta x13 - beta^2 r^2,
+
+    and for r >= R (psi' = R, Lap psi = R / r, x13 / r in [sqrt(3/2), sqrt 2], sum_ab x_ab
+    coth x_ab >= sum_ab x_ab = 2 x13) at least gamma (...) - 2 gamma^2 + beta sqrt 6 R
+    - 2 sqrt 2 gamma beta R - beta^2 R^2. coth is convex and decreasing, x coth x convex and
+    increasing, x12 + x23 = x13, so coth x12 + coth x23 >= 2 coth(x13/2) and x12 coth x12 +
+    x23 coth x23 >= x13 coth(x13/2); given ``x12_hi``, ``x23_hi`` also coth x12 + coth x23 >=
+    coth x12_hi + coth x23_hi. A cell meeting both regions takes the smaller bound."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        def coth(x):
+            return np.where(np.isfinite(x), 1.0 / np.tanh(np.minimum(x, 700.0)), 1.0)
+        cot = np.maximum(2 * coth(x_hi / 2), 0.0 if x12_hi is None else coth(x12_hi)
+                         + coth(x23_hi)) + 2 * coth(x_hi)
+        xl = np.minimum(x_lo, 700.0)
+        xcot = np.where(x_lo > 0, xl / np.tanh(xl / 2) + xl / np.tanh(xl), 3.0)
+        base = gamma * cot - 2 * gamma**2
+        if not beta:
+            return base
+        rr = np.minimum(r_hi, R)
+        inner = base + beta * (2 + xcot) - 2 * gamma * beta * math.sqrt(2.0) * rr - beta**2 * rr**2
+        outer = base + beta * math.sqrt(6.0) * R - 2 * math.sqrt(2.0) * gamma * beta * R \
+            - beta**2 * R**2
+        out = np.minimum(np.where(r_lo < R, inner, np.inf), np.where(r_hi > R, outer, np.inf))
+    return np.where(np.isnan(out), -np.inf, out)
+
+
+#: fractions theta of the Casimir coefficient e kept on the Casimir-carrying generator
+THETAS = (0.0, 0.25, 0.5, 0.75, 0.9, 1.0)
+
+
+def _two_smallest(values: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    ordered = np.sort(np.stack(values), axis=0)
+    return ordered[0], ordered[1]
+
+
+def haar3_centrifugal_min(j_free: int, j_paid: int, x_hi: list[np.ndarray], c0: float,
+                          e: float, monotone: bool = False) -> np.ndarray:
+    """Lower bound of the centrifugal and Casimir terms of an n = 3 affine sector on cells where
+    x_g = q_a - q_b <= ``x_hi[g]`` (g = 12, 23, 13): j_paid is the spin of the generators v
+    that carry e |v|^2 (af-is: j'; is-af: j), j_free the other one.
+
+    Per pair the form is (a, b; b, a + e) in (u_g, v_g), a = 4 c0 / sinh^2 x, b = a cosh x.
+    For theta in [0, 1] and f = (1 - theta) e it is >= diag(mu, theta e) with mu = a - b^2/
+    (a + f) = (f - 4 c0) a / (a + f) (a sinh^2 x = 4 c0): decreasing in x from f - 4 c0 to 0
+    if f >= 4 c0, else >= f - 4 c0 everywhere; and >= lambda (1, 1), lambda = det / tr
+    decreasing. The weights w_g = |u_g|^2 / |f|^2 sum to j(j+1) = j^2 + j and each is <= j^2
+    (the largest eigenvalue of -K_g^2 on V_j), so sum_g mu_g w_g >= mu_(1) j^2 + mu_(2) j with
+    mu_(1) <= mu_(2) the two smallest of the mu_g >= 0 (likewise for lambda with j^2 + j'^2,
+    j + j'); sum_g |v_g|^2 = j_paid (j_paid + 1). The best of these forms per cell; for
+    j_paid = 0 (v = 0) the form is exactly sum_g A_g |u_g|^2, for j_free = 0 (u = 0)
+    sum_g (A_g + e) |v_g|^2, bounded the same way;
+    ``monotone``: only those non-decreasing in both spins (f >= 4 c0 and lambda)."""
+    jf, jp = j_free, j_paid
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        a = [np.where(np.isfinite(x), 4 * c0 / np.sinh(np.minimum(x, 700.0)) ** 2, 0.0)
+             for x in x_hi]
+        if jp == 0 or jf == 0:  # v = 0 (resp. u = 0): the form is A |u|^2 (resp. (A + e) |v|^2)
+            low, second = _two_smallest(a)
+            j = jf or jp
+            return low * j * j + second * j + (e * jp * (jp + 1) if jp else 0.0)
+        lam = [np.where(np.isfinite(x), max(c0 * (e - 4 * c0), 0.0)
+                        / (2 * c0 + 0.25 * e * np.sinh(np.minimum(x, 700.0)) ** 2), 0.0)
+               for x in x_hi]
+        low, second = _two_smallest(lam)
+        best = low * (jf * jf + jp * jp) + second * (jf + jp)
+        for theta in THETAS:
+            f = (1 - theta) * e
+            if f >= 4 * c0:
+                low, second = _two_smallest([np.where(np.isinf(ag), f - 4 * c0,
+                                                      (f - 4 * c0) * ag / (ag + f)) for ag in a])
+                free = low * jf * jf + second * jf
+            elif monotone:
+                continue
+            else:
+                free = np.full_like(a[0], (f - 4 * c0) * jf * (jf + 1))
+            best = np.maximum(best, free + theta * e * jp * (jp + 1))
+    return best
+
+
+#: multiples of the dilatation stiffness hbar^2 3 / (2 (M + 3B) b^4) tried per shear cell
+KAPPAS = (0.0, 0.25, 0.5, 0.9, 1.0, 2.0)
+
+
 def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell: int,
-                       centre: float) -> ShellBounds:
+                       centre: float, scale_sigma: float = 1.0, scale: float = 1.0
+                       ) -> ShellBounds:
     """Lower bounds of the lowest level of every n = 3 af-is / is-af sector (j, j'), shells
     max(j, j') <= ``max_shell`` and beyond (docs/theory/two-polar.md, "Lower bounds of an
     n = 3 sector").
 
-    Per pair g = (a, b), with a = (K_g (x) 1) f, b = (1 (x) K_g) f, x = q_a - q_b, the
-    centrifugal terms and the Casimir term of the reduced operator (n3.sector_forms) are
-    c |a + b|^2 - d |a - b|^2 + e |b|^2 (af-is; is-af: e |a|^2), c = c0 / sinh^2(x/2),
-    d = c0 / cosh^2(x/2), c0 = hbar^2 / (16 M), e = hbar^2 / (2 I~). The 2 x 2 matrix of this
-    form has determinant c0 (e - 4 c0) / (sinh^2(x/2) cosh^2(x/2)) > 0 (e - 4 c0 = hbar^2 /
-    (4 (I - A))) and trace 2 c0 / (sinh^2 cosh^2) + e, so it is >= lambda(x) (|a|^2 + |b|^2)
-    with lambda(x) = det / tr = c0 (e - 4 c0) / (2 c0 + (e/4) sinh^2 x), decreasing in x;
-    summed over the pairs, sum_g |a_g|^2 = j (j + 1) |f|^2 and sum_g |b_g|^2 = j' (j' + 1) |f|^2.
-    The gradient part is a non-negative form (G positive definite), so E_min >= inf over the
-    chamber of V + lambda(q_1 - q_3) (j (j + 1) + j' (j' + 1)), bounded on cells (r, t, sigma)
-    (:class:`~affinebody.quantum.intervals.Haar3Cells`; q_1 - q_3 = sqrt2 r sin(t + pi/6) <=
-    sqrt2 r_hi). The bound increases with j (j + 1) + j' (j' + 1) >= L (L + 1) on shell L."""
+    The gradient form splits into the dilatation and the shear plane (G has the eigenvalue
+    1/(M + 3B) on (1, 1, 1), 1/M on the plane): with sigma = q_1 + q_2 + q_3 it is
+    alpha |d_sigma f|^2 + (hbar^2/2M) |grad_perp f|^2, alpha = 3 hbar^2 / (2 (M + 3B)), J
+    independent of sigma. Hence, pointwise in the shear plane,
+    * alpha |d_sigma f|^2 + kappa (sigma - centre)^2 |f|^2 >= sqrt(alpha kappa) |f|^2 along
+      each sigma line (the oscillator ground state; kappa >= 0 chosen per shear cell,
+      multiples :data:`KAPPAS` of alpha / ``scale_sigma``^4);
+    * the shear form (hbar^2/2M) |grad_perp f|^2 >= (hbar^2/2M) (L h / h) |f|^2 in the
+      integral, for one trial function h on the whole plane (:func:`haar3_kinetic_min`,
+      :data:`TRIALS` with beta in units of 1/``scale``^2, R of ``scale``; the best h per
+      sector);
+    * the centrifugal and Casimir terms >= free C_free + paid C_paid (pair by pair, every
+      x_g <= q_1 - q_3, sum_g |u_g|^2 = j(j+1), sum_g |v_g|^2 = j'(j'+1)), the best of the
+      forms of :func:`haar3_centrifugal_min`.
+    So E_min >= max over h of inf over the chamber of V - kappa (sigma - centre)^2 +
+    sqrt(alpha kappa) + (hbar^2/2M) L h / h + centrifugal, bounded on cells (r, t, sigma)
+    (:class:`~affinebody.quantum.intervals.Haar3Cells`; q_1 - q_3 = sqrt2 r sin(t + pi/6),
+    the centrifugal bounds at its largest value on the cell). Beyond the shells enumerated
+    (j(j+1) + j'(j'+1) >= L(L+1)) only the part of the centrifugal bound with both
+    coefficients >= 0 is used."""
     if inertia.model == "af-af":
         raise Unsupported("af-af is unbounded below")
     text = _expression(potential)
     r_edges = np.concatenate([np.linspace(0.0, 6.0, 121), np.geomspace(6.0, 60.0, 21)[1:],
                               [np.inf]])
-    t_edges = np.linspace(math.pi / 6, math.pi / 2, 9)
-    inner = np.linspace(-12.0, 12.0, 121)
-    outer = np.geomspace(12.0, 48.0, 9)[1:]
+    t_edges = np.linspace(math.pi / 6, math.pi / 2, 17)
+    inner = np.linspace(-12.0, 12.0, 49)  # sigma enters V by exact forms where it can
+    outer = np.geomspace(12.0, 48.0, 5)[1:]
     s_edges = np.concatenate([[-np.inf], centre - outer[::-1], centre + inner, centre + outer,
                               [np.inf]])
     lo = np.meshgrid(r_edges[:-1], t_edges[:-1], s_edges[:-1], indexing="ij")
     hi = np.meshgrid(r_edges[1:], t_edges[1:], s_edges[1:], indexing="ij")
-    v = np.min(lower_bounds(text, Haar3Cells(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])),
-               axis=2)  # [r, t]
+    cells = Haar3Cells(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
+    alpha = 3 * hbar**2 / (2 * (inertia.M + 3 * inertia.B))
+    base = alpha / scale_sigma**4
+    v = np.full((len(r_edges) - 1, len(t_edges) - 1), -np.inf)  # [r, t]
+    for kappa in (f * base for f in KAPPAS):
+        # V - kappa (sigma - centre)^2, the square joining the degree-0 group as a form
+        square = Value(Interval.point(-kappa * centre * centre), a=2 * kappa * centre,
+                       qq=-kappa)
+        shifted = np.min(lower_bounds(text, cells, square if kappa > 0 else None), axis=2)
+        v = np.maximum(v, shifted + math.sqrt(alpha * kappa) * (1 - 1e-12))
     c0 = hbar**2 / (16 * inertia.M)
     e = hbar**2 * inertia.inv_I_tilde / 2
     x_hi = math.sqrt(2.0) * r_edges[1:, None] * np.where(
         t_edges[1:] <= math.pi / 3, np.sin(t_edges[1:] + math.pi / 6), 1.0)[None, :]
-    with np.errstate(over="ignore"):
-        sinh2 = np.sinh(np.minimum(x_hi, 700.0)) ** 2
-        lam = np.where(np.isfinite(x_hi), max(c0 * (e - 4 * c0), 0.0) / (2 * c0 + 0.25 * e * sinh2),
-                       0.0)
+    x_lo = math.sqrt(2.0) * r_edges[:-1, None] * np.minimum(
+        np.sin(t_edges[:-1] + math.pi / 6), np.sin(t_edges[1:] + math.pi / 6))[None, :]
+    r_lo, r_hi = (np.broadcast_to(r[:, None], x_hi.shape) for r in (r_edges[:-1], r_edges[1:]))
+    # x12 = sqrt2 r cos t (decreasing in t), x23 = sqrt2 r sin(t - pi/6) (increasing)
+    x12_hi = math.sqrt(2.0) * r_hi * np.cos(t_edges[:-1])[None, :]
+    x23_hi = math.sqrt(2.0) * r_hi * np.sin(t_edges[1:] - math.pi / 6)[None, :]
+    kinetic = [hbar**2 / (2 * inertia.M)
+               * haar3_kinetic_min(g, bb / scale**2, rr * scale, x_lo, x_hi, r_lo, r_hi, x12_hi,
+                                   x23_hi) for g, bb, rr in TRIALS]
+    paid = 1 if inertia.model == "af-is" else 0  # af-is: e j'(j'+1); is-af: e j(j+1)
 
-    def bound(casimir: float) -> float:
-        return float(_lowered(np.min(v + lam * casimir)))
+    pairs = [x12_hi, x23_hi, x_hi]
+
+    def bound(j: int, jp: int) -> float:
+        spins = (j, jp) if paid else (jp, j)
+        cent = v + haar3_centrifugal_min(*spins, pairs, c0, e)
+        return float(_lowered(max(np.min(cent + k) for k in kinetic)))
     L = max_shell + 1
-    return _by_shell(lambda j, jp: bound(j * (j + 1) + jp * (jp + 1)), max_shell,
-                     bound(L * (L + 1)),
-                     "certified: gradient form >= 0, centrifugal and Casimir terms >= "
-                     "lambda(q1 - q3)(j(j+1) + j'(j'+1)) pair by pair, V bounded below by "
-                     "interval arithmetic on its expression over cells of (r, t, sigma) "
-                     "(docs/theory/two-polar.md, 'Lower bounds of an n = 3 sector')")
+    # every sector beyond has j_free >= L or j_paid >= L: (j_free, 0) and (0, j_paid) exactly
+    # (increasing in the spin), else the forms non-decreasing in both spins at (L, 1), (1, L)
+    tail_cent = np.minimum.reduce([haar3_centrifugal_min(L, 0, pairs, c0, e),
+                                   haar3_centrifugal_min(L, 1, pairs, c0, e, monotone=True),
+                                   haar3_centrifugal_min(1, L, pairs, c0, e, monotone=True),
+                                   haar3_centrifugal_min(0, L, pairs, c0, e)])
+    tail = float(_lowered(max(np.min(v + tail_cent + k) for k in kinetic)))
+    return _by_shell(bound, max_shell, tail,
+                     "certified: dilatation oscillator and shear ground-state representation "
+                     "bound the gradient form, centrifugal and Casimir terms pair by pair, "
+                     "V bounded below by interval arithmetic on its expression over cells of "
+                     "(r, t, sigma) (docs/theory/two-polar.md, 'Lower bounds of an n = 3 "
+                     "sector')")
 
 
 __all__ = ["MARGIN", "ShellBounds", "haar_strip_edges", "haar_strip_minima",
            "centrifugal_haar_min", "haar2_shell_bounds", "lebesgue2_shell_bounds",
-           "lebesgue3_shell_bounds", "haar3_shell_bounds"]
+           "lebesgue3_shell_bounds", "haar3_kinetic_min", "haar3_centrifugal_min",
+           "haar3_shell_bounds"]

@@ -16,7 +16,8 @@ sector sum is unbounded below) and ``warnings`` (af-af; n = 3 spectra that hold 
 sectors; a sector search stopped by max_spin), also printed under the table.
 ``affinebody density CONFIG.toml --state k -o DIR [--json] [--orientation]`` (or
 ``--superpose 0:1,8:0.5j`` or ``--temperature T`` instead of ``--state``: the orientation
-densities only, orientation.json / .npz / .png): the exact marginal densities of
+densities only, orientation.json / .npz / .png; n = 3: --orientation gives the state's rotation
+angles and principal-axis directions, quantum.orientations3): the exact marginal densities of
 the invariants (Q_a or q_a, det phi, Tr G) and of the orientations for the k-th state (0-based),
 each with a quadrature error estimate, written as densities.npz, densities.json and one PNG per
 density; with --json the same JSON object (arrays included) on stdout, else a table. Densities
@@ -137,7 +138,8 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
 @click.option("-o", "--output", "output", type=click.Path(file_okay=False), required=True)
 @click.option("--json", "as_json", is_flag=True, help="print the JSON object (with the arrays)")
 @click.option("--orientation", is_flag=True,
-              help="also the densities of the angles of L, R and of G11, G22, G12 (n = 2)")
+              help="also the densities of the orientations of L, R (n = 2: their angles and "
+                   "G11, G22, G12; n = 3: rotation angles and principal-axis directions)")
 @click.option("--superpose", default=None,
               help="orientation densities of a superposition, e.g. 0:1,8:0.5j (n = 2)")
 @click.option("--temperature", type=float, default=None,

@@ -135,9 +135,10 @@ def fixed_subspace(j: int, jp: int) -> np.ndarray:
 
 
 def expm_antisymmetric(A: np.ndarray) -> np.ndarray:
-    """exp(A) for a real antisymmetric A (a rotation), by its Hermitian eigen-decomposition."""
+    """exp(A) for real antisymmetric A [..., m, m] (rotations), by the Hermitian
+    eigen-decomposition of i A."""
     w, v = np.linalg.eigh(1j * A)
-    return np.real((v * np.exp(-1j * w)) @ v.conj().T)
+    return np.real((v * np.exp(-1j * w)[..., None, :]) @ np.swapaxes(v.conj(), -1, -2))
 
 
 def fixed_dimension(j: int, jp: int) -> int:

@@ -42,7 +42,8 @@ angles alpha, beta of L and R, so both orientation densities are exactly uniform
 [0, 2 pi) (a real standing wave cos(s alpha + k beta) would not be; the sector labels fix the
 complex state). n = 3: the multiplet sum is invariant under L -> U L, R -> V R, so L and R are
 Haar-distributed on SO(3); the density of the rotation angle omega in [0, pi] of L (and of R) is
-exactly (1 - cos omega)/pi.
+exactly (1 - cos omega)/pi. A single state of a multiplet has the |D^j|^2 pattern of its
+magnetic numbers (quantum/orientations3.py).
 """
 
 from __future__ import annotations
@@ -186,6 +187,8 @@ def _grid3_joint(spectrum: Spectrum, basis, coeff: np.ndarray) -> Joint:
         sb = values.__self__
 
         def amplitude(p):
+            if hasattr(sb, "combination"):  # n3.HarmonicBasis: radial sums per harmonic first
+                return sb.combination(coeff, p)
             return np.einsum("prk,k->pr", replace(sb, nodes=p).values(), coeff)
         degree, scale, scale_sigma, centre = sb.candidate_args
     else:
@@ -888,14 +891,18 @@ def orientation_densities(spectrum: Spectrum, state: int | None = None,
     the thermal mixture, a sum of sector states) and :func:`g_component_densities`. n = 3: a
     multiplet summed over its states and the thermal mixture (a function of H, which commutes
     with SO(3) x SO(3)) are invariant under L -> U L, R -> V R: L and R are Haar-distributed
-    (:func:`orientation`); single states of a multiplet, superpositions and the G components
-    are refused (ValueError)."""
+    (:func:`orientation`); a single state's densities are
+    quantum.orientations3.orientation_densities3 (not called from here: that module sits above
+    this one); superpositions and the G components are refused (ValueError)."""
     if sum(v is not None for v in (state, superposition, temperature)) != 1:
         raise ValueError("give exactly one of a state, a superposition or a temperature")
     if spectrum.n == 3:
-        if superposition is not None or temperature is None:
-            raise ValueError("n = 3: only the thermal mixture has orientation densities here "
-                             "(Haar); a single state's density is its multiplet's (densities)")
+        if state is not None:
+            raise ValueError("n = 3: the orientation densities of a single state are "
+                             "quantum.orientations3.orientation_densities3")
+        if superposition is not None:
+            raise ValueError("n = 3: orientation densities of superpositions are not computed "
+                             "(single states: quantum.orientations3; thermal mixtures: Haar)")
         if not temperature > 0:
             raise ValueError(f"the temperature must be > 0 (got {temperature})")
         return {"kind": "thermal", "orientation": orientation(3), "G": {}, "warnings": []}

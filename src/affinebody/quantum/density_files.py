@@ -54,7 +54,8 @@ def write_densities(spectrum: Spectrum, state: int, directory: str | Path,
             "x": orient["angle"].tolist(), "density": orient[key].tolist(), "error": 0.0,
             "integral": 1.0, "converged": True,
             "exact": ("uniform 1/(2 pi): |Psi|^2 of a sector state does not depend on the angle"
-                      if spectrum.n == 2 else "(1 - cos omega)/pi: Haar measure of SO(3)")}
+                      if spectrum.n == 2 else "(1 - cos omega)/pi: Haar measure of SO(3), the "
+                      "multiplet summed over its states (one state: --orientation)")}
         payload["integrals"][key] = 1.0
         ax.plot(orient["angle"], orient[key], label=key.replace("_", " "))
     ax.set_xlabel(label)
@@ -106,6 +107,8 @@ def write_orientation(spectrum: Spectrum, directory: str | Path, state: int | No
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
+    if spectrum.n == 3 and state is not None:
+        return _write_orientation3(spectrum, directory, state)
     tolerance = G_TOLERANCE if tolerance is None else tolerance
     data = orientation_densities(spectrum, state, superposition, temperature,
                                  points=min(points or 51, 201), tolerance=tolerance)
@@ -139,4 +142,46 @@ def write_orientation(spectrum: Spectrum, directory: str | Path, state: int | No
         axes[0, 1].legend()
     fig.suptitle(f"{data['kind']}" + (f" {state}" if state is not None else "")
                  + (f", T = {temperature:g}" if temperature is not None else ""))
+    return _save(fig, directory / "orientation.png", directory / "orientation", arrays, payload)
+
+
+def _write_orientation3(spectrum: Spectrum, directory: Path, state: int) -> dict:
+    """n = 3, one state: the densities of :func:`orientation_densities3` (rotation angles of L
+    and R, cosines of their principal axes with the third axis) as orientation.json / .npz /
+    .png."""
+    import matplotlib.pyplot as plt
+
+    from affinebody.quantum.orientations3 import orientation_densities3
+
+    data = orientation_densities3(spectrum, state)
+    orient = data["orientation"]
+    payload = {"kind": "state", "state": state, "temperature": None, "superposition": None,
+               "energy": data["energy"], "sector": data["sector"], "m": data["m"],
+               "m_prime": data["m_prime"],
+               "angle_note": ("L_angle, R_angle: rotation angle omega of L and R (rad, Haar: "
+                              "(1 - cos omega)/pi); L_axis1..3: cosine of the angle between "
+                              "the principal axis k of C (column k of L, Q1 >= Q2 >= |Q3|) and "
+                              "the third axis, R_axis1..3 the same for G (columns of R); the "
+                              "state is |j m> (x) |j' m'> along the third axis"),
+               "weights_L": data["weights_L"].tolist(), "weights_R": data["weights_R"].tolist(),
+               "densities": {}, "integrals": data["integrals"], "warnings": []}
+    arrays = {"angle": orient["angle"], "t": orient["t"]}
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+    for key, values in orient.items():
+        if key in ("angle", "t"):
+            continue
+        x = orient["angle"] if key.endswith("angle") else orient["t"]
+        arrays[key] = values
+        payload["densities"][key] = {"x": x.tolist(), "density": values.tolist(),
+                                     "integral": data["integrals"][key]}
+        axes[0 if key.endswith("angle") else 1].plot(
+            x, values, "--" if key.startswith("R") else "-", label=key.replace("_", " "))
+    axes[0].set_xlabel("rotation angle (rad)")
+    axes[1].set_xlabel("cosine of the axis with the third axis")
+    for ax in axes:
+        ax.set_ylabel("probability density")
+        ax.legend(fontsize=7)
+    sector = data["sector"]
+    fig.suptitle(f"state {state}: (j, j') = ({sector['spin']}, {sector['vorticity']}), "
+                 f"m = {data['m']}, m' = {data['m_prime']}")
     return _save(fig, directory / "orientation.png", directory / "orientation", arrays, payload)

@@ -393,7 +393,10 @@ class Haar3Cells(Cells):
     0)/sqrt2, e_v = (1, 1, -2)/sqrt6 (the chamber q_1 > q_2 > q_3 is t in [pi/6, pi/2]), cells
     [r_lo, r_hi] x [t_lo, t_hi] x [sigma_lo, sigma_hi]; q_a - sigma/3 = r sqrt(2/3) sin(t +
     phase_a), phases pi/3, -pi/3, pi; lam = e^(sigma/3), so Q_a = lam e^(q_a - sigma/3) and
-    det = lam^3 exactly; the linear forms are a sigma + [interval]."""
+    det = lam^3 exactly. The linear forms are a sigma + b (r cos t, r sin t) + [interval] with
+    a complex ``b`` (real part: the coefficient of r cos t, imaginary: of r sin t), so q_a =
+    sigma/3 + r (e_u[a] + i e_v[a]) exactly and q_1 + q_2 + q_3 = sigma (the coefficients
+    cancel exactly in float64: e_v[2] = -2 e_v[0])."""
 
     PHASES = (math.pi / 3, -math.pi / 3, math.pi)
 
@@ -412,7 +415,11 @@ class Haar3Cells(Cells):
         raise AssertionError("no tau in the n = 3 affine cells")
 
     def linear(self, a, b, qq=0.0):
-        return quadratic_range(self.s, qq, a)
+        out = quadratic_range(self.s, qq, a)
+        if b:  # r |b| sin(t + arg), arg = atan2(Re b, Im b)
+            wave = (self.t + Interval.point(math.atan2(b.real, b.imag))).periodic(np.sin, 0.0)
+            out = out + Interval.point(abs(b)) * self.r * wave
+        return out
 
     def shear(self, a: int) -> Interval:
         """q_a - sigma/3 on each cell."""
@@ -422,8 +429,9 @@ class Haar3Cells(Cells):
     def variables(self):
         y = [self.shear(a) for a in range(3)]
         out = {"det": Value(Interval.point(1.0), d=3)}
-        for a in range(3):
-            out[f"q{a + 1}"] = Value(y[a], a=1.0 / 3.0)
+        cu, cv = 1 / math.sqrt(2.0), 1 / math.sqrt(6.0)
+        for a, b in enumerate((complex(cu, cv), complex(-cu, cv), complex(0.0, -2 * cv))):
+            out[f"q{a + 1}"] = Value(Interval.point(0.0), a=1.0 / 3.0, b=b)
             out[f"Q{a + 1}"] = Value(y[a].increasing(np.exp), d=1)
         for k in (1, 2, 3):
             total = (y[0] * Interval.point(2.0 * k)).increasing(np.exp)

@@ -379,12 +379,13 @@ lowest_degree = cov.lowest_degree
 
 
 # ------------------------------------------- d'Alembert: hyperspherical harmonics x radial
-def angular_candidates(algebra: SectorAlgebra, omega: np.ndarray, degree: int
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def angular_candidates(algebra: SectorAlgebra, omega: np.ndarray, degree: int,
+                       gradients: bool = True) -> tuple[np.ndarray, np.ndarray | None,
+                                                        np.ndarray]:
     """The module generators times e3^b p4^c (no power of p2 = |Q|^2, which is 1 on the
     sphere), homogeneous of degree L <= ``degree``, at unit vectors omega [P, 3]: values
     [P, r, K], tangential gradients [P, r, 3, K] (the gradient on R^3 minus L f omega, by
-    Euler's identity) and L [K], ascending."""
+    Euler's identity; None unless ``gradients``) and L [K], ascending."""
     gv, gg, gdeg = generator_values(algebra, omega, degree)
     e3 = np.prod(omega, -1)
     de3 = np.stack([omega[:, 1] * omega[:, 2], omega[:, 0] * omega[:, 2],
@@ -396,20 +397,21 @@ def angular_candidates(algebra: SectorAlgebra, omega: np.ndarray, degree: int
         for b in range((degree - gd) // 3 + 1):
             for c in range((degree - gd - 3 * b) // 4 + 1):
                 s = e3**b * p4**c
-                ds = (b * e3 ** max(b - 1, 0) * p4**c)[:, None] * de3 + (
-                    c * p4 ** max(c - 1, 0) * e3**b)[:, None] * dp4
                 L = int(gd + 3 * b + 4 * c)
                 v = gv[:, :, i] * s[:, None]
-                g = gg[:, :, :, i] * s[:, None, None] + gv[:, :, None, i] * ds[:, None, :]
                 vals.append(v)
-                grads.append(g - L * v[:, :, None] * omega[:, None, :])
                 deg.append(L)
+                if gradients:
+                    ds = (b * e3 ** max(b - 1, 0) * p4**c)[:, None] * de3 + (
+                        c * p4 ** max(c - 1, 0) * e3**b)[:, None] * dp4
+                    g = gg[:, :, :, i] * s[:, None, None] + gv[:, :, None, i] * ds[:, None, :]
+                    grads.append(g - L * v[:, :, None] * omega[:, None, :])
     P, r = omega.shape[0], algebra.rank
     if not deg:
         return np.zeros((P, r, 0)), np.zeros((P, r, 3, 0)), np.zeros(0, int)
     order = np.argsort(deg, kind="stable")
-    return (np.stack(vals, -1)[..., order], np.stack(grads, -1)[..., order],
-            np.array(deg)[order])
+    return (np.stack(vals, -1)[..., order],
+            np.stack(grads, -1)[..., order] if gradients else None, np.array(deg)[order])
 
 
 def laguerre_table(count: int, a: float, t: np.ndarray) -> np.ndarray:
@@ -434,7 +436,9 @@ def radial_functions(L: int, count: int, scale: float, rho: np.ndarray,
     k = np.arange(count)
     log_c = 0.5 * (np.log(2.0) + special.gammaln(k + 1) - 9 * np.log(scale)
                    - special.gammaln(k + a + 1))
-    front = np.exp(0.5 * L * np.log(t)[:, None] - 0.5 * t[:, None] + log_c[None, :])
+    with np.errstate(divide="ignore"):  # t = 0: t^(L/2) = 0 for L > 0, 1 for L = 0
+        power = 0.5 * L * np.log(t) if L else np.zeros_like(t)
+    front = np.exp(power[:, None] - 0.5 * t[:, None] + log_c[None, :])
     lag = laguerre_table(count, a, t)
     if not derivative:
         return front * lag, None
@@ -487,7 +491,8 @@ class HarmonicBasis:
             Q = self.nodes[i:i + chunk]
             rho = np.linalg.norm(Q, axis=-1)
             omega = Q / np.where(rho > 0, rho, 1.0)[:, None]
-            Y = angular_candidates(algebra, omega, self.degree)[0] @ self.angular
+            Y = angular_candidates(algebra, omega, self.degree, gradients=False)[0] \
+                @ self.angular
             radial = np.zeros((len(Q), len(self.index)))
             for L in np.unique(self.harmonic_degree):
                 u = radial_functions(int(L), self.radial, self.scale, np.maximum(rho, 1e-300),
@@ -495,6 +500,31 @@ class HarmonicBasis:
                 cols = self.harmonic_degree[self.index[:, 0]] == L
                 radial[:, cols] = u[:, self.index[cols, 1]]
             out.append(Y[:, :, self.index[:, 0]] * radial[:, None, :])
+        return np.concatenate(out)
+
+    def combination(self, coeff: np.ndarray, nodes: np.ndarray, chunk: int = 8192
+                    ) -> np.ndarray:
+        """sum_K coeff_K f_K at ``nodes``, [P, r]: as ``values() @ coeff`` but summing the
+        radial functions of each harmonic first (sum_mu Y_mu(omega) sum_k c_mu,k u_k(rho)),
+        without the [P, r, K] table."""
+        algebra = sector_algebra(self.j, self.jp, "matrix")
+        nY = self.angular.shape[1]
+        C = np.zeros((nY, self.radial))
+        C[self.index[:, 0], self.index[:, 1]] = coeff
+        out = []
+        for i in range(0, len(nodes), chunk):
+            Q = nodes[i:i + chunk]
+            rho = np.linalg.norm(Q, axis=-1)
+            omega = Q / np.where(rho > 0, rho, 1.0)[:, None]
+            Y = angular_candidates(algebra, omega, self.degree, gradients=False)[0] \
+                @ self.angular
+            radial = np.zeros((len(Q), nY))  # [P, mu]: sum_k c_mu,k u_k^(L_mu)(rho)
+            for L in np.unique(self.harmonic_degree):
+                mus = np.flatnonzero(self.harmonic_degree == L)
+                u = radial_functions(int(L), self.radial, self.scale, np.maximum(rho, 1e-300),
+                                     derivative=False)[0]
+                radial[:, mus] = u @ C[mus].T
+            out.append(np.einsum("prm,pm->pr", Y, radial))
         return np.concatenate(out)
 
 
@@ -637,7 +667,8 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
             bounds = lebesgue3_shell_bounds(potential, hbar, inertia_scalar, max_shell,
                                             setup.scale)
         else:
-            bounds = haar3_shell_bounds(potential, hbar, inertia, max_shell, setup.centre)
+            bounds = haar3_shell_bounds(potential, hbar, inertia, max_shell, setup.centre,
+                                            setup.scale_sigma, setup.scale)
     except Unsupported as err:
         reason = str(err)
 

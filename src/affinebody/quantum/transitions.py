@@ -193,15 +193,18 @@ class Component:
         return sum(s.dimension for s in self.sectors)
 
 
-def level_components(spectrum: Spectrum, level: Level, merge: float | None = None
-                     ) -> list[Component]:
+def level_components(spectrum: Spectrum, level: Level, merge: float | None = None,
+                     sector: Sector | None = None) -> list[Component]:
     """Every eigenvector of the solved blocks whose energy is ``level``'s (within the merge
     tolerance of :class:`~affinebody.quantum.levels.Settings`, error estimate within the
-    level's): the level's states. Their state count must be the level's multiplicity."""
+    level's): the level's states. Their state count must be the level's multiplicity.
+    ``sector``: only the blocks holding it (their states of that sector must be the level's)."""
     merge = Settings().merge if merge is None else merge
     tol = merge * max(1.0, abs(level.energy))
     out = []
     for key, block in spectrum.blocks.items():
+        if sector is not None and sector not in block.sectors:
+            continue
         for i, E in enumerate(block.energies):
             # the merged entries of the level (an unconverged candidate at the same energy has
             # an error estimate above the level's, the largest of its entries)
@@ -210,11 +213,15 @@ def level_components(spectrum: Spectrum, level: Level, merge: float | None = Non
                 out.append(Component(block.sectors, joint_density(spectrum, one),
                                      angular_frame(key, block.sectors[0])
                                      if spectrum.n == 3 else None))
-    found = sum(c.states for c in out)
-    if found != level.multiplicity:
-        raise ValueError(f"transitions: the level at {level.energy:.9g} has multiplicity "
-                         f"{level.multiplicity} but {found} eigenvector states were found at "
-                         f"its energy")
+    if sector is None:
+        found, expected = sum(c.states for c in out), level.multiplicity
+    else:
+        found = sum(s.dimension for c in out for s in c.sectors if s == sector)
+        expected = sum(s.dimension for s in level.sectors if s == sector)
+    if found != expected:
+        raise ValueError(f"transitions: the level at {level.energy:.9g} has {expected} states"
+                         f"{'' if sector is None else ' of the sector'} but {found} eigenvector "
+                         f"states were found at its energy")
     return out
 
 

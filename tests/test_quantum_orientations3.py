@@ -1,0 +1,221 @@
+"""Orientation densities of single n = 3 states (quantum/orientations3.py) against the closed
+form of the R^9 oscillator's first excited multiplet (spin = vorticity = 1, psi ~ phi^i_a x
+Gaussian), the Haar density of a multiplet summed over its states, and the command line."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from affinebody.quantum import spectra as sp
+from affinebody.quantum.cli import density
+from affinebody.quantum.intervals import ExpressionPotential
+from affinebody.quantum.orientations3 import multiplet_orientations, wigner
+
+HBAR, INERTIA, K = 0.7, 1.3, 0.8
+
+
+@pytest.fixture(scope="module")
+def oscillator3():
+    """R^9 oscillator, every sector up to max(j, j') = 2: levels N = 0, 1, 2 with 1, 9 and 45
+    states (N = 1: (1, 1); N = 2: (0, 0) + (1, 1) + (2, 0) + (0, 2) + (2, 2))."""
+    s = sp.solve("dalembert", 3, ExpressionPotential(f"0.5*{K}*trG", 3), HBAR, inertia=INERTIA,
+                 levels=55, settings=sp.Settings(basis_size=4, check_shrink=2, max_spin=2))
+    assert [lv.multiplicity for lv in s.levels] == [1, 9, 45]
+    return s
+
+
+def chamber_moments(f) -> np.ndarray:
+    """int f(Q) rho(Q) dQ / int rho, rho = prod_{a<b} (Q_a^2 - Q_b^2) e^{-|Q|^2/2} on Q1 > Q2
+    > |Q3| (the singular values of a 3 x 3 matrix of independent standard normals), by a
+    Gauss-Legendre product rule in Cartesian coordinates (exact in Q2, Q3; Q1 cut at 12)."""
+    x, w = np.polynomial.legendre.leggauss(80)
+    u, wu = np.polynomial.legendre.leggauss(12)
+    q1, w1 = 6 * (x + 1), 6 * w
+    q2 = q1[:, None] * (u[None] + 1) / 2
+    w2 = w1[:, None] * wu[None] * q1[:, None] / 2
+    q3 = q2[..., None] * u
+    w3 = w2[..., None] * wu * q2[..., None]
+    Q = np.stack(np.broadcast_arrays(q1[:, None, None], q2[..., None], q3), -1)
+    rho = w3 * np.exp(-np.sum(Q * Q, -1) / 2) * np.prod(
+        [Q[..., a] ** 2 - Q[..., b] ** 2 for a, b in ((0, 1), (0, 2), (1, 2))], 0)
+    values = f(Q)
+    return np.tensordot(values, rho, axes=rho.ndim) / np.sum(rho)
+
+
+def chamber_weights() -> np.ndarray:
+    """w_k = <Q_k^2> / <|Q|^2> under the ground state's singular-value density."""
+    moments = chamber_moments(lambda Q: np.moveaxis(Q * Q, -1, 0))
+    return moments / moments.sum()
+
+
+def test_first_excited_multiplet_closed_form(oscillator3):
+    """psi ~ <c, phi> e^{-|phi|^2/4s^2} with c = |1 m> (x) |1 m'>: phi = L diag(Q) R^T gives
+    p_L(L) = 3 sum_k w_k |<1 m| L e_k>|^2 (the |D^1|^2 pattern, w_k = <Q_k^2>/<|Q|^2>), so the
+    axis k of L (and of R, with m') has the cosine density (3/2)[w_k g + (1 - w_k)(1 - g)/2]
+    with g = t^2 (m = 0), (1 - t^2)/2 (m = +-1); the rotation angle of L has (1 - cos w)/pi x
+    3 [w_3 a + (w_1 + w_2) b] (m = 0) and 3 [w_3 b + (w_1 + w_2)(a + b)/2] (m = +-1), with
+    a = c^2 + 2c(1 - c)/3 + (1 - c)^2/5, b = (1 - c)^2/15 + (1 - c^2)/3 the axis averages of
+    L_33^2 and L_31^2 (Rodrigues). Every density integrates to 1; the sum over the 9 states
+    is Haar (angle (1 - cos w)/pi, axes uniform 1/2)."""
+    wk = chamber_weights()
+    assert np.all(np.diff(wk) < -0.05)  # far from uniform: the axes are ordered by Q_k
+    total = {}
+    multiplet = multiplet_orientations(oscillator3, 4, points=41)
+    assert [d["state"] for d in multiplet] == list(range(1, 10))
+    for d in multiplet:
+        state = d["state"]
+        o = d["orientation"]
+        assert d["sector"]["spin"] == 1 and d["sector"]["vorticity"] == 1
+        np.testing.assert_allclose(d["weights_L"], wk, atol=1e-9)
+        np.testing.assert_allclose(d["weights_R"], wk, atol=1e-9)
+        t, c = o["t"], np.cos(o["angle"])
+        a = c * c + 2 * c * (1 - c) / 3 + (1 - c) ** 2 / 5
+        b = (1 - c) ** 2 / 15 + (1 - c * c) / 3
+        for side, m in (("L", d["m"]), ("R", d["m_prime"])):
+            g = t * t if m == 0 else (1 - t * t) / 2
+            for k in range(3):
+                exact = 1.5 * (wk[k] * g + (1 - wk[k]) * (1 - g) / 2)
+                assert np.abs(o[f"{side}_axis{k + 1}"] - exact).max() < 1e-8, (state, side, k)
+            mix = wk[2] * a + (wk[0] + wk[1]) * b if m == 0 else \
+                wk[2] * b + (wk[0] + wk[1]) * (a + b) / 2
+            exact = (1 - c) / np.pi * 3 * mix
+            assert np.abs(o[f"{side}_angle"] - exact).max() < 1e-8, (state, side)
+        for name, value in d["integrals"].items():
+            assert abs(value - 1) < 1e-12, name
+        for name, value in o.items():
+            total[name] = total.get(name, 0) + value / 9
+    for side in ("L", "R"):
+        haar = (1 - np.cos(total["angle"])) / np.pi
+        assert np.abs(total[f"{side}_angle"] - haar).max() < 1e-12
+        for k in (1, 2, 3):
+            assert np.abs(total[f"{side}_axis{k}"] - 0.5).max() < 1e-12
+
+
+def test_wigner_is_a_representation():
+    """D^j(L1 L2) = D^j(L1) D^j(L2) for j = 2, 3 (and D^1 = L), rotations by nearly pi
+    included (where the axis is read off L + L^T)."""
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(8, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    a, b, c, d = q.T
+    L = np.stack([[a*a + b*b - c*c - d*d, 2*(b*c - a*d), 2*(b*d + a*c)],
+                  [2*(b*c + a*d), a*a - b*b + c*c - d*d, 2*(c*d - a*b)],
+                  [2*(b*d - a*c), 2*(c*d + a*b), a*a - b*b - c*c + d*d]]).transpose(2, 0, 1)
+    flip = np.diag([-1.0, -1.0, 1.0])  # a rotation by pi, then by pi - 1e-9
+    eps = 1e-9
+    near = flip @ np.array([[1, 0, 0], [0, np.cos(eps), -np.sin(eps)],
+                            [0, np.sin(eps), np.cos(eps)]])
+    L = np.concatenate([L, flip[None], near[None]])
+    assert np.abs(wigner(1, L) - L).max() < 1e-14
+    for j in (2, 3):
+        assert np.abs(wigner(j, L[:5] @ L[5:]) - wigner(j, L[:5]) @ wigner(j, L[5:])).max() \
+            < 1e-13
+
+
+def test_density_command_n3_state(tmp_path):
+    """affinebody density --state k --orientation for n = 3: state 3 is |1 1> (x) |1 -1> of
+    N = 1; orientation.json carries its labels, the densities with integral 1 and Phi's
+    weights (the ordered singular values' share of |Q|^2); exit 0."""
+    path = tmp_path / "osc3.toml"
+    path.write_text(f"""
+[system]
+n = 3
+[quantum]
+hbar = {HBAR}
+kinetic = "dalembert"
+inertia = {INERTIA}
+potential = "0.5*{K}*trG"
+sectors = "scalar+spin1"
+basis_size = 4
+density_points = 11
+""")
+    out = tmp_path / "o"
+    result = CliRunner().invoke(density, [str(path), "--state", "3", "--orientation", "-o",
+                                          str(out), "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads((out / "orientation.json").read_text())
+    assert (doc["kind"], doc["m"], doc["m_prime"]) == ("state", 1, -1)
+    assert doc["sector"]["spin"] == doc["sector"]["vorticity"] == 1
+    np.testing.assert_allclose(doc["weights_L"], chamber_weights(), atol=1e-9)
+    assert set(doc["densities"]) == {f"{s}_{k}" for s in "LR"
+                                     for k in ("angle", "axis1", "axis2", "axis3")}
+    assert all(abs(v - 1) < 1e-12 for v in doc["integrals"].values())
+    assert (out / "orientation.png").exists() and (out / "orientation.npz").exists()
+
+
+def frames(k: int, t: np.ndarray, twist: np.ndarray) -> np.ndarray:
+    """Rotations [t, twist, 3, 3] whose column k is n = (sqrt(1 - t^2), 0, t) and whose other
+    columns are u = cos(twist) e1 + sin(twist) e2 (e1, e2 completing n) and n x u, cyclically."""
+    st = np.sqrt(1 - t * t)
+    n = np.stack([st, 0 * t, t], -1)[:, None]
+    e1 = np.stack([t, 0 * t, -st], -1)[:, None]
+    e2 = np.broadcast_to([0.0, 1.0, 0.0], e1.shape)
+    u = np.cos(twist)[None, :, None] * e1 + np.sin(twist)[None, :, None] * e2
+    L = np.zeros(u.shape[:2] + (3, 3))
+    L[..., k], L[..., (k + 1) % 3], L[..., (k + 2) % 3] = n, u, np.cross(n, u)
+    return L
+
+
+def test_quadrupole_multiplets_against_their_wave_functions(oscillator3):
+    """N = 2, sector (2, 0): psi ~ <T_m, phi phi^T> e^{-|phi|^2/4s^2} with T_m the traceless
+    tensor of the harmonic Y_2m (T_0 = diag(-1, -1, 2), T_{+-1} ~ e_3 (e_1 +- i e_2)^T +
+    transpose, T_{+-2} ~ (e_1 +- i e_2)(e_1 +- i e_2)^T); with phi phi^T = L diag(Q^2) L^T,
+    p(L) ~ sum_kl <Q_k^2 Q_l^2> X_k conj(X_l), X_k = (L^T conj(T_m) L)_kk, evaluated here on
+    explicit rotations (no Wigner matrices), normalised by its Haar mean and integrated over
+    the twist about each axis and over the rotation axes. (0, 2): the same with R (psi ~
+    <T_m, phi^T phi>), and the other side is Haar."""
+    M = chamber_moments(lambda Q: np.einsum("...k,...l->kl...", Q * Q, Q * Q))
+    e = np.eye(3)
+    plus = e[0] + 1j * e[1]
+    tensors = {0: np.diag([-1.0, -1.0, 2.0]), 1: np.outer(e[2], plus) + np.outer(plus, e[2]),
+               2: np.outer(plus, plus)}
+
+    def density(m, L):  # unnormalised p at rotations [..., 3, 3]
+        T = tensors[abs(m)] if m >= 0 else tensors[-m].conj()
+        X = np.einsum("...ik,ij,...jk->...k", L, T.conj(), L)
+        return np.einsum("kl,...k,...l->...", M, X, X.conj()).real
+
+    # Haar mean by Euler angles z-y-z: Gauss-Legendre in cos(beta), trapezoid in the others
+    c, wc = np.polynomial.legendre.leggauss(8)
+    ang = 2 * np.pi * np.arange(12) / 12
+    haar = frames(2, c, ang)  # column 3 at cos(beta) = c, the first Euler angle is 0 ...
+    rz = np.stack([[np.cos(ang), -np.sin(ang), 0 * ang], [np.sin(ang), np.cos(ang), 0 * ang],
+                   [0 * ang, 0 * ang, 1 + 0 * ang]]).transpose(2, 0, 1)
+    haar = np.einsum("aij,tbjk->tabik", rz, haar)  # ... and here the azimuth
+    twist = 2 * np.pi * np.arange(12) / 12
+    level = oscillator3.levels[2]
+    first = 10 + sum(s.dimension for s in level.sectors[:[(s.spin, s.vorticity) for s in
+                                                          level.sectors].index((2, 0))])
+    for sector, side in (((2, 0), "L"), ((0, 2), "R")):
+        start = first if sector == (2, 0) else None
+        if start is None:
+            names = [(s.spin, s.vorticity) for s in level.sectors]
+            start = 10 + sum(s.dimension for s in level.sectors[:names.index((0, 2))])
+        multiplet = multiplet_orientations(oscillator3, start, points=21)
+        assert len(multiplet) == 5
+        for d in multiplet:
+            m = d["m"] if side == "L" else d["m_prime"]
+            o = d["orientation"]
+            assert (d["sector"]["spin"], d["sector"]["vorticity"]) == sector
+            norm = np.einsum("t,tab->", wc, density(m, haar)) / (2 * 12 * 12)
+            for k in range(3):
+                exact = 0.5 * density(m, frames(k, o["t"], twist)).mean(1) / norm
+                assert np.abs(o[f"{side}_axis{k + 1}"] - exact).max() < 1e-7, (m, k)
+            # rotation angle: mean over the axes n (cos theta Gauss, azimuth trapezoid)
+            st = np.sqrt(1 - c * c)
+            n = np.stack([st[:, None] * np.cos(ang), st[:, None] * np.sin(ang),
+                          c[:, None] + 0 * ang], -1)
+            cw, sw = np.cos(o["angle"]), np.sin(o["angle"])
+            nx = np.swapaxes(np.cross(n[..., None, :], np.eye(3)), -1, -2)
+            rot = (cw[:, None, None, None, None] * np.eye(3)
+                   + sw[:, None, None, None, None] * nx
+                   + (1 - cw)[:, None, None, None, None] * np.einsum("...i,...j->...ij", n, n))
+            mean = np.einsum("t,wta->w", wc, density(m, rot)) / (2 * 12)
+            exact = (1 - cw) / np.pi * mean / norm
+            assert np.abs(o[f"{side}_angle"] - exact).max() < 1e-7, m
+            other = "R" if side == "L" else "L"
+            haar_angle = (1 - cw) / np.pi
+            assert np.abs(o[f"{other}_angle"] - haar_angle).max() < 1e-12
+            assert abs(d["integrals"][f"{side}_angle"] - 1) < 1e-12
