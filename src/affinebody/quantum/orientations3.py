@@ -40,6 +40,7 @@ import numpy as np
 from affinebody.quantum import covariants3 as cov
 from affinebody.quantum.densities import state_components
 from affinebody.quantum.levels import Spectrum
+from affinebody.quantum.tensor_operators3 import wigner
 from affinebody.quantum.transitions import (
     level_components,
     reduced_quadrature,
@@ -50,34 +51,6 @@ from affinebody.quantum.transitions import (
 POINTS = 181
 #: the state's amplitude must be normalised under the reduced quadrature to this
 NORMALISATION = 1e-8
-
-
-def wigner(j: int, rotations: np.ndarray) -> np.ndarray:
-    """D^j(L) [..., 2j + 1, 2j + 1] in the real harmonic basis of covariants3 ((D^j(L) p)(u) =
-    p(L^T u)) for rotation matrices L [..., 3, 3]: D^j(exp(sum_g a_g K_g)) = exp(sum_g a_g
-    K^j_g) with K_g the generators of covariants3.rotation_generators (the defining ones for
-    j = 1, where D^1(L) = L) and a_g read off the axis-angle form of L."""
-    rotations = np.asarray(rotations, float)
-    flat = rotations.reshape(-1, 3, 3)
-    # the axis-angle vector from the antisymmetric part (and, near omega = pi, from L + L^T)
-    vee = np.stack([flat[:, 2, 1] - flat[:, 1, 2], flat[:, 0, 2] - flat[:, 2, 0],
-                    flat[:, 1, 0] - flat[:, 0, 1]], -1)
-    c = (np.trace(flat, axis1=1, axis2=2) - 1) / 2
-    s = np.linalg.norm(vee, axis=-1) / 2
-    angle = np.arctan2(s, c)
-    small = s < 1e-6
-    axis = vee / np.where(small, 1.0, 2 * s)[:, None]
-    if np.any(small & (c < 0)):  # omega near pi: n n^T = ((L + L^T)/2 - c)/(1 - c) exactly
-        for i in np.flatnonzero(small & (c < 0)):
-            sym = ((flat[i] + flat[i].T) / 2 - c[i] * np.eye(3)) / (1 - c[i])
-            k = int(np.argmax(np.diag(sym)))
-            n = sym[:, k] / np.sqrt(sym[k, k])
-            axis[i] = n if n @ vee[i] >= 0 else -n
-    rotvec = np.where((small & (c > 0))[:, None], vee / 2, axis * angle[:, None])
-    # K_01 = [e_3]_x, K_02 = -[e_2]_x, K_12 = [e_1]_x (covariants3 pairs (0,1), (0,2), (1,2))
-    a = np.stack([rotvec[:, 2], -rotvec[:, 1], rotvec[:, 0]], -1)
-    out = cov.expm_antisymmetric(np.einsum("pg,gab->pab", a, cov.rotation_generators(j)))
-    return out.reshape(*rotations.shape[:-2], 2 * j + 1, 2 * j + 1)
 
 
 def magnetic_states(j: int) -> np.ndarray:
