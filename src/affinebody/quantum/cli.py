@@ -16,13 +16,13 @@ sector sum is unbounded below) and ``warnings`` (af-af; n = 3 spectra that hold 
 sectors; a sector search stopped by max_spin), also printed under the table.
 ``affinebody density CONFIG.toml --state k -o DIR [--json] [--orientation]`` (or
 ``--superpose 0:1,8:0.5j`` or ``--temperature T`` instead of ``--state``: the orientation
-densities only, orientation.json / .npz / .png; n = 3: --orientation gives the state's rotation
-angles and principal-axis directions, quantum.orientations3): the exact marginal densities of
-the invariants (Q_a or q_a, det phi, Tr G) and of the orientations for the k-th state (0-based),
-each with a quadrature error estimate, written as densities.npz, densities.json and one PNG per
-density; with --json the same JSON object (arrays included) on stdout, else a table. Densities
-whose error exceeds quantum.density_tolerance x their peak are flagged (``converged: false``,
-a warning) and the command exits with status 3.
+densities only, orientation.json / .npz / .png; n = 3: rotation angles and principal-axis
+directions of the state, superposition or thermal mixture, quantum.orientations3): the exact
+marginal densities of the invariants (Q_a or q_a, det phi, Tr G) and of the orientations for the
+k-th state (0-based), each with a quadrature error estimate, written as densities.npz,
+densities.json and one PNG per density; with --json the same JSON object (arrays included) on
+stdout, else a table. Densities whose error exceeds quantum.density_tolerance x their peak are
+flagged (``converged: false``, a warning) and the command exits with status 3.
 """
 
 from __future__ import annotations
@@ -141,7 +141,7 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
               help="also the densities of the orientations of L, R (n = 2: their angles and "
                    "G11, G22, G12; n = 3: rotation angles and principal-axis directions)")
 @click.option("--superpose", default=None,
-              help="orientation densities of a superposition, e.g. 0:1,8:0.5j (n = 2)")
+              help="orientation densities of a superposition, e.g. 0:1,8:0.5j")
 @click.option("--temperature", type=float, default=None,
               help="orientation densities of the thermal mixture at T (k_B = 1)")
 @one_line_errors

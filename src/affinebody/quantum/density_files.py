@@ -107,8 +107,8 @@ def write_orientation(spectrum: Spectrum, directory: str | Path, state: int | No
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    if spectrum.n == 3 and state is not None:
-        return _write_orientation3(spectrum, directory, state)
+    if spectrum.n == 3:
+        return _write_orientation3(spectrum, directory, state, superposition, temperature)
     tolerance = G_TOLERANCE if tolerance is None else tolerance
     data = orientation_densities(spectrum, state, superposition, temperature,
                                  points=min(points or 51, 201), tolerance=tolerance)
@@ -145,26 +145,34 @@ def write_orientation(spectrum: Spectrum, directory: str | Path, state: int | No
     return _save(fig, directory / "orientation.png", directory / "orientation", arrays, payload)
 
 
-def _write_orientation3(spectrum: Spectrum, directory: Path, state: int) -> dict:
-    """n = 3, one state: the densities of :func:`orientation_densities3` (rotation angles of L
-    and R, cosines of their principal axes with the third axis) as orientation.json / .npz /
-    .png."""
+def _write_orientation3(spectrum: Spectrum, directory: Path, state: int | None,
+                        superposition: dict[int, complex] | None = None,
+                        temperature: float | None = None) -> dict:
+    """n = 3: the densities of one state (:func:`orientation_densities3`), a superposition or
+    the thermal mixture (:func:`mixture_orientations`): rotation angles of L and R, cosines of
+    their principal axes with the third axis, as orientation.json / .npz / .png."""
     import matplotlib.pyplot as plt
 
-    from affinebody.quantum.orientations3 import orientation_densities3
+    from affinebody.quantum.orientations3 import mixture_orientations, orientation_densities3
 
-    data = orientation_densities3(spectrum, state)
+    if state is not None:
+        data = orientation_densities3(spectrum, state)
+    else:
+        data = mixture_orientations(spectrum, superposition, temperature)
     orient = data["orientation"]
-    payload = {"kind": "state", "state": state, "temperature": None, "superposition": None,
-               "energy": data["energy"], "sector": data["sector"], "m": data["m"],
-               "m_prime": data["m_prime"],
+    payload = {"kind": data["kind"], "state": state, "temperature": temperature,
+               "superposition": None if superposition is None else
+               {str(k): [v.real, v.imag] for k, v in superposition.items()},
                "angle_note": ("L_angle, R_angle: rotation angle omega of L and R (rad, Haar: "
                               "(1 - cos omega)/pi); L_axis1..3: cosine of the angle between "
                               "the principal axis k of C (column k of L, Q1 >= Q2 >= |Q3|) and "
-                              "the third axis, R_axis1..3 the same for G (columns of R); the "
+                              "the third axis, R_axis1..3 the same for G (columns of R); a "
                               "state is |j m> (x) |j' m'> along the third axis"),
-               "weights_L": data["weights_L"].tolist(), "weights_R": data["weights_R"].tolist(),
-               "densities": {}, "integrals": data["integrals"], "warnings": []}
+               "densities": {}, "integrals": data["integrals"], "warnings": data["warnings"]}
+    if state is not None:
+        payload.update({"energy": data["energy"], "sector": data["sector"], "m": data["m"],
+                        "m_prime": data["m_prime"], "weights_L": data["weights_L"].tolist(),
+                        "weights_R": data["weights_R"].tolist()})
     arrays = {"angle": orient["angle"], "t": orient["t"]}
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
     for key, values in orient.items():
@@ -181,7 +189,10 @@ def _write_orientation3(spectrum: Spectrum, directory: Path, state: int) -> dict
     for ax in axes:
         ax.set_ylabel("probability density")
         ax.legend(fontsize=7)
-    sector = data["sector"]
-    fig.suptitle(f"state {state}: (j, j') = ({sector['spin']}, {sector['vorticity']}), "
-                 f"m = {data['m']}, m' = {data['m_prime']}")
+    if state is not None:
+        sector = data["sector"]
+        fig.suptitle(f"state {state}: (j, j') = ({sector['spin']}, {sector['vorticity']}), "
+                     f"m = {data['m']}, m' = {data['m_prime']}")
+    else:
+        fig.suptitle(data["kind"] + (f", T = {temperature:g}" if temperature is not None else ""))
     return _save(fig, directory / "orientation.png", directory / "orientation", arrays, payload)
