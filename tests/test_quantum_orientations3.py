@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from affinebody.quantum import green3
 from affinebody.quantum import spectra as sp
 from affinebody.quantum.cli import density
 from affinebody.quantum.intervals import ExpressionPotential
@@ -21,7 +22,8 @@ from affinebody.quantum.orientations3 import (
     side_terms,
     terms_density,
 )
-from affinebody.quantum.tensor_operators3 import euler_quadrature, wigner
+from affinebody.quantum.tensor_operators3 import euler_quadrature, reduced_matrix, wigner
+from affinebody.quantum.transitions import Operator, level_states
 
 HBAR, INERTIA, K = 0.7, 1.3, 0.8
 
@@ -316,3 +318,64 @@ def test_density_command_n3_superposition_and_temperature(tmp_path):
     bad = CliRunner().invoke(density, [str(path), "--temperature", "-1", "-o", str(out)])
     assert bad.exit_code == 1 and len(bad.output.strip().splitlines()) == 1
     assert "temperature must be > 0" in bad.output
+
+
+def test_green_diagonal_densities_against_closed_form_and_transition_elements(oscillator3):
+    """Densities of G_aa (quantum.green3): the ground state's G11 = sum_i phi_i1^2 is U times a
+    chi-square with 3 degrees of freedom; for a state |2 1> of the multiplet (0, 2) of N = 2
+    (anisotropic in the body) the first two moments of the density of G33 equal <G33> and
+    <G33^2> (to 1e-4, the rule in y) computed as matrix elements by the transitions' expansion
+    in Wigner D functions (an independent route)."""
+    U = HBAR / (2 * INERTIA * math.sqrt(K / INERTIA))
+    ground, _ = multiplet_state(oscillator3, 0)
+    pair_list = green3.pairs([(1.0, np.ones(1), [ground])])
+    bounds = green3.support("lebesgue3", pair_list)
+    y = np.array([0.2, 0.5, 1.0, 2.0])
+    exact = np.sqrt(y) * np.exp(-y / (2 * U)) / (math.gamma(1.5) * (2 * U) ** 1.5)
+    p = green3.diagonal_density(pair_list, "lebesgue3", 0, y, green3.RULES[1], bounds)
+    np.testing.assert_allclose(p, exact, rtol=1e-3)  # 5e-4 at y = 0.2, 2e-8 at y = 2
+    level = oscillator3.levels[2]
+    names = [(s.spin, s.vorticity) for s in level.sectors]
+    index = 10 + sum(s.dimension for s in level.sectors[:names.index((0, 2))]) + 1
+    state, w = multiplet_state(oscillator3, index)
+    pair_list = green3.pairs([(1.0, np.ones(1), [state])])
+    bounds = green3.support("lebesgue3", pair_list)
+    u, wu = np.polynomial.legendre.leggauss(12)
+    u, wu = (u + 1) / 2, wu / 2
+    y, wy = bounds[3] * u * u, bounds[3] * 2 * u * wu  # y = top u^2: the sqrt(y) edge is smooth
+    Q = level_states(oscillator3).Q
+    c = np.kron(state.u, state.v)
+    p = green3.diagonal_density(pair_list, "lebesgue3", 2, y, (8, 32, 16), bounds)
+    for power in (1, 2):
+        op = Operator(f"G33**{power}", 3)
+        moments = np.einsum("p,pt,pbd,pBD->tbdBD", w, op.radial(Q), state.F, state.F)
+        M = reduced_matrix(op.expansion, moments, (0, 2), (0, 2))
+        element = (state.sector.dimension * c @ M @ c.conj()).real
+        assert abs(np.sum(wy * y**power * p) - element) < 5e-4 * element
+
+
+def test_density_command_n3_green_components(tmp_path):
+    """--g-components for n = 3: orientation.json holds the density of G33 of the thermal
+    mixture at low T (the ground state's: U x chi-square(3), integral ~1 on the coarse grid);
+    off-diagonal or too many points: one line, exit 1."""
+    path = tmp_path / "osc3.toml"
+    path.write_text(CONFIG3)
+    out = tmp_path / "g"
+    result = CliRunner().invoke(density, [str(path), "--temperature", "0.03", "--g-components",
+                                          "G33", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    doc = json.loads((out / "orientation.json").read_text())
+    g = doc["densities"]["G33"]
+    U = HBAR / (2 * INERTIA * math.sqrt(K / INERTIA))
+    y = np.array(g["x"])
+    exact = np.sqrt(y) * np.exp(-y / (2 * U)) / (math.gamma(1.5) * (2 * U) ** 1.5)
+    np.testing.assert_allclose(g["density"], exact, atol=1e-4 * exact.max())
+    for args, needle in ((["--g-components", "G12"], "diagonal components"),
+                         (["--g-components", "G11,G22,G33", "--superpose", "1:1"], None)):
+        if needle is None:
+            path.write_text(CONFIG3.replace("density_points = 11", "density_points = 60"))
+            needle = "is more than"
+        extra = [] if "--superpose" in args else ["--temperature", "0.03"]
+        bad = CliRunner().invoke(density, [str(path), *args, *extra, "-o", str(out)])
+        assert bad.exit_code == 1 and needle in bad.output, bad.output
+        assert len(bad.output.strip().splitlines()) == 1

@@ -132,8 +132,9 @@ def _integral(density, lo: float, hi: float) -> float:
 
 def multiplet_of_state(spectrum: Spectrum, state: int):
     """(level, sector, F [P, 2j + 1, 2j' + 1] at the reduced nodes, weights [P], first state
-    index of the multiplet) of the multiplet holding the ``state``-th entry of
-    :meth:`Spectrum.energies` (n = 3); its states are first, ..., first + dimension - 1."""
+    index of the multiplet, F as a callable of reduced coordinates [N, 3]) of the multiplet
+    holding the ``state``-th entry of :meth:`Spectrum.energies` (n = 3); its states are
+    first, ..., first + dimension - 1."""
     table = state_components(spectrum, state)
     level, sector = table[state]
     before = sum(1 for lv, sec in table[:state] if lv is level and sec == sector)
@@ -147,7 +148,13 @@ def multiplet_of_state(spectrum: Spectrum, state: int):
     if abs(norm - 1) > NORMALISATION:
         raise ValueError(f"densities: state {state} is normalised only to {abs(norm - 1):.1e} "
                          f"under the reduced quadrature (raise quantum.basis_size)")
-    return level, sector, F, w, state - before % sector.dimension
+    return (level, sector, F, w, state - before % sector.dimension,
+            _amplitude_function(component, k))
+
+
+def _amplitude_function(component, k: int):
+    """x [N, 3] -> F [N, 2j + 1, 2j' + 1] of the k-th sector of a component."""
+    return lambda x: sector_amplitudes(component, np.asarray(x, float))[k][1]
 
 
 def multiplet_orientations(spectrum: Spectrum, state: int, points: int = POINTS,
@@ -165,7 +172,7 @@ def multiplet_orientations(spectrum: Spectrum, state: int, points: int = POINTS,
         raise ValueError("multiplet_orientations is for n = 3")
     if state < 0:
         raise ValueError(f"state indices must be >= 0 (got {state})")
-    level, sector, F, w, first = multiplet_of_state(spectrum, state)
+    level, sector, F, w, first, _ = multiplet_of_state(spectrum, state)
     if not level.converged:
         raise ValueError(f"state {state} is not converged (raise quantum.basis_size)")
     j, jp = sector.spin, sector.vorticity
@@ -217,6 +224,8 @@ class MultipletState:
     F: np.ndarray
     u: np.ndarray
     v: np.ndarray
+    #: F as a function of reduced coordinates x [N, 3] (Q, or q for the affine models)
+    amplitude: object = None
 
 
 def multiplet_state(spectrum: Spectrum, state: int) -> tuple[MultipletState, np.ndarray]:
@@ -224,14 +233,14 @@ def multiplet_state(spectrum: Spectrum, state: int) -> tuple[MultipletState, np.
     of its reduced quadrature."""
     if state < 0:
         raise ValueError(f"state indices must be >= 0 (got {state})")
-    level, sector, F, w, first = multiplet_of_state(spectrum, state)
+    level, sector, F, w, first, amplitude = multiplet_of_state(spectrum, state)
     if not level.converged:
         raise ValueError(f"state {state} is not converged (raise quantum.basis_size)")
     position = state - first
     jp = sector.vorticity
     return MultipletState(state, sector, level.energy, F,
                           magnetic_states(sector.spin)[:, position // (2 * jp + 1)],
-                          magnetic_states(jp)[:, position % (2 * jp + 1)]), w
+                          magnetic_states(jp)[:, position % (2 * jp + 1)], amplitude), w
 
 
 def level_multiplet_states(spectrum: Spectrum, count: int | None = None
@@ -256,6 +265,7 @@ def level_multiplet_states(spectrum: Spectrum, count: int | None = None
             c, f = pairs[seen.get(sector, 0)]
             seen[sector] = seen.get(sector, 0) + 1
             F = dict(sector_amplitudes(c, states.y, f))[sector]
+            amplitude = _amplitude_function(c, c.sectors.index(sector))
             norm = float(states.weights @ np.sum(F * F, axis=(1, 2)))
             if abs(norm - 1) > NORMALISATION:
                 raise ValueError(f"densities: state {index} is normalised only to "
@@ -266,7 +276,7 @@ def level_multiplet_states(spectrum: Spectrum, count: int | None = None
                 jp = sector.vorticity
                 out.append(MultipletState(index, sector, level.energy, F,
                                           U[:, position // (2 * jp + 1)],
-                                          V[:, position % (2 * jp + 1)]))
+                                          V[:, position % (2 * jp + 1)], amplitude))
                 index += 1
     return (out if count is None else [s for s in out if s.index < count]), states.weights
 
@@ -380,21 +390,23 @@ def _z_rotation(angle: np.ndarray) -> np.ndarray:
     return out
 
 
-def mixture_orientations(spectrum: Spectrum, superposition: dict[int, complex] | None = None,
-                         temperature: float | None = None, points: int = POINTS,
-                         tolerance: float = 1e-6) -> dict:
-    """Orientation densities (the keys of :func:`multiplet_orientations`' ``orientation`` and
-    ``integrals``) of a superposition {state index: amplitude} or of the thermal mixture
-    exp(-E/T)/Z over the converged states computed (k_B = 1), n = 3: sums of
-    :func:`terms_density` over the pure states, marginals by exact rules. A thermal mixture
-    (a function of H, which commutes with SO(3) x SO(3)) is Haar-distributed at every T; the
-    sum over the states computed shows it. ``warnings``: a thermal mixture truncated where
-    the last state computed still has more than ``tolerance`` of the first's weight."""
+def state_mixture(spectrum: Spectrum, state: int | None = None,
+                  superposition: dict[int, complex] | None = None,
+                  temperature: float | None = None, tolerance: float = 1e-6
+                  ) -> tuple[list, np.ndarray, str, list[str]]:
+    """(mixture [(probability, amplitudes, [MultipletState])], weights of the reduced
+    quadrature, kind, warnings) of one state, a superposition {state index: amplitude} or the
+    thermal mixture exp(-E/T)/Z over the converged states computed (k_B = 1; a warning when the
+    last still has more than ``tolerance`` of the first's weight); n = 3."""
     if spectrum.n != 3:
-        raise ValueError("mixture_orientations is for n = 3")
-    if (superposition is None) == (temperature is None):
-        raise ValueError("give exactly one of a superposition or a temperature")
+        raise ValueError("n = 3 orientation densities: the spectrum is n = 2")
+    if sum(v is not None for v in (state, superposition, temperature)) != 1:
+        raise ValueError("give exactly one of a state, a superposition or a temperature")
     warnings = []
+    if state is not None:
+        superposition, kind = {state: 1.0}, "state"
+    else:
+        kind = "superposition" if superposition is not None else "thermal"
     if superposition is not None:
         if not superposition:
             raise ValueError("a superposition needs at least one state")
@@ -405,21 +417,34 @@ def mixture_orientations(spectrum: Spectrum, superposition: dict[int, complex] |
         weights = picked[0][1]
         if any(len(w) != len(weights) or np.any(w != weights) for _, w in picked):
             raise ValueError("densities: the states do not share one reduced quadrature")
-        mixture = [(1.0, c / np.sqrt(np.sum(np.abs(c) ** 2)), [p for p, _ in picked])]
-        kind = "superposition"
-    else:
-        if not temperature > 0:
-            raise ValueError(f"the temperature must be > 0 (got {temperature})")
-        states, weights = level_multiplet_states(spectrum)
-        E = np.array([st.energy for st in states])
-        boltzmann = np.exp(-(E - E.min()) / temperature)
-        if boltzmann[-1] / boltzmann[0] > tolerance:
-            warnings.append(f"thermal mixture truncated at the {len(states)} states computed: "
-                            f"the last has {boltzmann[-1] / boltzmann[0]:.1e} of the Boltzmann "
-                            f"weight of the first (compute more levels)")
-        mixture = [(p, np.ones(1), [st]) for p, st in zip(boltzmann / boltzmann.sum(), states,
-                                                          strict=True)]
-        kind = "thermal"
+        return ([(1.0, c / np.sqrt(np.sum(np.abs(c) ** 2)), [p for p, _ in picked])], weights,
+                kind, warnings)
+    if not temperature > 0:
+        raise ValueError(f"the temperature must be > 0 (got {temperature})")
+    states, weights = level_multiplet_states(spectrum)
+    E = np.array([st.energy for st in states])
+    boltzmann = np.exp(-(E - E.min()) / temperature)
+    if boltzmann[-1] / boltzmann[0] > tolerance:
+        warnings.append(f"thermal mixture truncated at the {len(states)} states computed: "
+                        f"the last has {boltzmann[-1] / boltzmann[0]:.1e} of the Boltzmann "
+                        f"weight of the first (compute more levels)")
+    mixture = [(p, np.ones(1), [st]) for p, st in zip(boltzmann / boltzmann.sum(), states,
+                                                      strict=True)]
+    return mixture, weights, kind, warnings
+
+
+def mixture_orientations(spectrum: Spectrum, superposition: dict[int, complex] | None = None,
+                         temperature: float | None = None, points: int = POINTS,
+                         tolerance: float = 1e-6) -> dict:
+    """Orientation densities (the keys of :func:`multiplet_orientations`' ``orientation`` and
+    ``integrals``) of a superposition {state index: amplitude} or of the thermal mixture
+    exp(-E/T)/Z over the converged states computed (k_B = 1), n = 3: sums of
+    :func:`terms_density` over the pure states, marginals by exact rules. A thermal mixture
+    (a function of H, which commutes with SO(3) x SO(3)) is Haar-distributed at every T; the
+    sum over the states computed shows it. ``warnings``: a thermal mixture truncated where
+    the last state computed still has more than ``tolerance`` of the first's weight."""
+    mixture, weights, kind, warnings = state_mixture(spectrum, None, superposition, temperature,
+                                                     tolerance)
     omega = np.linspace(0.0, np.pi, points)
     t = np.linspace(-1.0, 1.0, points)
     orient, integrals = {"angle": omega, "t": t}, {}
@@ -443,6 +468,6 @@ def mixture_orientations(spectrum: Spectrum, superposition: dict[int, complex] |
 
 
 __all__ = ["POINTS", "MultipletState", "multiplet_state", "level_multiplet_states",
-           "side_terms", "terms_density", "angle_density_of", "axis_density_of",
+           "side_terms", "terms_density", "state_mixture", "angle_density_of", "axis_density_of",
            "mixture_orientations", "magnetic_states", "rotation_angle_density", "axis_density",
            "multiplet_of_state", "multiplet_orientations", "orientation_densities3"]

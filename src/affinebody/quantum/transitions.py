@@ -101,6 +101,14 @@ class Operator:
             object.__setattr__(self, "expansion", tops.expand(expr, expr.used, self.text,
                                                               self.field))
 
+    def radial(self, Q: np.ndarray) -> np.ndarray:
+        """n = 3, an operator with components: the radial functions r_t(Q) [P, terms] of its
+        expansion in Wigner D functions (quantum.tensor_operators3) at Q [P, 3]."""
+        try:
+            return self.expansion.radial(self._expr, Q)
+        except ValueError as err:
+            raise ValueError(f"{self.field}: {self.text!r} {err}") from None
+
     @property
     def angular(self) -> bool:
         return bool(set(self._expr.used) & set(component_names(self.n)))
@@ -397,13 +405,6 @@ def multiplet_matrix(operator: Operator, final: Sector, initial: Sector, moments
                                (initial.spin, initial.vorticity))
 
 
-def _radial3(operator: Operator, Q: np.ndarray) -> np.ndarray:
-    try:
-        return operator.expansion.radial(operator._expr, Q)
-    except ValueError as err:
-        raise ValueError(f"{operator.field}: {operator.text!r} {err}") from None
-
-
 def _strength3(operator: Operator, ci: Component, right: np.ndarray, cf: Component, af
                ) -> tuple[float, bool]:
     """n = 3, an operator with components: sum over the states of two components of
@@ -430,7 +431,7 @@ def level_matrix(spectrum: Spectrum, operator: Operator, initial: int, final: in
     states = level_states(spectrum) if states is None else states
     w, Q = states.weights, states.Q
     angular = operator.angular
-    radial = _radial3(operator, Q) if angular else np.asarray(operator(Q), float)[:, None]
+    radial = operator.radial(Q) if angular else np.asarray(operator(Q), float)[:, None]
     rows = []
     for f, af in zip(states.components[final], states.amplitudes[final], strict=True):
         row = []
@@ -501,7 +502,7 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0,
     components, w, Q, amps = states.components, states.weights, states.Q, states.amplitudes
     if spectrum.n == 3 and operator.angular:
         H = {}
-        radial = _radial3(operator, Q)
+        radial = operator.radial(Q)
         rights = [weighted_radial(radial, w, a) for a in amps[initial]]
     else:
         H = harmonics(operator, Q)
