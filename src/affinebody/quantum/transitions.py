@@ -31,13 +31,14 @@ live.
 n = 3. A state of the multiplet (j, j') is psi_c = sqrt(d) c^T Psi, Psi(L diag Q R^T) =
 (D^j(L) (x) D^j'(R)) F(Q), F = Psi(diag Q) in V_j (x) V_j' (covariants3), c a unit vector,
 d = (2j + 1)(2j' + 1). An operator in the invariants is a scalar of SO(3) x SO(3) (Dj = Dj' = 0,
-the same element for each state of the multiplet). Components enter linearly with constant
-coefficients (refused otherwise): phi^i_a = sum_k L_ik Q_k R_ak (a vector on each side),
-G_ab = sum_k (R (x) R)_{ab,kk} Q_k^2 (scalar on the left, ranks 0 + 2 on the right), C_ab the
-same with L; the quadrupole parts are written G11 - trG/3, G12, ... . The angular integrals
-are exact: int D^j_{ab} D^j'_{cd} rep_{pq} = sum_t w_t[a, c, p] w_t[b, d, q] with w_t the
-invariant vectors of V_j (x) V_j' (x) rep (:func:`invariant_tensors`), and the strength summed
-over both multiplets is d_F d_I |M|^2 with M of :func:`multiplet_matrix` (a Frobenius norm:
+the same element for each state of the multiplet). An operator with components is any
+polynomial of degree <= 4 in the components of phi, G, C whose coefficients are expressions in
+the invariants (e.g. phi11*phi22, G11 - trG/3, exp(-trG)*C13); it is expanded in Wigner D
+functions of L and R by quantum.tensor_operators3 (docs/quantum-transitions.md, "n = 3: any
+expression"): radial functions r_t(Q) times constant tensors of ranks (l, l'). The angular
+integrals are exact: int D^j_{ab} D^j'_{cd} D^l_{pq} = w[a, c, p] w[b, d, q] with w the
+invariant vector of V_j (x) V_j' (x) V_l, and the strength summed over both multiplets is
+d_F d_I |M|^2 with M of :func:`multiplet_matrix` (a Frobenius norm:
 no Wigner-Eckart bookkeeping assumed).
 """
 
@@ -472,6 +473,9 @@ class LevelStates:
 def level_states(spectrum: Spectrum) -> LevelStates:
     """The :class:`LevelStates` of ``spectrum`` (pass it to :func:`transitions` and
     :func:`level_matrix` to reuse it across operators)."""
+    if not spectrum.levels:
+        raise ValueError("transitions: no level of the spectrum converged (raise "
+                         "quantum.basis_size, or loosen quantum.tolerance)")
     components = [level_components(spectrum, lv) for lv in spectrum.levels]
     y, w = reduced_quadrature([c for cs in components for c in cs])
     Q = invariants_at(components[0][0].joint.model, y)
