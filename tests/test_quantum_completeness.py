@@ -12,12 +12,15 @@ from scipy import sparse
 from scipy.linalg import eigh_tridiagonal
 from scipy.sparse.linalg import eigsh
 
+from affinebody.cli.quantum_dynamics import transitions as transitions_command
 from affinebody.quantum import spectra as sp
 from affinebody.quantum.bounds import centrifugal_haar_min
 from affinebody.quantum.cli import density, spectrum
 from affinebody.quantum.config import compile_potential
+from affinebody.quantum.densities import densities
 from affinebody.quantum.intervals import HaarCells, LebesgueCells, lower_bounds
 from affinebody.quantum.levels import LevelCollector, Sector, Settings, Spectrum
+from affinebody.quantum.transitions import Operator, transitions
 
 I_, A_, B_ = 1.0, 0.2, 0.1
 DEPTH = 24.0
@@ -109,6 +112,20 @@ def test_af_is_shear_well_k_lowest_states_are_exact_and_complete():
     assert s.complete(K) == bool(known.all())
     for threshold in (-2.0, -1.0, -0.5, -0.25):
         assert np.sum(estimates < threshold) == np.sum(reference < threshold)
+    # `density --state k` and `transitions` index this same list: the k-th state is the exact
+    # k-th one or refused (never the next level up), the levels of the transitions are the
+    # converged levels in order
+    for k in np.flatnonzero(known):
+        assert abs(s.level_of_state(int(k)).energy - reference[k]) < 1e-7
+    for k in s.unknown_states(K):
+        with pytest.raises(ValueError, match="not converged"):
+            s.level_of_state(k)
+    top = int(np.flatnonzero(known)[-1])
+    assert abs(densities(s, top)["energy"] - reference[top]) < 1e-7
+    table = transitions(s, Operator("det", 2), 0)
+    assert [t.final for t in table.transitions] == list(range(len(s.levels)))
+    distinct = np.unique(reference[known])
+    assert np.max(np.abs([t.E_final for t in table.transitions] - distinct)) < 1e-7
 
 
 def test_dalembert_shear_well_agrees_with_separated_solvers():
@@ -292,6 +309,13 @@ def test_cli_json_states_whether_the_list_is_complete(tmp_path):
     dens = CliRunner().invoke(density, [str(path), "--state", str(known[0]), "-o",
                                         str(tmp_path / "dens")])
     assert dens.exit_code == 0 and "not certified complete" in dens.output
+    trans = CliRunner().invoke(transitions_command, [str(path), "--operator", "det",
+                                                     "--levels", "8", "--json"])
+    assert trans.exit_code == 0, trans.output
+    tdata = json.loads(trans.output)
+    assert any("not certified to be the 8 lowest" in w for w in tdata["warnings"])
+    known_levels = sorted({e for e in data["energies"] if e is not None})
+    assert np.allclose([t["E_final"] for t in tdata["transitions"]], known_levels, atol=1e-9)
     if data["unknown_states"]:  # an unconverged state has no density, and says why
         dens = CliRunner().invoke(density, [str(path), "--state", str(data["unknown_states"][0]),
                                             "-o", str(tmp_path / "dens2")])
