@@ -210,3 +210,33 @@ def test_af_is_ring_well_binds_a_higher_shell_below_a_lower_one():
                                                                                     (2, 0)]
     assert states[1].multiplicity == 5
     assert not s.certified and s.certificate.startswith("conditional")
+
+
+def test_dalembert_search_stops_on_certified_bounds_not_on_monotonicity():
+    """d'Alembert, n = 3, a well at zero shear Q1 = Q2: after shell 2 the lowest level found
+    per shell lies above the K-th candidate (the sixth state is in (1, 1)), so a search
+    assuming the lowest level per shell to rise (not proven for n = 3) would stop there; the
+    certified search goes on to shell 3, whose sectors (1, 3) and (3, 3) have bounds below
+    that candidate, and stops only when every sector it did not solve has a certified bound
+    above it (recomputed here for every sector up to the n = 3 limit); each bound lies below
+    the sector's computed lowest level (docs/theory/two-polar.md, "Lower bounds of an n = 3
+    sector")."""
+    K = 6
+    V = compile_potential("0.5*trG - 2*exp(-(Q1 - Q2)**2/2)", 3)
+    s = sp.solve("dalembert", 3, V, 1.0, inertia=1.0, levels=K,
+                 settings=Settings(basis_size=6, radial_size=8, scale=1.0, check_shrink=2))
+    assert s.certified
+    E_K = sorted(lv.energy for lv in s.states() for _ in range(lv.multiplicity))[K - 1]
+    low: dict = {}
+    for key, block in s.blocks.items():
+        for sector in (key[1:3], key[2:0:-1]):  # phi -> phi^T: one block serves (j, j'), (j', j)
+            low[sector] = min(low.get(sector, np.inf), float(block.energies[0]))
+    first_shell_above = min(L for L in range(4) if min(
+        e for k, e in low.items() if max(k) == L) > E_K)
+    assert first_shell_above == 2 and s.settings["shells_searched"] == 3
+    bounds = lebesgue3_shell_bounds(V, 1.0, 1.0, n3.MAX_SHELL, 1.0)
+    assert bounds.of((1, 3)) < E_K and bounds.tail > E_K
+    for key, bound in bounds.sector.items():
+        assert key in low or bound > E_K, key
+        if key in low:
+            assert bound <= low[key]
