@@ -424,7 +424,12 @@ def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell
     So E_min >= max over h of inf over the chamber of V - kappa (sigma - centre)^2 +
     sqrt(alpha kappa) + (hbar^2/2M) L h / h + centrifugal, bounded on cells (r, t, sigma)
     (:class:`~affinebody.quantum.intervals.Haar3Cells`; q_1 - q_3 = sqrt2 r sin(t + pi/6),
-    the centrifugal bounds at its largest value on the cell). Beyond the shells enumerated
+    the centrifugal bounds at its largest value on the cell). Sectors with min(j, j') <= 1
+    also take the lowest eigenvalue of their centrifugal matrix
+    (:func:`haar3_centrifugal_matrix_min`), and the cells near a sector's minimum (within
+    hbar^2/(2 M scale^2) for its best trial, repeatedly while the minimum moves) are split
+    SPLIT x SPLIT, each part trying its coarse cell's best kappa. Sectors are bounded one by
+    one up to the shell ``enumerate_to`` (at least ``max_shell``); beyond
     (j(j+1) + j'(j'+1) >= L(L+1)) only the part of the centrifugal bound with both
     coefficients >= 0 is used."""
     if inertia.model == "af-af":
@@ -556,7 +561,8 @@ def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell
     tail = float(_lowered(np.max(np.min(v + tail_cent + kinetic, axis=1))))
     return _by_shell(bound, max_shell, tail,
                      "certified: dilatation oscillator and shear ground-state representation "
-                     "bound the gradient form, centrifugal and Casimir terms pair by pair, "
+                     "bound the gradient form, centrifugal and Casimir terms pair by pair and "
+                     "as the sector's matrix, "
                      "V bounded below by interval arithmetic on its expression over cells of "
                      "(r, t, sigma) (docs/theory/two-polar.md, 'Lower bounds of an n = 3 "
                      "sector')")
