@@ -502,6 +502,7 @@ def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell
             r = R_lo[m, None] + f * np.where(np.isfinite(R_hi[m]), R_hi[m] - R_lo[m], 0.0)[:, None]
             r[:, -1] = R_hi[m]
             t = T_lo[m, None] + f * (T_hi[m] - T_lo[m])[:, None]
+            t[:, -1] = T_hi[m]  # the parts cover the cell exactly
             rl, tl = (a.reshape(len(m), -1) for a in np.broadcast_arrays(
                 r[:, :-1, None], t[:, None, :-1]))
             rh, th = (a.reshape(len(m), -1) for a in np.broadcast_arrays(
