@@ -757,7 +757,7 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
 
 __all__ = ["SectorAlgebra", "sector_algebra", "generator_values", "sector_coefficients",
            "sector_forms", "sector_candidates", "SectorBasis", "sector_block", "sector_dimension",
-           "sectors_by_shell", "lowest_degree", "MAX_SHELL", "solve_all_sectors",
+           "sectors_by_shell", "lowest_degree", "MAX_SHELL", "BOUND_SHELLS", "solve_all_sectors",
            "angular_candidates", "laguerre_table", "radial_functions", "HarmonicBasis",
            "sphere_harmonics",
            "harmonic_block"]
