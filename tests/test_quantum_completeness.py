@@ -8,14 +8,19 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from scipy import sparse
 from scipy.linalg import eigh_tridiagonal
+from scipy.sparse.linalg import eigsh
 
+from affinebody.cli.quantum_dynamics import transitions as transitions_command
 from affinebody.quantum import spectra as sp
 from affinebody.quantum.bounds import centrifugal_haar_min
 from affinebody.quantum.cli import density, spectrum
 from affinebody.quantum.config import compile_potential
+from affinebody.quantum.densities import densities
 from affinebody.quantum.intervals import HaarCells, LebesgueCells, lower_bounds
 from affinebody.quantum.levels import LevelCollector, Sector, Settings, Spectrum
+from affinebody.quantum.transitions import Operator, transitions
 
 I_, A_, B_ = 1.0, 0.2, 0.1
 DEPTH = 24.0
@@ -107,6 +112,20 @@ def test_af_is_shear_well_k_lowest_states_are_exact_and_complete():
     assert s.complete(K) == bool(known.all())
     for threshold in (-2.0, -1.0, -0.5, -0.25):
         assert np.sum(estimates < threshold) == np.sum(reference < threshold)
+    # `density --state k` and `transitions` index this same list: the k-th state is the exact
+    # k-th one or refused (never the next level up), the levels of the transitions are the
+    # converged levels in order
+    for k in np.flatnonzero(known):
+        assert abs(s.level_of_state(int(k)).energy - reference[k]) < 1e-7
+    for k in s.unknown_states(K):
+        with pytest.raises(ValueError, match="not converged"):
+            s.level_of_state(k)
+    top = int(np.flatnonzero(known)[-1])
+    assert abs(densities(s, top)["energy"] - reference[top]) < 1e-7
+    table = transitions(s, Operator("det", 2), 0)
+    assert [t.final for t in table.transitions] == list(range(len(s.levels)))
+    distinct = np.unique(reference[known])
+    assert np.max(np.abs([t.E_final for t in table.transitions] - distinct)) < 1e-7
 
 
 def test_dalembert_shear_well_agrees_with_separated_solvers():
@@ -134,6 +153,68 @@ def test_dalembert_shear_well_agrees_with_separated_solvers():
         assert np.sum(got < threshold) == np.sum(np.sort(levels) < threshold)
 
 
+def finite_volume_block(potential, m1, m2, length, cells, count):
+    """Lowest levels of the n = 2 d'Alembert block (|m1|, |m2|), J = Id: -(1/4)(Lap_m1(r1) +
+    Lap_m2(r2)) + V on (0, length)^2 under r1 r2 dr1 dr2 (Q = (r1 + r2, r1 - r2)); cell-centred
+    finite volumes per axis (the operator of :func:`finite_volume_levels` plus m^2 / r^2),
+    Kronecker sum, shift-invert Lanczos; one Richardson step (cells, 2 cells)."""
+    out = []
+    for n in (cells, 2 * cells):
+        h = length / n
+        r = (np.arange(n) + 0.5) * h
+        faces = np.arange(1, n + 1) * h
+
+        def radial(m, r=r, faces=faces, h=h, n=n):
+            diag = (np.concatenate([[0.0], faces[:-1]]) + faces) / (h * h * r) + m * m / r**2
+            off = -faces[:-1] / (h * h * np.sqrt(r[:-1] * r[1:]))
+            return sparse.diags([off, diag, off], [-1, 0, 1])
+        R1, R2 = np.meshgrid(r, r, indexing="ij")
+        V = potential(np.stack([R1 + R2, R1 - R2], -1)).ravel()
+        eye = sparse.identity(n)
+        H = 0.25 * (sparse.kron(radial(m1), eye) + sparse.kron(eye, radial(m2))) \
+            + sparse.diags(V)
+        out.append(np.sort(eigsh(H.tocsc(), k=count, sigma=-10.0, return_eigenvectors=False)))
+    return (4 * out[1] - out[0]) / 3
+
+
+#: d'Alembert: a deep ring well in the shear |w| = (Q1 - Q2)/2, coupled to the conformal
+#: radius |z| = (Q1 + Q2)/2 by (Q1^2 - Q2^2)^2 = 16 |z|^2 |w|^2 (so it does not separate)
+COUPLED_RING = "0.5*trG + 0.1*(Q1 - Q2)**4 - 1.5*(Q1 - Q2)**2 + 0.05*(Q1**2 - Q2**2)**2"
+
+
+def test_dalembert_levels_never_fall_with_the_shell():
+    """n = 2 d'Alembert: the block (|m1|, |m2|) is H0 + hbar^2 (m1^2/r1^2 + m2^2/r2^2)/(4I) + V
+    on one Hilbert space, so its i-th level is at least the i-th level of (|m1| - 1, |m2|) and
+    of (|m1|, |m2| - 1) whatever V (docs/theory/two-polar.md, "The lowest d'Alembert level per
+    shell (n = 2)"), and the lowest level per shell |m1| + |m2| never falls -- unlike af-is,
+    whose shear wells bind higher shells more deeply (above). Checked for a deep ring well in the
+    shear coupled to the conformal radius, on the blocks the certified search solved; and the
+    K lowest states and the count below each energy agree with an independent 2D finite-volume
+    solver per block."""
+    K = 12
+    V = compile_potential(COUPLED_RING, 2)
+    s = sp.solve("dalembert", 2, V, 1.0, inertia=1.0, levels=K, settings=Settings(basis_size=20))
+    assert s.certified and s.complete(K)
+    low = {key: block.energies[:3] for key, block in s.blocks.items()}
+    for (a, b), E in low.items():
+        for below in ((a - 1, b), (a, b - 1)):
+            if below in low:
+                assert np.all(E >= low[below] - 1e-6), ((a, b), below)
+    shells = [min(E[0] for key, E in low.items() if sum(key) == L)
+              for L in range(1 + max(map(sum, low)))]
+    assert len(shells) >= 6 and np.all(np.diff(shells) > 0)
+    got = np.array(s.energies(K))
+    reference = []
+    for a in range(4):  # shells <= 3; beyond, every level is >= shell 3's lowest (0.85)
+        for b in range(4 - a):
+            mult = (1 if a == 0 else 2) * (1 if b == 0 else 2)
+            reference += list(finite_volume_block(V, a, b, 4.5, 40, 3)) * mult
+    reference = np.sort(reference)
+    assert np.max(np.abs(got - reference[:K])) < 2e-3
+    for threshold in (-0.9, -0.4, 0.2, 0.5, 0.76):
+        assert np.sum(got < threshold) == np.sum(reference < threshold)
+
+
 def test_interval_bounds_hold_on_random_points():
     """Lower bounds of V on cells are never above V at points of the cell (Haar (x, sigma)
     cells and d'Alembert (rho, theta) cells, unbounded ones included)."""
@@ -155,8 +236,10 @@ def test_interval_bounds_hold_on_random_points():
     RL, TL = np.meshgrid(r_edges[:-1], t_edges[:-1], indexing="ij")
     RH, TH = np.meshgrid(r_edges[1:], t_edges[1:], indexing="ij")
     for text in ("0.5*trG + 0.05*(Q1 - Q2)**4 - 0.8*(Q1 - Q2)**2", "0.5*trG + 0.1*(det - 1)**2",
-                 "K1 - 2*exp(-(Q1 - Q2 - 2)**2) + sin(Q2)"):
+                 "K1 - 2*exp(-(Q1 - Q2 - 2)**2) + sin(Q2)", COUPLED_RING):
         lb = lower_bounds(text, LebesgueCells(RL, RH, TL, TH))
+        if text == COUPLED_RING:  # degree 4 vanishes on the edge Q1 = Q2, degree 2 confines
+            assert lb[-1, 0] > 0  # the unbounded cell along that edge
         rho, th = rng.uniform(0, 5, 20000), rng.uniform(0, np.pi / 2, 20000)
         r1, r2 = rho * np.cos(th), rho * np.sin(th)
         V = compile_potential(text, 2)(np.stack([r1 + r2, r1 - r2], -1))
@@ -226,6 +309,13 @@ def test_cli_json_states_whether_the_list_is_complete(tmp_path):
     dens = CliRunner().invoke(density, [str(path), "--state", str(known[0]), "-o",
                                         str(tmp_path / "dens")])
     assert dens.exit_code == 0 and "not certified complete" in dens.output
+    trans = CliRunner().invoke(transitions_command, [str(path), "--operator", "det",
+                                                     "--levels", "8", "--json"])
+    assert trans.exit_code == 0, trans.output
+    tdata = json.loads(trans.output)
+    assert any("not certified to be the 8 lowest" in w for w in tdata["warnings"])
+    known_levels = sorted({e for e in data["energies"] if e is not None})
+    assert np.allclose([t["E_final"] for t in tdata["transitions"]], known_levels, atol=1e-9)
     if data["unknown_states"]:  # an unconverged state has no density, and says why
         dens = CliRunner().invoke(density, [str(path), "--state", str(data["unknown_states"][0]),
                                             "-o", str(tmp_path / "dens2")])

@@ -11,7 +11,12 @@ from scipy import linalg
 from affinebody.quantum import covariants3 as cov
 from affinebody.quantum import n3
 from affinebody.quantum import spectra as sp
-from affinebody.quantum.bounds import haar3_shell_bounds, lebesgue3_shell_bounds
+from affinebody.quantum.bounds import (
+    haar3_centrifugal_matrix_min,
+    haar3_centrifugal_min,
+    haar3_shell_bounds,
+    lebesgue3_shell_bounds,
+)
 from affinebody.quantum.channels3 import ChamberQuadrature, haar3_grid
 from affinebody.quantum.config import ConfigError, compile_potential, parse
 from affinebody.quantum.intervals import Haar3Cells, Lebesgue3Cells, lower_bounds
@@ -19,6 +24,8 @@ from affinebody.quantum.levels import AffineInertia, Settings
 from oracles import r9_radial_levels, r9_radial_states
 
 BUMP = "0.5*trG + 0.8*exp(-trG/2)"  # r^2/2 + 0.8 exp(-r^2/2), r = |phi|
+#: af-is: the dilatation sigma = ln det phi and the shear in harmonic wells
+SHEAR3 = "0.5*(q1 + q2 + q3)**2 + 0.3*((q1 - q2)**2 + (q1 - q3)**2 + (q2 - q3)**2)"
 
 
 def bump_radial(r):
@@ -115,25 +122,55 @@ def test_lebesgue3_bounds_lie_below_every_sector_level():
     assert bounds.tail >= bounds.shell_min[-1]
 
 
-def test_haar3_bounds_lie_below_every_sector_level():
+#: the scales `affinebody spectrum` chooses for SHEAR3 (af-is): (scale, scale_sigma, centre)
+SHEAR3_SCALES = (0.8118, 1.1893, 0.0037)
+
+
+@pytest.fixture(scope="module")
+def shear3_af_is():
+    """af-is bounds for SHEAR3 at the command's scales, sectors bounded one by one to shell 12,
+    and the quadrature grid of those scales."""
+    scale, scale_sigma, centre = SHEAR3_SCALES
+    inert = AffineInertia("af-is", 1.0, 0.2, 0.1)
+    bounds = haar3_shell_bounds(compile_potential(SHEAR3, 3), 1.0, inert, 6, centre,
+                                scale_sigma, scale, enumerate_to=12)
+    return inert, bounds, haar3_grid(scale, scale_sigma, centre, 28, 14, 10)
+
+
+def test_haar3_bounds_lie_below_every_sector_level(shear3_af_is):
     """af-is and is-af: the certified bound (dilatation oscillator + shear ground-state
-    representation + pairwise centrifugal forms) is below each sector's lowest level, for a
+    representation + centrifugal forms and matrices) is below each sector's lowest level, for a
     shear potential, and it holds most of the zero-point energy: in the scalar sector, where
     the centrifugal terms vanish, it is above 0.7 of the level (the former bound, the plain
     inf V = 0, had none of it)."""
-    text = "0.5*(q1 + q2 + q3)**2 + 0.3*((q1 - q2)**2 + (q1 - q3)**2 + (q2 - q3)**2)"
-    V = compile_potential(text, 3)
-    for model in ("af-is", "is-af"):
-        inert = AffineInertia(model, 1.0, 0.2, 0.1)
-        bounds = haar3_shell_bounds(V, 1.0, inert, 3, 0.0, 1.0, 0.8)
-        grid = haar3_grid(0.8, 1.0, 0.0, 28, 14, 10)
-        for j, jp in ((0, 0), (1, 1), (2, 0), (0, 2)):
-            H, _ = n3.sector_block("haar3", V, 1.0, inert, grid, j, jp, 4, 0.8, 1.0, 0.0)
+    V = compile_potential(SHEAR3, 3)
+    scale, scale_sigma, centre = SHEAR3_SCALES
+    is_af = AffineInertia("is-af", 1.0, 0.2, 0.1)
+    for inert, bounds, grid in (shear3_af_is, (is_af, haar3_shell_bounds(
+            V, 1.0, is_af, 3, centre, scale_sigma, scale), shear3_af_is[2])):
+        for j, jp in ((0, 0), (1, 1), (2, 0), (0, 2), (2, 1)):
+            H, _ = n3.sector_block("haar3", V, 1.0, inert, grid, j, jp, 4, scale, scale_sigma,
+                                   centre)
             E0 = linalg.eigvalsh(H)[0]
             assert bounds.of((j, jp)) <= E0
             if (j, jp) == (0, 0):
                 assert bounds.of((j, jp)) > 0.7 * E0
         assert bounds.tail > bounds.of((0, 0))
+
+
+def test_haar3_bounds_certify_the_readme_af_is_list(shear3_af_is):
+    """af-is, V = sigma^2/2 + 0.3 sum (q_a - q_b)^2 (I = 1, A = 0.2, B = 0.1), K = 10, at the
+    scales `affinebody spectrum` chooses: the ground level of (0, 0) and the nine states of the
+    (1, 1) level (Galerkin, so at or above the exact ones) are ten states at or below 5.503,
+    and every sector beyond shell 6 (shells 7 to 12 one by one, then the tail) has a certified
+    bound above that, led by the rotor sectors (7, 1) and (8, 0) (docs/theory/two-polar.md,
+    "Measured, the example above")."""
+    inert, bounds, grid = shear3_af_is
+    scale, scale_sigma, centre = SHEAR3_SCALES
+    tenth = linalg.eigvalsh(n3.sector_block("haar3", compile_potential(SHEAR3, 3), 1.0, inert,
+                                            grid, 1, 1, 4, scale, scale_sigma, centre)[0])[0]
+    assert tenth < 5.51 and bounds.beyond(6) > tenth + 0.1
+    assert min(bounds.of((7, 1)), bounds.of((8, 0))) < bounds.of((7, 0))
 
 
 def test_n3_cell_enclosures_hold_on_random_points():
@@ -210,3 +247,77 @@ def test_af_is_ring_well_binds_a_higher_shell_below_a_lower_one():
                                                                                     (2, 0)]
     assert states[1].multiplicity == 5
     assert not s.certified and s.certificate.startswith("conditional")
+
+
+def test_dalembert_search_stops_on_certified_bounds_not_on_monotonicity():
+    """d'Alembert, n = 3, a well at zero shear Q1 = Q2: after shell 2 the lowest level found
+    per shell lies above the K-th candidate (the sixth state is in (1, 1)), so a search
+    assuming the lowest level per shell to rise (not proven for n = 3) would stop there; the
+    certified search goes on to shell 3, whose sectors (1, 3) and (3, 3) have bounds below
+    that candidate, and stops only when every sector it did not solve has a certified bound
+    above it (recomputed here for every sector up to the n = 3 limit); each bound lies below
+    the sector's computed lowest level (docs/theory/two-polar.md, "Lower bounds of an n = 3
+    sector")."""
+    K = 6
+    V = compile_potential("0.5*trG - 2*exp(-(Q1 - Q2)**2/2)", 3)
+    s = sp.solve("dalembert", 3, V, 1.0, inertia=1.0, levels=K,
+                 settings=Settings(basis_size=6, radial_size=8, scale=1.0, check_shrink=2))
+    assert s.certified
+    E_K = sorted(lv.energy for lv in s.states() for _ in range(lv.multiplicity))[K - 1]
+    low: dict = {}
+    for key, block in s.blocks.items():
+        for sector in (key[1:3], key[2:0:-1]):  # phi -> phi^T: one block serves (j, j'), (j', j)
+            low[sector] = min(low.get(sector, np.inf), float(block.energies[0]))
+    first_shell_above = min(L for L in range(4) if min(
+        e for k, e in low.items() if max(k) == L) > E_K)
+    assert first_shell_above == 2 and s.settings["shells_searched"] == 3
+    bounds = lebesgue3_shell_bounds(V, 1.0, 1.0, n3.MAX_SHELL, 1.0)
+    assert bounds.of((1, 3)) < E_K and bounds.tail > E_K
+    for key, bound in bounds.sector.items():
+        assert key in low or bound > E_K, key
+        if key in low:
+            assert bound <= low[key]
+
+
+def _spin_matrices(j: int) -> list[np.ndarray]:
+    """J_x, J_y, J_z on V_j in the |j, m> basis (Hermitian, complex)."""
+    m = np.arange(j, -j - 1, -1.0)
+    raising = np.diag(np.sqrt(j * (j + 1) - m[1:] * (m[1:] + 1)), 1)
+    return [(raising + raising.T) / 2, (raising - raising.T) / 2j, np.diag(m)]
+
+
+@pytest.mark.parametrize("sector", [(2, 0), (2, 1), (3, 1), (1, 2)])
+def test_haar3_centrifugal_matrix_is_the_rotor_operator_on_the_fixed_subspace(sector):
+    """The matrix bound of an affine sector at a point (its coefficients c = c_0/sinh^2(x/2),
+    -c' = -c_0/cosh^2(x/2) of each pair) is the lowest eigenvalue of
+    sum_g [c (J_g (x) 1 + 1 (x) J_g)^2 - c' (J_g (x) 1 - 1 (x) J_g)^2] + e j'(j'+1) on the
+    vectors of V_j (x) V_j' fixed by the rotations by pi about the three axes, built here from
+    the complex |j, m> spin matrices and a projector (not from the real covariant bases of the
+    bound); and the pairwise closed forms never exceed it."""
+    j, jp = sector
+    c0, e = 1 / (16 * 1.2), 0.5 / 0.96
+    Jl, Jr = _spin_matrices(j), _spin_matrices(jp)
+    eye_l, eye_r = np.eye(2 * j + 1), np.eye(2 * jp + 1)
+    P = sum(np.kron(linalg.expm(1j * np.pi * Jl[a]), linalg.expm(1j * np.pi * Jr[a]))
+            for a in range(3)) + np.eye((2 * j + 1) * (2 * jp + 1))
+    w, vecs = linalg.eigh((P + P.conj().T) / 8)
+    fixed = vecs[:, w > 0.5]
+    assert fixed.shape[1] == cov.fixed_dimension(j, jp)
+    rng = np.random.default_rng(5)
+    x12, x23 = rng.uniform(0.05, 3.0, (2, 6))
+    x13 = x12 + x23
+    axis = {0: 2, 1: 1, 2: 0}  # pairs (0,1), (0,2), (1,2): rotations about the axes z, y, x
+    c_plus = np.array([c0 / np.sinh(x / 2) ** 2 for x in (x12, x13, x23)])
+    c_minus = np.array([-c0 / np.cosh(x / 2) ** 2 for x in (x12, x13, x23)])
+    got = haar3_centrifugal_matrix_min(j, jp, c_plus, c_minus, e * jp * (jp + 1))
+    closed = haar3_centrifugal_min(j, jp, [x12, x23, x13], c0, e)
+    for p in range(6):
+        U = e * jp * (jp + 1) * np.eye(len(P), dtype=complex)
+        for g in range(3):
+            left, right = np.kron(Jl[axis[g]], eye_r), np.kron(eye_l, Jr[axis[g]])
+            U += c_plus[g, p] * (left + right) @ (left + right)
+            U += c_minus[g, p] * (left - right) @ (left - right)
+        exact = linalg.eigvalsh(fixed.conj().T @ U @ fixed)[0]
+        assert abs(got[p] - exact) < 1e-9 * (1 + abs(exact))
+        assert closed[p] <= exact + 1e-9
+

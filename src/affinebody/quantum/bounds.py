@@ -274,7 +274,8 @@ def lebesgue3_shell_bounds(potential, hbar: float, inertia: float, max_shell: in
 
 #: (gamma, beta b^2, R / b) of the trial functions h = exp(-gamma rho . q - beta psi_R(|y|))
 TRIALS = ((0.5, 0.0, 1.0), (1.0, 0.0, 1.0)) + tuple(
-    (g, bb, rr) for g in (0.0, 0.5, 1.0) for bb in (0.25, 0.5, 1.0, 2.0) for rr in (2.0, 4.0, 8.0))
+    (g, bb, rr) for g in (0.0, 0.25, 0.5, 1.0) for bb in (0.25, 0.5, 0.75, 1.0, 1.5, 2.0)
+    for rr in (2.0, 4.0, 8.0))
 
 
 def haar3_kinetic_min(gamma: float, beta: float, R: float, x_lo: np.ndarray, x_hi: np.ndarray,
@@ -368,13 +369,40 @@ def haar3_centrifugal_min(j_free: int, j_paid: int, x_hi: list[np.ndarray], c0: 
     return best
 
 
+#: sectors with at most this many radial functions also take the lowest eigenvalue of their
+#: centrifugal matrix on each cell (:func:`haar3_centrifugal_matrix_min`)
+MATRIX_RANK = 48
+
+
+def haar3_centrifugal_matrix_min(j: int, jp: int, c_plus: np.ndarray, c_minus: np.ndarray,
+                                 casimir: float) -> np.ndarray:
+    """Lower bound, per cell, of the centrifugal and Casimir terms of the n = 3 affine sector
+    (j, j'): the lowest eigenvalue of sum_g [c_plus[g] N_plus[g] + c_minus[g] N_minus[g]]
+    + casimir on the M-fixed subspace (:func:`~affinebody.quantum.covariants3.fixed_forms`,
+    N_pm = |u_g +- v_g|^2 >= 0), with c_plus[g] <= c = c_0 / sinh^2(x_g/2) and
+    c_minus[g] <= -c' = -c_0 / cosh^2(x_g/2) on the cell (c at the cell's largest x_g, -c' at
+    its smallest: c decreases, -c' increases with x_g). Both forms N_pm are non-negative, so
+    lowering their coefficients lowers the form; the lowest eigenvalue (numpy's eigvalsh,
+    lowered by 1e-12 of the matrix's size) bounds it on every state of the sector. Exact
+    where the pairwise closed forms of :func:`haar3_centrifugal_min` lose the coupling of
+    the three pairs (the (j, 1) sectors)."""
+    plus, minus = cov.fixed_forms(j, jp)
+    U = (np.einsum("g...,grs->...rs", c_plus, plus)
+         + np.einsum("g...,grs->...rs", c_minus, minus))
+    size = np.abs(U).sum(axis=(-2, -1))
+    return np.linalg.eigvalsh(U)[..., 0] - 1e-12 * (1.0 + size) + casimir
+
+
+#: the cells (r, t) near the minimum of a sector's bound are split SPLIT x SPLIT
+SPLIT = 2
+
 #: multiples of the dilatation stiffness hbar^2 3 / (2 (M + 3B) b^4) tried per shear cell
 KAPPAS = (0.0, 0.25, 0.5, 0.9, 1.0, 2.0)
 
 
 def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell: int,
-                       centre: float, scale_sigma: float = 1.0, scale: float = 1.0
-                       ) -> ShellBounds:
+                       centre: float, scale_sigma: float = 1.0, scale: float = 1.0,
+                       enumerate_to: int | None = None) -> ShellBounds:
     """Lower bounds of the lowest level of every n = 3 af-is / is-af sector (j, j'), shells
     max(j, j') <= ``max_shell`` and beyond (docs/theory/two-polar.md, "Lower bounds of an
     n = 3 sector").
@@ -396,7 +424,12 @@ def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell
     So E_min >= max over h of inf over the chamber of V - kappa (sigma - centre)^2 +
     sqrt(alpha kappa) + (hbar^2/2M) L h / h + centrifugal, bounded on cells (r, t, sigma)
     (:class:`~affinebody.quantum.intervals.Haar3Cells`; q_1 - q_3 = sqrt2 r sin(t + pi/6),
-    the centrifugal bounds at its largest value on the cell). Beyond the shells enumerated
+    the centrifugal bounds at its largest value on the cell). Sectors with min(j, j') <= 1
+    also take the lowest eigenvalue of their centrifugal matrix
+    (:func:`haar3_centrifugal_matrix_min`), and the cells near a sector's minimum (within
+    hbar^2/(2 M scale^2) for its best trial, repeatedly while the minimum moves) are split
+    SPLIT x SPLIT, each part trying its coarse cell's best kappa. Sectors are bounded one by
+    one up to the shell ``enumerate_to`` (at least ``max_shell``); beyond
     (j(j+1) + j'(j'+1) >= L(L+1)) only the part of the centrifugal bound with both
     coefficients >= 0 is used."""
     if inertia.model == "af-af":
@@ -409,39 +442,116 @@ def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell
     outer = np.geomspace(12.0, 48.0, 5)[1:]
     s_edges = np.concatenate([[-np.inf], centre - outer[::-1], centre + inner, centre + outer,
                               [np.inf]])
-    lo = np.meshgrid(r_edges[:-1], t_edges[:-1], s_edges[:-1], indexing="ij")
-    hi = np.meshgrid(r_edges[1:], t_edges[1:], s_edges[1:], indexing="ij")
-    cells = Haar3Cells(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
     alpha = 3 * hbar**2 / (2 * (inertia.M + 3 * inertia.B))
-    base = alpha / scale_sigma**4
-    v = np.full((len(r_edges) - 1, len(t_edges) - 1), -np.inf)  # [r, t]
-    for kappa in (f * base for f in KAPPAS):
-        # V - kappa (sigma - centre)^2, the square joining the degree-0 group as a form
-        square = Value(Interval.point(-kappa * centre * centre), a=2 * kappa * centre,
-                       qq=-kappa)
-        shifted = np.min(lower_bounds(text, cells, square if kappa > 0 else None), axis=2)
-        v = np.maximum(v, shifted + math.sqrt(alpha * kappa) * (1 - 1e-12))
+    kappas = [f * alpha / scale_sigma**4 for f in KAPPAS]
     c0 = hbar**2 / (16 * inertia.M)
     e = hbar**2 * inertia.inv_I_tilde / 2
-    x_hi = math.sqrt(2.0) * r_edges[1:, None] * np.where(
-        t_edges[1:] <= math.pi / 3, np.sin(t_edges[1:] + math.pi / 6), 1.0)[None, :]
-    x_lo = math.sqrt(2.0) * r_edges[:-1, None] * np.minimum(
-        np.sin(t_edges[:-1] + math.pi / 6), np.sin(t_edges[1:] + math.pi / 6))[None, :]
-    r_lo, r_hi = (np.broadcast_to(r[:, None], x_hi.shape) for r in (r_edges[:-1], r_edges[1:]))
-    # x12 = sqrt2 r cos t (decreasing in t), x23 = sqrt2 r sin(t - pi/6) (increasing)
-    x12_hi = math.sqrt(2.0) * r_hi * np.cos(t_edges[:-1])[None, :]
-    x23_hi = math.sqrt(2.0) * r_hi * np.sin(t_edges[1:] - math.pi / 6)[None, :]
-    kinetic = [hbar**2 / (2 * inertia.M)
-               * haar3_kinetic_min(g, bb / scale**2, rr * scale, x_lo, x_hi, r_lo, r_hi, x12_hi,
-                                   x23_hi) for g, bb, rr in TRIALS]
-    paid = 1 if inertia.model == "af-is" else 0  # af-is: e j'(j'+1); is-af: e j(j+1)
 
-    pairs = [x12_hi, x23_hi, x_hi]
+    def cells(r_lo, r_hi, t_lo, t_hi, use: np.ndarray | None = None) -> dict:
+        """Per cell (1D arrays): v (V with the dilatation, bounded below; ``use``: the one
+        kappa to try per cell, else all, the best recorded), the extreme x_g, c at each x_g's
+        largest and -c' at its smallest value, the trials' kinetic bounds."""
+        v = np.full(len(r_lo), -np.inf)
+        best = np.zeros(len(r_lo), int)
+        for k, kappa in enumerate(kappas):
+            rows = slice(None) if use is None else np.flatnonzero(use == k)
+            if use is not None and not len(rows):
+                continue
+            lo = np.broadcast_arrays(r_lo[rows, None], t_lo[rows, None], s_edges[None, :-1])
+            hi = np.broadcast_arrays(r_hi[rows, None], t_hi[rows, None], s_edges[None, 1:])
+            box = Haar3Cells(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
+            # V - kappa (sigma - centre)^2, the square joining the degree-0 group as a form
+            square = Value(Interval.point(-kappa * centre * centre), a=2 * kappa * centre,
+                           qq=-kappa)
+            shifted = np.min(lower_bounds(text, box, square if kappa > 0 else None), axis=1)
+            shifted = shifted + math.sqrt(alpha * kappa) * (1 - 1e-12)
+            best[rows] = np.where(shifted > v[rows], k, best[rows])
+            v[rows] = np.maximum(v[rows], shifted)
+        root2 = math.sqrt(2.0)
+        # x13 = sqrt2 r sin(t + pi/6) (largest at t = pi/3), x12 = sqrt2 r cos t (decreasing
+        # in t), x23 = sqrt2 r sin(t - pi/6) (increasing)
+        top = np.where(t_hi <= math.pi / 3, np.sin(t_hi + math.pi / 6),
+                       np.where(t_lo >= math.pi / 3, np.sin(t_lo + math.pi / 6), 1.0))
+        x = {"13hi": root2 * r_hi * top,
+             "13lo": root2 * r_lo * np.minimum(np.sin(t_lo + math.pi / 6),
+                                               np.sin(t_hi + math.pi / 6)),
+             "12hi": root2 * r_hi * np.cos(t_lo), "12lo": root2 * r_lo * np.cos(t_hi),
+             "23hi": root2 * r_hi * np.sin(t_hi - math.pi / 6),
+             "23lo": root2 * r_lo * np.sin(t_lo - math.pi / 6)}
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            c_plus = np.array([np.where(np.isfinite(x[g]), c0 / np.sinh(
+                np.minimum(x[g], 1400.0) / 2) ** 2, 0.0) for g in ("12hi", "13hi", "23hi")])
+            c_minus = np.array([-c0 / np.cosh(np.minimum(x[g], 1400.0) / 2) ** 2
+                                for g in ("12lo", "13lo", "23lo")])
+        kinetic = np.array([hbar**2 / (2 * inertia.M) * haar3_kinetic_min(
+            g, bb / scale**2, rr * scale, x["13lo"], x["13hi"], r_lo, r_hi, x["12hi"],
+            x["23hi"]) for g, bb, rr in TRIALS])
+        return {"v": v, "kappa": best, "pairs": [x["12hi"], x["23hi"], x["13hi"]],
+                "c_plus": c_plus, "c_minus": c_minus, "kinetic": kinetic}
+
+    R_lo, T_lo = (a.ravel() for a in np.meshgrid(r_edges[:-1], t_edges[:-1], indexing="ij"))
+    R_hi, T_hi = (a.ravel() for a in np.meshgrid(r_edges[1:], t_edges[1:], indexing="ij"))
+    coarse = cells(R_lo, R_hi, T_lo, T_hi)
+    split: dict[int, dict] = {}  # coarse cell -> its SPLIT x SPLIT cells (as needed)
+
+    def refined(index: np.ndarray) -> dict:
+        missing = [int(i) for i in index if int(i) not in split]
+        if missing:
+            f = (np.arange(SPLIT + 1) / SPLIT)[None, :]
+            m = np.array(missing)
+            r = R_lo[m, None] + f * np.where(np.isfinite(R_hi[m]), R_hi[m] - R_lo[m], 0.0)[:, None]
+            r[:, -1] = R_hi[m]
+            t = T_lo[m, None] + f * (T_hi[m] - T_lo[m])[:, None]
+            t[:, -1] = T_hi[m]  # the parts cover the cell exactly
+            rl, tl = (a.reshape(len(m), -1) for a in np.broadcast_arrays(
+                r[:, :-1, None], t[:, None, :-1]))
+            rh, th = (a.reshape(len(m), -1) for a in np.broadcast_arrays(
+                r[:, 1:, None], t[:, None, 1:]))
+            # each split cell tries the kappa that was best on its coarse cell
+            data = cells(rl.ravel(), rh.ravel(), tl.ravel(), th.ravel(),
+                         np.repeat(coarse["kappa"][m], SPLIT * SPLIT))
+            n = SPLIT * SPLIT
+            for k, i in enumerate(missing):
+                part = slice(k * n, (k + 1) * n)
+                split[i] = {"v": data["v"][part], "pairs": [p[part] for p in data["pairs"]],
+                            "c_plus": data["c_plus"][:, part],
+                            "c_minus": data["c_minus"][:, part],
+                            "kinetic": data["kinetic"][:, part]}
+        parts = [split[int(i)] for i in index]
+        return {"v": np.concatenate([p["v"] for p in parts]),
+                "pairs": [np.concatenate([p["pairs"][g] for p in parts]) for g in range(3)],
+                "c_plus": np.concatenate([p["c_plus"] for p in parts], axis=1),
+                "c_minus": np.concatenate([p["c_minus"] for p in parts], axis=1),
+                "kinetic": np.concatenate([p["kinetic"] for p in parts], axis=1)}
+
+    paid = 1 if inertia.model == "af-is" else 0  # af-is: e j'(j'+1); is-af: e j(j+1)
+    window = hbar**2 / (2 * inertia.M * scale**2)  # a kinetic energy of the basis scale
+
+    def total(data: dict, j: int, jp: int) -> np.ndarray:
+        """v + centrifugal + kinetic per trial and cell [trials, cells]."""
+        spins = (j, jp) if paid else (jp, j)
+        cent = haar3_centrifugal_min(*spins, data["pairs"], c0, e)
+        if min(j, jp) <= 1 and cov.fixed_dimension(j, jp) <= MATRIX_RANK and data is not coarse:
+            casimir = e * (jp * (jp + 1) if paid else j * (j + 1))
+            cent = np.maximum(cent, haar3_centrifugal_matrix_min(
+                j, jp, data["c_plus"], data["c_minus"], casimir))
+        return data["v"] + cent + data["kinetic"]
 
     def bound(j: int, jp: int) -> float:
-        spins = (j, jp) if paid else (jp, j)
-        cent = v + haar3_centrifugal_min(*spins, pairs, c0, e)
-        return float(_lowered(max(np.min(cent + k) for k in kinetic)))
+        tot = total(coarse, j, jp)
+        done = np.zeros(tot.shape[1], bool)
+        for _ in range(4):  # split the cells near the best trial's minimum, until it moves
+            values = np.min(tot, axis=1)
+            best = int(np.argmax(values))
+            near = np.flatnonzero((tot[best] <= values[best] + window) & ~done)
+            if not len(near):
+                break
+            fine = total(refined(near), j, jp).reshape(len(TRIALS), len(near), -1)
+            tot[:, near] = np.maximum(tot[:, near], np.min(fine, axis=2))
+            done[near] = True
+        return float(_lowered(np.max(np.min(tot, axis=1))))
+    pairs, v, kinetic = coarse["pairs"], coarse["v"], coarse["kinetic"]
+    max_shell = max(max_shell, enumerate_to or 0)
     L = max_shell + 1
     # every sector beyond has j_free >= L or j_paid >= L: (j_free, 0) and (0, j_paid) exactly
     # (increasing in the spin), else the forms non-decreasing in both spins at (L, 1), (1, L)
@@ -449,10 +559,11 @@ def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell
                                    haar3_centrifugal_min(L, 1, pairs, c0, e, monotone=True),
                                    haar3_centrifugal_min(1, L, pairs, c0, e, monotone=True),
                                    haar3_centrifugal_min(0, L, pairs, c0, e)])
-    tail = float(_lowered(max(np.min(v + tail_cent + k) for k in kinetic)))
+    tail = float(_lowered(np.max(np.min(v + tail_cent + kinetic, axis=1))))
     return _by_shell(bound, max_shell, tail,
                      "certified: dilatation oscillator and shear ground-state representation "
-                     "bound the gradient form, centrifugal and Casimir terms pair by pair, "
+                     "bound the gradient form, centrifugal and Casimir terms pair by pair and "
+                     "as the sector's matrix, "
                      "V bounded below by interval arithmetic on its expression over cells of "
                      "(r, t, sigma) (docs/theory/two-polar.md, 'Lower bounds of an n = 3 "
                      "sector')")
@@ -461,4 +572,5 @@ def haar3_shell_bounds(potential, hbar: float, inertia: AffineInertia, max_shell
 __all__ = ["MARGIN", "ShellBounds", "haar_strip_edges", "haar_strip_minima",
            "centrifugal_haar_min", "haar2_shell_bounds", "lebesgue2_shell_bounds",
            "lebesgue3_shell_bounds", "haar3_kinetic_min", "haar3_centrifugal_min",
+           "MATRIX_RANK", "haar3_centrifugal_matrix_min",
            "haar3_shell_bounds"]

@@ -141,6 +141,22 @@ def expm_antisymmetric(A: np.ndarray) -> np.ndarray:
     return np.real((v * np.exp(-1j * w)[..., None, :]) @ np.swapaxes(v.conj(), -1, -2))
 
 
+@cache
+def fixed_forms(j: int, jp: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N_plus, N_minus) [3, r, r]: the forms E^T A^T A E on the M-fixed subspace E of
+    V_j (x) V_j' (:func:`fixed_subspace`) of A = K_g (x) 1 +- 1 (x) K_g, pairs g = (0,1), (0,2),
+    (1,2): |u_g +- v_g|^2 of the centrifugal terms (u = (K_g (x) 1) f, v = (1 (x) K_g) f)."""
+    Kj, Kjp = rotation_generators(j), rotation_generators(jp)
+    Ij, Ijp = np.eye(2 * j + 1), np.eye(2 * jp + 1)
+    E = fixed_subspace(j, jp)
+    plus, minus = [], []
+    for g in range(3):
+        for sign, out in ((1.0, plus), (-1.0, minus)):
+            A = (np.kron(Kj[g], Ijp) + sign * np.kron(Ij, Kjp[g])) @ E
+            out.append(A.T @ A)
+    return np.array(plus), np.array(minus)
+
+
 def fixed_dimension(j: int, jp: int) -> int:
     """dim (V_j (x) V_j')^M, M = {diag signs in SO(3)} (rotations by pi about the axes act by
     (-1)^j): the number of radial functions of the sector and the rank of its module."""
@@ -457,7 +473,7 @@ def module_generators(j: int, jp: int, model: str = "matrix", max_degree: int = 
 
 __all__ = [
     "monomials", "sphere_moment", "harmonic_basis", "rotation_generators", "harmonic_projection",
-    "fixed_subspace", "expm_antisymmetric", "fixed_dimension", "polynomial_multiplicity",
-    "lowest_degree",
+    "fixed_subspace", "fixed_forms", "expm_antisymmetric", "fixed_dimension",
+    "polynomial_multiplicity", "lowest_degree",
     "covariant_count", "basic_invariants", "RING", "module_generators"
 ]

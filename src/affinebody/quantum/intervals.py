@@ -82,7 +82,10 @@ class Interval:
             if math.isfinite(s) and (s - a) == b and (s - b) == a:  # the float sum is exact
                 return Interval.point(s)
         with np.errstate(invalid="ignore"):
-            return Interval.make(self.lo + other.lo, self.hi + other.hi)
+            lo, hi = self.lo + other.lo, self.hi + other.hi
+        out = Interval.make(lo, hi)
+        # a float sum that is 0 is exact (x + y rounds to 0 only if x = -y): keep 0 unwidened
+        return Interval(np.where(lo == 0, 0.0, out.lo), np.where(hi == 0, 0.0, out.hi))
 
     def __neg__(self) -> Interval:
         return Interval(-self.hi, -self.lo)
@@ -600,7 +603,10 @@ def lower_bounds(text: str, cells: Cells, extra: Value | None = None) -> np.ndar
     the plain sum of their enclosures and, on cells with lam >= lam_lo > 0, the dominant-degree
     bound: sum_d c_d lam^d >= lam^D [c_D + sum_(d<D) min(0, c_d) lam_lo^(d-D)] (D the highest
     degree; a negative bracket gives bracket * lam_hi^D). So a double well
-    Q^4 - Q^2 stays bounded on the unbounded cells.
+    Q^4 - Q^2 stays bounded on the unbounded cells. Where the coefficients of the degrees above
+    some D are all >= 0 on a cell, those terms are >= 0 and D may serve as the dominant degree
+    (e.g. (Q1 - Q2)^4 vanishing on the cell's edge Q1 = Q2 while the degree-2 terms confine):
+    the best such D per cell.
 
     Raises :class:`Unsupported` when the expression uses a function the enclosure does not
     cover (tan, arctan2, ...)."""
@@ -625,21 +631,26 @@ def lower_bounds(text: str, cells: Cells, extra: Value | None = None) -> np.ndar
         term = c if d == 0 else c * cells.lam_power(d)
         total = term if total is None else total + term
     lower = np.asarray(total.lo, float)
-    top = max(by_degree)
-    if top > 0 and len(by_degree) > 1:
+    degrees = sorted(by_degree)
+    if degrees[-1] > 0 and len(degrees) > 1:
         lam = cells.lam_power(1.0)
         lam_lo, lam_hi = np.asarray(lam.lo, float), np.asarray(lam.hi, float)
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            safe = np.where(lam_lo > 0, lam_lo, 1.0)
-            bracket = np.asarray(by_degree[top].lo, float)
-            for d, c in by_degree.items():
-                if d != top:
-                    bracket = bracket + np.minimum(0.0, c.lo) * safe ** (d - top)
-            bracket = _down(bracket, 4)
-            bound = np.where(bracket >= 0, bracket * _down(safe**top, 2),
-                             bracket * _up(lam_hi**top, 2))
-        bound = np.where(np.isnan(bound) | (lam_lo <= 0), -np.inf, bound)
-        lower = np.maximum(lower, bound)
+        safe = np.where(lam_lo > 0, lam_lo, 1.0)
+        dropped = np.ones(lam_lo.shape, bool)  # every degree above ``top`` has c_d >= 0 there
+        for i in range(len(degrees) - 1, -1, -1):
+            top = degrees[i]
+            if top <= 0:
+                break
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                bracket = np.asarray(by_degree[top].lo, float)
+                for d in degrees[:i]:
+                    bracket = bracket + np.minimum(0.0, by_degree[d].lo) * safe ** (d - top)
+                bracket = _down(bracket, 4)
+                bound = np.where(bracket >= 0, bracket * _down(safe**top, 2),
+                                 bracket * _up(lam_hi**top, 2))
+            bound = np.where(np.isnan(bound) | (lam_lo <= 0) | ~dropped, -np.inf, bound)
+            lower = np.maximum(lower, bound)
+            dropped &= np.asarray(by_degree[top].lo, float) >= 0
     return np.where(np.isnan(lower), -np.inf, lower)
 
 

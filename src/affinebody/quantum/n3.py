@@ -62,6 +62,9 @@ from affinebody.quantum.levels import LevelCollector, Sector, Spectrum
 PAIRS = ((0, 1), (0, 2), (1, 2))
 #: shells max(j, j') explored by default for n = 3 (the generators of (6, 6) have degree 18)
 MAX_SHELL = 6
+#: affine models: shells beyond the last searched whose sectors are bounded one by one before
+#: the uniform tail bound takes over (the rotor sectors' bounds grow slowly with the spin)
+BOUND_SHELLS = 6
 
 
 # ---------------------------------------------------------------- general sectors (j, j')
@@ -86,16 +89,10 @@ class SectorAlgebra:
 def sector_algebra(j: int, jp: int, model: str = "matrix") -> SectorAlgebra:
     """The angular data of (j, j'); ``model`` picks the covariants (covariants3.module_generators:
     "matrix" for d'Alembert on R^{3x3}, "symmetric" for the affine models on GL+(3))."""
-    Kj, Kjp = cov.rotation_generators(j), cov.rotation_generators(jp)
-    Ij, Ijp = np.eye(2 * j + 1), np.eye(2 * jp + 1)
     E = cov.fixed_subspace(j, jp)
-    plus, minus = [], []
-    for g in range(3):
-        for sign, out in ((1.0, plus), (-1.0, minus)):
-            A = (np.kron(Kj[g], Ijp) + sign * np.kron(Ij, Kjp[g])) @ E
-            out.append(A.T @ A)
+    plus, minus = cov.fixed_forms(j, jp)
     gens = cov.module_generators(j, jp, model) if E.shape[1] else ()
-    return SectorAlgebra(j, jp, E, np.array(plus), np.array(minus), gens)
+    return SectorAlgebra(j, jp, E, plus, minus, gens)
 
 
 def generator_values(algebra: SectorAlgebra, x: np.ndarray, max_degree: int | None = None
@@ -668,7 +665,8 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
                                             setup.scale)
         else:
             bounds = haar3_shell_bounds(potential, hbar, inertia, max_shell, setup.centre,
-                                            setup.scale_sigma, setup.scale)
+                                        setup.scale_sigma, setup.scale,
+                                        enumerate_to=max_shell + BOUND_SHELLS)
     except Unsupported as err:
         reason = str(err)
 
@@ -759,7 +757,7 @@ def solve_all_sectors(model: str, potential, hbar: float, inertia_scalar: float,
 
 __all__ = ["SectorAlgebra", "sector_algebra", "generator_values", "sector_coefficients",
            "sector_forms", "sector_candidates", "SectorBasis", "sector_block", "sector_dimension",
-           "sectors_by_shell", "lowest_degree", "MAX_SHELL", "solve_all_sectors",
+           "sectors_by_shell", "lowest_degree", "MAX_SHELL", "BOUND_SHELLS", "solve_all_sectors",
            "angular_candidates", "laguerre_table", "radial_functions", "HarmonicBasis",
            "sphere_harmonics",
            "harmonic_block"]
