@@ -15,8 +15,9 @@ vorticity = 0 centred at X (the signed singular values Q for d'Alembert, q = ln 
 affine models) with mean momentum P conjugate to X, propagated exactly by its expansion in
 eigenstates; prints the means and spreads of the invariants, the survival probability
 |<psi(0)|psi(t)>|^2, the norm and the energy at N + 1 times in [0, T]. Instead of --at,
-``--phi A11,A12,A21,A22 [--pi P11,P12,P21,P22]`` (d'Alembert): a Gaussian in phi around a
-classical (phi, pi) with any spin and vorticity, a superposition of every sector it populates.
+``--phi A11,A12,A21,A22 [--pi P11,P12,P21,P22]`` (every model; the affine ones on GL+(2), the
+Gaussian times det phi): a Gaussian in phi around a classical (phi, pi) with any spin and
+vorticity, a superposition of every sector it populates.
 """
 
 from __future__ import annotations
@@ -117,7 +118,8 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
 @click.option("--at", "centre", default=None,
               help="packet centre X1,X2: Q1,Q2 (d'Alembert) or q1,q2 (affine models)")
 @click.option("--phi", "phi", default=None,
-              help="d'Alembert: a packet around the matrix phi = A11,A12,A21,A22 (instead of --at)")
+              help="a packet around the matrix phi = A11,A12,A21,A22, every sector it populates "
+                   "(instead of --at)")
 @click.option("--pi", "pi", default="0,0,0,0", help="with --phi: mean momentum P11,P12,P21,P22")
 @click.option("--momentum", "momentum", default="0,0", help="mean momentum P1,P2 conjugate to X")
 @click.option("--width", "width", type=float, default=None,
@@ -211,8 +213,8 @@ def _matrix(text: str, flag: str) -> np.ndarray:
 
 def _evolve_matrix(cfg, phi: str, pi: str, width: float | None, duration: float, steps: int,
                    as_json: bool, plot: str | None) -> None:
-    """evolve --phi: a packet around a classical (phi, pi) of the d'Alembert body, every sector
-    it populates (quantum.evolution.evolve_matrix_packet)."""
+    """evolve --phi: a packet around a classical (phi, pi), every sector it populates
+    (quantum.evolution.evolve_matrix_packet; the affine models on GL+(2))."""
     from contextlib import nullcontext
 
     from affinebody.quantum import config as qconfig
@@ -220,9 +222,6 @@ def _evolve_matrix(cfg, phi: str, pi: str, width: float | None, duration: float,
 
     phi0, pi0 = _matrix(phi, "--phi"), _matrix(pi, "--pi")
     kwargs = qconfig.solver_arguments(cfg)
-    if kwargs["model"] != "dalembert":
-        raise ValueError(f"evolve --phi is for the d'Alembert model (got {kwargs['model']}); "
-                         f"use --at for the sector (0, 0) of the affine models")
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"--time must be > 0 (got {duration})")
     if not 1 <= steps <= ev.MAX_STEPS:
@@ -231,6 +230,7 @@ def _evolve_matrix(cfg, phi: str, pi: str, width: float | None, duration: float,
     ev.check_work(settings.basis_size, steps + 1)
     packet = ev.MatrixPacket(phi0.tolist(), pi0.tolist(),
                              math.sqrt(hbar / 2) if width is None else width)
+    ev.check_matrix_packet(kwargs["model"], packet)
     times = np.linspace(0.0, duration, steps + 1)
     status = nullcontext(None)
     if sys.stderr.isatty():
@@ -239,12 +239,14 @@ def _evolve_matrix(cfg, phi: str, pi: str, width: float | None, duration: float,
         status = Console(stderr=True).status("solving the sectors of the packet ...")
     with status as live:
         progress = None if live is None else (lambda text: live.update(f"solving {text} ..."))
-        result = ev.evolve_matrix_packet(kwargs["potential"], hbar, kwargs.get("inertia", 1.0),
-                                         settings, packet, times, progress)
+        result = ev.evolve_matrix_packet(
+            kwargs["potential"], hbar, kwargs.get("inertia", 1.0), settings, packet, times,
+            progress, model=kwargs["model"], I=kwargs.get("I", 1.0), A=kwargs.get("A", 0.0),
+            B=kwargs.get("B", 0.0))
     if plot is not None:
-        _plot(result, plot, "dalembert")
+        _plot(result, plot, kwargs["model"])
     payload = result.as_dict()
-    payload.update(model="dalembert", n=2, hbar=hbar, phi=phi0.tolist(), pi=pi0.tolist(),
+    payload.update(model=kwargs["model"], n=2, hbar=hbar, phi=phi0.tolist(), pi=pi0.tolist(),
                    width=packet.width, lines=ev.spectrum_lines(result))
     if as_json:
         click.echo(json.dumps(payload))
