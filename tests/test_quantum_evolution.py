@@ -266,6 +266,11 @@ def test_cli_evolve_json_and_errors(tmp_path):
     assert spin.exit_code == 0, spin.output
     data = json.loads(spin.output)
     assert np.ptp(data["norm"]) < 1e-13 and np.ptp(data["energy"]) < 1e-13
+    affine = tmp_path / "affine.toml"
+    affine.write_text(CONFIG.replace('kinetic = "dalembert"\ninertia = 1.0',
+                                     'kinetic = "af-is"\nI = 1.0\nA = 0.2'))
+    flipped = CliRunner().invoke(evolve_command, [str(affine), "--phi", "1,0,0,-1"])
+    assert flipped.exit_code == 1 and "needs det phi > 0" in flipped.output
     (tmp_path / "big.toml").write_text(CONFIG.replace("basis_size = 24", "basis_size = 80"))
     bad = CliRunner().invoke(evolve_command, [str(tmp_path / "big.toml"), *args[1:]])
     assert bad.exit_code == 1 and "more than evolve solves" in bad.output

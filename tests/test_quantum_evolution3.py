@@ -5,6 +5,7 @@ packet computed by an independent quadrature; norm and energy conserved to round
 distance to the classical orbit shrinks with hbar (harmonic, closed form; anharmonic, against
 the simulator); the Fourier lines of the survival probability at level spacings."""
 
+import json
 import textwrap
 from functools import cache
 from itertools import permutations
@@ -201,3 +202,47 @@ def test_survival_lines_at_level_spacings(evolutions):
     assert abs(lines[0] - pairs[0][1]) < np.pi / T
     for line in lines:
         assert min(abs(line - w) for weight, w in pairs if weight > 0.01 * pairs[0][0]) < np.pi / T
+
+
+CONFIG3 = f"""
+[system]
+n = 3
+[quantum]
+hbar = 1.0
+kinetic = "dalembert"
+inertia = 1.0
+potential = "{ANHARMONIC}"
+basis_size = 12
+scale = 1.0
+"""
+
+
+def test_cli_evolve_n3_json_and_errors(tmp_path):
+    """``affinebody evolve`` for n = 3: JSON with the five observables, norm constant, the
+    packet's <trG> at t = 0 that of the independent quadrature at hbar = 1 (packet_moments,
+    the same packet: the CLI's default width sqrt(hbar/2)); one-line refusals (exit 1)."""
+    from click.testing import CliRunner
+
+    from affinebody.cli.quantum_dynamics import evolve as evolve_command
+
+    path = tmp_path / "n3.toml"
+    path.write_text(CONFIG3)
+    args = [str(path), "--at", "1.5,0.9,0.3", "--momentum", "0,0.2,-0.1", "--time", "1",
+            "--steps", "4"]
+    result = CliRunner().invoke(evolve_command, [*args, "--json", "--plot",
+                                                 str(tmp_path / "n3.png")])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "n3.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    data = json.loads(result.output)
+    assert data["n"] == 3 and set(data["mean"]) == {"Q1", "Q2", "Q3", "det", "trG"}
+    assert np.ptp(data["norm"]) < 1e-13 and data["captured"] > 1 - 1e-6
+    assert abs(data["mean"]["trG"][0] - packet_moments(1.0)["trG"]) < 1e-4
+    for extra, needle in ((["--at", "0.9,1.5,0.3"], "must lie in the chamber"),
+                          (["--at", "1.5,0.9"], "three finite numbers"),
+                          (["--steps", "1000000"], "--steps must be between"),
+                          (["--at", "3,2,1", "--momentum", "0,3,0"], "hold only")):
+        bad = CliRunner().invoke(evolve_command, [*args, *extra])
+        assert bad.exit_code == 1, (extra, bad.output)
+        assert needle in bad.output and len(bad.output.strip().splitlines()) == 1
+    spin = CliRunner().invoke(evolve_command, [str(path), "--phi", "1,0,0,1"])
+    assert spin.exit_code == 1 and "--phi is for n = 2" in spin.output

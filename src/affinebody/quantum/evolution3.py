@@ -183,7 +183,7 @@ def evolve3(sector: Sector3, centre, momentum, width: float, times: np.ndarray, 
     if captured < 1 - CAPTURE:
         raise ValueError(f"evolve: the eigenstates of the basis hold only {captured:.6f} of the "
                          f"packet (it reaches energies or places the basis does not resolve): "
-                         f"raise quantum.basis_size (at most {MAX_DEGREE3}), or start the packet "
+                         f"raise quantum.basis_size, or start the packet "
                          f"slower or nearer the minimum")
     E, errors = sector.energies, sector.errors
     p = np.abs(c) ** 2
