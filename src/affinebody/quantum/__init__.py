@@ -20,7 +20,9 @@ Layers, bottom to top (no module imports one above it; only core and kinematics 
 - :mod:`.densities`    probability densities of the states.
 - :mod:`.transitions`  matrix elements of configuration operators between levels, reduced
                        strengths, selection rules (docs/quantum-transitions.md).
-- :mod:`.evolution`    exact evolution of a wave packet of the n = 2 sector (0, 0).
+- :mod:`.evolution`    exact evolution of an n = 2 wave packet: the sector (0, 0), or a Gaussian
+                       in phi around a classical (phi, pi) over every sector it populates.
+- :mod:`.evolution3`   exact evolution of an n = 3 wave packet of the sector (0, 0).
 - :mod:`.config`, :mod:`.cli`: TOML configs, the ``spectrum`` / ``density`` commands
                        (application layer).
 
