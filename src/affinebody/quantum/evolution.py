@@ -167,6 +167,15 @@ def check_work(basis_size: int, times: int) -> None:
                          f"smaller quantum.basis_size")
 
 
+def require_captured(captured: float) -> None:
+    """Refuse a packet the eigenstates hold to less than 1 - :data:`CAPTURE`."""
+    if captured < 1 - CAPTURE:
+        raise ValueError(f"evolve: the eigenstates of the basis hold only {captured:.6f} of the "
+                         f"packet (it reaches energies or places the basis does not resolve): "
+                         f"raise quantum.basis_size, or start the packet slower or nearer the "
+                         f"minimum")
+
+
 @dataclass(frozen=True)
 class Evolution:
     times: np.ndarray
@@ -221,11 +230,7 @@ def evolve(spectrum: Spectrum, packet: Packet, times: np.ndarray, hbar: float) -
     psi /= math.sqrt(float(np.sum(weights * np.abs(psi) ** 2)))
     c = vectors.T @ (functions.T @ (weights * psi))
     captured = float(np.sum(np.abs(c) ** 2))
-    if captured < 1 - CAPTURE:
-        raise ValueError(f"evolve: the eigenstates of the basis hold only {captured:.6f} of the "
-                         f"packet (it reaches energies or places the basis does not resolve): "
-                         f"raise quantum.basis_size, or start the packet slower or nearer the "
-                         f"minimum")
+    require_captured(captured)
     errors = np.array([lv.error for lv in levels])
     E = np.array([lv.energy for lv in levels])
     return _propagate([(c, E, errors, functions, vectors)], model, y, weights, times, hbar)
@@ -475,14 +480,12 @@ def evolve_matrix_packet(potential: Potential, hbar: float, inertia: float, sett
         C = vectors.T @ (functions.T @ H.real + 1j * (functions.T @ H.imag))  # [S, members]
         parts.extend((C[:, i], E, errors, functions, vectors) for i in range(len(members)))
     result = _propagate(parts, model, y, weights, times, hbar)
-    if result.captured < 1 - CAPTURE:
-        raise ValueError(f"evolve: the eigenstates of the bases hold only {result.captured:.6f} "
-                         f"of the packet: raise quantum.basis_size, or start it slower or nearer "
-                         f"the minimum")
+    require_captured(result.captured)
     return result
 
 
 __all__ = ["MAX_BASIS", "MAX_STEPS", "MAX_WORK", "VARIABLES", "sector_spectrum", "Packet",
-           "variables_at", "check_packet", "check_work", "Evolution", "evolve", "spectrum_lines",
-           "MatrixPacket", "packet_harmonics", "evolve_matrix_packet", "PACKET_ANGLES",
-           "MAX_BLOCKS", "block_of", "check_matrix_packet"]
+           "variables_at", "check_packet", "check_work", "require_captured", "Evolution",
+           "evolve", "spectrum_lines", "MatrixPacket", "packet_harmonics",
+           "evolve_matrix_packet", "PACKET_ANGLES", "MAX_BLOCKS", "block_of",
+           "check_matrix_packet"]

@@ -45,7 +45,7 @@ from affinebody.quantum.channels3 import (
     scalar3_block,
     setup3,
 )
-from affinebody.quantum.evolution import CAPTURE, MAX_WORK, Evolution
+from affinebody.quantum.evolution import MAX_WORK, Evolution, require_captured
 from affinebody.quantum.levels import AffineInertia, Potential, Settings
 
 #: the largest polynomial degree (quantum.basis_size) evolve solves for n = 3
@@ -180,11 +180,7 @@ def evolve3(sector: Sector3, centre, momentum, width: float, times: np.ndarray, 
     psi /= math.sqrt(float(np.sum(w * np.abs(psi) ** 2)))
     c = sector.vectors.T @ (F.T @ (w * psi.real) + 1j * (F.T @ (w * psi.imag)))
     captured = float(np.sum(np.abs(c) ** 2))
-    if captured < 1 - CAPTURE:
-        raise ValueError(f"evolve: the eigenstates of the basis hold only {captured:.6f} of the "
-                         f"packet (it reaches energies or places the basis does not resolve): "
-                         f"raise quantum.basis_size, or start the packet "
-                         f"slower or nearer the minimum")
+    require_captured(captured)
     E, errors = sector.energies, sector.errors
     p = np.abs(c) ** 2
     energy_error = float(np.sum(p * np.where(np.isfinite(errors), errors, np.abs(E))) / captured)
