@@ -266,6 +266,11 @@ def test_cli_evolve_json_and_errors(tmp_path):
     assert spin.exit_code == 0, spin.output
     data = json.loads(spin.output)
     assert np.ptp(data["norm"]) < 1e-13 and np.ptp(data["energy"]) < 1e-13
+    crowded = tmp_path / "crowded.toml"  # a given scale: no variational search before
+    crowded.write_text(small.read_text() + "scale = 1.0\n")
+    fast = CliRunner().invoke(evolve_command, [str(crowded), "--phi", "1,0,0,0.5", "--pi",
+                                               "0,20,-20,0", "--time", "1", "--steps", "2"])
+    assert fast.exit_code == 1 and "blocks of sectors (more than 400)" in fast.output
     affine = tmp_path / "affine.toml"
     affine.write_text(CONFIG.replace('kinetic = "dalembert"\ninertia = 1.0',
                                      'kinetic = "af-is"\nI = 1.0\nA = 0.2'))
