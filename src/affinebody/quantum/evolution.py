@@ -1,7 +1,11 @@
 """Time evolution of a wave packet of one quantum affine body by its expansion in eigenstates
 (paper, last section: amplitudes of the deformation invariants; docs/quantum-transitions.md).
 
-The packet lives in the sector spin = vorticity = 0 of n = 2 (a state invariant under
+n = 2 (n = 3: :mod:`affinebody.quantum.evolution3`). Two kinds of packets: a Gaussian in phi
+around a classical (phi, pi) over every sector it populates (:class:`MatrixPacket`, every
+model), and the one below.
+
+A :class:`Packet` lives in the sector spin = vorticity = 0 of n = 2 (a state invariant under
 phi -> U phi V^T, U, V in SO(2): it carries no angular momentum, and its classical
 counterpart is a motion with zero spin and vorticity, along which phi stays diagonal when it
 starts diagonal with a diagonal velocity). In the variables X of the model (d'Alembert: the
