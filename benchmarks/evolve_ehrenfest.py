@@ -30,7 +30,7 @@ import numpy as np
 AFFINEBODY = str(Path(sys.executable).parent / "affinebody")  # the installed command
 EXPR = "0.5*(det - 3.5)**2 + 0.25*(trG - 7.3)**2"
 PHI0 = np.array([[1.9, 0.3], [-0.3, 1.8]])
-PI0 = np.array(eval(os.environ.get("PI0", "[[0.1, 0.3], [-0.2, 0.1]]")))
+PI0 = np.array([[0.1, 0.3], [-0.2, 0.1]])
 T, STEPS = 3.0, 60
 QUANTUM = """[system]
 n = 2
