@@ -3,15 +3,27 @@ form of the R^9 oscillator's first excited multiplet (spin = vorticity = 1, psi 
 Gaussian), the Haar density of a multiplet summed over its states, and the command line."""
 
 import json
+import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from affinebody.quantum import green3
 from affinebody.quantum import spectra as sp
 from affinebody.quantum.cli import density
 from affinebody.quantum.intervals import ExpressionPotential
-from affinebody.quantum.orientations3 import multiplet_orientations, wigner
+from affinebody.quantum.orientations3 import (
+    mixture_orientations,
+    multiplet_orientations,
+    multiplet_state,
+    orientation_densities3,
+    side_terms,
+    terms_density,
+)
+from affinebody.quantum.tensor_operators3 import euler_quadrature, reduced_matrix, wigner
+from affinebody.quantum.transitions import Operator, level_states
 
 HBAR, INERTIA, K = 0.7, 1.3, 0.8
 
@@ -114,12 +126,7 @@ def test_wigner_is_a_representation():
             < 1e-13
 
 
-def test_density_command_n3_state(tmp_path):
-    """affinebody density --state k --orientation for n = 3: state 3 is |1 1> (x) |1 -1> of
-    N = 1; orientation.json carries its labels, the densities with integral 1 and Phi's
-    weights (the ordered singular values' share of |Q|^2); exit 0."""
-    path = tmp_path / "osc3.toml"
-    path.write_text(f"""
+CONFIG3 = f"""
 [system]
 n = 3
 [quantum]
@@ -130,7 +137,15 @@ potential = "0.5*{K}*trG"
 sectors = "scalar+spin1"
 basis_size = 4
 density_points = 11
-""")
+"""
+
+
+def test_density_command_n3_state(tmp_path):
+    """affinebody density --state k --orientation for n = 3: state 3 is |1 1> (x) |1 -1> of
+    N = 1; orientation.json carries its labels, the densities with integral 1 and Phi's
+    weights (the ordered singular values' share of |Q|^2); exit 0."""
+    path = tmp_path / "osc3.toml"
+    path.write_text(CONFIG3)
     out = tmp_path / "o"
     result = CliRunner().invoke(density, [str(path), "--state", "3", "--orientation", "-o",
                                           str(out), "--json"])
@@ -219,3 +234,148 @@ def test_quadrupole_multiplets_against_their_wave_functions(oscillator3):
             haar_angle = (1 - cw) / np.pi
             assert np.abs(o[f"{other}_angle"] - haar_angle).max() < 1e-12
             assert abs(d["integrals"][f"{side}_angle"] - 1) < 1e-12
+
+
+def test_superposition_against_direct_quadrature_of_the_wave_function(oscillator3):
+    """A superposition of states of (1, 1) (N = 1 and N = 2), (2, 0) and (0, 2) with complex
+    amplitudes: p_L from the Schur-reduced cross terms (side_terms) equals the direct
+    quadrature of |Psi|^2 = |sum_k c_k sqrt(d_k) u_k^H D(L) F_k(Q) D(R)^T conj(v_k)|^2 over R
+    (an Euler-angle rule exact for its rank) and Q (both on the same 3000 random nodes of the
+    chamber rule: the identity is in the angles), at random L; every marginal integrates to 1;
+    a single state through the same route reproduces the exact |D^j|^2 formulas of
+    multiplet_orientations."""
+    level = oscillator3.levels[2]
+    names = [(s.spin, s.vorticity) for s in level.sectors]
+    start = {key: 10 + sum(s.dimension for s in level.sectors[:names.index(key)])
+             for key in ((2, 0), (0, 2), (1, 1))}
+    sup = {1: 1.0, 4: 0.5j, start[(1, 1)] + 3: 0.4 - 0.2j, start[(2, 0)] + 1: 0.3,
+           start[(0, 2)] + 2: 0.3j}
+    data = mixture_orientations(oscillator3, superposition=sup, points=11)
+    assert all(abs(v - 1) < 1e-10 for v in data["integrals"].values())
+    picked = [multiplet_state(oscillator3, k) for k in sup]
+    rng = np.random.default_rng(3)
+    nodes = rng.choice(len(picked[0][1]), 3000, replace=False)
+    states = [replace(p, F=p.F[nodes]) for p, _ in picked]
+    w = picked[0][1][nodes]
+    c = np.array(list(sup.values()), complex)
+    c /= np.linalg.norm(c)
+    L = np.linalg.qr(rng.normal(size=(4, 3, 3)))[0]
+    L *= np.linalg.det(L)[:, None, None]
+    R, wR = euler_quadrature(4)
+    formula = terms_density(side_terms(c, states, w, "L"), L)
+    direct = []
+    for one in L:
+        psi = 0.0
+        for ck, st in zip(c, states, strict=True):
+            X = np.einsum("a,ab,pbd->pd", st.u.conj(), wigner(st.sector.spin, one), st.F)
+            # (D(R)^T conj(v))_d = sum_e D_ed conj(v_e)
+            Y = np.einsum("ned,e->nd", wigner(st.sector.vorticity, R), st.v.conj())
+            psi = psi + ck * math.sqrt(st.sector.dimension) * (X @ Y.T)
+        direct.append(float(w @ (np.abs(psi) ** 2 @ wR)))
+    np.testing.assert_allclose(formula, direct, rtol=1e-10)
+    assert np.ptp(direct) > 0.1 * np.mean(direct)  # L far from Haar
+    single = mixture_orientations(oscillator3, superposition={start[(2, 0)] + 1: 1.0},
+                                  points=11)
+    (exact,) = multiplet_orientations(oscillator3, start[(2, 0)] + 1, points=11, every=False)
+    for key, values in exact["orientation"].items():
+        np.testing.assert_allclose(single["orientation"][key], values, atol=1e-12)
+
+
+def test_thermal_mixture_is_haar_at_every_temperature(oscillator3):
+    """The thermal mixture, a function of H (which commutes with SO(3) x SO(3)), summed over
+    the 55 states computed state by state (whose own densities are far from Haar): the rotation
+    angle has (1 - cos omega)/pi and each axis cosine 1/2 at T = 0.05 (the ground state's
+    density, a singlet) and at T = 3 (where the mixture is truncated, with a warning)."""
+    for T in (0.05, 3.0):
+        data = mixture_orientations(oscillator3, temperature=T, points=11)
+        o = data["orientation"]
+        for side in "LR":
+            np.testing.assert_allclose(o[f"{side}_angle"], (1 - np.cos(o["angle"])) / np.pi,
+                                       atol=1e-12)
+            for k in (1, 2, 3):
+                np.testing.assert_allclose(o[f"{side}_axis{k}"], 0.5, atol=1e-12)
+        assert bool(data["warnings"]) == (T > 1)
+    ground = orientation_densities3(oscillator3, 0, points=11)["orientation"]
+    np.testing.assert_allclose(ground["L_angle"], o["L_angle"], atol=1e-12)
+    one = orientation_densities3(oscillator3, 1, points=11)["orientation"]
+    assert np.max(np.abs(one["L_axis3"] - 0.5)) > 0.1
+
+
+def test_density_command_n3_superposition_and_temperature(tmp_path):
+    """affinebody density --superpose / --temperature for n = 3: orientation.json with the kind,
+    integrals 1, a thermal mixture with Haar axes; exit 0; a bad temperature: one line, exit 1."""
+    path = tmp_path / "osc3.toml"
+    path.write_text(CONFIG3)
+    for args, kind in ((["--superpose", "1:1,4:0.5j"], "superposition"),
+                       (["--temperature", "0.03"], "thermal")):
+        out = tmp_path / kind
+        result = CliRunner().invoke(density, [str(path), *args, "-o", str(out)])
+        assert result.exit_code == 0, result.output
+        doc = json.loads((out / "orientation.json").read_text())
+        assert doc["kind"] == kind
+        assert all(abs(v - 1) < 1e-10 for v in doc["integrals"].values())
+    np.testing.assert_allclose(doc["densities"]["R_axis1"]["density"], 0.5, atol=1e-12)
+    bad = CliRunner().invoke(density, [str(path), "--temperature", "-1", "-o", str(out)])
+    assert bad.exit_code == 1 and len(bad.output.strip().splitlines()) == 1
+    assert "temperature must be > 0" in bad.output
+
+
+def test_green_diagonal_densities_against_closed_form_and_transition_elements(oscillator3):
+    """Densities of G_aa (quantum.green3): the ground state's G11 = sum_i phi_i1^2 is U times a
+    chi-square with 3 degrees of freedom; for a state |2 1> of the multiplet (0, 2) of N = 2
+    (anisotropic in the body) the first two moments of the density of G33 equal <G33> and
+    <G33^2> (to 1e-4, the rule in y) computed as matrix elements by the transitions' expansion
+    in Wigner D functions (an independent route)."""
+    U = HBAR / (2 * INERTIA * math.sqrt(K / INERTIA))
+    ground, _ = multiplet_state(oscillator3, 0)
+    pair_list = green3.pairs([(1.0, np.ones(1), [ground])])
+    bounds = green3.support("lebesgue3", pair_list)
+    y = np.array([0.2, 0.5, 1.0, 2.0])
+    exact = np.sqrt(y) * np.exp(-y / (2 * U)) / (math.gamma(1.5) * (2 * U) ** 1.5)
+    p = green3.diagonal_density(pair_list, "lebesgue3", 0, y, green3.RULES[1], bounds)
+    np.testing.assert_allclose(p, exact, rtol=1e-3)  # 5e-4 at y = 0.2, 2e-8 at y = 2
+    level = oscillator3.levels[2]
+    names = [(s.spin, s.vorticity) for s in level.sectors]
+    index = 10 + sum(s.dimension for s in level.sectors[:names.index((0, 2))]) + 1
+    state, w = multiplet_state(oscillator3, index)
+    pair_list = green3.pairs([(1.0, np.ones(1), [state])])
+    bounds = green3.support("lebesgue3", pair_list)
+    u, wu = np.polynomial.legendre.leggauss(12)
+    u, wu = (u + 1) / 2, wu / 2
+    y, wy = bounds[3] * u * u, bounds[3] * 2 * u * wu  # y = top u^2: the sqrt(y) edge is smooth
+    Q = level_states(oscillator3).Q
+    c = np.kron(state.u, state.v)
+    p = green3.diagonal_density(pair_list, "lebesgue3", 2, y, (8, 32, 16), bounds)
+    for power in (1, 2):
+        op = Operator(f"G33**{power}", 3)
+        moments = np.einsum("p,pt,pbd,pBD->tbdBD", w, op.radial(Q), state.F, state.F)
+        M = reduced_matrix(op.expansion, moments, (0, 2), (0, 2))
+        element = (state.sector.dimension * c @ M @ c.conj()).real
+        assert abs(np.sum(wy * y**power * p) - element) < 5e-4 * element
+
+
+def test_density_command_n3_green_components(tmp_path):
+    """--g-components for n = 3: orientation.json holds the density of G33 of the thermal
+    mixture at low T (the ground state's: U x chi-square(3), integral ~1 on the coarse grid);
+    off-diagonal or too many points: one line, exit 1."""
+    path = tmp_path / "osc3.toml"
+    path.write_text(CONFIG3)
+    out = tmp_path / "g"
+    result = CliRunner().invoke(density, [str(path), "--temperature", "0.03", "--g-components",
+                                          "G33", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    doc = json.loads((out / "orientation.json").read_text())
+    g = doc["densities"]["G33"]
+    U = HBAR / (2 * INERTIA * math.sqrt(K / INERTIA))
+    y = np.array(g["x"])
+    exact = np.sqrt(y) * np.exp(-y / (2 * U)) / (math.gamma(1.5) * (2 * U) ** 1.5)
+    np.testing.assert_allclose(g["density"], exact, atol=1e-4 * exact.max())
+    for args, needle in ((["--g-components", "G12"], "diagonal components"),
+                         (["--g-components", "G11,G22,G33", "--superpose", "1:1"], None)):
+        if needle is None:
+            path.write_text(CONFIG3.replace("density_points = 11", "density_points = 60"))
+            needle = "is more than"
+        extra = [] if "--superpose" in args else ["--temperature", "0.03"]
+        bad = CliRunner().invoke(density, [str(path), *args, *extra, "-o", str(out)])
+        assert bad.exit_code == 1 and needle in bad.output, bad.output
+        assert len(bad.output.strip().splitlines()) == 1

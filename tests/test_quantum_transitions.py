@@ -24,6 +24,8 @@ from affinebody.quantum.transitions import (
     harmonics,
     invariants_at,
     level_components,
+    level_matrix,
+    level_states,
     matrix_elements,
     reduced_quadrature,
     transitions,
@@ -214,12 +216,17 @@ def oscillator3():
     return s
 
 
-def strengths3(spectrum, text, initial=0):
-    table = transitions(spectrum, Operator(text, 3), initial)
+@pytest.fixture(scope="module")
+def states3(oscillator3):
+    return level_states(oscillator3)
+
+
+def strengths3(spectrum, text, initial=0, states=None):
+    table = transitions(spectrum, Operator(text, 3), initial, states)
     return table, [t.strength for t in table.transitions]
 
 
-def test_n3_components_against_ladder_operators(oscillator3):
+def test_n3_components_against_ladder_operators(oscillator3, states3):
     """phi^i_a = sqrt(U) (a + a^+) per component, U = hbar / (2 I omega), summed over the
     degenerate states of each level (Wigner D-functions of L and R integrated exactly):
     phi11 from N = 0 reaches N = 1 with U; from N = 1 (averaged over its 9 states) it reaches
@@ -228,12 +235,13 @@ def test_n3_components_against_ladder_operators(oscillator3):
     quadrupole part G11 - trG/3 = sum_k (2 phi_k1^2 - phi_k2^2 - phi_k3^2) / 3 has no ground
     expectation and reaches N = 2 with 3 x 2U^2 (4 + 1 + 1)/9 = 4U^2; C13 = sum_a phi_1a phi_3a
     reaches N = 2 with 3U^2 (checked together: the sum of the two)."""
-    np.testing.assert_allclose(strengths3(oscillator3, "phi11")[1], [0, U, 0], atol=1e-12)
-    table, up_down = strengths3(oscillator3, "phi11", 1)
+    np.testing.assert_allclose(strengths3(oscillator3, "phi11", 0, states3)[1], [0, U, 0],
+                               atol=1e-12)
+    table, up_down = strengths3(oscillator3, "phi11", 1, states3)
     np.testing.assert_allclose(up_down, [U / 9, 0, 10 * U / 9], rtol=1e-9, atol=1e-12)
     assert abs(trk_sum(table) - HBAR**2 / (2 * INERTIA)) < 1e-10
     # the G quadrupole reaches (0, 2), C13 reaches (2, 0): different ranks, no interference
-    table, quadrupoles = strengths3(oscillator3, "G11 - trG/3 + C13")
+    table, quadrupoles = strengths3(oscillator3, "G11 - trG/3 + C13", 0, states3)
     np.testing.assert_allclose(quadrupoles, [0, 0, (4 + 3) * U**2], atol=1e-12)
     assert [t.allowed for t in table.transitions] == [True, False, True]  # N = 1: (1, 1) only
 
@@ -241,17 +249,62 @@ def test_n3_components_against_ladder_operators(oscillator3):
 def test_n3_spin1_channel_and_linear_combinations():
     """The dedicated spin = vorticity = 1 channel (its own coordinates) gives the same ground
     strengths: phi12 -> U, and a combination sum c_ia phi^i_a -> |c|^2 U (no interference
-    between the components after the sum over the multiplet). Operators not linear in the
-    components are refused for n = 3."""
+    between the components after the sum over the multiplet). Expressions that are not
+    polynomials in the components (infinite SO(3) ranks) are refused for n = 3."""
     s = sp.solve("dalembert", 3, ExpressionPotential(f"0.5*{K}*trG", 3), HBAR, inertia=INERTIA,
                  levels=12, sectors="scalar+spin1",
                  settings=sp.Settings(basis_size=5, check_shrink=2))
     assert [lv.multiplicity for lv in s.levels] == [1, 9, 10]
     np.testing.assert_allclose(strengths3(s, "phi11 - 2*phi33 + phi21")[1], [0, 6 * U, 0],
                                atol=1e-12)
-    for text in ("phi11*phi22", "exp(G12)", "trG*phi11"):
-        with pytest.raises(ValueError, match="linearly with constant coefficients"):
+    for text in ("exp(G12)", "abs(phi11)", "sqrt(1 + C11**2)"):
+        with pytest.raises(ValueError, match="its SO.3. ranks do not terminate"):
             Operator(text, 3)
+
+
+def test_n3_quadratic_operators_against_ladder_operators(oscillator3, states3):
+    """Products of components (the general expansion in Wigner D functions): phi11 phi22 = U
+    (a + a^+)(b + b^+) has no ground expectation and reaches N = 2 with U^2; inside N = 1 it
+    is U (a^+ b + b^+ a): two elements U over the 9 states, 2U^2/9; phi11^2 has <0|.|0> = U
+    and reaches N = 2 with 2U^2. A coefficient that is any function of the invariants:
+    exp(-a trG) phi11 phi22 from the Gaussian ground state factorises over the nine modes,
+    <1|x e^{-a x^2}|0> = s^3/U and <0|e^{-a x^2}|0> = (1 + 2aU)^{-1/2}, s^2 = U/(1 + 2aU)."""
+    np.testing.assert_allclose(strengths3(oscillator3, "phi11*phi22", 0, states3)[1], [0, 0, U**2],
+                               atol=1e-12)
+    np.testing.assert_allclose(strengths3(oscillator3, "phi11*phi22", 1, states3)[1],
+                               [0, 2 * U**2 / 9, 0], atol=1e-12)
+    np.testing.assert_allclose(strengths3(oscillator3, "phi11**2", 0, states3)[1],
+                               [U**2, 0, 2 * U**2], atol=1e-12)
+    a = 0.1  # a Gaussian factor: the chamber quadrature of the states resolves it to ~1e-8
+    s3 = (U / (1 + 2 * a * U)) ** 1.5
+    element = (s3 / U) ** 2 * (1 + 2 * a * U) ** -3.5
+    table, got = strengths3(oscillator3, f"exp(-{a}*trG)*phi11*phi22", 0, states3)
+    np.testing.assert_allclose(got, [0, 0, element**2], rtol=1e-7, atol=1e-14)
+    assert "(1, 1)" in table.selection_rule and "(2, 2)" in table.selection_rule
+
+
+def test_n3_products_by_completeness_and_hermiticity(oscillator3, states3):
+    """The element matrices of a product are the products of the factors' matrices summed over
+    the intermediate levels (completeness; for the oscillator phi22 |N = 0> lies in N = 1, so
+    the sum over the levels computed is exact), in the multiplet bases of level_matrix: the
+    rank (1, 1) x (1, 1) coupling against the rank-2 expansion of the product. A Hermitian
+    operator has a Hermitian matrix; elements forbidden by the ranks or by the parity
+    phi -> -phi vanish to round-off."""
+    A, B = Operator("phi11", 3), Operator("phi22 + 0.5*C12", 3)
+    product = Operator("phi11*phi22 + 0.5*phi11*C12", 3)
+    B0 = [level_matrix(oscillator3, B, 0, k, states3) for k in range(3)]
+    for f in (0, 2):
+        direct = level_matrix(oscillator3, product, 0, f, states3)
+        summed = sum(level_matrix(oscillator3, A, k, f, states3) @ B0[k] for k in range(3))
+        assert np.abs(direct - summed).max() < 1e-11
+        assert np.abs(direct).max() > 0.1 * U or f == 0  # phi11 phi22 reaches N = 2
+    mixed = Operator("exp(-trG)*phi12*phi21 + q1*G11 - det*C23", 3)
+    for i, f in ((0, 2), (1, 2)):
+        M = level_matrix(oscillator3, mixed, i, f, states3)
+        T = level_matrix(oscillator3, mixed, f, i, states3)
+        assert np.abs(M - T.T).max() < 1e-12 * max(1.0, np.abs(M).max())
+    odd = level_matrix(oscillator3, Operator("phi11*G22", 3), 0, 0, states3)  # degree 3 in phi
+    assert np.abs(odd).max() < 1e-14
 
 
 CONFIG = f"""
@@ -292,5 +345,6 @@ def test_cli_transitions_json_and_errors(tmp_path):
         assert needle in bad.output and len(bad.output.strip().splitlines()) == 1
     n3 = tmp_path / "n3.toml"  # refused before any solving
     n3.write_text(CONFIG.replace("n = 2", "n = 3"))
-    bad = CliRunner().invoke(transitions_command, [str(n3), "--operator", "G12 * trG"])
-    assert bad.exit_code == 1 and "linearly with constant coefficients" in bad.output
+    bad = CliRunner().invoke(transitions_command, [str(n3), "--operator", "exp(G12) * trG"])
+    assert bad.exit_code == 1 and "ranks do not terminate" in bad.output
+    assert len(bad.output.strip().splitlines()) == 1

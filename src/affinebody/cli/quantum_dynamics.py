@@ -3,7 +3,8 @@ of a quantum affine body and the time evolution of a wave packet (docs/quantum-t
 
 ``affinebody transitions CONFIG.toml --operator EXPR [--levels K] [--from I] [--json]``: the
 reduced strengths B(I -> F) = (1/d_I) sum |<f|O|i>|^2 of the operator EXPR (in q1..qn, Q1..Qn,
-trG, K1..Kn, det, and the components phi11.., G11.., C11..; n = 3 linearly) from level I
+trG, K1..Kn, det, and the components phi11.., G11.., C11..; n = 3 a polynomial of degree <= 4
+in the components with coefficients in the invariants) from level I
 (default 0; levels numbered as the ``states`` of ``affinebody spectrum --json``, the converged
 levels ascending) to each of the levels computed; with --json one object
 ``{"transitions": [{"initial", "final", "E_initial", "E_final", "strength", "sector_final",

@@ -18,8 +18,14 @@ Layers, bottom to top (no module imports one above it; only core and kinematics 
 - :mod:`.thermal`      partition functions and the classical limit.
 - :mod:`.spectra`      :func:`~.spectra.solve`, dispatching to n2 / n3 / channels3.
 - :mod:`.densities`    probability densities of the states.
+- :mod:`.tensor_operators3` n = 3 operators expanded in Wigner D functions of L and R
+                       (polynomials in the components of phi, G, C), Wigner D^j, the invariants
+                       of V_j (x) V_j' (x) V_l.
 - :mod:`.transitions`  matrix elements of configuration operators between levels, reduced
                        strengths, selection rules (docs/quantum-transitions.md).
+- :mod:`.orientations3`, :mod:`.green3`: n = 3 orientation densities of states,
+                       superpositions and thermal mixtures; densities of the diagonal
+                       components of G.
 - :mod:`.evolution`    exact evolution of an n = 2 wave packet: the sector (0, 0), or a Gaussian
                        in phi around a classical (phi, pi) over every sector it populates.
 - :mod:`.evolution3`   exact evolution of an n = 3 wave packet of the sector (0, 0).

@@ -16,13 +16,14 @@ sector sum is unbounded below) and ``warnings`` (af-af; n = 3 spectra that hold 
 sectors; a sector search stopped by max_spin), also printed under the table.
 ``affinebody density CONFIG.toml --state k -o DIR [--json] [--orientation]`` (or
 ``--superpose 0:1,8:0.5j`` or ``--temperature T`` instead of ``--state``: the orientation
-densities only, orientation.json / .npz / .png; n = 3: --orientation gives the state's rotation
-angles and principal-axis directions, quantum.orientations3): the exact marginal densities of
-the invariants (Q_a or q_a, det phi, Tr G) and of the orientations for the k-th state (0-based),
-each with a quadrature error estimate, written as densities.npz, densities.json and one PNG per
-density; with --json the same JSON object (arrays included) on stdout, else a table. Densities
-whose error exceeds quantum.density_tolerance x their peak are flagged (``converged: false``,
-a warning) and the command exits with status 3.
+densities only, orientation.json / .npz / .png; n = 3: rotation angles and principal-axis
+directions of the state, superposition or thermal mixture, quantum.orientations3, and with
+--g-components G11,G33 the densities of those diagonal components of G, quantum.green3): the
+exact marginal densities of the invariants (Q_a or q_a, det phi, Tr G) and of the orientations
+for the k-th state (0-based), each with a quadrature error estimate, written as densities.npz,
+densities.json and one PNG per density; with --json the same JSON object (arrays included) on
+stdout, else a table. Densities whose error exceeds quantum.density_tolerance x their peak are
+flagged (``converged: false``, a warning) and the command exits with status 3.
 """
 
 from __future__ import annotations
@@ -141,12 +142,16 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
               help="also the densities of the orientations of L, R (n = 2: their angles and "
                    "G11, G22, G12; n = 3: rotation angles and principal-axis directions)")
 @click.option("--superpose", default=None,
-              help="orientation densities of a superposition, e.g. 0:1,8:0.5j (n = 2)")
+              help="orientation densities of a superposition, e.g. 0:1,8:0.5j")
 @click.option("--temperature", type=float, default=None,
               help="orientation densities of the thermal mixture at T (k_B = 1)")
+@click.option("--g-components", "g_components", default=None,
+              help="n = 3: also the densities of these diagonal components of G, e.g. G11,G33 "
+                   "(about a second per point each)")
 @one_line_errors
 def density(config: str, state: int | None, output: str, as_json: bool, orientation: bool,
-            superpose: str | None, temperature: float | None) -> None:
+            superpose: str | None, temperature: float | None,
+            g_components: str | None) -> None:
     """Exact marginal densities of q (or Q), det phi, Tr G and orientations for one state;
     with --orientation, --superpose or --temperature the densities of the orientations of the
     principal axes of C and G and of the components of G (orientation.json, .npz, .png)."""
@@ -160,6 +165,10 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
 
     if sum(v is not None for v in (state, superpose, temperature)) != 1:
         raise ValueError("give exactly one of --state, --superpose and --temperature")
+    green = () if g_components is None else tuple(
+        name.strip() for name in g_components.split(",") if name.strip())
+    if green and state is not None and not orientation:
+        raise ValueError("--g-components needs --orientation, --superpose or --temperature")
     if superpose is not None or temperature is not None:
         superposition = None if superpose is None else parse_superposition(superpose)
         if superposition is not None and min(superposition) < 0:
@@ -168,7 +177,8 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
         qc = qconfig.load(config).quantum
         result, _ = solve_config(config, None if superposition is None else max(superposition) + 1)
         payload = write_orientation(result, output, superposition=superposition,
-                                    temperature=temperature, points=qc.density_points)
+                                    temperature=temperature, points=qc.density_points,
+                                    green=green)
         click.echo(json.dumps(payload) if as_json else
                    f"wrote {output}/orientation.json, orientation.npz, orientation.png "
                    f"({payload['kind']})")
@@ -182,7 +192,8 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
     qc = qconfig.load(config).quantum
     result, _ = solve_config(config, state + 1)
     if orientation:
-        extra = write_orientation(result, output, state=state, points=qc.density_points)
+        extra = write_orientation(result, output, state=state, points=qc.density_points,
+                                  green=green)
         for text in extra["warnings"]:
             click.echo(f"warning: {text}", err=True)
     payload = write_densities(result, state, output, qc.density_points, qc.density_tolerance)

@@ -888,24 +888,15 @@ def orientation_densities(spectrum: Spectrum, state: int | None = None,
     amplitude} or the thermal mixture at ``temperature`` (exactly one of them).
 
     n = 2: the angle densities of :func:`angle_densities` (uniform for a sector state and for
-    the thermal mixture, a sum of sector states) and :func:`g_component_densities`. n = 3: a
-    multiplet summed over its states and the thermal mixture (a function of H, which commutes
-    with SO(3) x SO(3)) are invariant under L -> U L, R -> V R: L and R are Haar-distributed
-    (:func:`orientation`); a single state's densities are
-    quantum.orientations3.orientation_densities3 (not called from here: that module sits above
-    this one); superpositions and the G components are refused (ValueError)."""
+    the thermal mixture, a sum of sector states) and :func:`g_component_densities`. n = 3:
+    quantum.orientations3 (not called from here: that module sits above this one); refused
+    here (ValueError)."""
     if sum(v is not None for v in (state, superposition, temperature)) != 1:
         raise ValueError("give exactly one of a state, a superposition or a temperature")
     if spectrum.n == 3:
-        if state is not None:
-            raise ValueError("n = 3: the orientation densities of a single state are "
-                             "quantum.orientations3.orientation_densities3")
-        if superposition is not None:
-            raise ValueError("n = 3: orientation densities of superpositions are not computed "
-                             "(single states: quantum.orientations3; thermal mixtures: Haar)")
-        if not temperature > 0:
-            raise ValueError(f"the temperature must be > 0 (got {temperature})")
-        return {"kind": "thermal", "orientation": orientation(3), "G": {}, "warnings": []}
+        raise ValueError("n = 3: the orientation densities of states, superpositions and "
+                         "thermal mixtures are quantum.orientations3 (orientation_densities3, "
+                         "mixture_orientations)")
     warnings = []
     if temperature is not None:
         states, probabilities, tail = thermal_states(spectrum, temperature)

@@ -93,7 +93,7 @@ def parse_superposition(text: str) -> dict[int, complex]:
 def write_orientation(spectrum: Spectrum, directory: str | Path, state: int | None = None,
                       superposition: dict[int, complex] | None = None,
                       temperature: float | None = None, points: int | None = None,
-                      tolerance: float | None = None) -> dict:
+                      tolerance: float | None = None, green: tuple[str, ...] = ()) -> dict:
     """Write orientation.json, orientation.npz and orientation.png: the densities of the
     angles of L and R (principal axes of C and G) and of G11, G22, G12 of a state, a
     superposition or the thermal mixture (:func:`orientation_densities`); returns the JSON
@@ -107,8 +107,11 @@ def write_orientation(spectrum: Spectrum, directory: str | Path, state: int | No
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    if spectrum.n == 3 and state is not None:
-        return _write_orientation3(spectrum, directory, state)
+    if spectrum.n == 3:
+        return _write_orientation3(spectrum, directory, state, superposition, temperature,
+                                   green, min(points or 21, 51))
+    if green:
+        raise ValueError("--g-components is for n = 3 (n = 2 computes G11, G22, G12 always)")
     tolerance = G_TOLERANCE if tolerance is None else tolerance
     data = orientation_densities(spectrum, state, superposition, temperature,
                                  points=min(points or 51, 201), tolerance=tolerance)
@@ -145,28 +148,71 @@ def write_orientation(spectrum: Spectrum, directory: str | Path, state: int | No
     return _save(fig, directory / "orientation.png", directory / "orientation", arrays, payload)
 
 
-def _write_orientation3(spectrum: Spectrum, directory: Path, state: int) -> dict:
-    """n = 3, one state: the densities of :func:`orientation_densities3` (rotation angles of L
-    and R, cosines of their principal axes with the third axis) as orientation.json / .npz /
-    .png."""
+#: n = 3: the most (points x components) of G densities one request may ask for
+MAX_GREEN_WORK = 80
+
+
+def _write_orientation3(spectrum: Spectrum, directory: Path, state: int | None,
+                        superposition: dict[int, complex] | None = None,
+                        temperature: float | None = None, green: tuple[str, ...] = (),
+                        points: int = 21) -> dict:
+    """n = 3: the densities of one state (:func:`orientation_densities3`), a superposition or
+    the thermal mixture (:func:`mixture_orientations`): rotation angles of L and R, cosines of
+    their principal axes with the third axis, and the diagonal components of G listed in
+    ``green`` (quantum.green3), as orientation.json / .npz / .png."""
     import matplotlib.pyplot as plt
 
-    from affinebody.quantum.orientations3 import orientation_densities3
+    from affinebody.quantum import green3
+    from affinebody.quantum.orientations3 import (
+        mixture_orientations,
+        orientation_densities3,
+        state_mixture,
+    )
 
-    data = orientation_densities3(spectrum, state)
+    unknown = [name for name in green if name not in green3.COMPONENTS]
+    if unknown:
+        raise ValueError(f"--g-components: {', '.join(unknown)} not computed for n = 3 (the "
+                         f"diagonal components {', '.join(green3.COMPONENTS)})")
+    if len(green) * points > MAX_GREEN_WORK:
+        raise ValueError(f"--g-components: {len(green)} densities x {points} points is more "
+                         f"than the {MAX_GREEN_WORK} this command is built for (about a second "
+                         f"each): lower quantum.density_points or ask for fewer components")
+
+    if state is not None:
+        data = orientation_densities3(spectrum, state)
+    else:
+        data = mixture_orientations(spectrum, superposition, temperature)
     orient = data["orientation"]
-    payload = {"kind": "state", "state": state, "temperature": None, "superposition": None,
-               "energy": data["energy"], "sector": data["sector"], "m": data["m"],
-               "m_prime": data["m_prime"],
+    payload = {"kind": data["kind"], "state": state, "temperature": temperature,
+               "superposition": None if superposition is None else
+               {str(k): [v.real, v.imag] for k, v in superposition.items()},
                "angle_note": ("L_angle, R_angle: rotation angle omega of L and R (rad, Haar: "
                               "(1 - cos omega)/pi); L_axis1..3: cosine of the angle between "
                               "the principal axis k of C (column k of L, Q1 >= Q2 >= |Q3|) and "
-                              "the third axis, R_axis1..3 the same for G (columns of R); the "
+                              "the third axis, R_axis1..3 the same for G (columns of R); a "
                               "state is |j m> (x) |j' m'> along the third axis"),
-               "weights_L": data["weights_L"].tolist(), "weights_R": data["weights_R"].tolist(),
-               "densities": {}, "integrals": data["integrals"], "warnings": []}
+               "densities": {}, "integrals": data["integrals"], "warnings": data["warnings"]}
+    if state is not None:
+        payload.update({"energy": data["energy"], "sector": data["sector"], "m": data["m"],
+                        "m_prime": data["m_prime"], "weights_L": data["weights_L"].tolist(),
+                        "weights_R": data["weights_R"].tolist()})
     arrays = {"angle": orient["angle"], "t": orient["t"]}
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+    if green:
+        mixture, *_ = state_mixture(spectrum, state, superposition, temperature)
+        for name, m in green3.g_densities3(spectrum, mixture, points,
+                                           components=green).items():
+            arrays[f"{name}_x"], arrays[f"{name}_density"] = m.x, m.density
+            payload["densities"][name] = m.as_dict()
+            if not m.converged:
+                payload["warnings"].append(
+                    f"density of {name}: the two rules differ by {m.error:.1e}, above "
+                    f"{green3.TOLERANCE:g} x peak {np.max(np.abs(m.density)):.3g}")
+    fig, axes = plt.subplots(1, 2 + bool(green), figsize=(5 * (2 + bool(green)), 3.5))
+    for name in green:
+        m = payload["densities"][name]
+        axes[2].plot(m["x"], m["density"], label=f"{name} (error {m['error']:.1e})")
+    if green:
+        axes[2].set_xlabel("component of G")
     for key, values in orient.items():
         if key in ("angle", "t"):
             continue
@@ -181,7 +227,10 @@ def _write_orientation3(spectrum: Spectrum, directory: Path, state: int) -> dict
     for ax in axes:
         ax.set_ylabel("probability density")
         ax.legend(fontsize=7)
-    sector = data["sector"]
-    fig.suptitle(f"state {state}: (j, j') = ({sector['spin']}, {sector['vorticity']}), "
-                 f"m = {data['m']}, m' = {data['m_prime']}")
+    if state is not None:
+        sector = data["sector"]
+        fig.suptitle(f"state {state}: (j, j') = ({sector['spin']}, {sector['vorticity']}), "
+                     f"m = {data['m']}, m' = {data['m_prime']}")
+    else:
+        fig.suptitle(data["kind"] + (f", T = {temperature:g}" if temperature is not None else ""))
     return _save(fig, directory / "orientation.png", directory / "orientation", arrays, payload)

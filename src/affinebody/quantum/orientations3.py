@@ -35,13 +35,18 @@ Reported marginals (each a trigonometric polynomial, integrated exactly by the r
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 
 from affinebody.quantum import covariants3 as cov
 from affinebody.quantum.densities import state_components
-from affinebody.quantum.levels import Spectrum
+from affinebody.quantum.levels import Sector, Spectrum
+from affinebody.quantum.tensor_operators3 import wigner
 from affinebody.quantum.transitions import (
     level_components,
+    level_states,
     reduced_quadrature,
     sector_amplitudes,
 )
@@ -50,34 +55,6 @@ from affinebody.quantum.transitions import (
 POINTS = 181
 #: the state's amplitude must be normalised under the reduced quadrature to this
 NORMALISATION = 1e-8
-
-
-def wigner(j: int, rotations: np.ndarray) -> np.ndarray:
-    """D^j(L) [..., 2j + 1, 2j + 1] in the real harmonic basis of covariants3 ((D^j(L) p)(u) =
-    p(L^T u)) for rotation matrices L [..., 3, 3]: D^j(exp(sum_g a_g K_g)) = exp(sum_g a_g
-    K^j_g) with K_g the generators of covariants3.rotation_generators (the defining ones for
-    j = 1, where D^1(L) = L) and a_g read off the axis-angle form of L."""
-    rotations = np.asarray(rotations, float)
-    flat = rotations.reshape(-1, 3, 3)
-    # the axis-angle vector from the antisymmetric part (and, near omega = pi, from L + L^T)
-    vee = np.stack([flat[:, 2, 1] - flat[:, 1, 2], flat[:, 0, 2] - flat[:, 2, 0],
-                    flat[:, 1, 0] - flat[:, 0, 1]], -1)
-    c = (np.trace(flat, axis1=1, axis2=2) - 1) / 2
-    s = np.linalg.norm(vee, axis=-1) / 2
-    angle = np.arctan2(s, c)
-    small = s < 1e-6
-    axis = vee / np.where(small, 1.0, 2 * s)[:, None]
-    if np.any(small & (c < 0)):  # omega near pi: n n^T = ((L + L^T)/2 - c)/(1 - c) exactly
-        for i in np.flatnonzero(small & (c < 0)):
-            sym = ((flat[i] + flat[i].T) / 2 - c[i] * np.eye(3)) / (1 - c[i])
-            k = int(np.argmax(np.diag(sym)))
-            n = sym[:, k] / np.sqrt(sym[k, k])
-            axis[i] = n if n @ vee[i] >= 0 else -n
-    rotvec = np.where((small & (c > 0))[:, None], vee / 2, axis * angle[:, None])
-    # K_01 = [e_3]_x, K_02 = -[e_2]_x, K_12 = [e_1]_x (covariants3 pairs (0,1), (0,2), (1,2))
-    a = np.stack([rotvec[:, 2], -rotvec[:, 1], rotvec[:, 0]], -1)
-    out = cov.expm_antisymmetric(np.einsum("pg,gab->pab", a, cov.rotation_generators(j)))
-    return out.reshape(*rotations.shape[:-2], 2 * j + 1, 2 * j + 1)
 
 
 def magnetic_states(j: int) -> np.ndarray:
@@ -155,8 +132,9 @@ def _integral(density, lo: float, hi: float) -> float:
 
 def multiplet_of_state(spectrum: Spectrum, state: int):
     """(level, sector, F [P, 2j + 1, 2j' + 1] at the reduced nodes, weights [P], first state
-    index of the multiplet) of the multiplet holding the ``state``-th entry of
-    :meth:`Spectrum.energies` (n = 3); its states are first, ..., first + dimension - 1."""
+    index of the multiplet, F as a callable of reduced coordinates [N, 3]) of the multiplet
+    holding the ``state``-th entry of :meth:`Spectrum.energies` (n = 3); its states are
+    first, ..., first + dimension - 1."""
     table = state_components(spectrum, state)
     level, sector = table[state]
     before = sum(1 for lv, sec in table[:state] if lv is level and sec == sector)
@@ -170,7 +148,13 @@ def multiplet_of_state(spectrum: Spectrum, state: int):
     if abs(norm - 1) > NORMALISATION:
         raise ValueError(f"densities: state {state} is normalised only to {abs(norm - 1):.1e} "
                          f"under the reduced quadrature (raise quantum.basis_size)")
-    return level, sector, F, w, state - before % sector.dimension
+    return (level, sector, F, w, state - before % sector.dimension,
+            _amplitude_function(component, k))
+
+
+def _amplitude_function(component, k: int):
+    """x [N, 3] -> F [N, 2j + 1, 2j' + 1] of the k-th sector of a component."""
+    return lambda x: sector_amplitudes(component, np.asarray(x, float))[k][1]
 
 
 def multiplet_orientations(spectrum: Spectrum, state: int, points: int = POINTS,
@@ -188,7 +172,7 @@ def multiplet_orientations(spectrum: Spectrum, state: int, points: int = POINTS,
         raise ValueError("multiplet_orientations is for n = 3")
     if state < 0:
         raise ValueError(f"state indices must be >= 0 (got {state})")
-    level, sector, F, w, first = multiplet_of_state(spectrum, state)
+    level, sector, F, w, first, _ = multiplet_of_state(spectrum, state)
     if not level.converged:
         raise ValueError(f"state {state} is not converged (raise quantum.basis_size)")
     j, jp = sector.spin, sector.vorticity
@@ -227,5 +211,263 @@ def orientation_densities3(spectrum: Spectrum, state: int, points: int = POINTS)
     return {"kind": "state", "G": {}, "warnings": [], **entry}
 
 
-__all__ = ["POINTS", "wigner", "magnetic_states", "rotation_angle_density", "axis_density",
+# ------------------------------------------------------- superpositions and mixtures
+@dataclass(frozen=True)
+class MultipletState:
+    """One state |j m> (x) |j' m'> of an n = 3 multiplet: psi = sqrt(d) u^H D^j(L) F(Q)
+    D^j'(R)^T conj(v) (module docstring) with F [P, 2j + 1, 2j' + 1] at the reduced nodes,
+    u = |j m>, v = |j' m'> (complex, in the harmonic bases)."""
+
+    index: int
+    sector: Sector
+    energy: float
+    F: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    #: F as a function of reduced coordinates x [N, 3] (Q, or q for the affine models)
+    amplitude: object = None
+
+
+def multiplet_state(spectrum: Spectrum, state: int) -> tuple[MultipletState, np.ndarray]:
+    """The ``state``-th state of :meth:`Spectrum.energies` (converged, n = 3) and the weights
+    of its reduced quadrature."""
+    if state < 0:
+        raise ValueError(f"state indices must be >= 0 (got {state})")
+    level, sector, F, w, first, amplitude = multiplet_of_state(spectrum, state)
+    if not level.converged:
+        raise ValueError(f"state {state} is not converged (raise quantum.basis_size)")
+    position = state - first
+    jp = sector.vorticity
+    return MultipletState(state, sector, level.energy, F,
+                          magnetic_states(sector.spin)[:, position // (2 * jp + 1)],
+                          magnetic_states(jp)[:, position % (2 * jp + 1)], amplitude), w
+
+
+def level_multiplet_states(spectrum: Spectrum, count: int | None = None
+                           ) -> tuple[list[MultipletState], np.ndarray]:
+    """Every converged state among the first ``count`` of :meth:`Spectrum.energies` (all when
+    None) as :class:`MultipletState` (one amplitude per multiplet, shared by its states), and
+    the weights of the common reduced quadrature."""
+    states = level_states(spectrum)
+    out, index = [], 0
+    by_level = {id(lv): k for k, lv in enumerate(spectrum.levels)}
+    for level in spectrum.states():
+        if count is not None and index >= count:
+            break
+        if id(level) not in by_level:  # an unconverged candidate keeps its place
+            index += level.multiplicity
+            continue
+        k = by_level[id(level)]
+        seen: dict = {}
+        for sector in level.sectors:
+            pairs = [(c, f) for c, f in zip(states.components[k], states.amplitudes[k],
+                                            strict=True) if sector in c.sectors]
+            c, f = pairs[seen.get(sector, 0)]
+            seen[sector] = seen.get(sector, 0) + 1
+            F = dict(sector_amplitudes(c, states.y, f))[sector]
+            amplitude = _amplitude_function(c, c.sectors.index(sector))
+            norm = float(states.weights @ np.sum(F * F, axis=(1, 2)))
+            if abs(norm - 1) > NORMALISATION:
+                raise ValueError(f"densities: state {index} is normalised only to "
+                                 f"{abs(norm - 1):.1e} under the reduced quadrature (raise "
+                                 f"quantum.basis_size)")
+            U, V = magnetic_states(sector.spin), magnetic_states(sector.vorticity)
+            for position in range(sector.dimension):
+                jp = sector.vorticity
+                out.append(MultipletState(index, sector, level.energy, F,
+                                          U[:, position // (2 * jp + 1)],
+                                          V[:, position % (2 * jp + 1)], amplitude))
+                index += 1
+    return (out if count is None else [s for s in out if s.index < count]), states.weights
+
+
+def side_terms(amplitudes: np.ndarray, states: list[MultipletState], weights: np.ndarray,
+               side: str, cache: dict | None = None) -> dict[tuple[int, int], np.ndarray]:
+    """The orientation density of L (``side`` "L") or of R of sum_k c_k psi_k (module
+    docstring; Schur orthogonality over the other rotation): only pairs with equal labels on
+    the other side survive,
+
+        p_L(L) = sum_kl conj(c_k) c_l sqrt(d_k d_l)/(2 j'_k + 1) (v_l^H v_k)
+                 u_k^T D^{j_k}(L) Phi_kl D^{j_l}(L)^T conj(u_l),   Phi_kl = int mu F_k F_l^T,
+
+    p_R the same with (j, u) and (j', v) exchanged and Phi_kl = int mu F_k^T F_l. Returned
+    as {(j_k, j_l): W [a, d, b, c]} with p = Re sum W[a, d, b, c] D^{j_k}_ab D^{j_l}_dc
+    (:func:`terms_density`), the pairs of each (j_k, j_l) summed. ``cache``: a dict keeping
+    the Phi_kl of the multiplets across calls (the states of a multiplet share them)."""
+    out: dict[tuple[int, int], np.ndarray] = {}
+    cache = {} if cache is None else cache
+    pairs = list(zip(amplitudes, states, strict=True))
+    for k, (ck, sk) in enumerate(pairs):
+        for cl, sl in pairs[k:]:
+            if side == "L":
+                if sk.sector.vorticity != sl.sector.vorticity:
+                    continue
+                other, overlap, x_k, x_l = sk.sector.vorticity, np.vdot(sl.v, sk.v), sk.u, sl.u
+                j_k, j_l = sk.sector.spin, sl.sector.spin
+            else:
+                if sk.sector.spin != sl.sector.spin:
+                    continue
+                other, overlap, x_k, x_l = sk.sector.spin, np.vdot(sl.u, sk.u), sk.v, sl.v
+                j_k, j_l = sk.sector.vorticity, sl.sector.vorticity
+            if abs(overlap) < 1e-14:
+                continue
+            coef = (np.conj(ck) * cl * math.sqrt(sk.sector.dimension * sl.sector.dimension)
+                    / (2 * other + 1) * overlap)
+            if sk is not sl:  # the pair (l, k) is the complex conjugate: twice the real part
+                coef = 2 * coef
+            key = (id(sk.F), id(sl.F), side)
+            if key not in cache:
+                axes = ([0, 2], [0, 2]) if side == "L" else ([0, 1], [0, 1])
+                cache[key] = (np.tensordot(weights[:, None, None] * sk.F, sl.F, axes=axes),
+                              sk.F, sl.F)  # the arrays are kept alive with their ids
+            phi = cache[key][0]
+            W = coef * np.einsum("a,d,bc->adbc", x_k, x_l.conj(), phi)
+            out[(j_k, j_l)] = out.get((j_k, j_l), 0.0) + W
+    return out
+
+
+def terms_density(terms: dict[tuple[int, int], np.ndarray], rotations: np.ndarray
+                  ) -> np.ndarray:
+    """p at rotations [..., 3, 3] from :func:`side_terms` (a real trigonometric polynomial of
+    rank <= max(j_k + j_l))."""
+    D = {}
+    out = np.zeros(rotations.shape[:-2])
+    for (j_k, j_l), W in terms.items():
+        for j in (j_k, j_l):
+            if j not in D:
+                D[j] = wigner(j, rotations)
+        out += np.einsum("...ab,...dc,adbc->...", D[j_k], D[j_l], W, optimize=True).real
+    return out
+
+
+def _rank(terms: dict) -> int:
+    return max([j_k + j_l for j_k, j_l in terms] + [0])
+
+
+def _merge(parts: list[tuple[float, dict]]) -> dict:
+    out: dict = {}
+    for p, terms in parts:
+        for key, W in terms.items():
+            out[key] = out.get(key, 0.0) + p * W
+    return out
+
+
+def angle_density_of(density, rank: int, omega: np.ndarray) -> np.ndarray:
+    """Density of the rotation angle omega of a density p on SO(3) (a callable on rotations)
+    of rank <= ``rank``: (1 - cos omega)/pi times the mean of p over the rotation axes (exact:
+    Gauss-Legendre in the axis's cos theta, trapezoid in its azimuth)."""
+    t, wt = np.polynomial.legendre.leggauss(rank + 1)
+    az = 2 * np.pi * np.arange(2 * rank + 1) / (2 * rank + 1)
+    T, A = np.meshgrid(t, az, indexing="ij")
+    st = np.sqrt(1 - T * T)
+    n = np.stack([st * np.cos(A), st * np.sin(A), T], -1).reshape(-1, 3)
+    weight = np.repeat(wt, len(az)) / (2 * len(az))
+    w = np.asarray(omega, float)[:, None, None, None]
+    K = np.zeros((len(n), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -n[:, 2], n[:, 1], -n[:, 0]
+    K = K - K.transpose(0, 2, 1)
+    rot = np.eye(3) + np.sin(w) * K + (1 - np.cos(w)) * (K @ K)  # Rodrigues [omega, n, 3, 3]
+    return (1 - np.cos(np.asarray(omega, float))) / np.pi * (density(rot) @ weight)
+
+
+def axis_density_of(density, rank: int, axis: int, t: np.ndarray) -> np.ndarray:
+    """Density of the cosine t of the column ``axis`` of a rotation distributed with p (rank
+    <= ``rank``) with the third axis: L = R_3(a) R_2(theta) R_3(chi) S_k, (1/2) x the mean of
+    p over a and chi (trapezoid rules, exact)."""
+    n = rank + 1
+    ang = 2 * np.pi * np.arange(n) / n
+    theta = np.arccos(np.clip(np.asarray(t, float), -1.0, 1.0))
+    rot = (_z_rotation(ang)[None, :, None] @ _y_rotation(theta)[:, None, None]
+           @ _z_rotation(ang)[None, None, :] @ _TO_THIRD[axis])
+    return density(rot).mean(axis=(1, 2)) / 2
+
+
+def _z_rotation(angle: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    out = np.zeros(np.shape(angle) + (3, 3))
+    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1] = c, -s, s, c
+    out[..., 2, 2] = 1.0
+    return out
+
+
+def state_mixture(spectrum: Spectrum, state: int | None = None,
+                  superposition: dict[int, complex] | None = None,
+                  temperature: float | None = None, tolerance: float = 1e-6
+                  ) -> tuple[list, np.ndarray, str, list[str]]:
+    """(mixture [(probability, amplitudes, [MultipletState])], weights of the reduced
+    quadrature, kind, warnings) of one state, a superposition {state index: amplitude} or the
+    thermal mixture exp(-E/T)/Z over the converged states computed (k_B = 1; a warning when the
+    last still has more than ``tolerance`` of the first's weight); n = 3."""
+    if spectrum.n != 3:
+        raise ValueError("n = 3 orientation densities: the spectrum is n = 2")
+    if sum(v is not None for v in (state, superposition, temperature)) != 1:
+        raise ValueError("give exactly one of a state, a superposition or a temperature")
+    warnings = []
+    if state is not None:
+        superposition, kind = {state: 1.0}, "state"
+    else:
+        kind = "superposition" if superposition is not None else "thermal"
+    if superposition is not None:
+        if not superposition:
+            raise ValueError("a superposition needs at least one state")
+        c = np.asarray([complex(v) for v in superposition.values()])
+        if not np.sum(np.abs(c) ** 2) > 0:
+            raise ValueError("a superposition needs a nonzero amplitude")
+        picked = [multiplet_state(spectrum, k) for k in superposition]
+        weights = picked[0][1]
+        if any(len(w) != len(weights) or np.any(w != weights) for _, w in picked):
+            raise ValueError("densities: the states do not share one reduced quadrature")
+        return ([(1.0, c / np.sqrt(np.sum(np.abs(c) ** 2)), [p for p, _ in picked])], weights,
+                kind, warnings)
+    if not temperature > 0:
+        raise ValueError(f"the temperature must be > 0 (got {temperature})")
+    states, weights = level_multiplet_states(spectrum)
+    E = np.array([st.energy for st in states])
+    boltzmann = np.exp(-(E - E.min()) / temperature)
+    if boltzmann[-1] / boltzmann[0] > tolerance:
+        warnings.append(f"thermal mixture truncated at the {len(states)} states computed: "
+                        f"the last has {boltzmann[-1] / boltzmann[0]:.1e} of the Boltzmann "
+                        f"weight of the first (compute more levels)")
+    mixture = [(p, np.ones(1), [st]) for p, st in zip(boltzmann / boltzmann.sum(), states,
+                                                      strict=True)]
+    return mixture, weights, kind, warnings
+
+
+def mixture_orientations(spectrum: Spectrum, superposition: dict[int, complex] | None = None,
+                         temperature: float | None = None, points: int = POINTS,
+                         tolerance: float = 1e-6) -> dict:
+    """Orientation densities (the keys of :func:`multiplet_orientations`' ``orientation`` and
+    ``integrals``) of a superposition {state index: amplitude} or of the thermal mixture
+    exp(-E/T)/Z over the converged states computed (k_B = 1), n = 3: sums of
+    :func:`terms_density` over the pure states, marginals by exact rules. A thermal mixture
+    (a function of H, which commutes with SO(3) x SO(3)) is Haar-distributed at every T; the
+    sum over the states computed shows it. ``warnings``: a thermal mixture truncated where
+    the last state computed still has more than ``tolerance`` of the first's weight."""
+    mixture, weights, kind, warnings = state_mixture(spectrum, None, superposition, temperature,
+                                                     tolerance)
+    omega = np.linspace(0.0, np.pi, points)
+    t = np.linspace(-1.0, 1.0, points)
+    orient, integrals = {"angle": omega, "t": t}, {}
+    for side in ("L", "R"):
+        cache: dict = {}
+        terms = _merge([(p, side_terms(c, sts, weights, side, cache)) for p, c, sts in mixture])
+        rank = _rank(terms)
+
+        def density(rot, terms=terms):
+            return terms_density(terms, rot)
+
+        orient[f"{side}_angle"] = angle_density_of(density, rank, omega)
+        integrals[f"{side}_angle"] = _integral(
+            lambda x, d=density, r=rank: angle_density_of(d, r, x), 0.0, np.pi)
+        for k in range(3):
+            orient[f"{side}_axis{k + 1}"] = axis_density_of(density, rank, k, t)
+            integrals[f"{side}_axis{k + 1}"] = _integral(
+                lambda x, d=density, k=k, r=rank: axis_density_of(d, r, k, x), -1.0, 1.0)
+    return {"kind": kind, "orientation": orient, "integrals": integrals, "G": {},
+            "warnings": warnings, "states": [st.index for _, _, sts in mixture for st in sts]}
+
+
+__all__ = ["POINTS", "MultipletState", "multiplet_state", "level_multiplet_states",
+           "side_terms", "terms_density", "state_mixture", "angle_density_of", "axis_density_of",
+           "mixture_orientations", "magnetic_states", "rotation_angle_density", "axis_density",
            "multiplet_of_state", "multiplet_orientations", "orientation_densities3"]

@@ -31,13 +31,14 @@ live.
 n = 3. A state of the multiplet (j, j') is psi_c = sqrt(d) c^T Psi, Psi(L diag Q R^T) =
 (D^j(L) (x) D^j'(R)) F(Q), F = Psi(diag Q) in V_j (x) V_j' (covariants3), c a unit vector,
 d = (2j + 1)(2j' + 1). An operator in the invariants is a scalar of SO(3) x SO(3) (Dj = Dj' = 0,
-the same element for each state of the multiplet). Components enter linearly with constant
-coefficients (refused otherwise): phi^i_a = sum_k L_ik Q_k R_ak (a vector on each side),
-G_ab = sum_k (R (x) R)_{ab,kk} Q_k^2 (scalar on the left, ranks 0 + 2 on the right), C_ab the
-same with L; the quadrupole parts are written G11 - trG/3, G12, ... . The angular integrals
-are exact: int D^j_{ab} D^j'_{cd} rep_{pq} = sum_t w_t[a, c, p] w_t[b, d, q] with w_t the
-invariant vectors of V_j (x) V_j' (x) rep (:func:`invariant_tensors`), and the strength summed
-over both multiplets is d_F d_I |M|^2 with M of :func:`multiplet_matrix` (a Frobenius norm:
+the same element for each state of the multiplet). An operator with components is any
+polynomial of degree <= 4 in the components of phi, G, C whose coefficients are expressions in
+the invariants (e.g. phi11*phi22, G11 - trG/3, exp(-trG)*C13); it is expanded in Wigner D
+functions of L and R by quantum.tensor_operators3 (docs/quantum-transitions.md, "n = 3: any
+expression"): radial functions r_t(Q) times constant tensors of ranks (l, l'). The angular
+integrals are exact: int D^j_{ab} D^j'_{cd} D^l_{pq} = w[a, c, p] w[b, d, q] with w the
+invariant vector of V_j (x) V_j' (x) V_l, and the strength summed over both multiplets is
+d_F d_I |M|^2 with M of :func:`multiplet_matrix` (a Frobenius norm:
 no Wigner-Eckart bookkeeping assumed).
 """
 
@@ -45,13 +46,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cache
 
 import numpy as np
 
 from affinebody._checks import require_x64
 from affinebody.expressions import compile_expression
 from affinebody.quantum import covariants3 as cov
+from affinebody.quantum import tensor_operators3 as tops
 from affinebody.quantum.densities import joint_density, measure
 from affinebody.quantum.intervals import invariant_names, invariant_values
 from affinebody.quantum.levels import Level, Sector, Settings, Spectrum
@@ -98,46 +99,16 @@ class Operator:
         expr = compile_expression(self.text, operator_names(self.n), field=self.field)
         object.__setattr__(self, "_expr", expr)
         if self.n == 3 and self.angular:
-            object.__setattr__(self, "coefficients", self._linear_coefficients())
+            object.__setattr__(self, "expansion", tops.expand(expr, expr.used, self.text,
+                                                              self.field))
 
-    def _linear_coefficients(self) -> dict[str, float]:
-        """n = 3: the constant coefficients c_v of O = s(invariants) + sum_v c_v v over the
-        components v it uses, checked at random values of every variable (an operator that is
-        not of that form is refused)."""
-        used = list(self._expr.used)
-        comps = [v for v in used if v in component_names(3)]
-        rng = np.random.default_rng(16)
-        points = [{v: rng.uniform(0.5, 2.0) for v in used} for _ in range(4)]
-
-        def value(point, **components):
-            args = {**point, **{v: 0.0 for v in comps}, **components}
-            with np.errstate(all="ignore"):
-                return float(np.asarray(self._expr(**args)))
-
-        coefficients, ok = {}, True
-        for v in comps:
-            c = [value(p, **{v: 1.0}) - value(p) for p in points]
-            ok &= bool(np.all(np.isfinite(c))) and float(np.ptp(c)) <= 1e-9 * (1 + abs(c[0]))
-            coefficients[v] = c[0]
-        for p in points if ok else ():
-            full = float(np.asarray(self._expr(**p)))
-            linear = value(p) + sum(coefficients[v] * p[v] for v in comps)
-            ok &= bool(np.isfinite(full)) and abs(full - linear) <= 1e-9 * (1 + abs(full))
-        if not ok:
-            raise ValueError(f"{self.field}: for n = 3 an operator uses the components of phi, G, "
-                             f"C linearly with constant coefficients, plus any expression in the "
-                             f"invariants (e.g. 'G11 - trG/3', 'phi12 + 2*phi21'); "
-                             f"{self.text!r} is not of that form")
-        object.__setattr__(self, "has_scalar_part", any(value(p) != 0.0 for p in points))
-        return {v: c for v, c in coefficients.items() if c != 0.0}
-
-    def scalar_part(self, Q: np.ndarray) -> np.ndarray:
-        """O with every component set to 0: the invariant part s(Q) (n = 3)."""
-        values = invariant_values(Q)
-        values.update({v: np.zeros(Q.shape[:-1]) for v in component_names(self.n)})
-        used = self._expr.used
-        out = np.asarray(self._expr(**{k: values[k] for k in used}), float)
-        return np.broadcast_to(out, Q.shape[:-1])
+    def radial(self, Q: np.ndarray) -> np.ndarray:
+        """n = 3, an operator with components: the radial functions r_t(Q) [P, terms] of its
+        expansion in Wigner D functions (quantum.tensor_operators3) at Q [P, 3]."""
+        try:
+            return self.expansion.radial(self._expr, Q)
+        except ValueError as err:
+            raise ValueError(f"{self.field}: {self.text!r} {err}") from None
 
     @property
     def angular(self) -> bool:
@@ -306,18 +277,12 @@ def selection_rule(n: int, allowed: list[tuple[int, int]], operator: Operator | 
                    ) -> str:
     """The selection rule in words."""
     if n == 3 and operator is not None and operator.angular:
-        parts = {"phi": "phi (a vector on each side): |Delta j|, |Delta j'| <= 1 with j + j_f "
-                        ">= 1 and j' + j'_f >= 1",
-                 "G": "G = R Q^2 R^T (a scalar on the left; ranks 0 and 2 on the right): "
-                      "Delta j = 0, |Delta j'| <= 2 with j' + j'_f >= 2 for the quadrupole part",
-                 "C": "C = L Q^2 L^T (ranks 0 and 2 on the left, a scalar on the right): "
-                      "Delta j' = 0, |Delta j| <= 2 with j + j_f >= 2 for the quadrupole part"}
-        used = [text for kind, text in parts.items()
-                if any(v.startswith(kind) for v in operator.coefficients)]
-        return ("n = 3, SO(3) x SO(3) tensor ranks of the components (angular integrals done "
-                "exactly by the invariant tensors of the multiplets): " + "; ".join(used)
-                + "; the invariant part connects equal (j, j') only; elements outside these "
-                "rules vanish and their final levels have strength 0")
+        ranks = ", ".join(f"({l}, {lp})" for l, lp in operator.expansion.ranks)
+        return (f"n = 3, the operator's SO(3) x SO(3) tensor ranks (l, l') (its expansion in "
+                f"Wigner D functions of L and R, angular integrals done exactly): {{{ranks}}}; "
+                f"an element <f|O|i> vanishes unless |j - j_f| <= l <= j + j_f and "
+                f"|j' - j'_f| <= l' <= j' + j'_f for one of them; final levels outside these "
+                f"rules have strength 0")
     if n == 3:
         return ("n = 3, an operator in the invariants is a scalar of SO(3) x SO(3): only "
                 "final levels holding the initial sector (Delta j = Delta j' = 0) are reached, "
@@ -387,62 +352,6 @@ def matrix_elements(spectrum: Spectrum, operator: Operator, initial: int, final:
 
 
 # ------------------------------------------------------- n = 3: operators with components
-def _defining_generators() -> np.ndarray:
-    """K_ab = E_ba - E_ab, pairs (0, 1), (0, 2), (1, 2) (covariants3.rotation_generators)."""
-    out = np.zeros((3, 3, 3))
-    for g, (a, b) in enumerate(((0, 1), (0, 2), (1, 2))):
-        out[g, b, a], out[g, a, b] = 1.0, -1.0
-    return out
-
-
-@cache
-def invariant_tensors(j: int, jp: int, rep: str) -> np.ndarray:
-    """Orthonormal SO(3)-invariant vectors w [t, 2j + 1, 2j' + 1, dim rep] of V_j (x) V_j'
-    (x) rep, so that (Haar measure of mass 1, real orthogonal representations)
-
-        int D^j_{ab}(R) D^j'_{cd}(R) rep(R)_{pq} dR = sum_t w_t[a, c, p] w_t[b, d, q]
-
-    (the projector onto the invariants); t = 0 when the triangle rule forbids (j, j', rep).
-    Found as the null space of the Casimir sum_g X_g^T X_g of the generators X_g of the
-    product (its other eigenvalues are J(J + 1) >= 2)."""
-    K = _defining_generators()
-    reps = {"scalar": np.zeros((3, 1, 1)), "vector": K,
-            "tensor": np.array([np.kron(k, np.eye(3)) + np.kron(np.eye(3), k) for k in K])}
-    parts = [cov.rotation_generators(j), cov.rotation_generators(jp), reps[rep]]
-    eyes = [np.eye(p.shape[1]) for p in parts]
-    casimir = 0.0
-    for g in range(3):
-        X = (np.kron(np.kron(parts[0][g], eyes[1]), eyes[2])
-             + np.kron(np.kron(eyes[0], parts[1][g]), eyes[2])
-             + np.kron(np.kron(eyes[0], eyes[1]), parts[2][g]))
-        casimir = casimir + X.T @ X
-    w, v = np.linalg.eigh(casimir)
-    null = v[:, w < 0.5].T
-    return null.reshape(len(null), 2 * j + 1, 2 * jp + 1, len(eyes[2]))
-
-
-def _component_terms(operator: Operator) -> list[tuple[str, str, int, list, list]]:
-    """The operator's parts as (left rep, right rep, power of Q, [(p_left, p_right, c)], inner
-    indices [(q_left(k), q_right(k)) per axis k]): phi^i_a = sum_k L_ik Q_k R_ak, G_ab =
-    sum_k (R (x) R)_{ab, kk} Q_k^2 (G = R Q^2 R^T), C_ab = sum_k (L (x) L)_{ab, kk} Q_k^2."""
-    axes = range(3)
-    inner = {"phi": [(k, k) for k in axes], "G": [(0, 4 * k) for k in axes],
-             "C": [(4 * k, 0) for k in axes]}
-    reps = {"phi": ("vector", "vector", 1), "G": ("scalar", "tensor", 2),
-            "C": ("tensor", "scalar", 2)}
-    out = []
-    for kind in ("phi", "G", "C"):
-        outer = []
-        for name, c in operator.coefficients.items():
-            if name.startswith(kind) and name[len(kind):].isdigit():
-                a, b = int(name[-2]) - 1, int(name[-1]) - 1
-                p = {"phi": (a, b), "G": (0, 3 * a + b), "C": (3 * a + b, 0)}[kind]
-                outer.append((*p, c))
-        if outer:
-            out.append((*reps[kind], outer, inner[kind]))
-    return out
-
-
 def sector_amplitudes(component: Component, y: np.ndarray, f: np.ndarray | None = None
                       ) -> list[tuple[Sector, np.ndarray]]:
     """n = 3: each sector of a component with its amplitude F [P, 2j + 1, 2j' + 1] = Psi(diag
@@ -455,58 +364,132 @@ def sector_amplitudes(component: Component, y: np.ndarray, f: np.ndarray | None 
              else F.transpose(0, 2, 1)) for s in component.sectors]
 
 
-def multiplet_matrix(operator: Operator, final: tuple[Sector, np.ndarray],
-                     initial: tuple[Sector, np.ndarray], Q: np.ndarray, weights: np.ndarray
+def weighted_radial(radial: np.ndarray, weights: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """[P, terms x r]: w r_t(Q) f_i(Q), the right factor of :func:`multiplet_moments`."""
+    return ((weights[:, None] * radial)[:, :, None] * f[:, None, :]).reshape(len(f), -1)
+
+
+def multiplet_moments(final: Component, af: np.ndarray, initial: Component,
+                      right: np.ndarray) -> dict[tuple[Sector, Sector], np.ndarray]:
+    """n = 3: the radial moments int mu r_t F_f[b, d] F_i[b', d'] [terms, b, d, b', d'] of
+    every pair of sectors of two components (``right`` = :func:`weighted_radial` of the
+    initial amplitude; computed in the M-fixed coordinates, then mapped by the frames)."""
+    ri = initial.frame.shape[1]
+    small = (af.T @ right).reshape(af.shape[1], -1, ri).transpose(1, 0, 2)  # [t, r_f, r_i]
+    full = np.einsum("bx,txy,cy->tbc", final.frame, small, initial.frame, optimize=True)
+    f0, i0 = final.sectors[0], initial.sectors[0]
+    full = full.reshape(len(full), 2 * f0.spin + 1, 2 * f0.vorticity + 1, 2 * i0.spin + 1,
+                        2 * i0.vorticity + 1)
+    out = {}
+    for sf in final.sectors:
+        for si in initial.sectors:
+            m = full
+            if (sf.spin, sf.vorticity) != (f0.spin, f0.vorticity):
+                m = m.transpose(0, 2, 1, 3, 4)
+            if (si.spin, si.vorticity) != (i0.spin, i0.vorticity):
+                m = m.transpose(0, 1, 2, 4, 3)
+            out[(sf, si)] = m
+    return out
+
+
+def multiplet_matrix(operator: Operator, final: Sector, initial: Sector, moments: np.ndarray
                      ) -> np.ndarray | None:
     """n = 3: the matrix M [d_F, d_I] with <f|O|i> = sqrt(d_F d_I) c_f^T M c_i for the states
     psi_c = sqrt(d) c^T Psi of two multiplets (c unit vectors of V_j (x) V_j'), i.e.
 
-        M = int mu dQ int dL dR (D(L) (x) D(R)) F_f (D(L) (x) D(R)) F_i)^T O(L diag Q R^T),
+        M = int mu dQ int dL dR ((D(L) (x) D(R)) F_f) ((D(L) (x) D(R)) F_i)^T O(L diag Q R^T),
 
-    done exactly in the angles by :func:`invariant_tensors` (docs/quantum-transitions.md);
-    None when no part of the operator connects the two (the selection rule)."""
-    (sf, FF), (si, FI) = final, initial
-    terms = ([("scalar", "scalar", 0, [(0, 0, 1.0)], [(0, 0)])] if operator.has_scalar_part
-             else []) + _component_terms(operator)
-    M, reached = np.zeros((sf.dimension, si.dimension)), False
-    for left, right, power, outer, inner in terms:
-        wL = invariant_tensors(sf.spin, si.spin, left)
-        wR = invariant_tensors(sf.vorticity, si.vorticity, right)
-        if not (len(wL) and len(wR)):
-            continue
-        radial = [operator.scalar_part(Q)] if power == 0 else [Q[:, k] ** power for k in range(3)]
-        A = np.zeros((len(wL), len(wR)))
-        for r, (qL, qR) in zip(radial, inner, strict=True):
-            moments = np.einsum("p,pbc,pde->bcde", weights * r, FF, FI, optimize=True)
-            A += np.einsum("bcde,tbd,sce->ts", moments, wL[..., qL], wR[..., qR], optimize=True)
-        for pL, pR, c in outer:
-            for t in range(len(wL)):
-                for u in range(len(wR)):
-                    M += c * A[t, u] * np.kron(wL[t, :, :, pL], wR[u, :, :, pR])
-        reached = True
-    return M if reached else None
+    done exactly in the angles by the operator's expansion in Wigner D functions
+    (quantum.tensor_operators3; ``moments`` from :func:`multiplet_moments`); None when no
+    rank of the operator connects the two (the selection rule)."""
+    return tops.reduced_matrix(operator.expansion, moments, (final.spin, final.vorticity),
+                               (initial.spin, initial.vorticity))
 
 
-def _strength3(operator: Operator, ci: Component, ai, cf: Component, af, Q, w
+def _strength3(operator: Operator, ci: Component, right: np.ndarray, cf: Component, af
                ) -> tuple[float, bool]:
     """n = 3, an operator with components: sum over the states of two components of
     |<f|O|i>|^2 = sum over their sector pairs of d_F d_I |M|^2 (:func:`multiplet_matrix`)."""
     total, allowed = 0.0, False
-    for si in ai:
-        for sf in af:
-            M = multiplet_matrix(operator, sf, si, Q, w)
-            if M is not None:
-                allowed = True
-                total += sf[0].dimension * si[0].dimension * float(np.sum(M * M))
+    for (sf, si), moments in multiplet_moments(cf, af, ci, right).items():
+        M = multiplet_matrix(operator, sf, si, moments)
+        if M is not None:
+            allowed = True
+            total += sf.dimension * si.dimension * float(np.sum(M * M))
     return total, allowed
 
 
-def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> TransitionTable:
+def level_matrix(spectrum: Spectrum, operator: Operator, initial: int, final: int,
+                 states: LevelStates | None = None) -> np.ndarray:
+    """n = 3: <f|O|i> [states of level ``final``, states of level ``initial``] in the states
+    psi_(a, c) = sqrt(d) ((D^j(L) (x) D^j'(R)) F)_(a, c) of each multiplet (the standard basis
+    vectors c of V_j (x) V_j', harmonic bases; multiplets in the order of the level's
+    components and their sectors): the blocks sqrt(d_F d_I) M of :func:`multiplet_matrix`
+    (an operator in the invariants: its element times the identity on equal multiplets).
+    ``states``: the spectrum's :func:`level_states`, computed here if not given."""
+    if spectrum.n != 3:
+        raise ValueError("level_matrix: n = 3 only (n = 2: matrix_elements)")
+    states = level_states(spectrum) if states is None else states
+    w, Q = states.weights, states.Q
+    angular = operator.angular
+    radial = operator.radial(Q) if angular else np.asarray(operator(Q), float)[:, None]
+    rows = []
+    for f, af in zip(states.components[final], states.amplitudes[final], strict=True):
+        row = []
+        for i, ai in zip(states.components[initial], states.amplitudes[initial], strict=True):
+            moments = multiplet_moments(f, af, i, weighted_radial(radial, w, ai))
+            blocks = []
+            for sf in f.sectors:
+                line = []
+                for si in i.sectors:
+                    if angular:
+                        M = multiplet_matrix(operator, sf, si, moments[(sf, si)])
+                    elif (sf.spin, sf.vorticity) == (si.spin, si.vorticity):
+                        mom = moments[(sf, si)][0]
+                        M = np.einsum("bdbd->", mom) / sf.dimension * np.eye(sf.dimension)
+                    else:
+                        M = None
+                    line.append(np.zeros((sf.dimension, si.dimension)) if M is None
+                                else math.sqrt(sf.dimension * si.dimension) * M)
+                blocks.append(np.hstack(line))
+            row.append(np.vstack(blocks))
+        rows.append(np.hstack(row))
+    return np.vstack(rows)
+
+
+@dataclass(frozen=True)
+class LevelStates:
+    """Every converged level's components (:func:`level_components`) and their reduced
+    amplitudes at one reduced quadrature (nodes ``y``, ``weights`` with the measure, signed
+    singular values ``Q``): what every table of one spectrum shares (:func:`level_states`)."""
+
+    components: list
+    y: np.ndarray
+    weights: np.ndarray
+    Q: np.ndarray
+    amplitudes: list
+
+
+def level_states(spectrum: Spectrum) -> LevelStates:
+    """The :class:`LevelStates` of ``spectrum`` (pass it to :func:`transitions` and
+    :func:`level_matrix` to reuse it across operators)."""
+    if not spectrum.levels:
+        raise ValueError("transitions: no level of the spectrum converged (raise "
+                         "quantum.basis_size, or loosen quantum.tolerance)")
+    components = [level_components(spectrum, lv) for lv in spectrum.levels]
+    y, w = reduced_quadrature([c for cs in components for c in cs])
+    Q = invariants_at(components[0][0].joint.model, y)
+    return LevelStates(components, y, w, Q,
+                       [[amplitudes(c, y) for c in cs] for cs in components])
+
+
+def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0,
+                states: LevelStates | None = None) -> TransitionTable:
     """Reduced strengths B(I -> F) of ``operator`` from the level ``initial`` (0: the ground
     level) to every level F, F = I included (module docstring). Levels are indexed as
     ``spectrum.levels``: the converged levels in ascending order, the ``states`` list of
     ``affinebody spectrum --json`` (an unconverged candidate is neither an initial nor a final
-    level)."""
+    level). ``states``: the spectrum's :func:`level_states`, computed here if not given."""
     if operator.n != spectrum.n:
         raise ValueError(f"--operator is for n = {operator.n}, the spectrum is n = {spectrum.n}")
     levels = spectrum.levels
@@ -519,16 +502,12 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> Tra
     if not 0 <= initial < len(levels):
         raise ValueError(f"--from {initial} is not a level: the spectrum has levels 0.."
                          f"{len(levels) - 1}")
-    components = [level_components(spectrum, lv) for lv in levels]
-    y, w = reduced_quadrature([c for cs in components for c in cs])
-    model = components[initial][0].joint.model
-    Q = invariants_at(model, y)
-    amps = [[amplitudes(c, y) for c in cs] for cs in components]
+    states = level_states(spectrum) if states is None else states
+    components, w, Q, amps = states.components, states.weights, states.Q, states.amplitudes
     if spectrum.n == 3 and operator.angular:
         H = {}
-        sector_amps = {id(c): sector_amplitudes(c, y, a) for cs, As in zip(components, amps,
-                                                                           strict=True)
-                       for c, a in zip(cs, As, strict=True)}
+        radial = operator.radial(Q)
+        rights = [weighted_radial(radial, w, a) for a in amps[initial]]
     else:
         H = harmonics(operator, Q)
     start = components[initial]
@@ -550,11 +529,10 @@ def transitions(spectrum: Spectrum, operator: Operator, initial: int = 0) -> Tra
     out = []
     for k, lv in enumerate(levels):
         total, allowed = 0.0, False
-        for ci, ai in zip(start, amps[initial], strict=True):
+        for n_i, (ci, ai) in enumerate(zip(start, amps[initial], strict=True)):
             for cf, af in zip(components[k], amps[k], strict=True):
                 if spectrum.n == 3 and operator.angular:
-                    t, a = _strength3(operator, ci, sector_amps[id(ci)], cf, sector_amps[id(cf)],
-                                      Q, w)
+                    t, a = _strength3(operator, ci, rights[n_i], cf, af)
                     total, allowed = total + t, allowed or a
                     continue
                 if spectrum.n == 3:
@@ -591,6 +569,7 @@ def trk_sum(table: TransitionTable) -> float:
 
 __all__ = ["ANGLES", "MAX_HARMONIC", "MAX_STATES", "component_names", "operator_names",
            "Operator", "Component", "level_components", "invariants_at", "reduced_quadrature",
-           "amplitudes", "harmonics", "selection_rule", "angular_frame", "invariant_tensors",
-           "sector_amplitudes", "multiplet_matrix", "Transition", "TransitionTable",
+           "amplitudes", "harmonics", "selection_rule", "angular_frame",
+           "LevelStates", "level_states", "sector_amplitudes", "weighted_radial",
+           "multiplet_moments", "multiplet_matrix", "level_matrix", "Transition", "TransitionTable",
            "matrix_elements", "transitions", "trk_sum"]
