@@ -197,7 +197,8 @@ def test_affine_matrix_packet_energy_and_rate():
     phi0, pi0 = np.array([[1.9, 0.3], [-0.3, 1.8]]), np.array([[0.1, 0.3], [-0.2, 0.1]])
     hbar, w, h = 0.5, 0.3, 1e-3
     ev = evolve_matrix_packet(V, hbar, 1.0,
-                              Settings(basis_size=14, scale=0.4, scale_sigma=0.3, centre=1.0),
+                              Settings(basis_size=14, scale=0.4, scale_sigma=0.3, centre=1.0,
+                                       check_widen=1.0),  # no widened check: faster
                               MatrixPacket(phi0.tolist(), pi0.tolist(), w),
                               np.array([0.0, h, 2 * h, 2.0]), model="af-is", I=1.0, A=0.2,
                               B=0.1)

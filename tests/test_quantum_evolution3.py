@@ -269,7 +269,7 @@ def test_affine_packet_energy_and_conservation():
     X0, p0 = np.array([0.3, 0.0, -0.3]), np.array([0.0, 0.2, 0.0])
     sector = scalar_sector3("af-is", V, hbar, I=1.0, A=0.2, B=0.1,
                             settings=Settings(basis_size=14, check_shrink=2, scale=0.35,
-                                              scale_sigma=0.35, centre=0.0))
+                                              scale_sigma=0.35, centre=0.0, check_widen=1.0))
     ev = evolve3(sector, X0, p0, w, np.linspace(0.0, 3.0, 7), hbar)
     assert ev.captured > 1 - 1e-6
     assert np.ptp(ev.norm) < 1e-13 and np.ptp(ev.energy) < 1e-13 * ev.energy[0]
