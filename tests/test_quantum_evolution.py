@@ -170,6 +170,62 @@ def test_matrix_packet_with_angular_momentum():
     assert abs(trG[3] - trG[0]) > 0.01  # it moves
 
 
+def test_affine_matrix_packet_energy_and_rate():
+    """af-is (I = 1, A = 0.2, B = 0.1), a Gaussian in phi times det phi around a classical
+    (phi0, pi0) with spin and vorticity (230 blocks of sectors (s, k)): the energy and
+    d<trG>/dt at t = 0 equal their exact values, computed apart from the spectra by
+    Gauss-Hermite quadrature of the 4D Gaussian with the classical kinetic energy of
+    affinebody.kinetic (H_kin(phi, pi), pi^T = the packet's momentum in phi's index
+    placement, docs/theory/conventions.md):
+
+        <H> = E[H_kin(phi, pi0^T) + V + hbar^2 H_kin(phi, xi^T)], xi = grad log(amplitude)
+              = -(phi - phi0)/(2 w^2) + phi^-T,
+        d<trG>/dt = E[2 tr(phi^T dphi/dt(phi, pi0^T))]
+
+    (the quadratic form of -hbar^2/2 Laplace-Beltrami on psi = A e^{i pi0.phi/hbar}, and
+    d<F>/dt = <A^2 g^-1(dF, dS)>). A block given the wrong sectors would have the wrong
+    centrifugal and rotational terms, and the energy would miss. The smallest singular value
+    is 6 widths from det phi = 0, so the Gaussian's part outside GL+(2) is ~1e-9."""
+    import jax.numpy as jnp
+
+    from affinebody.kinetic import AffineIsotropic
+
+    def V(Q):
+        det, trG = Q[..., 0] * Q[..., 1], np.sum(Q * Q, -1)
+        return 0.5 * (det - 3.5) ** 2 + 0.25 * (trG - 7.3) ** 2
+
+    phi0, pi0 = np.array([[1.9, 0.3], [-0.3, 1.8]]), np.array([[0.1, 0.3], [-0.2, 0.1]])
+    hbar, w, h = 0.5, 0.3, 1e-3
+    ev = evolve_matrix_packet(V, hbar, 1.0,
+                              Settings(basis_size=14, scale=0.4, scale_sigma=0.3, centre=1.0,
+                                       check_widen=1.0),  # no widened check: faster
+                              MatrixPacket(phi0.tolist(), pi0.tolist(), w),
+                              np.array([0.0, h, 2 * h, 2.0]), model="af-is", I=1.0, A=0.2,
+                              B=0.1)
+    assert len(ev.coefficients) > 100 * 196  # hundreds of sectors
+    assert np.ptp(ev.norm) < 1e-14 and np.ptp(ev.energy) < 1e-13 * ev.energy[0]
+    x, wx = np.polynomial.hermite_e.hermegauss(6)  # exact for degree <= 11 per component
+    grid = np.stack(np.meshgrid(x, x, x, x, indexing="ij"), -1).reshape(-1, 2, 2)
+    weight = np.prod(np.stack(np.meshgrid(wx, wx, wx, wx, indexing="ij"), -1).reshape(-1, 4),
+                     -1) / np.sum(wx) ** 4
+    phi = phi0 + w * grid
+    kinetic = AffineIsotropic(I=1.0, A=0.2, B=0.1)
+    pi = jnp.asarray(np.broadcast_to(pi0.T, phi.shape))
+    xi = -(phi - phi0) / (2 * w * w) + np.linalg.inv(phi).transpose(0, 2, 1)
+    energy = np.sum(weight * (np.asarray(kinetic.hamiltonian(jnp.asarray(phi), pi))
+                              + V(np.linalg.svd(phi, compute_uv=False))
+                              + hbar**2 * np.asarray(kinetic.hamiltonian(
+                                  jnp.asarray(phi), jnp.asarray(xi.transpose(0, 2, 1))))))
+    velocity = np.asarray(kinetic.inverse_legendre(jnp.asarray(phi), pi))
+    rate = np.sum(weight * 2 * np.einsum("pij,pij->p", phi, velocity))
+    assert abs(ev.energy[0] - energy) < 1e-4 * energy  # measured 3.6e-6 relative
+    trG = ev.mean["trG"]
+    assert abs((-3 * trG[0] + 4 * trG[1] - trG[2]) / (2 * h) - rate) < 1e-3 * abs(rate)
+    assert abs(trG[0] - (np.sum(phi0**2) + 4 * w * w)) < 1e-4
+    assert abs(ev.mean["det"][0] - np.linalg.det(phi0)) < 1e-4
+    assert abs(trG[3] - trG[0]) > 0.1  # it moves
+
+
 CONFIG = f"""
 [system]
 n = 2
@@ -211,6 +267,16 @@ def test_cli_evolve_json_and_errors(tmp_path):
     assert spin.exit_code == 0, spin.output
     data = json.loads(spin.output)
     assert np.ptp(data["norm"]) < 1e-13 and np.ptp(data["energy"]) < 1e-13
+    crowded = tmp_path / "crowded.toml"  # a given scale: no variational search before
+    crowded.write_text(small.read_text() + "scale = 1.0\n")
+    fast = CliRunner().invoke(evolve_command, [str(crowded), "--phi", "1,0,0,0.5", "--pi",
+                                               "0,20,-20,0", "--time", "1", "--steps", "2"])
+    assert fast.exit_code == 1 and "blocks of sectors (more than 400)" in fast.output
+    affine = tmp_path / "affine.toml"
+    affine.write_text(CONFIG.replace('kinetic = "dalembert"\ninertia = 1.0',
+                                     'kinetic = "af-is"\nI = 1.0\nA = 0.2'))
+    flipped = CliRunner().invoke(evolve_command, [str(affine), "--phi", "1,0,0,-1"])
+    assert flipped.exit_code == 1 and "needs det phi > 0" in flipped.output
     (tmp_path / "big.toml").write_text(CONFIG.replace("basis_size = 24", "basis_size = 80"))
     bad = CliRunner().invoke(evolve_command, [str(tmp_path / "big.toml"), *args[1:]])
     assert bad.exit_code == 1 and "more than evolve solves" in bad.output

@@ -11,13 +11,16 @@ levels ascending) to each of the levels computed; with --json one object
 "sector_initial", "allowed"}, ...], "operator", "selection_rule", "energy_weighted_sum", ...}``.
 
 ``affinebody evolve CONFIG.toml --at X1,X2 [--momentum P1,P2] [--width W] [--time T]
-[--steps N] [--json] [--plot FILE.png]`` (n = 2): a Gaussian packet of the sector spin =
-vorticity = 0 centred at X (the signed singular values Q for d'Alembert, q = ln Q for the
-affine models) with mean momentum P conjugate to X, propagated exactly by its expansion in
+[--steps N] [--json] [--plot FILE.png]`` (n = 2; n = 3 with --at X1,X2,X3 and --momentum
+P1,P2,P3, quantum.evolution3): a Gaussian packet of the sector spin = vorticity = 0 centred
+at X (the signed singular values Q for d'Alembert, q = ln Q for the affine models; n = 3 the
+Gaussian symmetrised over the Weyl group) with mean momentum P conjugate to X, propagated
+exactly by its expansion in
 eigenstates; prints the means and spreads of the invariants, the survival probability
 |<psi(0)|psi(t)>|^2, the norm and the energy at N + 1 times in [0, T]. Instead of --at,
-``--phi A11,A12,A21,A22 [--pi P11,P12,P21,P22]`` (d'Alembert): a Gaussian in phi around a
-classical (phi, pi) with any spin and vorticity, a superposition of every sector it populates.
+``--phi A11,A12,A21,A22 [--pi P11,P12,P21,P22]`` (every model; the affine ones on GL+(2), the
+Gaussian times det phi): a Gaussian in phi around a classical (phi, pi) with any spin and
+vorticity, a superposition of every sector it populates.
 """
 
 from __future__ import annotations
@@ -33,15 +36,17 @@ from affinebody._checks import enable_x64
 from affinebody.cli.common import one_line_errors
 
 
-def _pair(text: str, flag: str) -> tuple[float, float]:
+def _numbers(text: str, flag: str, count: int) -> tuple[float, ...]:
+    """``count`` finite numbers separated by commas, or a one-line error naming ``flag``."""
+    word = {2: "two", 3: "three"}[count]
     try:
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
-        raise ValueError(f"{flag} takes two numbers separated by a comma (got "
-                               f"{text!r})") from None
-    if len(values) != 2 or not all(math.isfinite(v) for v in values):
-        raise ValueError(f"{flag} takes two finite numbers separated by a comma (got "
-                               f"{text!r})")
+        raise ValueError(f"{flag} takes {word} numbers separated by commas (got "
+                         f"{text!r})") from None
+    if len(values) != count or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{flag} takes {word} finite numbers separated by commas (got "
+                         f"{text!r})")
     return values
 
 
@@ -116,11 +121,14 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
 @click.command("evolve")
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
 @click.option("--at", "centre", default=None,
-              help="packet centre X1,X2: Q1,Q2 (d'Alembert) or q1,q2 (affine models)")
+              help="packet centre X1,X2 (n = 3: X1,X2,X3): Q (d'Alembert) or q = ln Q (affine "
+                   "models), a packet of the sector (0, 0)")
 @click.option("--phi", "phi", default=None,
-              help="d'Alembert: a packet around the matrix phi = A11,A12,A21,A22 (instead of --at)")
+              help="a packet around the matrix phi = A11,A12,A21,A22, every sector it populates "
+                   "(instead of --at)")
 @click.option("--pi", "pi", default="0,0,0,0", help="with --phi: mean momentum P11,P12,P21,P22")
-@click.option("--momentum", "momentum", default="0,0", help="mean momentum P1,P2 conjugate to X")
+@click.option("--momentum", "momentum", default=None,
+              help="mean momentum P1,P2 (n = 3: P1,P2,P3) conjugate to X (default 0)")
 @click.option("--width", "width", type=float, default=None,
               help="standard deviation of the packet's probability density in each variable "
                    "(default sqrt(hbar/2))")
@@ -130,10 +138,10 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
 @click.option("--plot", "plot", type=click.Path(dir_okay=False), default=None,
               help="write a PNG of the means, spreads and survival probability")
 @one_line_errors
-def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: str,
+def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: str | None,
            width: float | None, duration: float, steps: int, as_json: bool,
            plot: str | None) -> None:
-    """Time evolution of a wave packet of the body of CONFIG (n = 2)."""
+    """Time evolution of a wave packet of the body of CONFIG (n = 2, 3)."""
     enable_x64()
     from contextlib import nullcontext
 
@@ -141,42 +149,60 @@ def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: 
     from affinebody.quantum import evolution as ev
 
     cfg = qconfig.load(config)
-    if cfg.system.n != 2:
-        raise ValueError(f"evolve is for n = 2 (got system.n = {cfg.system.n})")
+    n = cfg.system.n
     if (centre is None) == (phi is None):
         raise ValueError("evolve: give the packet's centre by exactly one of --at X1,X2 (sector "
                          "(0, 0)) and --phi A11,A12,A21,A22")
     if phi is not None:
+        if n != 2:
+            raise ValueError(f"evolve --phi is for n = 2 (got system.n = {n}); for n = 3 give "
+                             f"--at Q1,Q2,Q3 (a packet of the sector (0, 0))")
         return _evolve_matrix(cfg, phi, pi, width, duration, steps, as_json, plot)
-    X0, P0 = _pair(centre, "--at"), _pair(momentum, "--momentum")
+    X0 = _numbers(centre, "--at", n)
+    P0 = _numbers(",".join(["0"] * n) if momentum is None else momentum, "--momentum", n)
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"--time must be > 0 (got {duration})")
     if not 1 <= steps <= ev.MAX_STEPS:
         raise ValueError(f"--steps must be between 1 and {ev.MAX_STEPS} (got {steps})")
     kwargs = qconfig.solver_arguments(cfg)
-    hbar, settings = kwargs["hbar"], kwargs["settings"]
-    ev.check_work(settings.basis_size, steps + 1)
-    packet = ev.Packet(X0, P0, math.sqrt(hbar / 2) if width is None else width)
-    ev.check_packet(kwargs["model"], packet)
+    model, hbar, settings = kwargs["model"], kwargs["hbar"], kwargs["settings"]
+    constants = dict(inertia=kwargs.get("inertia", 1.0), I=kwargs.get("I", 1.0),
+                     A=kwargs.get("A", 0.0), B=kwargs.get("B", 0.0))
+    w = math.sqrt(hbar / 2) if width is None else width
+    times = np.linspace(0.0, duration, steps + 1)
+    if n == 2:
+        ev.check_work(settings.basis_size, steps + 1)
+        packet = ev.Packet(X0, P0, w)
+        ev.check_packet(model, packet)
+        functions = settings.basis_size**2
+    else:
+        from affinebody.quantum import evolution3 as ev3
+
+        ev3.check_degree(model, settings.basis_size, steps + 1)
+        ev3.check_packet3(model, X0, w)
+        functions = ev3.sector_states(model, settings.basis_size)
     status = nullcontext(None)
     if sys.stderr.isatty():
         from rich.console import Console
 
         status = Console(stderr=True).status(
-            f"solving the sector (0, 0) with {settings.basis_size ** 2} functions ...")
+            f"solving the sector (0, 0) with {functions} functions ...")
     with status:
-        spectrum = ev.sector_spectrum(
-            kwargs["model"], kwargs["potential"], hbar, inertia=kwargs.get("inertia", 1.0),
-            I=kwargs.get("I", 1.0), A=kwargs.get("A", 0.0), B=kwargs.get("B", 0.0),
-            settings=settings)
-    times = np.linspace(0.0, duration, steps + 1)
-    result = ev.evolve(spectrum, packet, times, hbar)
+        if n == 2:
+            spectrum = ev.sector_spectrum(model, kwargs["potential"], hbar, settings=settings,
+                                          **constants)
+            result = ev.evolve(spectrum, packet, times, hbar)
+        else:
+            reach = float(np.linalg.norm(X0)) + 10 * w if model == "dalembert" else 0.0
+            sector = ev3.scalar_sector3(model, kwargs["potential"], hbar, settings=settings,
+                                        reach=reach, **constants)
+            result = ev3.evolve3(sector, X0, P0, w, times, hbar)
     if plot is not None:
-        _plot(result, plot, kwargs["model"])
+        _plot(result, plot, model)
     if as_json:
         payload = result.as_dict()
-        payload.update(model=spectrum.model, n=2, sector={"spin": 0, "vorticity": 0},
-                       hbar=hbar, centre=list(X0), momentum=list(P0), width=packet.width,
+        payload.update(model=model, n=n, sector={"spin": 0, "vorticity": 0},
+                       hbar=hbar, centre=list(X0), momentum=list(P0), width=w,
                        lines=ev.spectrum_lines(result))
         click.echo(json.dumps(payload))
         return
@@ -184,8 +210,8 @@ def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: 
     from rich.table import Table
 
     names = list(result.mean)
-    table = Table(title=f"packet at {X0}, momentum {P0}, width {packet.width:.4g} "
-                        f"({spectrum.model}, hbar = {hbar}, {len(result.energies)} states, "
+    table = Table(title=f"packet at {X0}, momentum {P0}, width {w:.4g} "
+                        f"({model}, n = {n}, hbar = {hbar}, {len(result.energies)} states, "
                         f"captured {result.captured:.10f})")
     for col in ["t", *(f"<{k}> +- spread" for k in names), "survival"]:
         table.add_column(col, justify="right")
@@ -212,8 +238,8 @@ def _matrix(text: str, flag: str) -> np.ndarray:
 
 def _evolve_matrix(cfg, phi: str, pi: str, width: float | None, duration: float, steps: int,
                    as_json: bool, plot: str | None) -> None:
-    """evolve --phi: a packet around a classical (phi, pi) of the d'Alembert body, every sector
-    it populates (quantum.evolution.evolve_matrix_packet)."""
+    """evolve --phi: a packet around a classical (phi, pi), every sector it populates
+    (quantum.evolution.evolve_matrix_packet; the affine models on GL+(2))."""
     from contextlib import nullcontext
 
     from affinebody.quantum import config as qconfig
@@ -221,9 +247,6 @@ def _evolve_matrix(cfg, phi: str, pi: str, width: float | None, duration: float,
 
     phi0, pi0 = _matrix(phi, "--phi"), _matrix(pi, "--pi")
     kwargs = qconfig.solver_arguments(cfg)
-    if kwargs["model"] != "dalembert":
-        raise ValueError(f"evolve --phi is for the d'Alembert model (got {kwargs['model']}); "
-                         f"use --at for the sector (0, 0) of the affine models")
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"--time must be > 0 (got {duration})")
     if not 1 <= steps <= ev.MAX_STEPS:
@@ -232,6 +255,7 @@ def _evolve_matrix(cfg, phi: str, pi: str, width: float | None, duration: float,
     ev.check_work(settings.basis_size, steps + 1)
     packet = ev.MatrixPacket(phi0.tolist(), pi0.tolist(),
                              math.sqrt(hbar / 2) if width is None else width)
+    ev.check_matrix_packet(kwargs["model"], packet)
     times = np.linspace(0.0, duration, steps + 1)
     status = nullcontext(None)
     if sys.stderr.isatty():
@@ -240,12 +264,14 @@ def _evolve_matrix(cfg, phi: str, pi: str, width: float | None, duration: float,
         status = Console(stderr=True).status("solving the sectors of the packet ...")
     with status as live:
         progress = None if live is None else (lambda text: live.update(f"solving {text} ..."))
-        result = ev.evolve_matrix_packet(kwargs["potential"], hbar, kwargs.get("inertia", 1.0),
-                                         settings, packet, times, progress)
+        result = ev.evolve_matrix_packet(
+            kwargs["potential"], hbar, kwargs.get("inertia", 1.0), settings, packet, times,
+            progress, model=kwargs["model"], I=kwargs.get("I", 1.0), A=kwargs.get("A", 0.0),
+            B=kwargs.get("B", 0.0))
     if plot is not None:
-        _plot(result, plot, "dalembert")
+        _plot(result, plot, kwargs["model"])
     payload = result.as_dict()
-    payload.update(model="dalembert", n=2, hbar=hbar, phi=phi0.tolist(), pi=pi0.tolist(),
+    payload.update(model=kwargs["model"], n=2, hbar=hbar, phi=phi0.tolist(), pi=pi0.tolist(),
                    width=packet.width, lines=ev.spectrum_lines(result))
     if as_json:
         click.echo(json.dumps(payload))
@@ -269,7 +295,8 @@ def _plot(result, path: str, model: str) -> None:
 
     t = result.times
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
-    for ax, names in ((axes[0], list(result.mean)[:2]), (axes[1], list(result.mean)[2:])):
+    variables = list(result.mean)[:-2]  # the model's variables, then det and trG
+    for ax, names in ((axes[0], variables), (axes[1], list(result.mean)[-2:])):
         for name in names:
             m, s = result.mean[name], result.spread[name]
             ax.plot(t, m, label=f"<{name}>")

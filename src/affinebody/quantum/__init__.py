@@ -26,7 +26,9 @@ Layers, bottom to top (no module imports one above it; only core and kinematics 
 - :mod:`.orientations3`, :mod:`.green3`: n = 3 orientation densities of states,
                        superpositions and thermal mixtures; densities of the diagonal
                        components of G.
-- :mod:`.evolution`    exact evolution of a wave packet of the n = 2 sector (0, 0).
+- :mod:`.evolution`    exact evolution of an n = 2 wave packet: the sector (0, 0), or a Gaussian
+                       in phi around a classical (phi, pi) over every sector it populates.
+- :mod:`.evolution3`   exact evolution of an n = 3 wave packet of the sector (0, 0).
 - :mod:`.config`, :mod:`.cli`: TOML configs, the ``spectrum`` / ``density`` commands
                        (application layer).
 

@@ -1,7 +1,11 @@
 """Time evolution of a wave packet of one quantum affine body by its expansion in eigenstates
 (paper, last section: amplitudes of the deformation invariants; docs/quantum-transitions.md).
 
-The packet lives in the sector spin = vorticity = 0 of n = 2 (a state invariant under
+n = 2 (n = 3: :mod:`affinebody.quantum.evolution3`). Two kinds of packets: a Gaussian in phi
+around a classical (phi, pi) over every sector it populates (:class:`MatrixPacket`, every
+model), and the one below.
+
+A :class:`Packet` lives in the sector spin = vorticity = 0 of n = 2 (a state invariant under
 phi -> U phi V^T, U, V in SO(2): it carries no angular momentum, and its classical
 counterpart is a motion with zero spin and vorticity, along which phi stays diagonal when it
 starts diagonal with a diagonal velocity). In the variables X of the model (d'Alembert: the
@@ -76,8 +80,9 @@ def sector_spectrum(model: str, potential: Potential, hbar: float, *, inertia: f
                     ) -> Spectrum:
     """Every eigenpair of the n = 2 sector spin = vorticity = 0 (the reduced block of
     :mod:`affinebody.quantum.n2`, solved densely; each level carries the error estimate of its
-    nested and widened check bases and is flagged converged or not). d'Alembert: ``key`` =
-    (|m1|, |m2|) picks another block (the characters of z and w, n2.n2_sectors)."""
+    nested and widened check bases and is flagged converged or not). ``key`` picks another
+    block (n2.n2_sectors): d'Alembert (|m1|, |m2|), the characters of z and w; affine models
+    (s, k), the sectors (s, -k) and (-s, k) (spin, vorticity)."""
     require_x64()  # a potential expression is evaluated by JAX
     settings = settings or Settings()
     size = settings.basis_size
@@ -90,13 +95,16 @@ def sector_spectrum(model: str, potential: Potential, hbar: float, *, inertia: f
             return lebesgue2_block(potential, hbar, inertia, key[0], key[1], n, s)
     else:
         affine = AffineInertia(model, I, A, B)
-        bx, bs, c0 = auto_scale_haar2(potential, hbar, affine)
-        bx, bs = settings.scale or bx, settings.scale_sigma or bs
-        c0 = c0 if settings.centre is None else settings.centre
+        bx, bs, c0 = settings.scale, settings.scale_sigma, settings.centre
+        if bx is None or bs is None or c0 is None:  # the variational scales, unless all given
+            auto = auto_scale_haar2(potential, hbar, affine)
+            bx, bs = bx or auto[0], bs or auto[1]
+            c0 = auto[2] if c0 is None else c0
         info = {"scale": bx, "scale_sigma": bs, "centre": c0}
 
         def build(n, s):
-            return haar2_block(potential, hbar, affine, 0, 0, (n, n), (s, bs * s / bx), c0)
+            return haar2_block(potential, hbar, affine, key[0], key[1], (n, n),
+                               (s, bs * s / bx), c0)
     E, vec, err, basis = solve_block(build, size, info["scale"], size * size, settings)
     sectors = n2_sectors(key, model)
     # every eigenpair its own level (degenerate ones are not merged: each is a state); the
@@ -163,6 +171,15 @@ def check_work(basis_size: int, times: int) -> None:
                          f"smaller quantum.basis_size")
 
 
+def require_captured(captured: float) -> None:
+    """Refuse a packet the eigenstates hold to less than 1 - :data:`CAPTURE`."""
+    if captured < 1 - CAPTURE:
+        raise ValueError(f"evolve: the eigenstates of the basis hold only {captured:.6f} of the "
+                         f"packet (it reaches energies or places the basis does not resolve): "
+                         f"raise quantum.basis_size, or start the packet slower or nearer the "
+                         f"minimum")
+
+
 @dataclass(frozen=True)
 class Evolution:
     times: np.ndarray
@@ -217,11 +234,7 @@ def evolve(spectrum: Spectrum, packet: Packet, times: np.ndarray, hbar: float) -
     psi /= math.sqrt(float(np.sum(weights * np.abs(psi) ** 2)))
     c = vectors.T @ (functions.T @ (weights * psi))
     captured = float(np.sum(np.abs(c) ** 2))
-    if captured < 1 - CAPTURE:
-        raise ValueError(f"evolve: the eigenstates of the basis hold only {captured:.6f} of the "
-                         f"packet (it reaches energies or places the basis does not resolve): "
-                         f"raise quantum.basis_size, or start the packet slower or nearer the "
-                         f"minimum")
+    require_captured(captured)
     errors = np.array([lv.error for lv in levels])
     E = np.array([lv.energy for lv in levels])
     return _propagate([(c, E, errors, functions, vectors)], model, y, weights, times, hbar)
@@ -289,23 +302,32 @@ def spectrum_lines(evolution: Evolution, count: int = 5) -> list[float]:
 
 
 
-# ------------------------------------------- a packet around a classical (phi, pi), d'Alembert
+# ------------------------------------------------- a packet around a classical (phi, pi)
 #: the most angles per polar angle for the sector decomposition of a matrix packet
-PACKET_ANGLES = 128
+PACKET_ANGLES = 512
 #: a sector holding less than this fraction of the packet is left out (its part is reported
 #: in ``captured``)
 SECTOR_FLOOR = 1e-12
-#: the most blocks (|m1|, |m2|) one matrix packet may need
+#: the most blocks (|m1|, |m2|) (d'Alembert) or (s, k) (affine models) one matrix packet may
+#: need
 MAX_BLOCKS = 400
+#: the packet's reach beyond its centre, in widths, for the quadrature box
+REACH = 10
 
 
 @dataclass(frozen=True)
 class MatrixPacket:
-    """A Gaussian in phi (d'Alembert, n = 2, J = inertia Id): |psi_0|^2 d^4 phi is the normal
-    density of mean ``phi`` and standard deviation ``width`` per component, and the mean
-    canonical momentum is ``pi`` (= inertia dphi/dt of the classical motion):
+    """A Gaussian in phi (n = 2): |psi_0|^2 d^4 phi is the normal density of mean ``phi`` and
+    standard deviation ``width`` per component, and the mean canonical momentum is ``pi`` (=
+    inertia dphi/dt of the classical d'Alembert motion; the momentum of the classical state
+    (phi, pi) of any model):
 
-        psi_0(phi) = N exp(-|phi - phi0|^2 / (4 w^2) + i tr(pi0^T (phi - phi0)) / hbar).
+        d'Alembert:       psi_0(phi) = N exp(-|phi - phi0|^2 / (4 w^2)
+                                         + i tr(pi0^T (phi - phi0)) / hbar),
+        affine models:    the same times det phi on GL+(2) (states are normalised under the
+                          Haar measure d^4 phi / det^2 phi), 0 where det phi <= 0: a
+                          Gaussian restricted to GL+(2), whose moments are those of the
+                          Gaussian when its smallest singular value is many widths.
 
     Spin and vorticity of the classical (phi0, pi0) make it a superposition of many sectors."""
 
@@ -314,105 +336,160 @@ class MatrixPacket:
     width: float
 
 
-def _rotation(t: np.ndarray) -> np.ndarray:
-    c, s = np.cos(t), np.sin(t)
-    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-
-
-def packet_harmonics(packet: MatrixPacket, y: np.ndarray, hbar: float
+def packet_harmonics(packet: MatrixPacket, y: np.ndarray, hbar: float, kind: str = "lebesgue2"
                      ) -> dict[tuple[int, int], np.ndarray]:
     """(spin s, vorticity v) -> psi_(s,v)(y) [P]: the coefficient of e^{i(s alpha - v beta)} in
-    psi_0(R(alpha) diag(Q(y)) R(beta)^T), by the trapezoidal rule on N^2 angles (exact for the
-    harmonics it resolves; N = 32, 64, ... until the harmonics beyond N/2 - 4 hold less than
-    1e-12 of the packet). With M = R(alpha)^T X R(beta), the exponent is
-    -(|Q|^2 + |phi0|^2)/(4 w^2) - i tr(pi0^T phi0)/hbar + sum_j Q_j (M(phi0)_jj/(2 w^2)
-    + i M(pi0)_jj/hbar), linear in Q at fixed angles."""
-    Q = invariants_at("lebesgue2", y)
+    psi_0(R(alpha) diag(Q(y)) R(beta)^T). With A = phi0/(2 w^2) + i pi0/hbar split into its
+    conformal part p Id + q J and anticonformal part u diag(1, -1) + r [[0, 1], [1, 0]]
+    (R^T(alpha) A R(beta) has the diagonal (c + d, c - d), c = p cos t1 - q sin t1,
+    d = u cos t2 + r sin t2, t1 = beta - alpha, t2 = alpha + beta), the exponent is
+
+        -(|Q|^2 + |phi0|^2)/(4 w^2) - i tr(pi0^T phi0)/hbar
+        + (Q1 + Q2)(p cos t1 - q sin t1) + (Q1 - Q2)(u cos t2 + r sin t2),
+
+    a product of a function of t1 and one of t2. Their Fourier coefficients F1[a], F2[b] (FFT
+    on N angles; N = 32, 64, ... until the harmonics beyond N/2 - 4 hold less than 1e-12 of
+    the packet) give the coefficient F1[a] F2[b] of e^{i(b - a) alpha + i(a + b) beta}: s = b - a,
+    v = -(a + b) (a, b: the charges m1 = -a of z and m2 = b of w in n2). ``kind``: the reduced
+    coordinates y (:func:`affinebody.quantum.transitions.invariants_at`); "haar2" adds the
+    factor det phi = Q1 Q2 of the affine packet."""
+    Q = invariants_at(kind, y)
     phi0, pi0 = np.asarray(packet.phi, float), np.asarray(packet.pi, float)
     w2 = packet.width**2
     const = (-(np.sum(Q * Q, -1) + np.sum(phi0 * phi0)) / (4 * w2)
              - 1j * np.sum(pi0 * phi0) / hbar)
+    if kind == "haar2":
+        const = const + np.log(Q[:, 0] * Q[:, 1])
+    A = phi0 / (2 * w2) + 1j * pi0 / hbar
+    p, q = (A[0, 0] + A[1, 1]) / 2, (A[1, 0] - A[0, 1]) / 2
+    u, r = (A[0, 0] - A[1, 1]) / 2, (A[0, 1] + A[1, 0]) / 2
     N = 32
     while True:
         t = 2 * np.pi * np.arange(N) / N
-        R = _rotation(t)
-        A = phi0 / (2 * w2) + 1j * pi0 / hbar
-        M = np.einsum("aji,jk,bkl->abil", R, A, R)  # R(alpha)^T A R(beta) [N, N, 2, 2]
-        psi = np.exp(const[:, None, None] + Q[:, 0, None, None] * M[None, :, :, 0, 0]
-                     + Q[:, 1, None, None] * M[None, :, :, 1, 1])
-        F = np.fft.fft2(psi, axes=(1, 2)) / N**2
-        mass = np.sum(np.abs(F) ** 2, 0)
         k = np.fft.fftfreq(N, 1 / N).astype(int)
-        K, L = np.meshgrid(k, k, indexing="ij")
-        edge = (np.abs(K) > N // 2 - 4) | (np.abs(L) > N // 2 - 4)
-        if np.sum(mass[edge]) <= 1e-12 * np.sum(mass):
+        edge = np.abs(k) > N // 2 - 4
+        logs = [(Q[:, 0] + Q[:, 1])[:, None] * (p * np.cos(t) - q * np.sin(t)),
+                (Q[:, 0] - Q[:, 1])[:, None] * (u * np.cos(t) + r * np.sin(t))]
+        factors, shift = [], const.real.copy()
+        for g in logs:  # scaled by their largest modulus per point (no overflow)
+            top = np.max(g.real, -1)
+            factors.append(np.fft.fft(np.exp(g - top[:, None]), axis=-1) / N)
+            shift += top
+        with np.errstate(under="ignore"):
+            front = np.exp(shift + 1j * const.imag)  # [P]
+        mass1 = np.abs(front)[:, None] ** 2 * np.abs(factors[0]) ** 2  # [P, N]
+        mass2 = np.abs(factors[1]) ** 2
+        total = np.sum(mass1 * np.sum(mass2, -1, keepdims=True))
+        beyond = (np.sum(mass1[:, edge] * np.sum(mass2, -1, keepdims=True))
+                  + np.sum(mass1 * np.sum(mass2[:, edge], -1, keepdims=True)))
+        if beyond <= 1e-12 * total:
             break
         if N >= PACKET_ANGLES:
             raise ValueError("evolve: the packet's angular momentum (spin, vorticity) exceeds "
                              f"what {N} angles resolve: give a smaller --pi or a larger hbar")
         N *= 2
+    mass = np.einsum("pa,pb->ab", mass1, mass2)
     keep = mass > SECTOR_FLOOR * np.max(mass)
-    # e^{-i(k alpha + l beta)} picks the state e^{i(s alpha - v beta)} with s = k, v = -l
-    return {(int(K[a, b]), int(-L[a, b])): F[:, a, b] for a, b in zip(*np.nonzero(keep),
-                                                                      strict=True)}
+    # F[k] = mean f e^{-i k t}: the coefficient of e^{i k t}
+    return {(int(k[b] - k[a]), int(-(k[a] + k[b]))): front * factors[0][:, a] * factors[1][:, b]
+            for a, b in zip(*np.nonzero(keep), strict=True)}
+
+
+def block_of(model: str, sector: tuple[int, int]) -> tuple[int, int]:
+    """The reduced block (n2.n2_sectors) holding the sector (spin s, vorticity v):
+    d'Alembert (|m1|, |m2|) with m1 = (s + v)/2, m2 = (s - v)/2; affine models the
+    representative (s, k) of {(s, k), (-s, -k)}, k = -v, with s > 0 or s = 0, k >= 0."""
+    s, v = sector
+    if model == "dalembert":
+        return abs(s + v) // 2, abs(s - v) // 2
+    k = -v
+    return (s, k) if s > 0 or (s == 0 and k >= 0) else (-s, -k)
+
+
+def check_matrix_packet(model: str, packet: MatrixPacket) -> None:
+    """One-line refusals of a packet evolve cannot represent: a width that is not positive;
+    for the affine models (GL+(2), where the packet is the Gaussian times det phi restricted
+    to det phi > 0) a centre with det phi <= 0."""
+    w = packet.width
+    if not (math.isfinite(w) and w > 0):
+        raise ValueError(f"--width must be > 0 (got {w})")
+    if model != "dalembert" and np.linalg.det(np.asarray(packet.phi, float)) <= 0:
+        raise ValueError(f"--phi: the affine models live on GL+(2): the packet's centre needs "
+                         f"det phi > 0 (got {np.linalg.det(np.asarray(packet.phi, float)):.4g})")
 
 
 def evolve_matrix_packet(potential: Potential, hbar: float, inertia: float, settings: Settings,
-                         packet: MatrixPacket, times: np.ndarray, progress=None) -> Evolution:
-    """The evolution of a :class:`MatrixPacket` of the d'Alembert body (n = 2) by its expansion
-    in the eigenstates of every sector it populates: psi_(s,v) of
-    :func:`packet_harmonics` projected on the sector's eigenvectors (the blocks (|m1|, |m2|) of
-    n2, m1 = (s + v)/2, m2 = (s - v)/2, solved densely by :func:`sector_spectrum`)."""
+                         packet: MatrixPacket, times: np.ndarray, progress=None, *,
+                         model: str = "dalembert", I: float = 1.0,  # noqa: E741
+                         A: float = 0.0, B: float = 0.0) -> Evolution:
+    """The evolution of a :class:`MatrixPacket` (n = 2; d'Alembert with J = inertia Id, or an
+    affine model with I, A, B) by its expansion in the eigenstates of every sector it
+    populates: psi_(s,v) of :func:`packet_harmonics` projected on the sector's eigenvectors
+    (the block :func:`block_of`, solved densely by :func:`sector_spectrum` with the scales of
+    the block (0, 0) for every block)."""
     require_x64()
-    if not (math.isfinite(packet.width) and packet.width > 0):
-        raise ValueError(f"--width must be > 0 (got {packet.width})")
+    check_matrix_packet(model, packet)
     times = np.asarray(times, float)
     size = settings.basis_size
-    r = np.linalg.svd(np.asarray(packet.phi, float), compute_uv=False)
-    reach = float(np.sum(r)) / 2 + 10 * packet.width  # |z|, |w| <= (Q1 + |Q2|) / 2 + ...
+    kind = "lebesgue2" if model == "dalembert" else "haar2"
+    constants = dict(inertia=inertia, I=I, A=A, B=B)
     # the states of the bases (and so psi(t)) live where the highest state of (0, 0) does
-    first = sector_spectrum("dalembert", potential, hbar, inertia=inertia, settings=settings)
-    settings = replace(settings, scale=first.settings["scale"])  # one scale for every block
-    R_hi = max(reach, float(np.max(joint_density(first, first.levels[-1]).box[:, 1])))
+    first = sector_spectrum(model, potential, hbar, settings=settings, **constants)
+    settings = replace(settings, scale=first.settings["scale"],  # one scale for every block
+                       scale_sigma=first.settings.get("scale_sigma"),
+                       centre=first.settings.get("centre"))
+    box = joint_density(first, first.levels[-1]).box
+    r = np.linalg.svd(np.asarray(packet.phi, float), compute_uv=False)
     x, w = np.polynomial.legendre.leggauss(NODES + 2 * size)
-    r1 = R_hi * (x + 1) / 2
-    Y0, Y1 = np.meshgrid(r1, r1, indexing="ij")
+    if kind == "lebesgue2":
+        reach = float(np.sum(r)) / 2 + REACH * packet.width  # |z|, |w| <= (Q1 + |Q2|) / 2 + ..
+        lo, hi = np.zeros(2), np.full(2, max(reach, float(np.max(box[:, 1]))))
+    else:  # x = q1 - q2, sigma = q1 + q2 over Q in [Q2 - 10 w, Q1 + 10 w] (and > Q2 / 10)
+        low = math.log(max(r[1] - REACH * packet.width, r[1] / 10))
+        high = math.log(r[0] + REACH * packet.width)
+        lo = np.array([0.0, min(2 * low, box[1, 0])])
+        hi = np.array([max(high - low, box[0, 1]), max(2 * high, box[1, 1])])
+    axes = [lo[k] + (hi[k] - lo[k]) * (x + 1) / 2 for k in range(2)]
+    Y0, Y1 = np.meshgrid(*axes, indexing="ij")
     y = np.stack([Y0.ravel(), Y1.ravel()], -1)
-    weights = np.outer(w, w).ravel() * (R_hi / 2) ** 2 * measure("lebesgue2", y)
-    harmonics = packet_harmonics(packet, y, hbar)
+    weights = np.outer(w, w).ravel() * np.prod(hi - lo) / 4 * measure(kind, y)
+    harmonics = packet_harmonics(packet, y, hbar, kind)
+    if kind == "haar2":  # the joint frame: amplitudes / g under the measure x (block_functions)
+        g = sqrt_x_over_sinh(y[:, 0])
+        harmonics = {key: h / g for key, h in harmonics.items()}
     total = sum(float(np.sum(weights * np.abs(h) ** 2)) for h in harmonics.values())
     keys: dict[tuple[int, int], list] = {}
-    for (s, v), h in harmonics.items():
-        keys.setdefault((abs(s + v) // 2, abs(s - v) // 2), []).append(((s, v), h))
+    for sector, h in harmonics.items():
+        keys.setdefault(block_of(model, sector), []).append((sector, h))
     if len(keys) > MAX_BLOCKS:
         raise ValueError(f"evolve: the packet populates {len(keys)} blocks of sectors (more than "
                          f"{MAX_BLOCKS}): give a smaller --pi or a larger hbar")
     check_work(size, len(times) * len(keys))
     parts = []
-    for key, members in sorted(keys.items()):
+    for count, (key, members) in enumerate(sorted(keys.items())):
         if progress is not None:
-            progress(f"sector block (|m1|, |m2|) = {key}")
+            name = "(|m1|, |m2|)" if kind == "lebesgue2" else "(s, k)"
+            progress(f"sector block {name} = {key} ({count + 1} of {len(keys)})")
         spectrum = first if key == (0, 0) else sector_spectrum(
-            "dalembert", potential, hbar, inertia=inertia, settings=settings, key=key)
+            model, potential, hbar, settings=settings, key=key, **constants)
         levels = spectrum.levels
         functions, vectors = block_functions(spectrum, levels, y)
         E = np.array([lv.energy for lv in levels])
         errors = np.array([lv.error for lv in levels])
         labels = {(sec.spin, sec.vorticity) for sec in spectrum.blocks[key].sectors}
-        for sector, h in members:
+        for sector, _ in members:
             if sector not in labels:
                 raise ValueError(f"evolve: sector {sector} is not one of the block {key}")
-            c = vectors.T @ (functions.T @ (weights * h)) / math.sqrt(total)
-            parts.append((c, E, errors, functions, vectors))
-    result = _propagate(parts, "dalembert", y, weights, times, hbar)
-    if result.captured < 1 - CAPTURE:
-        raise ValueError(f"evolve: the eigenstates of the bases hold only {result.captured:.6f} "
-                         f"of the packet: raise quantum.basis_size, or start it slower or nearer "
-                         f"the minimum")
+        H = np.stack([h for _, h in members], -1) * (weights / math.sqrt(total))[:, None]
+        C = vectors.T @ (functions.T @ H.real + 1j * (functions.T @ H.imag))  # [S, members]
+        parts.extend((C[:, i], E, errors, functions, vectors) for i in range(len(members)))
+    result = _propagate(parts, model, y, weights, times, hbar)
+    require_captured(result.captured)
     return result
 
 
 __all__ = ["MAX_BASIS", "MAX_STEPS", "MAX_WORK", "VARIABLES", "sector_spectrum", "Packet",
-           "variables_at", "check_packet", "check_work", "Evolution", "evolve", "spectrum_lines",
-           "MatrixPacket", "packet_harmonics", "evolve_matrix_packet", "PACKET_ANGLES",
-           "MAX_BLOCKS"]
+           "variables_at", "check_packet", "check_work", "require_captured", "Evolution",
+           "evolve", "spectrum_lines", "MatrixPacket", "packet_harmonics",
+           "evolve_matrix_packet", "PACKET_ANGLES", "MAX_BLOCKS", "block_of",
+           "check_matrix_packet"]
