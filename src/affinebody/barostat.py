@@ -231,16 +231,18 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
         values["effective_energy"] = enthalpy(state, cell, nbrs) - exchanged[0] - exchanged[1]
         return values
 
+    carries = getattr(method, "carries_forces", False)
+
     def one_step(carry, _):
-        old_state, old_cell, old_nbrs, k, failed, overflowed, narrow, lost, exchanged = carry
+        (old_state, old_cell, old_nbrs, k, failed, overflowed, narrow, lost, exchanged,
+         (old_energy, old_forces)) = carry
         key_thermo, key_baro = jax.random.split(step_key(seed, k))
         boxed = system.replace(cell=old_cell)
-        if spec is None:
+        if not carries:
             state, nbrs = method.step(boxed, old_state, dt), None
-        else:
-            state, tracked, _ = method.advance(boxed, old_state, boxed.forces(old_state, old_nbrs),
-                                               dt, spec, old_nbrs)
-            nbrs = tracked.neighbors
+        else:  # the forces after the last move, carried (first same as last)
+            state, tracked, _ = method.advance(boxed, old_state, old_forces, dt, spec, old_nbrs)
+            nbrs = None if spec is None else tracked.neighbors
         heat = jnp.zeros((), dtype=state.x.dtype)
         if thermostat is not None:  # the kinetic energy it puts in: the heat
             before = boxed.kinetic_energy(state)
@@ -263,25 +265,29 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
             overflowed = overflowed | over
             ok &= ~over
         # the move's work: the exact change of H + P0 V it made (the list, valid for the
-        # moved state in the new cell unless the step is not kept)
-        work = enthalpy(state, cell, nbrs) - before
+        # moved state in the new cell unless the step is not kept); the same pass gives the
+        # forces that the next step starts with
+        energy, forces = system.replace(cell=cell).energy_and_forces(state, nbrs)
+        work = (boxed.kinetic_energy(state) + energy + p0 * linalg.det(cell)) - before
         failed = jnp.where((failed < 0) & ~ok, k + 1, failed)
         keep = lambda old, new: jnp.where(failed < 0, new, old)  # noqa: E731
         state, cell = jax.tree.map(keep, old_state, state), keep(old_cell, cell)
         nbrs = jax.tree.map(keep, old_nbrs, nbrs)
         exchanged = jax.tree.map(keep, exchanged, (exchanged[0] + heat, exchanged[1] + work))
-        return (state, cell, nbrs, k + 1, failed, overflowed, narrow, lost, exchanged), None
+        carried = jax.tree.map(keep, (old_energy, old_forces), (energy, forces))
+        return (state, cell, nbrs, k + 1, failed, overflowed, narrow, lost, exchanged,
+                carried), None
 
     def chunk(carry, _):
         carry, _ = lax.scan(one_step, carry, None, length=every)
-        return carry, (carry[0], carry[1], measure(carry[0], carry[1], carry[2], carry[-1]))
+        return carry, (carry[0], carry[1], measure(carry[0], carry[1], carry[2], carry[8]))
 
     int0 = jnp.zeros((), dtype=jnp.int32)
     lost = (int0, int0, jnp.zeros((), dtype=state.x.dtype))
     no = jnp.asarray(False)
     init = (state, cell, neighbors, first_step, -jnp.ones_like(first_step), no, no, lost,
-            exchanged)
-    (_, _, last_list, _, failed, overflowed, narrow, lost, _), (states, cells, values) = \
+            exchanged, system.replace(cell=cell).energy_and_forces(state, neighbors))
+    (_, _, last_list, _, failed, overflowed, narrow, lost, *_), (states, cells, values) = \
         lax.scan(chunk, init, None, length=n_chunks)
     first = measure(state, cell, neighbors, exchanged)
     join = lambda a, f: jnp.concatenate([a[None], f])  # noqa: E731
