@@ -95,13 +95,15 @@ class StochasticCellRescaling:
     def target(self) -> np.ndarray:
         return np.asarray(self.pressure)
 
-    def move(self, system, state: State, cell, space: Space, key, dt, neighbors=None):
+    def move(self, system, state: State, cell, space: Space, key, dt, neighbors=None,
+             energy: bool = False):
         """(state, cell) after one barostat move of length ``dt`` (module docstring);
         ``neighbors``: None (the virial over all pairs) or a list valid for ``state`` in
-        ``cell``."""
+        ``cell``. With ``energy``: (state, cell, V), V the potential energy of ``state`` in
+        ``cell`` before the move (from the pass that computes the virial)."""
         n = cell.shape[-1]
-        p_inst = pressure_module.pressure_tensor(system.replace(cell=cell), state, space,
-                                                 neighbors)
+        potential, p_inst = pressure_module.pressure_tensor(
+            system.replace(cell=cell), state, space, neighbors, energy=True)
         volume = linalg.det(cell)
         rate = self.compressibility / self.tau
         diffusion = self.temperature * rate / volume
@@ -118,7 +120,7 @@ class StochasticCellRescaling:
         new_cell = mu @ cell
         mu_inv_t = linalg.inv(mu).T
         state = state._replace(x=state.x @ mu.T, p=state.p @ mu_inv_t.T)
-        return state, new_cell
+        return (state, new_cell, potential) if energy else (state, new_cell)
 
     @staticmethod
     def _moving(space: Space) -> np.ndarray:
@@ -248,8 +250,10 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
             before = boxed.kinetic_energy(state)
             state = thermostat(boxed, state, key_thermo, dt)
             heat = boxed.kinetic_energy(state) - before
-        before = enthalpy(state, old_cell, nbrs)
-        state, cell = barostat.move(system, state, old_cell, space, key_baro, dt, nbrs)
+        kinetic = boxed.kinetic_energy(state)
+        state, cell, potential = barostat.move(system, state, old_cell, space, key_baro, dt,
+                                               nbrs, energy=True)
+        before = kinetic + potential + p0 * linalg.det(old_cell)  # H + P0 V before the move
         ok = jnp.all(jnp.diagonal(cell) > 0) & jnp.all(jnp.isfinite(cell))
         for leaf in jax.tree.leaves(state):
             ok &= jnp.all(jnp.isfinite(leaf))
