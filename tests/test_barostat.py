@@ -188,3 +188,85 @@ def test_npt_run_with_a_neighbour_list_resumes_bit_for_bit(tmp_path):
         np.testing.assert_array_equal(getattr(resumed, name), getattr(whole, name))
     for name, value in whole.observables.items():
         np.testing.assert_array_equal(resumed.observables[name], value)
+
+
+def test_npt_effective_energy_drifts_by_the_integrator_error_only():
+    """H + P0 V - heat - work (Bernetti and Bussi 2020: the thermostat's heat and the
+    barostat's work booked step by step) is conserved up to the error of the Strang steps at
+    fixed cell: over 400 steps its largest deviation shrinks at least 3x per halving of dt
+    (h^2 and a time span halved with it), while the energy exchanged with the baths is
+    O(1). A work or heat booked wrongly (a move's kinetic change, the P0 V term) would leave
+    a random walk of O(sqrt(dt)) per step that does not shrink like that."""
+    from affinebody import thermostats as th
+    from affinebody.config import build, check_config, parse_config
+
+    text = (NPT_CONFIG.replace("r_cut = 1.0", "r_cut = 1.2\nr_on = 0.8")  # smooth at the cut
+            .replace('coupling = "anisotropic"', 'coupling = "isotropic"'))
+    built = build(check_config(parse_config(text)))
+    baro = barostat.c_rescale(0.1, 2, tau=2.0, compressibility=1.0, temperature=0.3)
+    langevin = th.Langevin(0.3, 1.0, seed=5)
+
+    def hook(system, state, key, dt):
+        return th.thermostat_step(system, langevin, state, dt, key,
+                                  th.factors(system, state))[0]
+
+    drifts = []
+    for dt in (0.02, 0.01, 0.005):
+        trajectory = barostat.run(built.system, built.state, orthorhombic((4.0, 4.2)), baro,
+                                  dt, 400, seed=3, every=10, thermostat=hook)
+        assert trajectory.failed_step is None
+        values = trajectory.observables
+        effective = values["effective_energy"]
+        assert np.ptp(values["heat"]) > 1.0 and np.ptp(values["work"]) > 0.1
+        assert np.ptp(values["volume"]) > 1.0  # the box moved
+        drifts.append(np.max(np.abs(effective - effective[0])))
+    assert drifts[1] < drifts[0] / 3 and drifts[2] < drifts[1] / 3, drifts
+    assert drifts[2] < 1e-3
+
+
+def test_a_bound_pair_samples_the_exact_isobaric_volume_law():
+    """NPT and NVT agree, in exact form: the barostat samples p(V) ~ exp(-P0 V/kT) Q(V), Q the
+    NVT partition function of the same system in the box of volume V (the NVT pressure is
+    kT d ln Q/dV), so <V>_NPT is a ratio of integrals of Q. For two bodies with a pair
+    potential u(r), Q(V) ~ V * integral of exp(-u(r)/kT) over the minimum-image cell of the
+    box (a 2D quadrature per V; the box may be narrower than 2 r_cut: both sides use the
+    minimum image). A deep well binds the pair (<V> = 7.41 here, 10 = 3 kT/P0 for the ideal
+    gas that a missing virial would sample). The long NPT-then-NVT comparison of an
+    interacting crystal is benchmarks/npt_consistency.py (minutes)."""
+    from affinebody import thermostats as th
+    from affinebody.potentials import Cutoff, PairPotential, StVenantKirchhoff, total_potential
+
+    kt, p0, depth, r_cut, r_on, edges = 1.0, 0.3, 4.0, 1.5, 1.2, (3.0, 3.3)
+    space = orthorhombic(edges)
+    pair = PairPotential(lambda r: -depth * jnp.exp(-r * r), ("r",), Cutoff(r_cut, r_on), space)
+    system = HamiltonianSystem(KineticEnergy(DAlembertTranslational(1.0), DAlembert(jnp.eye(2))),
+                               total_potential([pair, StVenantKirchhoff(1.0, 1.0)]))
+    state = State(jnp.asarray([[0.5, 0.5], [2.0, 2.2]]), jnp.broadcast_to(jnp.eye(2), (2, 2, 2)),
+                  jnp.zeros((2, 2)), jnp.zeros((2, 2, 2)))
+    langevin = th.Langevin(kt, 1.0, seed=1)
+
+    def hook(system, state, key, dt):
+        return th.thermostat_step(system, langevin, state, dt, key,
+                                  th.factors(system, state))[0]
+
+    baro = barostat.c_rescale(p0, 2, tau=0.5, compressibility=1.0, temperature=kt)
+    trajectory = barostat.run(system, state, space, baro, 0.05, 12_000, seed=1, every=10,
+                              thermostat=hook)
+    assert trajectory.failed_step is None
+    volume = trajectory.observables["volume"][60:]
+    blocks = volume[: len(volume) // 20 * 20].reshape(20, -1).mean(axis=1)
+    error = blocks.std(ddof=1) / np.sqrt(len(blocks))
+
+    def cell_integral(v, m=100):  # over the minimum-image cell, u with its quintic switch
+        half = np.sqrt(v / (edges[0] * edges[1])) * np.asarray(edges) / 2
+        x, y = ((np.arange(m) + 0.5) / m * h for h in half)
+        r = np.hypot(x[:, None], y[None])
+        t = np.clip((r - r_on) / (r_cut - r_on), 0.0, 1.0)
+        u = -depth * np.exp(-r * r) * (1 - t**3 * (10 - 15 * t + 6 * t * t))
+        return 4 * np.exp(-u / kt).sum() * half[0] * half[1] / m**2
+
+    v = np.linspace(1e-3, 80.0, 400)  # exp(-P0 V/kT) < 1e-10 beyond
+    weight = np.exp(-p0 * v / kt) * v * np.array([cell_integral(a) for a in v])
+    exact = (weight * v).sum() / weight.sum()
+    assert abs(volume.mean() - exact) < 4 * error, (volume.mean(), error, exact)
+    assert 3 * kt / p0 - exact > 5 * error  # the ideal-gas law would fail

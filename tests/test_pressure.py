@@ -133,3 +133,16 @@ def test_pressure_refuses_free_space_and_a_foreign_box():
     with pytest.raises(ValueError, match="not in the box"):
         pressure.virial(system, state, triclinic([[5.0, 0.0], [0.0, 5.0]]))
     assert float(pressure.scalar_pressure(jnp.diag(jnp.asarray([1.0, 2.0])))) == 1.5
+
+
+def test_the_virial_pass_also_gives_the_potential_energy():
+    """pair_virial(..., energy=True): the energy of the same pass over the pairs is the pair
+    energy (what the barostat books its work with). The JAX kernel here (a GPU's); the host
+    kernel's is exercised by the NPT effective-energy test (tests/test_barostat.py)."""
+    from affinebody import pair_kernels
+
+    _, state, space, pair = setup(2, "triclinic")
+    i, j = (jnp.asarray(a, dtype=jnp.int32) for a in np.triu_indices(BODIES, 1))
+    e, _ = pair_kernels.pair_virial(pair, space, state.x, state.phi, i, j, i.shape[0],
+                                    chunk=7, energy=True)
+    np.testing.assert_allclose(float(e), float(pair.energy(state.x, state.phi)), rtol=1e-12)

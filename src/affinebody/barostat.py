@@ -95,13 +95,15 @@ class StochasticCellRescaling:
     def target(self) -> np.ndarray:
         return np.asarray(self.pressure)
 
-    def move(self, system, state: State, cell, space: Space, key, dt, neighbors=None):
+    def move(self, system, state: State, cell, space: Space, key, dt, neighbors=None,
+             energy: bool = False):
         """(state, cell) after one barostat move of length ``dt`` (module docstring);
         ``neighbors``: None (the virial over all pairs) or a list valid for ``state`` in
-        ``cell``."""
+        ``cell``. With ``energy``: (state, cell, V), V the potential energy of ``state`` in
+        ``cell`` before the move (from the pass that computes the virial)."""
         n = cell.shape[-1]
-        p_inst = pressure_module.pressure_tensor(system.replace(cell=cell), state, space,
-                                                 neighbors)
+        potential, p_inst = pressure_module.pressure_tensor(
+            system.replace(cell=cell), state, space, neighbors, energy=True)
         volume = linalg.det(cell)
         rate = self.compressibility / self.tau
         diffusion = self.temperature * rate / volume
@@ -118,7 +120,7 @@ class StochasticCellRescaling:
         new_cell = mu @ cell
         mu_inv_t = linalg.inv(mu).T
         state = state._replace(x=state.x @ mu.T, p=state.p @ mu_inv_t.T)
-        return state, new_cell
+        return (state, new_cell, potential) if energy else (state, new_cell)
 
     @staticmethod
     def _moving(space: Space) -> np.ndarray:
@@ -209,32 +211,49 @@ def step_key(seed: int, step):
     return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), STREAM), step)
 
 
-def _npt(system, state, cell, first_step, seed, dt, neighbors, *, method, barostat, space,
+def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, method, barostat,
+         space,
          thermostat, n_chunks, every, observers, spec):
     """The compiled NPT run; with a neighbour list (``spec`` not None) the carry holds the
     list, valid for the carried state in the carried cell, and a step whose list overflowed
     is not kept (``lost``: what the reallocation must hold, as in ``simulate.run``)."""
-    def measure(state, cell, nbrs):
+    p0 = float(np.trace(barostat.target)) / space.dimension
+
+    def enthalpy(state, cell, nbrs):
+        """H + P0 V in ``cell`` (P0 = Tr P0 / n)."""
+        return system.replace(cell=cell).hamiltonian(state, nbrs) + p0 * linalg.det(cell)
+
+    def measure(state, cell, nbrs, exchanged):
         boxed = system.replace(cell=cell)
         extra = () if spec is None else (nbrs,)
         values = {name: f(boxed, state, *extra) for name, f in observers}
         values["pressure"] = pressure_module.pressure_tensor(boxed, state, space, nbrs)
         values["volume"] = linalg.det(cell)
+        values["heat"], values["work"] = exchanged
+        values["effective_energy"] = enthalpy(state, cell, nbrs) - exchanged[0] - exchanged[1]
         return values
 
+    carries = getattr(method, "carries_forces", False)
+
     def one_step(carry, _):
-        old_state, old_cell, old_nbrs, k, failed, overflowed, narrow, lost = carry
+        (old_state, old_cell, old_nbrs, k, failed, overflowed, narrow, lost, exchanged,
+         (old_energy, old_forces)) = carry
         key_thermo, key_baro = jax.random.split(step_key(seed, k))
         boxed = system.replace(cell=old_cell)
-        if spec is None:
+        if not carries:
             state, nbrs = method.step(boxed, old_state, dt), None
-        else:
-            state, tracked, _ = method.advance(boxed, old_state, boxed.forces(old_state, old_nbrs),
-                                               dt, spec, old_nbrs)
-            nbrs = tracked.neighbors
-        if thermostat is not None:
+        else:  # the forces after the last move, carried (first same as last)
+            state, tracked, _ = method.advance(boxed, old_state, old_forces, dt, spec, old_nbrs)
+            nbrs = None if spec is None else tracked.neighbors
+        heat = jnp.zeros((), dtype=state.x.dtype)
+        if thermostat is not None:  # the kinetic energy it puts in: the heat
+            before = boxed.kinetic_energy(state)
             state = thermostat(boxed, state, key_thermo, dt)
-        state, cell = barostat.move(system, state, old_cell, space, key_baro, dt, nbrs)
+            heat = boxed.kinetic_energy(state) - before
+        kinetic = boxed.kinetic_energy(state)
+        state, cell, potential = barostat.move(system, state, old_cell, space, key_baro, dt,
+                                               nbrs, energy=True)
+        before = kinetic + potential + p0 * linalg.det(old_cell)  # H + P0 V before the move
         ok = jnp.all(jnp.diagonal(cell) > 0) & jnp.all(jnp.isfinite(cell))
         for leaf in jax.tree.leaves(state):
             ok &= jnp.all(jnp.isfinite(leaf))
@@ -249,23 +268,32 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, *, method, barost
             lost = jax.tree.map(lambda old, new: jnp.where(over, new, old), lost, seen)
             overflowed = overflowed | over
             ok &= ~over
+        # the move's work: the exact change of H + P0 V it made (the list, valid for the
+        # moved state in the new cell unless the step is not kept); the same pass gives the
+        # forces that the next step starts with
+        energy, forces = system.replace(cell=cell).energy_and_forces(state, nbrs)
+        work = (boxed.kinetic_energy(state) + energy + p0 * linalg.det(cell)) - before
         failed = jnp.where((failed < 0) & ~ok, k + 1, failed)
         keep = lambda old, new: jnp.where(failed < 0, new, old)  # noqa: E731
         state, cell = jax.tree.map(keep, old_state, state), keep(old_cell, cell)
         nbrs = jax.tree.map(keep, old_nbrs, nbrs)
-        return (state, cell, nbrs, k + 1, failed, overflowed, narrow, lost), None
+        exchanged = jax.tree.map(keep, exchanged, (exchanged[0] + heat, exchanged[1] + work))
+        carried = jax.tree.map(keep, (old_energy, old_forces), (energy, forces))
+        return (state, cell, nbrs, k + 1, failed, overflowed, narrow, lost, exchanged,
+                carried), None
 
     def chunk(carry, _):
         carry, _ = lax.scan(one_step, carry, None, length=every)
-        return carry, (carry[0], carry[1], measure(carry[0], carry[1], carry[2]))
+        return carry, (carry[0], carry[1], measure(carry[0], carry[1], carry[2], carry[8]))
 
     int0 = jnp.zeros((), dtype=jnp.int32)
     lost = (int0, int0, jnp.zeros((), dtype=state.x.dtype))
     no = jnp.asarray(False)
-    init = (state, cell, neighbors, first_step, -jnp.ones_like(first_step), no, no, lost)
-    (_, _, last_list, _, failed, overflowed, narrow, lost), (states, cells, values) = lax.scan(
-        chunk, init, None, length=n_chunks)
-    first = measure(state, cell, neighbors)
+    init = (state, cell, neighbors, first_step, -jnp.ones_like(first_step), no, no, lost,
+            exchanged, system.replace(cell=cell).energy_and_forces(state, neighbors))
+    (_, _, last_list, _, failed, overflowed, narrow, lost, *_), (states, cells, values) = \
+        lax.scan(chunk, init, None, length=n_chunks)
+    first = measure(state, cell, neighbors, exchanged)
     join = lambda a, f: jnp.concatenate([a[None], f])  # noqa: E731
     return (jax.tree.map(join, state, states), join(cell, cells),
             jax.tree.map(join, first, values), failed, overflowed, narrow, lost, last_list)
@@ -304,10 +332,18 @@ def _initial_list(system, method, state, cell, neighbors):
 def run(system, state: State, space, barostat: StochasticCellRescaling, dt: float, steps: int,
         *, seed: int, cell=None, first_step: int = 0, integrator="strang", every: int = 1,
         thermostat: Callable | None = None,
-        observers: Sequence[tuple[str, Callable]] = (), neighbors=None) -> NPTTrajectory:
+        observers: Sequence[tuple[str, Callable]] = (), neighbors=None, heat: float = 0.0,
+        work: float = 0.0) -> NPTTrajectory:
     """Integrate ``steps`` steps at constant pressure: each step is one step of the
     integrator in the current box, the ``thermostat`` (a function
     ``(system, state, key, dt) -> state``, or None) and a barostat move.
+
+    Besides ``pressure`` and ``volume`` the frames record the energy exchanged with the baths
+    since the start: ``heat``, the kinetic energy the thermostat put in, and ``work``, the
+    change of H + P0 V made by the barostat's moves (P0 = Tr P0 / n), each summed exactly
+    step by step from ``heat`` and ``work`` (their values before ``first_step``), and the
+    ``effective_energy`` H + P0 V - heat - work, whose drift is the error of the integrator
+    at fixed cell (docs/pressure.md).
 
     space: the reference periodic box (that of the pair terms); cell: the box now (default
     ``space``'s cell); first_step: the index of the first step (keys: :func:`step_key`).
@@ -341,12 +377,15 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
     cell = jnp.asarray(space.matrix if cell is None else cell, dtype=state.x.dtype)
     spec, nbrs = _initial_list(system, method, state, cell, neighbors)
     every = int(every)
+    exchanged = (jnp.asarray(float(heat), dtype=state.x.dtype),
+                 jnp.asarray(float(work), dtype=state.x.dtype))
     segments = []  # (times, states, cells, values) of each compiled call, numpy
     start, in_a_row, failed = int(first_step), 0, -1
     end = int(first_step) + int(steps)
     while True:
         states, cells, values, failed, overflowed, narrow, lost, last_list = _npt_jit(
             system, state, cell, jnp.asarray(start), int(seed), jnp.asarray(float(dt)), nbrs,
+            exchanged,
             method=method, barostat=barostat, space=space, thermostat=thermostat,
             n_chunks=(end - start) // every, every=every, observers=tuple(observers),
             spec=spec)
@@ -366,6 +405,7 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
                 f"{start + aligned * every} did not get past step {failed}")
         state = jax.tree.map(lambda a, j=aligned: jnp.asarray(a[j]), part[0])
         cell = jnp.asarray(part[1][aligned])
+        exchanged = tuple(jnp.asarray(part[2][k][aligned]) for k in ("heat", "work"))
         # a box that keeps shrinking past the new cells' room: coarser cells at each retry
         spec, nbrs = nb.reallocate(spec, state.x, state.phi, flags=int(lost[0]),
                                    pairs=int(lost[1]), reach=float(lost[2]), cell=cell,

@@ -186,6 +186,9 @@ class ThermostatSection(_Section):
     friction: float | None = Field(None, description="langevin: friction gamma, 1/time")
     tau: float | None = Field(None, description="bussi: relaxation time of the kinetic energy")
     seed: int = Field(0, ge=0, lt=2**32, description="step k draws from fold_in(key(seed), k)")
+    splitting: Literal["obabo", "baoab"] = Field(
+        "obabo", description="where the O step goes: obabo, after each step (one drift per "
+                             "step); baoab, in the middle of the middle drift")
 
 
 class ScanRange(_Section):
@@ -608,8 +611,8 @@ def build_thermostat(config: Config):
     if t is None:
         return None
     if t.kind == "langevin":
-        return thermostats.Langevin(t.temperature, t.friction, t.seed)
-    return thermostats.Bussi(t.temperature, t.tau, t.seed)
+        return thermostats.Langevin(t.temperature, t.friction, t.seed, t.splitting)
+    return thermostats.Bussi(t.temperature, t.tau, t.seed, t.splitting)
 
 
 def check_run(config: Config) -> None:

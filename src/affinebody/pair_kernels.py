@@ -285,8 +285,10 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | No
 energy_and_gradients_jit = jax.jit(energy_and_gradients, static_argnums=(0, 1, 7))
 
 
-def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int | None = None):
-    """The configurational virial W [n, n] of ``pot`` over the pairs (i[p], j[p]), p < count:
+def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int | None = None,
+                energy: bool = False):
+    """The configurational virial W [n, n] of ``pot`` over the pairs (i[p], j[p]), p < count
+    (with ``energy``: (E, W), the pairs' energy from the same pass):
 
         W_ab = - sum_p u_a (dV_p/du)_b,   u = x_K - x_L (minimum image),
 
@@ -298,20 +300,23 @@ def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int | 
     host kernel computes it (:func:`pair_sum`'s choice), else the JAX kernel."""
     if chunk is None and host_kernel_in_use():
         _require_cutoff(pot)
-        return _host_pair_sum(pot, space, x, phi, i, j, count, cell=cell, virial=True)
+        e, w = _host_pair_sum(pot, space, x, phi, i, j, count, cell=cell, virial=True)
+        return (e, w) if energy else w
     bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
 
-    def step(total, block):
+    def step(carry, block):
+        e, total = carry
         ii, jj, idx = block
         ii, jj, valid = _valid_pairs(ii, jj, idx, count, bodies)
-        _, (g_u, *_) = _chunk_contributions(pot, space, n, x, phi, binv, det, ii, jj, valid,
-                                            cell)
+        part, (g_u, *_) = _chunk_contributions(pot, space, n, x, phi, binv, det, ii, jj,
+                                               valid, cell)
         u = space.displacement(x[ii], x[jj], cell)
         g_u = jnp.where(valid[:, None], g_u, 0.0)
-        return total - jnp.einsum("pa,pb->ab", u, g_u), None
+        return (e + part, total - jnp.einsum("pa,pb->ab", u, g_u)), None
 
-    total, _ = lax.scan(step, jnp.zeros((n, n), dtype=x.dtype), (i_all, j_all, index))
-    return total
+    zero = (jnp.zeros((), dtype=x.dtype), jnp.zeros((n, n), dtype=x.dtype))
+    (e, total), _ = lax.scan(step, zero, (i_all, j_all, index))
+    return (e, total) if energy else total
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(0, 1))
@@ -530,8 +535,9 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     finishes in JAX. No JAX runs inside a callback (that could wait on the thread that
     called it). ``gradients=False``: the energy alone (no chain rule, no second callback).
     ``cell``: the current cell of a box that a barostat deforms (an operand of the kernels:
-    one compilation serves every box), or None. ``virial=True``: the virial W [n, n] of
-    :func:`pair_virial` instead (a third kernel after the geometry and f's partials)."""
+    one compilation serves every box), or None. ``virial=True``: (E, W), the energy and the
+    virial W [n, n] of :func:`pair_virial` instead (a third kernel after the geometry and f's
+    partials)."""
     _require_cutoff(pot)
     bodies, n = x.shape
     g = _HostGeometry.of(pot, space, n, moving=cell is not None)
@@ -571,13 +577,15 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
             w = jax.pure_callback(
                 partial(_host_virial, g), f64((n, n)), x, binv, ii, jj, valid,
                 tuple(partials[key] for key in columns), h, h_inv, vmap_method="sequential")
-            return (energy + w, sums), None
+            return ((energy[0] + jnp.sum(jnp.where(inside, energies, 0.0)), energy[1] + w),
+                    sums), None
         sums = jax.pure_callback(
             partial(_host_scatter, g), sum_shapes, sums, x, phi, binv, det, ii, jj, valid,
             tuple(partials[key] for key in columns), h, h_inv, vmap_method="sequential")
         return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
 
-    init = (jnp.zeros((n, n) if virial else (), x.dtype),
+    init = ((jnp.zeros((), x.dtype), jnp.zeros((n, n), x.dtype)) if virial
+            else jnp.zeros((), x.dtype),
             (jnp.zeros_like(x), jnp.zeros_like(phi), jnp.zeros_like(phi),
              jnp.zeros((bodies,), x.dtype)))
     (energy, (g_x, g_phi, g_b, g_det)), _ = lax.scan(step, init, jnp.arange(chunks))

@@ -73,8 +73,9 @@ def check_space(system, space: Space) -> Space:
     return space
 
 
-def virial(system, state, space: Space, neighbors=None) -> jax.Array:
-    """W = -dV/d(eps) [n, n] of one system (x [N, n]); see the module docstring.
+def virial(system, state, space: Space, neighbors=None, energy: bool = False):
+    """W = -dV/d(eps) [n, n] of one system (x [N, n]); see the module docstring. With
+    ``energy``: (V, W), the potential energy from the same pass over the pairs.
 
     neighbors: None (pair terms over all pairs, O(N^2)) or a ``neighbors.NeighborList`` valid
     for ``state`` that covers the pair cut-off (O(N)), as in a neighbour-list run.
@@ -84,6 +85,7 @@ def virial(system, state, space: Space, neighbors=None) -> jax.Array:
     x, phi = state.x, state.phi
     n = x.shape[-1]
     total = jnp.zeros((n, n), dtype=x.dtype)
+    potential = jnp.zeros((), dtype=x.dtype)
     for term in _terms(system.potential):
         if isinstance(term, PairTerm):
             if neighbors is None:
@@ -93,19 +95,22 @@ def virial(system, state, space: Space, neighbors=None) -> jax.Array:
                 i, j = neighbors.i, neighbors.j
                 count = jnp.minimum(neighbors.count, neighbors.i.shape[0])
             if x.shape[0] > 1:
-                total = total + pair_kernels.pair_virial(term, space, x, phi, i, j, count,
-                                                         system.cell)
+                e, w = pair_kernels.pair_virial(term, space, x, phi, i, j, count, system.cell,
+                                                energy=True)
+                total, potential = total + w, potential + e
         else:  # one-body terms (and any other energy of x): W = -sum_K x_K (dV/dx_K)^T
-            g = jax.grad(lambda y, t=term: jnp.sum(t.energy(y, phi)))(x)
-            total = total - jnp.einsum("ka,kb->ab", x, g)
-    return total
+            e, g = jax.value_and_grad(lambda y, t=term: jnp.sum(t.energy(y, phi)))(x)
+            total, potential = total - jnp.einsum("ka,kb->ab", x, g), potential + e
+    return (potential, total) if energy else total
 
 
-def pressure_tensor(system, state, space: Space, neighbors=None) -> jax.Array:
+def pressure_tensor(system, state, space: Space, neighbors=None, energy: bool = False):
     """P = (sum_K v_K p_K^T + W) / V [n, n] (module docstring); ``neighbors`` as in
-    :func:`virial`."""
+    :func:`virial`; with ``energy``: (V, P), the potential energy from the same pass."""
     v = volume(space, system.cell)
-    return (kinetic_tensor(system, state) + virial(system, state, space, neighbors)) / v
+    potential, w = virial(system, state, space, neighbors, energy=True)
+    p = (kinetic_tensor(system, state) + w) / v
+    return (potential, p) if energy else p
 
 
 @dataclass(frozen=True)

@@ -257,7 +257,7 @@ def run_simulation(
                     with phases("integrate"):
                         if npt is not None:
                             trajectory, boxes, stop = npt.run(state, step, length, stride,
-                                                              lists)
+                                                              lists, heat)
                         else:
                             trajectory = integrate(built.system, state, dt, length,
                                                    config.run.integrator, every=stride,
@@ -306,9 +306,9 @@ def run_simulation(
 
 
 def _tracks_heat(config: Config, built) -> bool:
-    """Whether the run records the heat and the effective energy: a thermostat at constant
-    volume (the NPT driver does not book the heat of its thermostat yet)."""
-    return built.thermostat is not None and config.barostat is None
+    """Whether the run records the heat and the effective energy: a thermostat, or a barostat
+    (whose work the NPT driver books with the heat)."""
+    return built.thermostat is not None or config.barostat is not None
 
 
 class _NPT:
@@ -333,18 +333,21 @@ class _NPT:
         self.observers = tuple((name, NAMED_OBSERVABLES[driver])
                                for name, driver in _OBSERVERS.items())
 
-    def run(self, state, step: int, length: int, every: int, lists=None):
+    def run(self, state, step: int, length: int, every: int, lists=None, exchanged=0.0):
         """(trajectory, box edges of its frames, stop report or None) of ``length`` steps
         from ``state`` at ``step``; the frames stop before the first non-finite one.
         ``lists``: the (spec, list) of a neighbour-list run, valid for ``state`` in the
-        current cell, or None."""
+        current cell, or None. ``exchanged``: the heat and the barostat's work before
+        ``step`` (one sum, what the checkpoint keeps as its heat); the trajectory's ``heat``
+        is that sum too."""
         from affinebody.simulate import StopReport, Trajectory
 
         c = self.config
         npt = barostat.run(self.system, state, self.space, self.barostat, c.run.dt, length,
                            seed=c.run.seed, cell=self.cell, first_step=step,
                            integrator=c.run.integrator, every=every, observers=self.observers,
-                           neighbors=lists, thermostat=self.thermostat)
+                           neighbors=lists, thermostat=self.thermostat, heat=exchanged)
+        npt.observables["heat"] = npt.observables["heat"] + npt.observables.pop("work")
         frame_steps = np.rint(npt.times / c.run.dt).astype(np.int64)
         finite = (np.ones(len(frame_steps), dtype=bool) if npt.failed_step is None
                   else frame_steps < npt.failed_step)

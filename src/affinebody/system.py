@@ -201,6 +201,15 @@ class HamiltonianSystem:
         return jax.grad(lambda x, phi: jnp.sum(self._potential_energy(x, phi, neighbors)),
                         argnums=(0, 1))(state.x, state.phi)
 
+    def energy_and_forces(self, state: State, neighbors=None) -> tuple[jax.Array, tuple]:
+        """(V, (dV/dx, dV/dphi)) at ``state`` from one pass (the energy is the primal of
+        :meth:`forces`' gradient); ``neighbors`` as in :meth:`potential_energy`."""
+        if self.potential is None:
+            return self.potential_energy(state), self.forces(state)
+        return jax.value_and_grad(
+            lambda x, phi: jnp.sum(self._potential_energy(x, phi, neighbors)),
+            argnums=(0, 1))(state.x, state.phi)
+
     def kick(self, state: State, h, neighbors=None, forces=None) -> State:
         """Exact flow of V for time h: p -= h dV/dx, pi -= h (dV/dphi)^T (projected on G).
 

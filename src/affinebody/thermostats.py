@@ -58,42 +58,60 @@ from affinebody.state import State
 #: Thermostat kinds by config name (``[thermostat] kind``).
 THERMOSTAT_KINDS = ("langevin", "bussi")
 
+#: Where the O step goes in a step (``[thermostat] splitting``, the first is the default):
+#: "obabo", after the whole step, K D K O(h) (OBABO with its adjacent half O steps merged);
+#: "baoab", in the middle of the middle drift, K D(h/2) O(h) D(h/2) K
+#: (``integrators.Thermostatted``, docs/thermostats.md).
+SPLITTINGS = ("obabo", "baoab")
+
 
 @dataclasses.dataclass(frozen=True)
 class Langevin:
-    """Langevin thermostat: BAOAB's exact Ornstein-Uhlenbeck step (module docstring).
+    """Langevin thermostat: the exact Ornstein-Uhlenbeck step (module docstring).
 
-    temperature: kT (k_B = 1); friction: gamma, 1/time; seed: the random stream."""
+    temperature: kT (k_B = 1); friction: gamma, 1/time; seed: the random stream;
+    splitting: one of :data:`SPLITTINGS`."""
 
     temperature: float
     friction: float
     seed: int = 0
+    splitting: str = SPLITTINGS[0]
     kind = "langevin"
 
     def __post_init__(self):
         _check_positive("thermostat.temperature", self.temperature)
         _check_positive("thermostat.friction", self.friction)
+        _check_splitting(self.splitting)
 
 
 @dataclasses.dataclass(frozen=True)
 class Bussi:
     """Stochastic velocity rescaling (Bussi, Donadio, Parrinello 2007).
 
-    temperature: kT (k_B = 1); tau: the relaxation time of the kinetic energy; seed."""
+    temperature: kT (k_B = 1); tau: the relaxation time of the kinetic energy; seed;
+    splitting: one of :data:`SPLITTINGS`."""
 
     temperature: float
     tau: float
     seed: int = 0
+    splitting: str = SPLITTINGS[0]
     kind = "bussi"
 
     def __post_init__(self):
         _check_positive("thermostat.temperature", self.temperature)
         _check_positive("thermostat.tau", self.tau)
+        _check_splitting(self.splitting)
 
 
 def _check_positive(name: str, value) -> None:
     if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
         raise ValueError(f"{name} must be a finite number > 0 (got {value!r})")
+
+
+def _check_splitting(value) -> None:
+    if value not in SPLITTINGS:
+        raise ValueError(f"thermostat.splitting must be one of {', '.join(SPLITTINGS)} "
+                         f"(got {value!r})")
 
 
 class ThermostatCarry(NamedTuple):
@@ -219,16 +237,15 @@ def _ornstein_uhlenbeck(system, thermostat, state: State, h, key, noise_factors,
     c = jnp.exp(-thermostat.friction * h) if damping is None else jnp.asarray(damping)
     scale = jnp.sqrt((1.0 - c * c) * thermostat.temperature)
     kinetic = system.kinetic
-    key_tr, key_int = jax.random.split(key)
     f_tr, f_int = noise_factors
     z = to_coordinates(kinetic.translational, state.phi, state.p)
-    xi = jax.random.normal(key_tr, z.shape, z.dtype)
-    z = c * z + scale * jnp.einsum("...ij,...j->...i", f_tr, xi)
-    p = from_coordinates(kinetic.translational, state.phi, z)
     w = to_coordinates(kinetic.internal, state.phi, state.pi)
     flat = w.reshape(w.shape[:-2] + (-1,))
-    xi = jax.random.normal(key_int, flat.shape, flat.dtype)
-    flat = c * flat + scale * jnp.einsum("...ij,...j->...i", f_int, xi)
+    # one draw for both parts: [..., n] for z, [..., n^2] for the internal coordinates
+    xi = jax.random.normal(key, z.shape[:-1] + (z.shape[-1] + flat.shape[-1],), z.dtype)
+    z = c * z + scale * jnp.einsum("...ij,...j->...i", f_tr, xi[..., :z.shape[-1]])
+    p = from_coordinates(kinetic.translational, state.phi, z)
+    flat = c * flat + scale * jnp.einsum("...ij,...j->...i", f_int, xi[..., z.shape[-1]:])
     pi = from_coordinates(kinetic.internal, state.phi, flat.reshape(w.shape))
     new = system.constrain(state._replace(p=p, pi=pi))
     if system.constrained or system.nonholonomic:
@@ -245,11 +262,14 @@ def _ornstein_uhlenbeck(system, thermostat, state: State, h, key, noise_factors,
 def bussi_kinetic_energy(kinetic_energy, thermostat: Bussi, dof: int, h, key) -> jax.Array:
     """K' of the stochastic velocity rescaling after time h from K (Bussi et al. 2007, (A7)):
     K' = c K + (1 - c) K_bar (R1^2 + S)/N_f + 2 R1 sqrt(c (1 - c) K K_bar / N_f),
-    c = exp(-h/tau), K_bar = N_f kT/2, R1 ~ N(0, 1), S ~ chi^2 with N_f - 1 degrees."""
+    c = exp(-h/tau), K_bar = N_f kT/2, R1 ~ N(0, 1), S ~ chi^2 with N_f - 1 degrees, drawn
+    as 2 Gamma((N_f - 1)/2) (one draw, whatever N_f)."""
     c = jnp.exp(-h / thermostat.tau)
     target = 0.5 * dof * thermostat.temperature
-    r = jax.random.normal(key, (dof,), kinetic_energy.dtype)  # a sum, not a rejection loop
-    r1, s = r[0], jnp.sum(r[1:] ** 2)
+    key_r, key_s = jax.random.split(key)
+    r1 = jax.random.normal(key_r, (), kinetic_energy.dtype)
+    s = (2.0 * jax.random.gamma(key_s, 0.5 * (dof - 1), (), kinetic_energy.dtype) if dof > 1
+         else jnp.zeros((), kinetic_energy.dtype))
     return (c * kinetic_energy + (1.0 - c) * target * (r1 * r1 + s) / dof
             + 2.0 * r1 * jnp.sqrt(c * (1.0 - c) * kinetic_energy * target / dof))
 
@@ -293,8 +313,9 @@ def check(system, thermostat, n: int) -> None:
 
 
 __all__ = [
-    "THERMOSTAT_KINDS", "Bussi", "Langevin", "ThermostatCarry", "bussi_kinetic_energy",
-    "check", "check_positive_kinetic", "coordinate_hessian", "degrees_of_freedom", "factors",
+    "SPLITTINGS", "THERMOSTAT_KINDS", "Bussi", "Langevin", "ThermostatCarry",
+    "bussi_kinetic_energy", "check", "check_positive_kinetic", "coordinate_hessian",
+    "degrees_of_freedom", "factors",
     "from_coordinates", "internal_degrees_of_freedom", "internal_temperature", "noise_factor",
     "ornstein_uhlenbeck", "step_key", "thermostat_step", "to_coordinates",
     "translational_kinetic_energy", "translational_temperature", "velocity_rescaling",

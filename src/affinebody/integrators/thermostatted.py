@@ -1,14 +1,23 @@
 """An integrator with a thermostat's O step composed in.
 
-``Thermostatted(splitting, thermostat)`` with a splitting ``S`` puts the thermostat's O step
-(``affinebody.thermostats``) in the middle of its middle drift, K D(h/2) O(h) D(h/2) K (BAOAB
-for Strang), so the exact drifts and kicks, the neighbour lists and the forces carried from
-step to step ("first same as last") are those of ``S``. With any other integrator ``I`` (the
-nonholonomic RATTLE of rotationless motion, implicit midpoint) the step is the symmetric
-O(h/2) I(h) O(h/2). What it carries instead of the forces is a
-``thermostats.ThermostatCarry``: the forces, the global index of the last step (the step k
-draws its noise from ``fold_in(PRNGKey(seed), k)``), the heat put in so far, and the constant
-noise factors of the momentum coordinates.
+Where the O step goes is the thermostat's ``splitting`` (``thermostats.SPLITTINGS``):
+
+- ``"obabo"`` (the default): after the whole step of the integrator ``I``, I(h) O(h). Repeated,
+  this is OBABO, O(h/2) K(h/2) D(h) K(h/2) O(h/2) for Strang, with the half O steps of
+  consecutive steps merged into one O(h) (exact in law: the Ornstein-Uhlenbeck flow and
+  Bussi's process for K are semigroups): one drift and one noise draw per step, the
+  geometric Langevin algorithm of Bou-Rabee and Owhadi (2010). The frames see the
+  configuration of OBABO; their momenta have had one more O(h/2).
+- ``"baoab"``: in the middle of the middle drift of a splitting ``S``, K D(h/2) O(h) D(h/2) K
+  (BAOAB for Strang, Leimkuhler and Matthews 2013; every composition stays symmetric); with
+  any other integrator (the nonholonomic RATTLE of rotationless motion, implicit midpoint)
+  the symmetric O(h/2) I(h) O(h/2).
+
+Either way the exact drifts and kicks, the neighbour lists and the forces carried from step to
+step ("first same as last") are those of the integrator (O changes only the momenta). What
+it carries instead of the forces is a ``thermostats.ThermostatCarry``: the forces, the global
+index of the last step (the step k draws its noise from ``fold_in(PRNGKey(seed), k)``), the
+heat put in so far, and the constant noise factors of the momentum coordinates.
 """
 
 from __future__ import annotations
@@ -63,10 +72,23 @@ class Thermostatted(AbstractIntegrator):
         """One thermostatted step; returns (state, NeighborStep or None, new carry)."""
         step = carry.step + 1
         key = th.step_key(self.thermostat, step)
+
+        def o_step(s, length, key):
+            return th.thermostat_step(system, self.thermostat, s, length, key, carry.factors)
+
+        if self.thermostat.splitting == "obabo":
+            if isinstance(self.splitting, Splitting):
+                state, tracked, forces = self.splitting.advance(system, state, carry.forces, h,
+                                                                spec, neighbors)
+            else:
+                state, tracked, forces = self.splitting.step(system, state, h), None, carry.forces
+            state, heat = o_step(state, h, key)
+            return state, tracked, carry._replace(forces=forces, step=step,
+                                                  heat=carry.heat + heat)
         exchanged = []
 
         def middle(s):
-            new, heat = th.thermostat_step(system, self.thermostat, s, h, key, carry.factors)
+            new, heat = o_step(s, h, key)
             exchanged.append(heat)
             return new
 
@@ -76,11 +98,9 @@ class Thermostatted(AbstractIntegrator):
             return state, tracked, carry._replace(forces=forces, step=step,
                                                   heat=carry.heat + exchanged[0])
         first, last = (jax.random.fold_in(key, k) for k in (0, 1))
-        state, heat_1 = th.thermostat_step(system, self.thermostat, state, 0.5 * h, first,
-                                           carry.factors)
+        state, heat_1 = o_step(state, 0.5 * h, first)
         state = self.splitting.step(system, state, h)
-        state, heat_2 = th.thermostat_step(system, self.thermostat, state, 0.5 * h, last,
-                                           carry.factors)
+        state, heat_2 = o_step(state, 0.5 * h, last)
         return state, None, carry._replace(step=step, heat=carry.heat + heat_1 + heat_2)
 
     def step_with_neighbors(self, system, state: State, h, spec, neighbors):
