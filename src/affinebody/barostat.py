@@ -85,6 +85,8 @@ class StochasticCellRescaling:
     def __post_init__(self):
         for name in ("tau", "compressibility", "temperature"):
             value = getattr(self, name)
+            if isinstance(value, jax.core.Tracer):  # traced in an ensemble (sweep samples)
+                continue
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"barostat.{name} must be > 0 (got {value})")
         if self.coupling not in COUPLINGS:
@@ -106,12 +108,12 @@ class StochasticCellRescaling:
         rate = self.compressibility / self.tau
         diffusion = self.temperature * rate / volume
         if self.coupling == "isotropic":
-            drift = rate * (jnp.trace(p_inst) - float(np.trace(self.target))) / n
+            drift = rate * (jnp.trace(p_inst) - jnp.trace(jnp.asarray(self.pressure))) / n
             d_eps = drift * dt + jnp.sqrt(2.0 * diffusion * dt) * jax.random.normal(key)
             mu = jnp.exp(d_eps / n) * jnp.eye(n)
         else:
             mask = self._moving(space)
-            stress = rate * (p_inst - jnp.asarray(self.target)).T
+            stress = rate * (p_inst - jnp.asarray(self.pressure)).T
             noise = jax.random.normal(key, (n, n)) * jnp.sqrt(2.0 * diffusion * dt)
             d_delta = mask * (stress * dt + noise) + self._ito_drift(cell, mask) * dt
             mu = jnp.eye(n) + d_delta

@@ -372,10 +372,10 @@ def constant_pressure(config: Config, thermostat):
                                   coupling=b.coupling)
     except ValueError as err:
         raise ConfigError(str(err)) from None
-    return baro, None if thermostat is None else partial(_thermostat_hook, thermostat)
+    return baro, None if thermostat is None else partial(thermostat_hook, thermostat)
 
 
-def _thermostat_hook(thermostat, system, state, key, dt):
+def thermostat_hook(thermostat, system, state, key, dt):
     """The ``[thermostat]``'s O(dt) step in the form ``barostat.run`` takes."""
     from affinebody import thermostats
 

@@ -356,11 +356,15 @@ class _Prepared:
     dt: float
     steps: int
     neighbors: Any = None  # (spec, list) allocated for the initial configuration, or None
-    thermostat: Any = None  # thermostats.Langevin / Bussi of a thermostatted sweep
-    barostat: Any = None  # barostat.StochasticCellRescaling of an NPT sweep
-    space: Any = None  # the periodic box (thermostatted sweeps), else None
-    every: int = 1  # run.every: the measurement interval of a thermostatted sweep
-    hook: Any = None  # the thermostat's O step in the NPT driver (runner.constant_pressure)
+    # thermostatted sweeps: the thermostat (Langevin / Bussi) and the barostat
+    # (StochasticCellRescaling, NPT) as templates whose temperature and pressure are traced
+    # (every point of a temperature or pressure scan runs the same compiled function)
+    thermostat: Any = None
+    temperature: float = math.nan
+    barostat: Any = None
+    pressure: Any = None  # P0 [n, n] of an NPT sweep
+    space: Any = None  # the periodic box, else None
+    every: int = 1  # run.every: the measurement interval
 
 
 @functools.lru_cache(maxsize=32)
@@ -380,12 +384,17 @@ def _prepare(config_json: str) -> _Prepared:
         from affinebody.space import as_space
 
         box = config.system.box
-        extra = {"thermostat": built.thermostat, "every": int(config.run.every),
+        thermostat = built.thermostat
+        extra = {"thermostat": dataclasses.replace(thermostat, temperature=1.0, seed=0),
+                 "temperature": float(thermostat.temperature), "every": int(config.run.every),
                  "space": None if box is None else as_space(tuple(box))}
         if config.barostat is not None:
             from affinebody.runner import constant_pressure
 
-            extra["barostat"], extra["hook"] = constant_pressure(config, built.thermostat)
+            baro = constant_pressure(config, thermostat)[0]
+            zero = tuple((0.0,) * config.n for _ in range(config.n))
+            extra["pressure"] = baro.target
+            extra["barostat"] = dataclasses.replace(baro, pressure=zero, temperature=1.0)
     return _Prepared(built.system, built.state, get_integrator(config.run.integrator),
                      float(config.run.dt), int(config.run.steps),
                      built.neighbors if built.neighbor_list else None, **extra)
@@ -616,10 +625,11 @@ def _run_thermal_task(task: Task, prepared: _Prepared, info: dict, clock: float)
         out = _compiled_thermal_batch()(
             system, prepared.state, jnp.asarray(spec.seed, dtype=jnp.uint32),
             jnp.asarray(indices), jnp.asarray(prepared.dt), jnp.asarray(spec.velocity_scale),
-            jnp.asarray(spec.x_velocity_scale), lists[1], steps=prepared.steps,
-            every=prepared.every, equilibration=spec.equilibration, method=prepared.method,
-            thermostat=prepared.thermostat, barostat=prepared.barostat, hook=prepared.hook,
-            space=prepared.space, watch_det=system.group in OPEN_GROUPS,
+            jnp.asarray(spec.x_velocity_scale), lists[1], jnp.asarray(prepared.temperature),
+            None if prepared.pressure is None else jnp.asarray(prepared.pressure),
+            steps=prepared.steps, every=prepared.every, equilibration=spec.equilibration,
+            method=prepared.method, thermostat=prepared.thermostat,
+            barostat=prepared.barostat, space=prepared.space, watch_det=system.group in OPEN_GROUPS,
             internal=spec.initial_velocity, translational=spec.x_velocity, spec=lists[0])
         return {k: np.array(v) for k, v in out.items()}
 
@@ -675,17 +685,19 @@ def _repeat_with_larger_list(samples, out, j, index, lists, state, cell=None):
 _AVERAGED = ("energy", "potential_energy", "translational_temperature", "internal_temperature")
 
 
-def thermal_sample(system, state, dt, seed, *, steps: int, every: int, equilibration: int,
-                   method, thermostat, barostat=None, hook=None, space=None, watch_det: bool,
-                   spec=None, neighbors=None) -> dict[str, Any]:
+def thermal_sample(system, state, dt, seed, temperature, pressure=None, *, steps: int,
+                   every: int, equilibration: int, method, thermostat, barostat=None,
+                   space=None, watch_det: bool, spec=None, neighbors=None) -> dict[str, Any]:
     """Integrate one thermostatted sample (NVT, or NPT with ``barostat``) and reduce its
     observables to sums of scalars (module docstring, "Thermostatted sweeps"); traceable.
 
-    NVT: a ``lax.scan`` of the run driver's :func:`~affinebody.simulate.watched_step` with
-    ``method`` composed with ``thermostat`` (``integrators.Thermostatted``, the thermostat's
-    seed replaced by ``seed``). NPT: blocks of ``every`` steps of the NPT driver
-    (:func:`affinebody.barostat.advance`, the thermostat's O step ``hook``, keys from
-    ``seed``). Observables are measured after every ``every`` steps; those after more than
+    ``thermostat`` and ``barostat`` are templates: their kT is ``temperature``, the barostat's
+    target P0 is ``pressure`` [n, n] (both may be traced). NVT: a ``lax.scan`` of the run
+    driver's :func:`~affinebody.simulate.watched_step` with ``method`` composed with the
+    thermostat (``integrators.Thermostatted``, its seed replaced by ``seed``). NPT: blocks of
+    ``every`` steps of the NPT driver (:func:`affinebody.barostat.advance` with the
+    thermostat's O step of ``affinebody run``, :func:`affinebody.runner.thermostat_hook`,
+    keys from ``seed``). Observables are measured after every ``every`` steps; those after more than
     ``equilibration`` steps are summed (shifted by their initial values). A failing step
     freezes the sample: ``code`` is then its :class:`~affinebody.simulate.Stop` (or
     ``_BOX``/``_NARROW`` under the barostat), else ``_SAMPLED``. Memory O(N): no frames kept.
@@ -700,13 +712,17 @@ def thermal_sample(system, state, dt, seed, *, steps: int, every: int, equilibra
     from affinebody import barostat as baro_module
     from affinebody import pressure as pm
     from affinebody.integrators import Thermostatted
+    from affinebody.runner import thermostat_hook
     from affinebody.simulate import NAMED_OBSERVABLES, initial_forces, watched_step
 
     dtype = state.x.dtype
     nan = jnp.asarray(jnp.nan, dtype)
     observers = tuple((name, NAMED_OBSERVABLES[name]) for name in _AVERAGED)
-    kt = thermostat.temperature
-    p0 = 0.0 if barostat is None else float(np.trace(barostat.target)) / state.n
+    thermostat = dc.replace(thermostat, temperature=temperature, seed=seed)
+    if barostat is not None:
+        barostat = dc.replace(barostat, pressure=pressure, temperature=temperature)
+        p0 = jnp.trace(pressure) / state.n
+        hook = functools.partial(thermostat_hook, thermostat)
 
     def scalars(values, pressure, volume):
         """(E, U, T_tr, T_int, P, V, E + P0 V) from the driver's observables."""
@@ -717,7 +733,7 @@ def thermal_sample(system, state, dt, seed, *, steps: int, every: int, equilibra
                           enthalpy]).astype(dtype)
 
     if barostat is None:
-        method = Thermostatted(method, dc.replace(thermostat, seed=seed))
+        method = Thermostatted(method, thermostat)
         step = watched_step(system, method, dt, spec, sign0=jnp.sign(linalg.det(state.phi)),
                             watch_det=watch_det)
 
@@ -798,13 +814,14 @@ def thermal_sample(system, state, dt, seed, *, steps: int, every: int, equilibra
         accumulate, init, jnp.arange(steps // every))
     return {"code": code, "steps_done": done, "measurements": sums[0], "reference": reference,
             "sums": sums[1], "squares": sums[2], "narrowest_cell": narrowest,
-            "temperature": jnp.asarray(kt, dtype), "npt": jnp.asarray(barostat is not None),
+            "temperature": jnp.asarray(temperature, dtype),
+            "npt": jnp.asarray(barostat is not None),
             "overflow": lost[0], "most_pairs": lost[1], "largest_reach": lost[2]}
 
 
 def _thermal_batch(system, state, seed, indices, dt, internal_scale, translational_scale,
-                   neighbors, *, steps, every, equilibration, method, thermostat, barostat,
-                   hook, space, watch_det, internal, translational, spec):
+                   neighbors, temperature, pressure, *, steps, every, equilibration, method,
+                   thermostat, barostat, space, watch_det, internal, translational, spec):
     """Every sample of a thermostatted task (as :func:`_batch`): sample k draws its initial
     velocities from fold_in(key(seed), k) (sub-keys 0, 1) and the seed of its thermostat (NVT)
     or of the NPT driver's noise (NPT) from its sub-key 2."""
@@ -817,10 +834,10 @@ def _thermal_batch(system, state, seed, indices, dt, internal_scale, translation
             system, state, key, internal=internal, internal_scale=internal_scale,
             translational=translational, translational_scale=translational_scale)
         sample_seed = jax.random.bits(jax.random.fold_in(key, 2), (), jnp.uint32)
-        out = thermal_sample(system, start, dt, sample_seed, steps=steps, every=every,
-                             equilibration=equilibration, method=method, thermostat=thermostat,
-                             barostat=barostat, hook=hook, space=space, watch_det=watch_det,
-                             spec=spec, neighbors=neighbors)
+        out = thermal_sample(system, start, dt, sample_seed, temperature, pressure,
+                             steps=steps, every=every, equilibration=equilibration,
+                             method=method, thermostat=thermostat, barostat=barostat,
+                             space=space, watch_det=watch_det, spec=spec, neighbors=neighbors)
         return {**out, "omega_hat": omega_hat, "velocity": v}
 
     if spec is None:
@@ -833,7 +850,7 @@ def _compiled_thermal_batch():
     import jax
 
     return jax.jit(_thermal_batch, static_argnames=(
-        "steps", "every", "equilibration", "method", "thermostat", "barostat", "hook", "space",
+        "steps", "every", "equilibration", "method", "thermostat", "barostat", "space",
         "watch_det", "internal", "translational", "spec"))
 
 
