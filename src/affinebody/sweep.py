@@ -12,6 +12,7 @@ A sweep runs one config many times: over the points of a parameter scan, and at 
     x_velocity_scale = 1.0
     bound = 1000.0
     batch = 64                    # samples per task (vmapped)
+    equilibration = 0             # thermostatted sweeps: steps before the averages
     scan = { "kinetic.A" = [0.5, 1.0, 2.0], "run.dt" = { start = 0.01, stop = 0.1, num = 4 } }
 
 Initial data. ``initial_velocity = "normal"`` draws the co-moving affine velocity
@@ -42,6 +43,35 @@ build fails and a task that raises are recorded as failed samples too. Never fat
 reported per sample: the final relative energy error |E - E0| / |E0|, the largest relative
 volume det Gamma[phi_K, phi_L] (79) and the smallest and largest det phi_K (over bodies and the
 followed time), and the drawn Omega_hat and dx/dt.
+
+Thermostatted sweeps (NVT, NPT). With a ``[thermostat]`` every sample is a thermostatted run
+(NVT), with a ``[thermostat]`` and a ``[barostat]`` an NPT run, made of the steps
+``affinebody run`` makes: the integrator composed with the thermostat
+(``integrators.Thermostatted``) through :func:`~affinebody.simulate.watched_step`, or the NPT
+driver's loop (:func:`affinebody.barostat.advance`, with the thermostat's O step of
+:func:`affinebody.runner.constant_pressure`). A scan may vary ``thermostat.temperature`` and
+``barostat.pressure`` (e.g. ``scan = { "thermostat.temperature" = {start = 0.1, stop = 0.5,
+num = 5} }`` for a thermal-expansion curve, ``scan = { "barostat.pressure" = [0, 1, 2] }`` for an
+equation of state); kT and P0 are traced, so a whole scan runs one compiled function. The
+noise of sample k (the thermostat's seed in NVT, the NPT driver's seed in NPT) is the 32 random
+bits of ``fold_in(fold_in(key(seed), k), 2)``: like its initial data, a sample's result does
+not depend on workers or batching, and every point sees the same noise (common random numbers).
+``[sweep] equilibration`` (steps, default 0) is run before the averages start; then every
+``run.every`` steps (``run.steps`` must be a multiple of it) the run driver's observables are
+measured and summed in the loop (O(N) memory, no frames): total energy E = H, potential energy,
+translational and internal temperature (``simulate.NAMED_OBSERVABLES``), the scalar pressure
+Tr P / n (:mod:`affinebody.pressure`, kinetic part included) and the volume (periodic boxes;
+else NaN). Per sample (``samples.csv``, :data:`THERMAL_SCALARS`): the number of measurements,
+the time averages, the variances (1/m) of E and V, the heat capacity C = var(E)/kT^2 (NVT,
+C_V) or var(E + P0 V)/kT^2 (NPT, C_P, P0 = Tr P0 / n; k_B = 1), and in NPT the isothermal
+compressibility kappa_T = var(V)/(kT <V>). The classification columns (bounded, spreads,
+energy errors) do not apply: a sample is ``sampled``, or ``failed`` with its reason (the
+driver's stops, a non-finite state or box under the barostat, a box narrower than twice the
+pair cut-off). ``summary.json`` holds, per point, the mean over its sampled samples of each
+column (``NAME``) and its standard error across the samples (``NAME_error``: valid however
+correlated the measurements inside a sample are), with the point's ``temperature`` and
+``pressure_target``; and ``ensemble`` ("NVT" or "NPT"), ``equilibration`` and ``every``.
+Without a ``[thermostat]`` everything above the previous paragraph holds unchanged.
 
 Execution. Samples are split into tasks of ``batch`` samples (the last one padded to the same
 size, so every task of a point has one shape and compiles once per worker); a task integrates
@@ -1256,6 +1286,7 @@ def _write_samples_csv(path: Path, points, status, failure, data,
                                  *(repr(float(data[s][point.index, k])) for s in columns)])
 
 
-__all__ = ("SweepResult", "SweepSpec", "ScanPoint", "Task", "WORKER_ENV", "binomial_summary",
-           "dask_client", "draw_initial_state", "follow", "make_tasks", "prepare_worker",
-           "run_sweep", "run_task", "scan_points")
+__all__ = ("THERMAL_SCALARS", "SweepResult", "SweepSpec", "ScanPoint", "Task", "WORKER_ENV",
+           "binomial_summary", "check_thermal", "dask_client", "draw_initial_state", "follow",
+           "make_tasks", "prepare_worker", "run_sweep", "run_task", "scan_points",
+           "summarize_thermal_point", "thermal_results", "thermal_sample")
