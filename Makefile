@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 TEST_WORKERS ?= 2
 
-.PHONY: install demo test lint docs bench clean
+.PHONY: install demo test lint docs bench clean study
 
 install: $(STAMP)
 
@@ -38,6 +38,13 @@ docs: $(DOCS_STAMP)
 	PATH="$(abspath $(BIN)):$$PATH" OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 \
 		$(BIN)/sphinx-build -W --keep-going -E -b html docs docs/_build/html
 	@echo "documentation: docs/_build/html/index.html"
+
+# The thermal study of the docs (docs/thermal-study.md): two NPT sweeps of the demo crystal
+# (`affinebody sweep` on a local Dask cluster of 2 workers, about 10-15 min on 2 cores); writes
+# the configs, data and plots into docs/figures/thermal (committed: `make docs` does not run it).
+study: $(STAMP)
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python benchmarks/thermal_study.py \
+		--out docs/figures/thermal
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks

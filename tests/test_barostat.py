@@ -161,7 +161,7 @@ def test_barostat_config_errors_are_one_line():
         assert "\n" not in str(err.value)
     from affinebody.sweep import SweepSpec
 
-    with pytest.raises(ConfigError, match="sweep integrates at constant volume"):
+    with pytest.raises(ConfigError, match="a \\[barostat\\] needs a \\[thermostat\\]"):
         SweepSpec.from_config(check_config(parse_config(NPT_CONFIG)))
 
 

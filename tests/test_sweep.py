@@ -228,6 +228,61 @@ def test_cli_on_a_running_cluster_prints_one_json_object(client, two_workers, tm
     assert bad.exit_code != 0 and "--workers" in bad.output + bad.stderr
 
 
+THERMAL = textwrap.dedent("""
+    [system]
+    n = 2
+    group = "L"
+    bodies = 2
+    [body]
+    mass = 1.0
+    inertia = 1.0
+    [kinetic]
+    internal = "dalembert"
+    [[potential]]
+    kind = "one-body"
+    expr = "0.5*trG"
+    [initial]
+    x = [[0.0, 0.0], [1.0, 0.0]]
+    [run]
+    dt = 0.05
+    steps = 200
+    every = 10
+    [thermostat]
+    kind = "bussi"
+    temperature = 1.0
+    tau = 0.5
+    [sweep]
+    samples = 6
+    seed = 9
+    batch = 4
+    equilibration = 50
+    initial_velocity = "normal"
+""")
+
+
+def test_thermostatted_samples_do_not_depend_on_workers_or_batching(client):
+    """Sample k's thermostat noise comes from (seed, k) only: two workers with tasks of 4
+    samples (the last padded) and this process with a single task of 6 give the same
+    samples: the same draws bit for bit, the same averages to round-off (the workers' XLA
+    runs single-threaded, this process's need not: the last bits of a sum may differ). The
+    noise differs between samples. (Bussi on free translations: no heat reaches a momentum
+    that is zero, so T_tr stays 0 and the internal energy holds all of K_bar.)"""
+    on_dask = run_sweep(load(THERMAL), client=client)
+    alone = run_sweep(load(THERMAL.replace("batch = 4", "batch = 6")), workers=0)
+    assert on_dask.summary["ensemble"] == "NVT" and on_dask.summary["workers"] == 2
+    assert set(on_dask.status.ravel()) == {"sampled"}
+    for name in ("omega_hat", "velocity", "measurements", "followed_time"):
+        assert np.array_equal(on_dask.samples[name], alone.samples[name]), name
+    for name, values in on_dask.samples.items():
+        np.testing.assert_allclose(values, alone.samples[name], rtol=1e-12, atol=0,
+                                   err_msg=name)
+    energies = on_dask.samples["mean_total_energy"]
+    assert len(set(energies[0].tolist())) == 6  # independent samples
+    # Bussi puts the kinetic energy of all N (n + n^2) momenta into the internal ones
+    assert abs(np.mean(on_dask.samples["mean_internal_temperature"]) - 1.5) < 0.3
+    assert np.all(on_dask.samples["mean_translational_temperature"] == 0.0)
+
+
 # --------------------------------------------------------------------------- no cluster
 def test_scan_points_expand_ranges_in_order_and_check_each_point():
     text = MIXED.replace('scan = { "kinetic.A" = [1.0, 2.0, 0.0] }',

@@ -306,8 +306,8 @@ def test_af_af_and_incomplete_thermostats_are_refused_in_one_line():
         assert words in str(err.value) and "\n" not in str(err.value)
     from affinebody.sweep import run_sweep
 
-    with pytest.raises(ConfigError, match="not by affinebody sweep"):
-        run_sweep(check(parse_config(base)), workers=0)
+    with pytest.raises(ConfigError, match="sweep.equilibration must leave a measurement"):
+        run_sweep(check(parse_config(base + "[sweep]\nequilibration = 100000\n")), workers=0)
     system = HamiltonianSystem(K.KineticEnergy(K.DAlembertTranslational(1.0),
                                                K.AffineAffine(1.0)))
     with pytest.raises(ValueError, match="no canonical ensemble"):

@@ -85,6 +85,8 @@ class StochasticCellRescaling:
     def __post_init__(self):
         for name in ("tau", "compressibility", "temperature"):
             value = getattr(self, name)
+            if isinstance(value, jax.core.Tracer):  # traced in an ensemble (sweep samples)
+                continue
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"barostat.{name} must be > 0 (got {value})")
         if self.coupling not in COUPLINGS:
@@ -108,12 +110,12 @@ class StochasticCellRescaling:
         rate = self.compressibility / self.tau
         diffusion = self.temperature * rate / volume
         if self.coupling == "isotropic":
-            drift = rate * (jnp.trace(p_inst) - float(np.trace(self.target))) / n
+            drift = rate * (jnp.trace(p_inst) - jnp.trace(jnp.asarray(self.pressure))) / n
             d_eps = drift * dt + jnp.sqrt(2.0 * diffusion * dt) * jax.random.normal(key)
             mu = jnp.exp(d_eps / n) * jnp.eye(n)
         else:
             mask = self._moving(space)
-            stress = rate * (p_inst - jnp.asarray(self.target)).T
+            stress = rate * (p_inst - jnp.asarray(self.pressure)).T
             noise = jax.random.normal(key, (n, n)) * jnp.sqrt(2.0 * diffusion * dt)
             d_delta = mask * (stress * dt + noise) + self._ito_drift(cell, mask) * dt
             mu = jnp.eye(n) + d_delta
@@ -303,6 +305,27 @@ _npt_jit = jax.jit(_npt, static_argnames=("method", "barostat", "space", "thermo
                                           "n_chunks", "every", "observers", "spec"))
 
 
+def advance(system, state: State, cell, first_step, seed, dt, neighbors=None, *, steps: int,
+            method, barostat: StochasticCellRescaling, space: Space,
+            thermostat: Callable | None = None,
+            observers: Sequence[tuple[str, Callable]] = (), spec=None):
+    """``steps`` steps of the NPT run (the compiled loop of :func:`run`) from ``state`` in
+    ``cell`` at global step ``first_step``, as a traceable function (no host work, vmappable):
+    the building block of ensembles of NPT runs (the samples of ``affinebody sweep``). ``seed``
+    may be traced. Returns (state, cell, values, failed, overflowed, narrow, lost, list) after
+    the last step: ``values`` the observers with ``pressure`` and ``volume`` there, ``failed``
+    the first step not kept (-1: none; the state and cell are then the last good ones),
+    ``overflowed``/``narrow``/``lost`` what :func:`run` reallocates from, ``list`` the
+    neighbour list (valid for the state in the cell) or None."""
+    states, cells, values, failed, overflowed, narrow, lost, last_list = _npt(
+        system, state, cell, first_step, seed, dt, neighbors, method=method, barostat=barostat,
+        space=space, thermostat=thermostat, n_chunks=1, every=int(steps),
+        observers=tuple(observers), spec=spec)
+    last = lambda a: a[-1]  # noqa: E731
+    return (jax.tree.map(last, states), cells[-1], jax.tree.map(last, values), failed,
+            overflowed, narrow, lost, last_list)
+
+
 def _initial_list(system, method, state, cell, neighbors):
     """(spec, list) valid for ``state`` in ``cell``, from the (spec, list) pair given (built
     again in ``cell`` when it may miss a pair, reallocated when it overflows); (None, None)
@@ -425,5 +448,5 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
                          None if spec is None else (spec, last_list), reason)
 
 
-__all__ = ["COUPLINGS", "NPTTrajectory", "STREAM", "StochasticCellRescaling", "c_rescale",
-           "first_narrow_frame", "run", "step_key"]
+__all__ = ["COUPLINGS", "NPTTrajectory", "STREAM", "StochasticCellRescaling", "advance",
+           "c_rescale", "first_narrow_frame", "run", "step_key"]

@@ -215,6 +215,8 @@ class SweepSection(_Section):
     x_velocity_scale: float = Field(1.0, ge=0)
     bound: float = Field(1000.0, gt=1, description="bounded: sigma_max(phi^+-1) < bound")
     batch: int = Field(64, ge=1, le=100_000, description="samples per task (vmapped)")
+    equilibration: int = Field(0, ge=0, description="thermostatted sweeps: steps run before "
+                                                    "the time averages start")
     scan: dict[str, list[float | str] | ScanRange] = Field(
         default_factory=dict, description="dotted config field -> values or a range")
 

@@ -316,20 +316,10 @@ class _NPT:
     over the run's pieces, carrying the cell from piece to piece (and through checkpoints)."""
 
     def __init__(self, config: Config, built):
-        b = config.barostat
         self.config, self.system = config, built.system
         self.space = as_space(tuple(config.system.box))
-        thermostat = built.thermostat
-        temperature = b.temperature if b.temperature is not None else thermostat.temperature
-        try:
-            self.barostat = barostat.c_rescale(
-                b.pressure, config.n, tau=b.tau, compressibility=b.compressibility,
-                temperature=temperature, coupling=b.coupling)
-        except ValueError as err:
-            raise ConfigError(str(err)) from None
+        self.barostat, self.thermostat = constant_pressure(config, built.thermostat)
         self.cell = self.space.matrix
-        # the thermostat's O step after each step, with its own keys (barostat.run folds them)
-        self.thermostat = None if thermostat is None else partial(_thermostat_hook, thermostat)
         self.observers = tuple((name, NAMED_OBSERVABLES[driver])
                                for name, driver in _OBSERVERS.items())
 
@@ -371,7 +361,24 @@ class _NPT:
         return trajectory, np.diagonal(npt.cells[:keep], axis1=1, axis2=2), stop
 
 
-def _thermostat_hook(thermostat, system, state, key, dt):
+def constant_pressure(config: Config, thermostat):
+    """(barostat, thermostat hook) of a config with a ``[barostat]``: the
+    ``barostat.StochasticCellRescaling`` of the table (kT: barostat.temperature, else the
+    thermostat's) and the ``thermostat``'s O step after each step, with its own keys (which
+    ``barostat.run`` folds from its step key), or None. The parts of every NPT run:
+    ``affinebody run`` and the samples of ``affinebody sweep``."""
+    b = config.barostat
+    temperature = b.temperature if b.temperature is not None else thermostat.temperature
+    try:
+        baro = barostat.c_rescale(b.pressure, config.n, tau=b.tau,
+                                  compressibility=b.compressibility, temperature=temperature,
+                                  coupling=b.coupling)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    return baro, None if thermostat is None else partial(thermostat_hook, thermostat)
+
+
+def thermostat_hook(thermostat, system, state, key, dt):
     """The ``[thermostat]``'s O(dt) step in the form ``barostat.run`` takes."""
     from affinebody import thermostats
 

@@ -12,6 +12,7 @@ A sweep runs one config many times: over the points of a parameter scan, and at 
     x_velocity_scale = 1.0
     bound = 1000.0
     batch = 64                    # samples per task (vmapped)
+    equilibration = 0             # thermostatted sweeps: steps before the averages
     scan = { "kinetic.A" = [0.5, 1.0, 2.0], "run.dt" = { start = 0.01, stop = 0.1, num = 4 } }
 
 Initial data. ``initial_velocity = "normal"`` draws the co-moving affine velocity
@@ -42,6 +43,35 @@ build fails and a task that raises are recorded as failed samples too. Never fat
 reported per sample: the final relative energy error |E - E0| / |E0|, the largest relative
 volume det Gamma[phi_K, phi_L] (79) and the smallest and largest det phi_K (over bodies and the
 followed time), and the drawn Omega_hat and dx/dt.
+
+Thermostatted sweeps (NVT, NPT). With a ``[thermostat]`` every sample is a thermostatted run
+(NVT), with a ``[thermostat]`` and a ``[barostat]`` an NPT run, made of the steps
+``affinebody run`` makes: the integrator composed with the thermostat
+(``integrators.Thermostatted``) through :func:`~affinebody.simulate.watched_step`, or the NPT
+driver's loop (:func:`affinebody.barostat.advance`, with the thermostat's O step of
+:func:`affinebody.runner.constant_pressure`). A scan may vary ``thermostat.temperature`` and
+``barostat.pressure`` (e.g. ``scan = { "thermostat.temperature" = {start = 0.1, stop = 0.5,
+num = 5} }`` for a thermal-expansion curve, ``scan = { "barostat.pressure" = [0, 1, 2] }`` for an
+equation of state); kT and P0 are traced, so a whole scan runs one compiled function. The
+noise of sample k (the thermostat's seed in NVT, the NPT driver's seed in NPT) is the 32 random
+bits of ``fold_in(fold_in(key(seed), k), 2)``: like its initial data, a sample's result does
+not depend on workers or batching, and every point sees the same noise (common random numbers).
+``[sweep] equilibration`` (steps, default 0) is run before the averages start; then every
+``run.every`` steps (``run.steps`` must be a multiple of it) the run driver's observables are
+measured and summed in the loop (O(N) memory, no frames): total energy E = H, potential energy,
+translational and internal temperature (``simulate.NAMED_OBSERVABLES``), the scalar pressure
+Tr P / n (:mod:`affinebody.pressure`, kinetic part included) and the volume (periodic boxes;
+else NaN). Per sample (``samples.csv``, :data:`THERMAL_SCALARS`): the number of measurements,
+the time averages, the variances (1/m) of E and V, the heat capacity C = var(E)/kT^2 (NVT,
+C_V) or var(E + P0 V)/kT^2 (NPT, C_P, P0 = Tr P0 / n; k_B = 1), and in NPT the isothermal
+compressibility kappa_T = var(V)/(kT <V>). The classification columns (bounded, spreads,
+energy errors) do not apply: a sample is ``sampled``, or ``failed`` with its reason (the
+driver's stops, a non-finite state or box under the barostat, a box narrower than twice the
+pair cut-off). ``summary.json`` holds, per point, the mean over its sampled samples of each
+column (``NAME``) and its standard error across the samples (``NAME_error``: valid however
+correlated the measurements inside a sample are), with the point's ``temperature`` and
+``pressure_target``; and ``ensemble`` ("NVT" or "NPT"), ``equilibration`` and ``every``.
+Without a ``[thermostat]`` everything above the previous paragraph holds unchanged.
 
 Execution. Samples are split into tasks of ``batch`` samples (the last one padded to the same
 size, so every task of a point has one shape and compiles once per worker); a task integrates
@@ -100,16 +130,25 @@ WORKER_ENV = {
 #: Outcomes of a sample beyond the driver's stops (``simulate.Stop``: a failed step keeps its
 #: code, 1..3), in one table with them: code -> (status, failure reason).
 _BOUNDED, _UNBOUNDED, _BAD_INITIAL, _ERROR = 10, 11, 12, 13
+_SAMPLED, _BOX, _NARROW = 14, 15, 16  # thermostatted sweeps
 STATUS_CODES = {
     _BOUNDED: ("bounded", ""),
     _UNBOUNDED: ("unbounded", ""),
     **{int(stop): ("failed", stop.reason) for stop in Stop if stop != Stop.NONE},
     _BAD_INITIAL: ("failed", "non-finite initial energy"),
     _ERROR: ("failed", "error"),
+    _SAMPLED: ("sampled", ""),
+    _BOX: ("failed", "non-finite state or box under the barostat"),
+    _NARROW: ("failed", "the box shrank below twice the pair cut-off"),
 }
 #: Per-sample scalar results (besides status and failure), in samples.csv column order.
 SCALARS = ("exit_time", "followed_time", "max_spread", "energy_error", "initial_energy",
            "final_energy", "max_relative_volume", "min_det", "max_det")
+#: Per-sample results of a thermostatted sweep (NVT, NPT), in samples.csv column order.
+THERMAL_SCALARS = ("followed_time", "measurements", "mean_total_energy", "var_total_energy",
+                   "mean_potential_energy", "mean_translational_temperature",
+                   "mean_internal_temperature", "mean_pressure", "mean_volume", "var_volume",
+                   "heat_capacity", "compressibility")
 
 
 # --------------------------------------------------------------------------- specification
@@ -125,17 +164,16 @@ class SweepSpec:
     x_velocity_scale: float = 1.0
     bound: float = 1000.0
     batch: int = 64
+    equilibration: int = 0
 
     @classmethod
     def from_config(cls, config: Config, samples: int | None = None,
                     seed: int | None = None) -> SweepSpec:
-        if config.barostat is not None:
-            raise ConfigError("sweep integrates at constant volume: remove [barostat] (its "
-                              "constant-pressure runs are made by affinebody run)")
         s = config.sweep
         spec = cls() if s is None else cls(
             s.samples, s.seed, s.initial_velocity, s.velocity_scale, s.x_velocity,
-            s.x_velocity_scale, s.bound, s.batch)
+            s.x_velocity_scale, s.bound, s.batch, s.equilibration)
+        check_thermal(config, spec)
         if samples is not None:
             if samples < 1:
                 raise ConfigError(f"--samples must be >= 1 (got {samples})")
@@ -150,6 +188,28 @@ class SweepSpec:
     def batch_size(self) -> int:
         """Samples per task: ``batch``, or all samples when there are fewer."""
         return min(self.batch, self.samples)
+
+
+def check_thermal(config: Config, spec: SweepSpec) -> None:
+    """One-line refusals of a sweep's ensemble: a ``[barostat]`` only with a ``[thermostat]``
+    (NPT), ``equilibration`` only with a thermostat and shorter than the run, whose length is
+    a multiple of run.every (the measurement interval)."""
+    r = config.run
+    if config.thermostat is None:
+        if config.barostat is not None:
+            raise ConfigError("sweep: a [barostat] needs a [thermostat] (its samples are NPT "
+                              "runs): add a [thermostat] at the barostat's temperature")
+        if spec.equilibration:
+            raise ConfigError(f"sweep.equilibration applies to thermostatted sweeps (got "
+                              f"{spec.equilibration} without a [thermostat]): remove it")
+        return
+    if r.steps % r.every:
+        raise ConfigError(f"run.steps must be a multiple of run.every in a thermostatted sweep "
+                          f"(observables are measured every run.every steps; got steps="
+                          f"{r.steps}, every={r.every})")
+    if spec.equilibration + r.every > r.steps:
+        raise ConfigError(f"sweep.equilibration must leave a measurement: at most run.steps - "
+                          f"run.every = {r.steps - r.every} (got {spec.equilibration})")
 
 
 @dataclass(frozen=True)
@@ -326,6 +386,15 @@ class _Prepared:
     dt: float
     steps: int
     neighbors: Any = None  # (spec, list) allocated for the initial configuration, or None
+    # thermostatted sweeps: the thermostat (Langevin / Bussi) and the barostat
+    # (StochasticCellRescaling, NPT) as templates whose temperature and pressure are traced
+    # (every point of a temperature or pressure scan runs the same compiled function)
+    thermostat: Any = None
+    temperature: float = math.nan
+    barostat: Any = None
+    pressure: Any = None  # P0 [n, n] of an NPT sweep
+    space: Any = None  # the periodic box, else None
+    every: int = 1  # run.every: the measurement interval
 
 
 @functools.lru_cache(maxsize=32)
@@ -340,9 +409,25 @@ def _prepare(config_json: str) -> _Prepared:
     except ValidationError as err:
         raise ConfigError(one_line_error(err)) from None
     built = build(check_config(config))
+    extra = {}
+    if built.thermostat is not None:
+        from affinebody.space import as_space
+
+        box = config.system.box
+        thermostat = built.thermostat
+        extra = {"thermostat": dataclasses.replace(thermostat, temperature=1.0, seed=0),
+                 "temperature": float(thermostat.temperature), "every": int(config.run.every),
+                 "space": None if box is None else as_space(tuple(box))}
+        if config.barostat is not None:
+            from affinebody.runner import constant_pressure
+
+            baro = constant_pressure(config, thermostat)[0]
+            zero = tuple((0.0,) * config.n for _ in range(config.n))
+            extra["pressure"] = baro.target
+            extra["barostat"] = dataclasses.replace(baro, pressure=zero, temperature=1.0)
     return _Prepared(built.system, built.state, get_integrator(config.run.integrator),
                      float(config.run.dt), int(config.run.steps),
-                     built.neighbors if built.neighbor_list else None)
+                     built.neighbors if built.neighbor_list else None, **extra)
 
 
 def draw_initial_state(system, state, key, *, internal: str, internal_scale, translational: str,
@@ -506,6 +591,8 @@ def run_task(task: Task, in_worker: bool = True) -> dict[str, Any]:
         prepared = _prepare(task.config_json)
     except ValueError as err:
         return _failure_result(task, str(err).splitlines()[0], info)
+    if prepared.thermostat is not None:
+        return _run_thermal_task(task, prepared, info, clock)
     import jax.numpy as jnp
 
     from affinebody.system import OPEN_GROUPS
@@ -553,7 +640,52 @@ def run_task(task: Task, in_worker: bool = True) -> dict[str, Any]:
     return result
 
 
-def _repeat_with_larger_list(samples, out, j, index, lists, state):
+def _run_thermal_task(task: Task, prepared: _Prepared, info: dict, clock: float) -> dict:
+    """:func:`run_task` of a thermostatted sweep (columns :data:`THERMAL_SCALARS`)."""
+    import jax.numpy as jnp
+
+    from affinebody import barostat as baro_module
+    from affinebody.system import OPEN_GROUPS
+
+    spec = task.spec
+    system = prepared.system
+    lists = prepared.neighbors or (None, None)
+
+    def samples(indices, lists):
+        out = _compiled_thermal_batch()(
+            system, prepared.state, jnp.asarray(spec.seed, dtype=jnp.uint32),
+            jnp.asarray(indices), jnp.asarray(prepared.dt), jnp.asarray(spec.velocity_scale),
+            jnp.asarray(spec.x_velocity_scale), lists[1], jnp.asarray(prepared.temperature),
+            None if prepared.pressure is None else jnp.asarray(prepared.pressure),
+            steps=prepared.steps, every=prepared.every, equilibration=spec.equilibration,
+            method=prepared.method, thermostat=prepared.thermostat,
+            barostat=prepared.barostat, space=prepared.space, watch_det=system.group in OPEN_GROUPS,
+            internal=spec.initial_velocity, translational=spec.x_velocity, spec=lists[0])
+        return {k: np.array(v) for k, v in out.items()}
+
+    cell = None if prepared.barostat is None else prepared.space.matrix
+    out = {k: v[: task.count] for k, v in samples(task.indices, lists).items()}
+    for j in np.flatnonzero(out["code"] == Stop.OVERFLOW):
+        out = _repeat_with_larger_list(samples, out, j, task.indices[j], lists, prepared.state,
+                                       cell)
+    if prepared.barostat is not None:  # all pairs: the minimum image needs half a cut-off
+        for j in np.flatnonzero(out["code"] == _SAMPLED):
+            if baro_module.first_narrow_frame(system, out["narrowest_cell"][j][None]) is not None:
+                out["code"][j] = _NARROW
+    code = out["code"].astype(np.int64)
+    result = thermal_results(out, prepared.dt)
+    result.update({
+        "code": code,
+        "message": [STATUS_CODES[int(c)][1] for c in code],
+        "omega_hat": out["omega_hat"],
+        "velocity": out["velocity"],
+        "horizon": prepared.dt * prepared.steps,
+        "worker": {**info, "seconds": time.perf_counter() - clock},
+    })
+    return result
+
+
+def _repeat_with_larger_list(samples, out, j, index, lists, state, cell=None):
     """Sample ``j`` (sample number ``index``) overflowed its neighbour list: run it again, alone,
     with the list reallocated at the initial configuration by the one capacity policy
     (:func:`affinebody.neighbors.reallocate`, from what the failed step saw), until it
@@ -567,7 +699,7 @@ def _repeat_with_larger_list(samples, out, j, index, lists, state):
         try:
             spec, lst = nb.reallocate(spec, state.x, state.phi, flags=int(out["overflow"][j]),
                                       pairs=int(out["most_pairs"][j]),
-                                      reach=float(out["largest_reach"][j]))
+                                      reach=float(out["largest_reach"][j]), cell=cell)
         except ValueError:  # NeighborListOverflow, or a reach beyond half the box
             break
         again = samples(np.asarray([index]), (spec, lst))
@@ -578,12 +710,215 @@ def _repeat_with_larger_list(samples, out, j, index, lists, state):
     return out
 
 
+# --------------------------------------------------------------------------- thermal mode
+#: The run driver's observables averaged by a thermostatted sample (``simulate.NAMED_OBSERVABLES``).
+_AVERAGED = ("energy", "potential_energy", "translational_temperature", "internal_temperature")
+
+
+def thermal_sample(system, state, dt, seed, temperature, pressure=None, *, steps: int,
+                   every: int, equilibration: int, method, thermostat, barostat=None,
+                   space=None, watch_det: bool, spec=None, neighbors=None) -> dict[str, Any]:
+    """Integrate one thermostatted sample (NVT, or NPT with ``barostat``) and reduce its
+    observables to sums of scalars (module docstring, "Thermostatted sweeps"); traceable.
+
+    ``thermostat`` and ``barostat`` are templates: their kT is ``temperature``, the barostat's
+    target P0 is ``pressure`` [n, n] (both may be traced). NVT: a ``lax.scan`` of the run
+    driver's :func:`~affinebody.simulate.watched_step` with ``method`` composed with the
+    thermostat (``integrators.Thermostatted``, its seed replaced by ``seed``). NPT: blocks of
+    ``every`` steps of the NPT driver (:func:`affinebody.barostat.advance` with the
+    thermostat's O step of ``affinebody run``, :func:`affinebody.runner.thermostat_hook`,
+    keys from ``seed``). Observables are measured after every ``every`` steps; those after more than
+    ``equilibration`` steps are summed (shifted by their initial values). A failing step
+    freezes the sample: ``code`` is then its :class:`~affinebody.simulate.Stop` (or
+    ``_BOX``/``_NARROW`` under the barostat), else ``_SAMPLED``. Memory O(N): no frames kept.
+    """
+    import dataclasses as dc
+
+    import jax
+    import jax.numpy as jnp
+    from jax import lax
+
+    from affinebody import _linalg as linalg
+    from affinebody import barostat as baro_module
+    from affinebody import pressure as pm
+    from affinebody.integrators import Thermostatted
+    from affinebody.runner import thermostat_hook
+    from affinebody.simulate import NAMED_OBSERVABLES, initial_forces, watched_step
+
+    dtype = state.x.dtype
+    nan = jnp.asarray(jnp.nan, dtype)
+    observers = tuple((name, NAMED_OBSERVABLES[name]) for name in _AVERAGED)
+    thermostat = dc.replace(thermostat, temperature=temperature, seed=seed)
+    if barostat is not None:
+        barostat = dc.replace(barostat, pressure=pressure, temperature=temperature)
+        p0 = jnp.trace(pressure) / state.n
+        hook = functools.partial(thermostat_hook, thermostat)
+
+    def scalars(values, pressure, volume):
+        """(E, U, T_tr, T_int, P, V, E + P0 V) from the driver's observables."""
+        e = values["energy"]
+        enthalpy = e if barostat is None else e + p0 * volume
+        return jnp.stack([e, values["potential_energy"], values["translational_temperature"],
+                          values["internal_temperature"], pressure, volume,
+                          enthalpy]).astype(dtype)
+
+    if barostat is None:
+        method = Thermostatted(method, thermostat)
+        step = watched_step(system, method, dt, spec, sign0=jnp.sign(linalg.det(state.phi)),
+                            watch_det=watch_det)
+
+        def measure(state, nbrs):
+            values = {name: f(system, state, nbrs) for name, f in observers}
+            if space is None:
+                return scalars(values, nan, nan)
+            tensor = pm.pressure_tensor(system, state, space, nbrs)
+            return scalars(values, pm.scalar_pressure(tensor), jnp.asarray(space.volume, dtype))
+
+        carry0 = (state, neighbors, initial_forces(system, method, state, neighbors))
+    else:
+        cell0 = jnp.asarray(space.matrix, dtype)
+
+        def measure(state, nbrs, cell=cell0):
+            boxed = system.replace(cell=cell)
+            values = {name: f(boxed, state, nbrs) for name, f in observers}
+            tensor = pm.pressure_tensor(boxed, state, space, nbrs)
+            return scalars(values, pm.scalar_pressure(tensor), linalg.det(cell))
+
+        carry0 = (state, neighbors, cell0)
+
+    reference = measure(state, neighbors)
+    int0 = jnp.asarray(0, jnp.int32)
+    lost0 = (int0, int0, jnp.zeros((), dtype))
+    narrowest0 = jnp.asarray(space.matrix if barostat is not None else 0.0, dtype)
+
+    def nvt_block(carry, start):
+        def one(inner, _):
+            (state, nbrs, forces), code, done, lost = inner
+            w = step(state, nbrs, forces)
+            first = (code == _SAMPLED) & (w.stop != Stop.NONE)
+            good = (code == _SAMPLED) & (w.stop == Stop.NONE)
+            if w.tracked is not None:
+                seen = (w.tracked.overflow, w.tracked.most_pairs, w.tracked.largest_reach)
+                lost = jax.tree.map(lambda old, new: jnp.where(first, new, old), lost, seen)
+            keep = lambda new, old: jnp.where(good, new, old)  # noqa: E731
+            moved = jax.tree.map(keep, (w.state, w.neighbors, w.forces), (state, nbrs, forces))
+            return (moved, jnp.where(first, w.stop, code), done + good, lost), None
+
+        (moved, code, done, lost), _ = lax.scan(one, carry[:4], None, length=every)
+        return moved, code, done, lost, carry[4], measure(moved[0], moved[1])
+
+    def npt_block(carry, start):
+        (state, nbrs, cell), code, done, lost, narrowest = carry
+        new, new_cell, values, failed, overflowed, narrow, seen, new_list = baro_module.advance(
+            system, state, cell, start, seed, dt, nbrs, steps=every, method=method,
+            barostat=barostat, space=space, thermostat=hook, observers=observers, spec=spec)
+        stop = jnp.where(overflowed, int(Stop.OVERFLOW), jnp.where(
+            narrow, _NARROW, jnp.where(failed >= 0, _BOX, int(Stop.NONE))))
+        first = (code == _SAMPLED) & (stop != Stop.NONE)
+        good = (code == _SAMPLED) & (stop == Stop.NONE)
+        lost = jax.tree.map(lambda old, nw: jnp.where(first, nw, old), lost, seen)
+        done = jnp.where(good, done + every, jnp.where(first, failed - 1 - start, 0) + done)
+        keep = lambda nw, old: jnp.where(good, nw, old)  # noqa: E731
+        moved = jax.tree.map(keep, (new, new_list, new_cell), (state, nbrs, cell))
+        reciprocal = lambda c: jnp.max(jnp.linalg.norm(linalg.inv(c), axis=-1))  # noqa: E731
+        narrowest = jnp.where(good & (reciprocal(new_cell) > reciprocal(narrowest)), new_cell,
+                              narrowest)
+        values = scalars(values, pm.scalar_pressure(values["pressure"]), values["volume"])
+        return moved, jnp.where(first, stop, code), done, lost, narrowest, values
+
+    block = nvt_block if barostat is None else npt_block
+    zero = jnp.zeros(7, dtype)
+
+    def accumulate(carry, index):
+        start = index * every
+        moved, code, done, lost, narrowest, values = block(carry[:5], start)
+        counted = (code == _SAMPLED) & (start + every > equilibration)
+        shifted = jnp.where(counted, values - reference, 0.0)
+        count, total, squares = carry[5]
+        sums = (count + counted, total + shifted, squares + shifted * shifted)
+        return (moved, code, done, lost, narrowest, sums), None
+
+    init = (carry0, jnp.asarray(_SAMPLED), jnp.asarray(0), lost0, narrowest0,
+            (jnp.asarray(0), zero, zero))
+    (_, code, done, lost, narrowest, sums), _ = lax.scan(
+        accumulate, init, jnp.arange(steps // every))
+    return {"code": code, "steps_done": done, "measurements": sums[0], "reference": reference,
+            "sums": sums[1], "squares": sums[2], "narrowest_cell": narrowest,
+            "temperature": jnp.asarray(temperature, dtype),
+            "npt": jnp.asarray(barostat is not None),
+            "overflow": lost[0], "most_pairs": lost[1], "largest_reach": lost[2]}
+
+
+def _thermal_batch(system, state, seed, indices, dt, internal_scale, translational_scale,
+                   neighbors, temperature, pressure, *, steps, every, equilibration, method,
+                   thermostat, barostat, space, watch_det, internal, translational, spec):
+    """Every sample of a thermostatted task (as :func:`_batch`): sample k draws its initial
+    velocities from fold_in(key(seed), k) (sub-keys 0, 1) and the seed of its thermostat (NVT)
+    or of the NPT driver's noise (NPT) from its sub-key 2."""
+    import jax
+    import jax.numpy as jnp
+
+    def one(index):
+        key = jax.random.fold_in(jax.random.key(seed), index)
+        start, omega_hat, v = draw_initial_state(
+            system, state, key, internal=internal, internal_scale=internal_scale,
+            translational=translational, translational_scale=translational_scale)
+        sample_seed = jax.random.bits(jax.random.fold_in(key, 2), (), jnp.uint32)
+        out = thermal_sample(system, start, dt, sample_seed, temperature, pressure,
+                             steps=steps, every=every, equilibration=equilibration,
+                             method=method, thermostat=thermostat, barostat=barostat,
+                             space=space, watch_det=watch_det, spec=spec, neighbors=neighbors)
+        return {**out, "omega_hat": omega_hat, "velocity": v}
+
+    if spec is None:
+        return jax.vmap(one)(indices)
+    return jax.lax.map(one, indices)
+
+
+@functools.cache
+def _compiled_thermal_batch():
+    import jax
+
+    return jax.jit(_thermal_batch, static_argnames=(
+        "steps", "every", "equilibration", "method", "thermostat", "barostat", "space",
+        "watch_det", "internal", "translational", "spec"))
+
+
+def thermal_results(out: dict[str, np.ndarray], dt: float) -> dict[str, np.ndarray]:
+    """The per-sample columns :data:`THERMAL_SCALARS` from the sums of
+    :func:`thermal_sample` (host side): means, variances (1/m, of the m measurements),
+    C = var(E)/kT^2 (NVT) or var(E + P0 V)/kT^2 (NPT), kappa_T = var(V)/(kT <V>) (NPT)."""
+    m = out["measurements"].astype(float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = out["reference"] + out["sums"] / m[:, None]
+        shift = out["sums"] / m[:, None]
+        var = np.maximum(out["squares"] / m[:, None] - shift * shift, 0.0)
+        kt = out["temperature"]
+        npt = out["npt"]
+        sampled = out["code"] == _SAMPLED
+        column = lambda a: np.where(sampled, a, np.nan)  # noqa: E731
+        return {
+            "followed_time": out["steps_done"] * dt,
+            "measurements": m,
+            "mean_total_energy": column(mean[:, 0]),
+            "var_total_energy": column(var[:, 0]),
+            "mean_potential_energy": column(mean[:, 1]),
+            "mean_translational_temperature": column(mean[:, 2]),
+            "mean_internal_temperature": column(mean[:, 3]),
+            "mean_pressure": column(mean[:, 4]),
+            "mean_volume": column(mean[:, 5]),
+            "var_volume": column(var[:, 5]),
+            "heat_capacity": column(var[:, 6] / kt**2),
+            "compressibility": column(np.where(npt, var[:, 5] / (kt * mean[:, 5]), np.nan)),
+        }
+
+
 def _failure_result(task: Task, message: str, info: dict | None = None) -> dict[str, Any]:
     nan = np.full(task.count, np.nan)
     result = {"code": np.full(task.count, _ERROR, dtype=np.int64),
               "message": [message] * task.count, "horizon": math.nan,
               "omega_hat": None, "velocity": None, "worker": info or {}}
-    result.update({name: nan.copy() for name in SCALARS})
+    result.update({name: nan.copy() for name in SCALARS + THERMAL_SCALARS})
     return result
 
 
@@ -694,13 +1029,14 @@ def json_safe(value):
     return value
 
 
-def _write_task_file(folder: Path, task: Task, point: ScanPoint, result: dict) -> None:
+def _write_task_file(folder: Path, task: Task, point: ScanPoint, result: dict,
+                     columns: tuple[str, ...] = SCALARS) -> None:
     rows = []
     for j in range(task.count):
         code = int(result["code"][j])
         row = {"sample": task.start + j, "status": STATUS_CODES[code][0],
                "failure": result["message"][j]}
-        row.update({name: float(result[name][j]) for name in SCALARS})
+        row.update({name: float(result[name][j]) for name in columns})
         for name in ("omega_hat", "velocity"):
             if result.get(name) is not None:
                 row[name] = result[name][j]
@@ -770,6 +1106,36 @@ def summarize_point(point: ScanPoint, status: np.ndarray, failure: np.ndarray,
     }
 
 
+def summarize_thermal_point(point: ScanPoint, status: np.ndarray, failure: np.ndarray,
+                            samples: dict[str, np.ndarray], horizon: float) -> dict:
+    """The summary of one point of a thermostatted sweep: for every column of
+    :data:`THERMAL_SCALARS` the mean over its sampled samples and the standard error of that
+    mean, std / sqrt(m) (``NAME`` and ``NAME_error``); the samples are independent, so the
+    error holds however correlated the measurements inside one sample are."""
+    counts = Counter(status.tolist())
+    ok = status == "sampled"
+    out = {"index": point.index, "parameters": point.parameter_dict,
+           "samples": int(status.size), "sampled": counts.get("sampled", 0),
+           "failed": counts.get("failed", 0)}
+    if point.config_json is not None:
+        data = json.loads(point.config_json)
+        out["temperature"] = data["thermostat"]["temperature"]
+        if data.get("barostat") is not None:
+            pressure = np.asarray(data["barostat"]["pressure"], dtype=float)
+            out["pressure_target"] = float(pressure if pressure.ndim == 0
+                                           else np.trace(pressure) / pressure.shape[0])
+    for name in THERMAL_SCALARS:
+        values = samples[name][ok]
+        values = values[np.isfinite(values)]
+        m = values.size
+        out[name] = float(np.mean(values)) if m else math.nan
+        out[f"{name}_error"] = float(np.std(values, ddof=1) / math.sqrt(m)) if m > 1 else math.nan
+    out.update({"horizon": horizon,
+                "failures": dict(Counter(f for f in failure.tolist() if f)),
+                "config_error": point.error})
+    return out
+
+
 def run_sweep(
     config: Config,
     *,
@@ -789,16 +1155,15 @@ def run_sweep(
     ``progress(done_samples, total_samples)`` is called as tasks complete.
     """
     clock = time.perf_counter()
-    if config.thermostat is not None:  # sampled NVE orbits would silently ignore it
-        raise ConfigError("[thermostat] is applied by affinebody run, not by affinebody sweep "
-                          "(its samples are NVE orbits): remove [thermostat] for a sweep")
     spec = SweepSpec.from_config(config, samples, seed)
+    thermal = config.thermostat is not None
+    columns = THERMAL_SCALARS if thermal else SCALARS
     points = scan_points(config)
     tasks = make_tasks(points, spec)
     horizon = float(config.run.dt * config.run.steps)
     P, S = len(points), spec.samples
     n, N = config.n, config.bodies_count
-    data = {name: np.full((P, S), np.nan) for name in SCALARS}
+    data = {name: np.full((P, S), np.nan) for name in columns}
     data["omega_hat"] = np.full((P, S, N, n, n), np.nan)
     data["velocity"] = np.full((P, S, N, n), np.nan)
     status = np.full((P, S), "failed", dtype=object)
@@ -821,7 +1186,7 @@ def run_sweep(
         nonlocal done
         rows = slice(task.start, task.start + task.count)
         p = task.point
-        for name in SCALARS:
+        for name in columns:
             data[name][p, rows] = result[name]
         for name in ("omega_hat", "velocity"):
             if result.get(name) is not None:
@@ -835,7 +1200,7 @@ def run_sweep(
             worker_info[result["worker"]["pid"]] = {
                 k: v for k, v in result["worker"].items() if k != "seconds"}
         if folder is not None:
-            _write_task_file(folder / "tasks", task, points[p], result)
+            _write_task_file(folder / "tasks", task, points[p], result, columns)
         done += task.count
         if progress is not None:
             progress(done, total)
@@ -857,20 +1222,37 @@ def run_sweep(
     summaries = []
     for point in points:
         p = point.index
+        if thermal:
+            summaries.append(summarize_thermal_point(point, status[p], failure[p],
+                                                     {k: v[p] for k, v in data.items()},
+                                                     float(horizons[p])))
+            continue
         summaries.append(summarize_point(point, status[p], failure[p],
                                          {k: v[p] for k, v in data.items()}, spec.bound,
                                          float(horizons[p])))
-    pooled = binomial_summary(int(np.sum(status == "bounded")),
-                              int(np.sum(status != "failed")))
-    summary = {
-        "fraction_bounded": pooled["fraction"],
-        "fraction_bounded_error": pooled["error"],
-        "fraction_bounded_interval": pooled["interval"],
+    if thermal:
+        summary = {
+            "ensemble": "NVT" if config.barostat is None else "NPT",
+            "equilibration": spec.equilibration,
+            "every": config.run.every,
+        }
+    else:
+        pooled = binomial_summary(int(np.sum(status == "bounded")),
+                                  int(np.sum(status != "failed")))
+        summary = {
+            "fraction_bounded": pooled["fraction"],
+            "fraction_bounded_error": pooled["error"],
+            "fraction_bounded_interval": pooled["interval"],
+        }
+    summary.update({
         "samples": S,
         "points": summaries,
         "total_samples": P * S,
         "failed": int(np.sum(status == "failed")),
-        "bound": spec.bound,
+    })
+    if not thermal:
+        summary["bound"] = spec.bound
+    summary.update({
         "horizon": horizon,
         "seed": spec.seed,
         "initial_velocity": spec.initial_velocity,
@@ -879,30 +1261,32 @@ def run_sweep(
         "workers": cluster["workers"],
         "worker_processes": len(worker_info),
         "wall_seconds": time.perf_counter() - clock,
-    }
+    })
     if folder is not None:
         (folder / "summary.json").write_text(json.dumps(json_safe(summary), indent=1),
                                              encoding="utf-8")
-        _write_samples_csv(folder / "samples.csv", points, status, failure, data)
+        _write_samples_csv(folder / "samples.csv", points, status, failure, data, columns)
     return SweepResult(spec, points, data, status, failure, summary, folder,
                        list(worker_info.values()))
 
 
-def _write_samples_csv(path: Path, points, status, failure, data) -> None:
+def _write_samples_csv(path: Path, points, status, failure, data,
+                       columns: tuple[str, ...] = SCALARS) -> None:
     import csv
 
     names = [p for p, _ in points[0].parameters] if points else []
     with path.open("w", newline="", encoding="utf-8") as handle:
         writer = csv.writer(handle)
-        writer.writerow(["point", "sample", *names, "status", "failure", *SCALARS])
+        writer.writerow(["point", "sample", *names, "status", "failure", *columns])
         for point in points:
             values = [v for _, v in point.parameters]
             for k in range(status.shape[1]):
                 writer.writerow([point.index, k, *values, status[point.index, k],
                                  failure[point.index, k],
-                                 *(repr(float(data[s][point.index, k])) for s in SCALARS)])
+                                 *(repr(float(data[s][point.index, k])) for s in columns)])
 
 
-__all__ = ("SweepResult", "SweepSpec", "ScanPoint", "Task", "WORKER_ENV", "binomial_summary",
-           "dask_client", "draw_initial_state", "follow", "make_tasks", "prepare_worker",
-           "run_sweep", "run_task", "scan_points")
+__all__ = ("THERMAL_SCALARS", "SweepResult", "SweepSpec", "ScanPoint", "Task", "WORKER_ENV",
+           "binomial_summary", "check_thermal", "dask_client", "draw_initial_state", "follow",
+           "make_tasks", "prepare_worker", "run_sweep", "run_task", "scan_points",
+           "summarize_thermal_point", "thermal_results", "thermal_sample")

@@ -104,6 +104,8 @@ class Bussi:
 
 
 def _check_positive(name: str, value) -> None:
+    if isinstance(value, jax.core.Tracer):  # traced in an ensemble (sweep samples)
+        return
     if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
         raise ValueError(f"{name} must be a finite number > 0 (got {value!r})")
 

@@ -21,10 +21,50 @@ def _format(value: float, digits: int = 3) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
 
 
+def _thermal_lines(summary: dict) -> list[str]:
+    """The table of a thermostatted sweep: per point, the averages over its samples with their
+    standard errors."""
+    from rich.table import Table
+
+    table = Table(title=f"{summary['ensemble']} sweep: {summary['samples']} samples per point, "
+                        f"{summary['horizon']:.6g} time units, averages after "
+                        f"{summary['equilibration']} steps")
+    names = list(summary["points"][0]["parameters"]) if summary["points"] else []
+    shown = {"mean_total_energy": "<E>", "mean_translational_temperature": "<T_tr>",
+             "mean_internal_temperature": "<T_int>", "mean_pressure": "<P>",
+             "mean_volume": "<V>", "heat_capacity": "C"}
+    for name in [*names, "sampled", "failed", *shown.values()]:
+        table.add_column(name, justify="right")
+    for point in summary["points"]:
+        table.add_row(*(str(point["parameters"][k]) for k in names), str(point["sampled"]),
+                      str(point["failed"]),
+                      *(f"{_format(point[k], 5)} ± {_format(point[k + '_error'], 2)}"
+                        for k in shown))
+    return _rendered(table, summary, f"{summary['total_samples'] - summary['failed']} samples "
+                                     f"({summary['failed']} failed)")
+
+
+def _rendered(table, summary: dict, totals: str) -> list[str]:
+    """The table as text, the totals line with the time and the cluster, the failures."""
+    from rich.console import Console
+
+    console = Console(width=160, record=True, file=io.StringIO())
+    console.print(table)
+    lines = console.export_text().rstrip("\n").splitlines()
+    lines.append(f"{totals}, {summary['wall_seconds']:.1f} s on {summary['workers']} worker(s) "
+                 f"({summary['scheduler']})")
+    for point in summary["points"]:
+        for reason, count in point["failures"].items():
+            lines.append(f"point {point['index']}: {count} failed: {reason}")
+    return lines
+
+
 def summary_lines(summary: dict) -> list[str]:
     """A plain-text table of the per-point summaries (used when rich is not a terminal)."""
-    from rich.console import Console
     from rich.table import Table
+
+    if "ensemble" in summary:
+        return _thermal_lines(summary)
 
     table = Table(title=f"sweep: {summary['samples']} samples per point, horizon "
                         f"{summary['horizon']:.6g}, bound {summary['bound']:.6g}")
@@ -40,18 +80,11 @@ def summary_lines(summary: dict) -> list[str]:
             str(point["bounded"]), str(point["unbounded"]), str(point["failed"]), fraction,
             _format(point["energy_error_median"], 2), _format(point["max_relative_volume"]),
             f"{_format(point['min_det'])} .. {_format(point['max_det'])}")
-    console = Console(width=160, record=True, file=io.StringIO())
-    console.print(table)
-    lines = console.export_text().rstrip("\n").splitlines()
-    lines.append(f"fraction bounded (all points): {_format(summary['fraction_bounded'], 4)} ± "
-                 f"{_format(summary['fraction_bounded_error'], 2)} over "
-                 f"{summary['total_samples'] - summary['failed']} classified samples "
-                 f"({summary['failed']} failed), {summary['wall_seconds']:.1f} s on "
-                 f"{summary['workers']} worker(s) ({summary['scheduler']})")
-    for point in summary["points"]:
-        for reason, count in point["failures"].items():
-            lines.append(f"point {point['index']}: {count} failed: {reason}")
-    return lines
+    return _rendered(table, summary,
+                     f"fraction bounded (all points): {_format(summary['fraction_bounded'], 4)} "
+                     f"± {_format(summary['fraction_bounded_error'], 2)} over "
+                     f"{summary['total_samples'] - summary['failed']} classified samples "
+                     f"({summary['failed']} failed)")
 
 
 def _progress_bar(enabled: bool):

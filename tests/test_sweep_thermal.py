@@ -1,0 +1,124 @@
+"""Thermostatted sweeps (NVT and NPT samples, ``affinebody sweep`` with [thermostat] and
+[barostat]) against exact canonical and isothermal-isobaric results.
+
+Bodies with d'Alembert kinetic energies (6), (52) on L(2) (singular phi allowed) in the
+harmonic one-body potential 0.5 Tr G = 0.5 |phi|^2, no pair forces: every internal degree of
+freedom is a harmonic oscillator (Lebesgue measure), the centres are free. Per body n/2 + n^2
+quadratic terms, so in NVT <E> = N (n/2 + n^2) kT and C_V = var(E)/kT^2 = N (n/2 + n^2) exactly.
+In NPT (stochastic cell rescaling, measure dV) the volume of the free centres is Gamma
+distributed: <V> = (N + 1) kT / P, var(V) = (N + 1) (kT/P)^2, so kappa_T = var(V)/(kT <V>) = 1/P,
+<P_inst> = N kT <1/V> = P, and C_P = var(E + P V)/kT^2 = N (n/2 + n^2) + N + 1.
+Every comparison is against the standard error across independent samples (and a small
+allowance for the bias of a variance measured over a finite run, about 1/(effective
+measurements)).
+"""
+
+import textwrap
+
+import pytest
+
+from affinebody.config import check_config, parse_config
+from affinebody.sweep import run_sweep
+
+N, n = 4, 2
+QUADRATIC = N * (n / 2 + n * n)  # quadratic terms of H: C_V in units of k_B
+
+BASE = textwrap.dedent("""
+    [system]
+    n = 2
+    group = "L"
+    bodies = 4
+    {box}
+    [body]
+    mass = 1.0
+    inertia = 1.0
+    [kinetic]
+    translational = "dalembert"
+    internal = "dalembert"
+    [[potential]]
+    kind = "one-body"
+    expr = "0.5*trG"
+    [initial]
+    x = [[0.2, 0.3], [1.2, 0.3], [0.2, 1.5], [1.2, 1.5]]
+    [run]
+    dt = {dt}
+    steps = 4000
+    every = 10
+    [thermostat]
+    kind = "langevin"
+    temperature = 1.0
+    friction = {friction}
+    {barostat}
+    [sweep]
+    samples = 16
+    seed = 3
+    batch = 16
+    equilibration = 400
+    scan = {scan}
+""")
+NVT = BASE.format(box="", dt=0.05, friction=1.0, barostat="",
+                  scan='{ "thermostat.temperature" = [0.5, 2.0] }')
+NPT = BASE.format(box="box = [2.0, 2.5]", dt=0.01, friction=2.0,
+                  barostat="[barostat]\npressure = 1.0\ntau = 0.5\ncompressibility = 1.0",
+                  scan='{ "barostat.pressure" = [0.5, 2.0] }')
+
+
+def load(text):
+    return check_config(parse_config(text))
+
+
+def close(point, name, exact, allowance=0.0):
+    mean, error = point[name], point[f"{name}_error"]
+    assert abs(mean - exact) < 4 * error + allowance * abs(exact), (name, mean, error, exact)
+
+
+def test_nvt_sweep_samples_equipartition_and_the_exact_heat_capacity(tmp_path):
+    result = run_sweep(load(NVT), workers=0, output=tmp_path)
+    assert result.summary["ensemble"] == "NVT"
+    assert set(result.status.ravel()) == {"sampled"}
+    for point, kt in zip(result.summary["points"], (0.5, 2.0), strict=True):
+        assert point["temperature"] == kt and point["measurements"] == 360  # after 400 steps
+        close(point, "mean_translational_temperature", kt)
+        close(point, "mean_internal_temperature", kt)
+        close(point, "mean_total_energy", QUADRATIC * kt)
+        close(point, "mean_potential_energy", N * n * n / 2 * kt)
+        close(point, "heat_capacity", QUADRATIC, allowance=0.05)
+        # sharp enough to fail: 3% of kT, 5% of C
+        assert point["mean_internal_temperature_error"] < 0.03 * kt
+        assert point["heat_capacity_error"] < 0.05 * QUADRATIC
+    header = (tmp_path / "samples.csv").read_text().splitlines()[0].split(",")
+    assert header[:5] == ["point", "sample", "thermostat.temperature", "status", "failure"]
+    assert "heat_capacity" in header and "var_total_energy" in header
+
+
+def test_npt_sweep_follows_the_isobaric_ideal_gas_law():
+    result = run_sweep(load(NPT), workers=0)
+    assert result.summary["ensemble"] == "NPT"
+    assert set(result.status.ravel()) == {"sampled"}
+    kt = 1.0
+    for point, pressure in zip(result.summary["points"], (0.5, 2.0), strict=True):
+        volume = (N + 1) * kt / pressure
+        close(point, "mean_volume", volume)
+        # the law N kT / P of the measure dV/V would be 20% lower: the test tells them apart
+        assert point["mean_volume_error"] < 0.05 * volume
+        close(point, "mean_pressure", pressure)
+        close(point, "compressibility", 1.0 / pressure, allowance=0.05)
+        close(point, "heat_capacity", QUADRATIC + N + 1, allowance=0.05)
+        close(point, "mean_translational_temperature", kt)
+        close(point, "mean_internal_temperature", kt)
+
+
+def test_thermal_sweep_tables_are_checked_in_one_line():
+    from affinebody.config import ConfigError
+
+    no_thermostat = NPT[:NPT.index("[thermostat]")] + NPT[NPT.index("[barostat]"):].replace(
+        "compressibility = 1.0", "compressibility = 1.0\ntemperature = 1.0")
+    cases = (
+        (NVT.replace("equilibration = 400", "equilibration = 3995"), "sweep.equilibration"),
+        (NVT.replace("every = 10", "every = 7"), "multiple of run.every"),
+        (no_thermostat, "needs a [thermostat]"),
+    )
+    for text, words in cases:
+        with pytest.raises(ConfigError) as err:
+            run_sweep(load(text), workers=0)
+        assert words in str(err.value) and "\n" not in str(err.value)
