@@ -219,7 +219,7 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
     """The compiled NPT run; with a neighbour list (``spec`` not None) the carry holds the
     list, valid for the carried state in the carried cell, and a step whose list overflowed
     is not kept (``lost``: what the reallocation must hold, as in ``simulate.run``)."""
-    p0 = float(np.trace(barostat.target)) / space.dimension
+    p0 = jnp.trace(jnp.asarray(barostat.pressure)) / space.dimension  # may be traced (sweep)
 
     def enthalpy(state, cell, nbrs):
         """H + P0 V in ``cell`` (P0 = Tr P0 / n)."""
@@ -317,8 +317,10 @@ def advance(system, state: State, cell, first_step, seed, dt, neighbors=None, *,
     the first step not kept (-1: none; the state and cell are then the last good ones),
     ``overflowed``/``narrow``/``lost`` what :func:`run` reallocates from, ``list`` the
     neighbour list (valid for the state in the cell) or None."""
+    exchanged = (jnp.zeros((), dtype=state.x.dtype),) * 2  # heat and work since the start
     states, cells, values, failed, overflowed, narrow, lost, last_list = _npt(
-        system, state, cell, first_step, seed, dt, neighbors, method=method, barostat=barostat,
+        system, state, cell, first_step, seed, dt, neighbors, exchanged, method=method,
+        barostat=barostat,
         space=space, thermostat=thermostat, n_chunks=1, every=int(steps),
         observers=tuple(observers), spec=spec)
     last = lambda a: a[-1]  # noqa: E731
