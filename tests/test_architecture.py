@@ -174,3 +174,45 @@ def test_the_public_api_resolves_and_import_stays_light():
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                             check=True).stdout.strip()
     assert loaded == "[]", loaded
+
+
+def _public_definitions(tree: ast.Module) -> list[str]:
+    names = []
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.append(node.name)
+        elif isinstance(node, ast.Assign):
+            names += [t.id for t in node.targets if isinstance(t, ast.Name)]
+        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            names.append(node.target.id)
+    return [n for n in names if not n.startswith("_")]
+
+
+def _imported_names(tree: ast.Module) -> set[str]:
+    return {(alias.asname or alias.name).split(".")[0] for node in ast.walk(tree)
+            if isinstance(node, (ast.Import, ast.ImportFrom)) for alias in node.names}
+
+
+@pytest.mark.parametrize("path", sorted(
+    p for p in PACKAGE.rglob("*.py")
+    if p.name != "__init__.py" and not any(part.startswith("_")
+                                           for part in p.relative_to(PACKAGE).parts)),
+    ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_every_public_module_lists_its_public_names_in_all(path):
+    """docs/architecture.md: each public module lists its names in ``__all__``: every public
+    function and class is listed (constants may be), and every listed name is defined or
+    imported there."""
+    tree = ast.parse(path.read_text())
+    listed = [node for node in tree.body
+              if (isinstance(node, ast.Assign) and any(
+                  isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets))
+              or (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
+                  and node.target.id == "__all__")]
+    assert len(listed) == 1, f"{path.name}: no __all__ (or more than one)"
+    names = set(ast.literal_eval(listed[0].value))
+    callables = {node.name for node in tree.body
+                 if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))
+                 and not node.name.startswith("_")}
+    assert not callables - names, f"{path.name}: not in __all__: {sorted(callables - names)}"
+    unknown = names - set(_public_definitions(tree)) - _imported_names(tree)
+    assert not unknown, f"{path.name}: __all__ names what it does not define: {sorted(unknown)}"

@@ -80,3 +80,8 @@ def transform_velocity_state(state: VelocityState, A=None, B=None, b=None) -> Ve
     if b is not None:
         x = x + b
     return VelocityState(x, phi, v, xi)
+
+
+__all__ = [
+    "left_translation", "right_translation", "transform_state", "transform_velocity_state"
+]

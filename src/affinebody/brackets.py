@@ -97,3 +97,10 @@ def momentum_config_bracket(df_dx: jax.Array) -> jax.Array:
 def affine_momentum_config_bracket(x: jax.Array, df_dx: jax.Array) -> jax.Array:
     """{Lambda^a_b, f(x)} = -x^a df/dx^b for the orbital affine momentum Lambda = x p^T (108)."""
     return -x[..., :, None] * df_dx[..., None, :]
+
+
+__all__ = [
+    "canonical_bracket", "sigma_bracket", "comoving_sigma_bracket", "sigma_linear_bracket",
+    "comoving_sigma_linear_bracket", "sigma_config_bracket", "comoving_sigma_config_bracket",
+    "momentum_config_bracket", "affine_momentum_config_bracket"
+]

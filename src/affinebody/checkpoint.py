@@ -124,3 +124,9 @@ def load_checkpoint(path: str | Path, config_hash: str | None = None) -> Checkpo
             "(only run.steps / --steps may change) or run without --resume"
         )
     return checkpoint
+
+
+__all__ = [
+    "FORMAT_VERSION", "CheckpointError", "Checkpoint", "checkpoint_path", "save_checkpoint",
+    "load_checkpoint"
+]

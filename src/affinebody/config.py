@@ -1078,3 +1078,18 @@ def build(config: Config) -> Built:
                           f"of each other in a singular potential, or det phi = 0?)")
     return Built(system, state, inertia, neighbor_list, lists, timings,
                  build_thermostat(config))
+
+
+__all__ = [
+    "INTERNAL_MODELS", "TRANSLATIONAL_MODELS", "INTEGRATOR_NAMES", "SPLITTING_INTEGRATORS",
+    "AUTO_NEIGHBOR_LIST_BODIES", "CONFIG_GROUPS", "MAX_DIMENSION", "UnitSystem", "ConfigError",
+    "Vector", "Matrix", "Matrices", "Tensor4", "SystemSection", "Constituents", "BodySection",
+    "KineticSection", "PotentialSection", "InitialSection", "RunSection", "ThermostatSection",
+    "ScanRange", "SweepSection", "ConstraintsSection", "PhononsSection", "BarostatSection",
+    "Config", "one_line_error", "load_toml", "parse_config", "load_config", "Inertia",
+    "body_inertia", "check_kinetic", "check_thermostat", "build_thermostat", "check_run",
+    "uses_neighbor_list", "check_system", "check_initial", "build_potential_entry",
+    "check_potentials", "MEMORY_PER_BODY_3D", "MEMORY_BASE", "FRAME_BUFFER_BYTES", "frame_bytes",
+    "estimated_memory", "available_memory", "check_memory", "check_barostat", "records_pressure",
+    "check_config", "Built", "build_kinetic", "initial_configuration", "initial_state", "build"
+]

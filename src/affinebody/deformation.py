@@ -177,3 +177,12 @@ def eigenvalues_from_characteristic(I) -> jax.Array:
 def eigenvalues_from_traces(K) -> jax.Array:
     """Eigenvalues of G from K_a = Tr(G^a), via the characteristic coefficients."""
     return eigenvalues_from_characteristic(characteristic_from_traces(K))
+
+
+__all__ = [
+    "green_tensor", "cauchy_tensor", "inverse_green_tensor", "inverse_cauchy_tensor",
+    "lagrange_strain", "euler_strain", "matrix_power_traces", "trace_invariants",
+    "green_eigenvalues", "characteristic_invariants", "traces_from_eigenvalues",
+    "characteristic_from_eigenvalues", "characteristic_from_traces", "traces_from_characteristic",
+    "eigenvalues_from_characteristic", "eigenvalues_from_traces"
+]

@@ -84,3 +84,8 @@ def print_worked_example(console: Console | None = None) -> None:
     say(f"D = {float(d):.12f}; after the affine map A: {float(d_moved):.12f}  (76)")
     volume = float(mutual.relative_volume(psi, phi))
     say(f"relative volume det Gamma[psi, phi] = {volume:.6f}  (79)")
+
+
+__all__ = [
+    "print_worked_example"
+]

@@ -158,3 +158,9 @@ def write_xyz(
             fmt = species + " " + " ".join(["%.17g"] * rows.shape[1])
             np.savetxt(out, rows, fmt=fmt)
     return len(frames)
+
+
+__all__ = [
+    "PROPERTIES", "quaternion_from_rotation", "rotation_from_quaternion", "embed3", "ellipsoids",
+    "deform_columns", "write_xyz"
+]

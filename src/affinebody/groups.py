@@ -225,3 +225,9 @@ def _logm(a: jax.Array, max_square_roots: int) -> jax.Array:
         term = term @ z2
         series = series + term / (2 * j + 1)
     return (2.0 * 2.0**k) * series
+
+
+__all__ = [
+    "GROUPS", "CONFIGURATION_SPACES", "lie_algebra", "is_member", "project", "project_algebra",
+    "expm", "logm"
+]

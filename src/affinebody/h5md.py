@@ -588,3 +588,12 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
         conserved = ("effective_energy" if "effective_energy" in writer.observables
                      else "total_energy")
         return count, np.asarray(source.observables[conserved][:count])
+
+
+__all__ = [
+    "H5MD_VERSION", "MODULE_NAME", "MODULE_VERSION", "PARTICLE_GROUP", "COMMITTED",
+    "UNITS_MODULE_VERSION", "ELEMENT_UNITS", "STATE_ELEMENTS", "OBSERVABLES",
+    "PERIODIC_OBSERVABLES", "THERMOSTAT_OBSERVABLES", "DRIVER_NAMES", "TrajectoryFileError",
+    "NoRoomError", "METADATA_MARGIN", "room_for", "open_h5", "Trajectory", "read_trajectory",
+    "open_trajectory", "fixed_string", "H5MDWriter", "copy_frames_from_file"
+]

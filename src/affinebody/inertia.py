@@ -61,3 +61,8 @@ def check_inertia(J) -> jax.Array:
 def uniform_ball(mass, radius, n: int) -> jax.Array:
     """J of a uniform solid n-ball: M r^2 / (n + 2) Id (rod M r^2/3, disc M r^2/4, ball M r^2/5)."""
     return jnp.asarray(mass * radius**2 / (n + 2), jnp.float64) * jnp.eye(n)
+
+
+__all__ = [
+    "from_constituents", "check_inertia", "uniform_ball"
+]

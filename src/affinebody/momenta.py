@@ -85,3 +85,10 @@ def internal_pairing(pi, xi) -> jax.Array:
     pi = as_matrix(pi, "pi")
     xi = as_matrix(xi, "xi")
     return trace(pi @ xi)
+
+
+__all__ = [
+    "comoving_momentum", "affine_spin", "comoving_affine_spin", "momentum_from_affine_spin",
+    "momentum_from_comoving_affine_spin", "spin", "vorticity", "translational_pairing",
+    "internal_pairing"
+]

@@ -140,3 +140,11 @@ def relative_volume(phi_k, phi_l) -> jax.Array:
     phi_k, phi_l = _pair(phi_k, phi_l)
     check_invertible(phi_k, "phi_k")
     return linalg.det(phi_l) / linalg.det(phi_k)
+
+
+__all__ = [
+    "mutual_green", "mutual_cauchy", "mutual_gamma", "mutual_sigma", "mutual_lagrange_strain",
+    "mutual_euler_strain", "mutual_gamma_strain", "mutual_sigma_strain", "mutual_trace_invariants",
+    "affine_invariants", "mean_cauchy_tensor", "affine_distance_squared", "affine_distance",
+    "relative_volume"
+]

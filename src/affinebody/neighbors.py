@@ -592,3 +592,12 @@ def pairs_of(neighbors: NeighborList) -> np.ndarray:
     """The valid pairs of a list, [count, 2] in NumPy (for tests and inspection)."""
     count = min(int(neighbors.count), neighbors.i.shape[0])
     return np.stack([np.asarray(neighbors.i[:count]), np.asarray(neighbors.j[:count])], axis=-1)
+
+
+__all__ = [
+    "BOX_HEADROOM", "candidates_per_chunk", "NeighborList", "NeighborSpec",
+    "largest_singular_values", "spatial_reach", "cell_table", "perpendicular_widths", "build",
+    "build_jax", "build_jit", "needs_rebuild", "fits_box", "update", "NeighborListOverflow",
+    "check", "allocate", "MAX_REALLOCATIONS_IN_A_ROW", "reallocate", "list_at",
+    "uniform_pair_count", "brute_force_pairs", "pairs_of"
+]

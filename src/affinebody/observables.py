@@ -96,3 +96,10 @@ def relative_volumes(state: State) -> jax.Array:
     """Relative volumes det Gamma[phi_K, phi_L] = det(phi_K^-1 phi_L), shape [..., N, N] (79)."""
     det = volumes(state)
     return det[..., None, :] / det[..., :, None]
+
+
+__all__ = [
+    "linear_momentum", "affine_spins", "comoving_affine_spins", "affine_spin",
+    "comoving_affine_spin", "orbital_affine_momentum", "affine_momentum", "angular_momentum",
+    "spin", "vorticity", "dilatation_momentum", "volumes", "relative_volumes"
+]

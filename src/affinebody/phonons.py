@@ -904,4 +904,5 @@ __all__ = [
     "find_cells", "force_constants", "kinetic_metric", "make_crystal", "mesh", "path", "relax",
     "relax_cell",
     "residual_forces", "signed_frequencies", "solve", "sound_speeds", "tile", "voigt_pairs",
+    "box_matrix",
 ]

@@ -390,3 +390,10 @@ def plot_all(trajectory: Trajectory, folder: str | Path, *, animate: str | None 
     elif trajectory.n == 3:
         paths.append(plot_ellipsoids(trajectory, folder / "bodies.png"))
     return paths
+
+
+__all__ = [
+    "DPI", "TRACED_BODIES", "DRAWN_BODIES", "DRAWN_ELLIPSOIDS", "AXES", "plot_energy",
+    "plot_pressure", "plot_temperature", "plot_momenta", "plot_deformation", "body_outlines",
+    "plot_bodies", "ellipsoid_surface", "plot_ellipsoids", "animate_bodies", "plot_all"
+]

@@ -158,3 +158,10 @@ def two_polar_lebesgue_density(Q) -> jax.Array:
     Q = as_vector(Q, "Q")
     qa, qb = _pairwise(Q)
     return jnp.prod(jnp.abs(qa**2 - qb**2), axis=-1)
+
+
+__all__ = [
+    "TwoPolar", "two_polar", "from_two_polar", "signed_singular_values", "polar", "left_polar",
+    "haar_density", "haar_density_with_translations", "two_polar_haar_density",
+    "two_polar_lebesgue_density"
+]

@@ -401,3 +401,9 @@ def _stop_message(report, offset: int, dt: float, labels, frames: int, output: P
 def demo_config_text() -> str:
     """The built-in demo config (a 2D crystal of affine bodies), as TOML text."""
     return resources.files("affinebody.examples").joinpath("demo.toml").read_text("utf-8")
+
+
+__all__ = [
+    "CHUNK_TARGET_STEPS", "SimulationStopped", "RunSummary", "chunk_steps", "run_simulation",
+    "constant_pressure", "thermostat_hook", "demo_config_text"
+]

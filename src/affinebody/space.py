@@ -208,3 +208,8 @@ def _edges(edges: Any, name: str) -> tuple[float, ...]:
     if not out:
         raise ValueError(f"{name} must have n >= 1 edges")
     return tuple(out)
+
+
+__all__ = [
+    "Space", "free_space", "orthorhombic", "triclinic", "as_space"
+]

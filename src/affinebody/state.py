@@ -48,3 +48,8 @@ class VelocityState(NamedTuple):
     phi: jax.Array
     v: jax.Array
     xi: jax.Array
+
+
+__all__ = [
+    "State", "VelocityState"
+]

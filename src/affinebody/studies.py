@@ -582,3 +582,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":  # pragma: no cover
     raise SystemExit(main())
+
+
+__all__ = [
+    "Runner", "inline_runner", "client_runner", "sweep_config", "sl2_isotropic_fraction",
+    "affine_spin_of_velocity", "exp_spread", "dilatation_fraction", "fraction_at", "Sizes",
+    "sl2_study", "sl3_study", "gl2_study", "BINARY_CASES", "SHAPE_POTENTIAL", "binary_study",
+    "plot_studies", "main"
+]

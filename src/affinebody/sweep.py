@@ -1289,4 +1289,5 @@ def _write_samples_csv(path: Path, points, status, failure, data,
 __all__ = ("THERMAL_SCALARS", "SweepResult", "SweepSpec", "ScanPoint", "Task", "WORKER_ENV",
            "binomial_summary", "check_thermal", "dask_client", "draw_initial_state", "follow",
            "make_tasks", "prepare_worker", "run_sweep", "run_task", "scan_points",
-           "summarize_thermal_point", "thermal_results", "thermal_sample")
+           "summarize_thermal_point", "thermal_results", "thermal_sample",
+           "json_safe", "scan_values", "summarize_point")

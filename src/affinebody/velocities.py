@@ -64,3 +64,9 @@ def material_rotationless_residual(phi, xi) -> jax.Array:
     """Omega_hat - Omega_hat^T: zero for materially rotationless motion, eq. (41)."""
     omega_hat = comoving_affine_velocity(phi, xi)
     return omega_hat - transpose(omega_hat)
+
+
+__all__ = [
+    "spatial_affine_velocity", "comoving_affine_velocity", "comoving_velocity",
+    "gyroscopic_residual", "spatial_rotationless_residual", "material_rotationless_residual"
+]

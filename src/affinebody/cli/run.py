@@ -211,3 +211,8 @@ def validate(config_file):
 
 
 COMMANDS = (run, demo, plot, export, validate)
+
+
+__all__ = [
+    "run", "demo", "plot", "export", "validate", "COMMANDS"
+]

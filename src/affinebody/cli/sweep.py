@@ -144,3 +144,8 @@ def sweep(config_file, samples, seed, scheduler, workers, output_dir, as_json):
         for line in summary_lines(result.summary):
             click.echo(line)
         click.echo(f"results: {folder}")
+
+
+__all__ = [
+    "summary_lines", "sweep"
+]

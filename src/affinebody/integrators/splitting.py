@@ -188,3 +188,9 @@ def refuse_nonholonomic(system, name: str) -> None:
             f"integrator {name!r} ignores the rotationless constraint "
             f"{system.rotationless!r}: use integrator = 'nonholonomic-rattle'"
         )
+
+
+__all__ = [
+    "Splitting", "NeighborStep", "update_neighbors", "STRANG", "YOSHIDA4", "SUZUKI4", "YOSHIDA6",
+    "refuse_nonholonomic"
+]

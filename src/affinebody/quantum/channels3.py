@@ -577,4 +577,6 @@ def solve_channels(model: str, potential: Potential, hbar: float, inertia_scalar
 
 __all__ = ["ChamberQuadrature", "Grid3", "haar3_grid", "Jet", "ScalarBasis3", "scalar3_block",
            "channel3_block", "channel3_forms", "auto_scale_scalar3", "auto_scale_haar3",
-           "Setup3", "setup3", "solve_dalembert_scalar", "solve_channels"]
+           "Setup3", "setup3", "solve_dalembert_scalar", "solve_channels",
+           "channel_candidates",
+]

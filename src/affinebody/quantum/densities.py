@@ -922,3 +922,12 @@ def orientation_densities(spectrum: Spectrum, state: int | None = None,
                             f"tolerance {tolerance:g} x peak {np.max(np.abs(m.density)):.3g}")
     return {"kind": kind, "orientation": {"angle": angle, **sums}, "G": details,
             "warnings": warnings}
+
+
+__all__ = [
+    "NODES", "POINTS", "DEFAULT_TOLERANCE", "VARIABLES", "SUPPORT", "Joint", "measure",
+    "joint_density", "Marginal", "density_at", "densities", "marginal_densities", "orientation",
+    "ORIENTATION_NODES", "G_TOLERANCE", "G_COMPONENTS", "PureState", "sector_joint",
+    "state_components", "pure_state", "thermal_states", "angle_densities", "g_component_densities",
+    "orientation_densities"
+]

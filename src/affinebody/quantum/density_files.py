@@ -234,3 +234,8 @@ def _write_orientation3(spectrum: Spectrum, directory: Path, state: int | None,
     else:
         fig.suptitle(data["kind"] + (f", T = {temperature:g}" if temperature is not None else ""))
     return _save(fig, directory / "orientation.png", directory / "orientation", arrays, payload)
+
+
+__all__ = [
+    "write_densities", "parse_superposition", "write_orientation", "MAX_GREEN_WORK"
+]

@@ -492,4 +492,6 @@ __all__ = ["MAX_BASIS", "MAX_STEPS", "MAX_WORK", "VARIABLES", "sector_spectrum",
            "variables_at", "check_packet", "check_work", "require_captured", "Evolution",
            "evolve", "spectrum_lines", "MatrixPacket", "packet_harmonics",
            "evolve_matrix_packet", "PACKET_ANGLES", "MAX_BLOCKS", "block_of",
-           "check_matrix_packet"]
+           "check_matrix_packet",
+           "block_functions",
+]

@@ -760,4 +760,6 @@ __all__ = ["SectorAlgebra", "sector_algebra", "generator_values", "sector_coeffi
            "sectors_by_shell", "lowest_degree", "MAX_SHELL", "BOUND_SHELLS", "solve_all_sectors",
            "angular_candidates", "laguerre_table", "radial_functions", "HarmonicBasis",
            "sphere_harmonics",
-           "harmonic_block"]
+           "harmonic_block",
+           "Coefficients", "invariant_monomials", "scalar_factors",
+]

@@ -42,7 +42,9 @@ from affinebody.quantum.levels import (
 
 SECTORS3 = ("all", "scalar", "spin1", "scalar+spin1")
 
-__all__ = ["MODELS", "SECTORS3", "Level", "Sector", "Settings", "Spectrum", "solve"]
+__all__ = ["MODELS", "SECTORS3", "Level", "Sector", "Settings", "Spectrum", "solve",
+    "require_bounded_below",
+]
 
 
 #: The most states one solve may ask for (a bound on the work a request implies).
