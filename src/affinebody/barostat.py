@@ -239,7 +239,7 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
 
     def one_step(carry, _):
         (old_state, old_cell, old_nbrs, k, failed, overflowed, narrow, lost, exchanged,
-         (old_energy, old_forces)) = carry
+         old_forces) = carry
         key_thermo, key_baro = jax.random.split(step_key(seed, k))
         boxed = system.replace(cell=old_cell)
         if not carries:
@@ -247,12 +247,12 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
         else:  # the forces after the last move, carried (first same as last)
             state, tracked, _ = method.advance(boxed, old_state, old_forces, dt, spec, old_nbrs)
             nbrs = None if spec is None else tracked.neighbors
+        kinetic = boxed.kinetic_energy(state)
         heat = jnp.zeros((), dtype=state.x.dtype)
         if thermostat is not None:  # the kinetic energy it puts in: the heat
-            before = boxed.kinetic_energy(state)
             state = thermostat(boxed, state, key_thermo, dt)
-            heat = boxed.kinetic_energy(state) - before
-        kinetic = boxed.kinetic_energy(state)
+            before, kinetic = kinetic, boxed.kinetic_energy(state)
+            heat = kinetic - before
         state, cell, potential = barostat.move(system, state, old_cell, space, key_baro, dt,
                                                nbrs, energy=True)
         before = kinetic + potential + p0 * linalg.det(old_cell)  # H + P0 V before the move
@@ -280,7 +280,7 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
         state, cell = jax.tree.map(keep, old_state, state), keep(old_cell, cell)
         nbrs = jax.tree.map(keep, old_nbrs, nbrs)
         exchanged = jax.tree.map(keep, exchanged, (exchanged[0] + heat, exchanged[1] + work))
-        carried = jax.tree.map(keep, (old_energy, old_forces), (energy, forces))
+        carried = jax.tree.map(keep, old_forces, forces)
         return (state, cell, nbrs, k + 1, failed, overflowed, narrow, lost, exchanged,
                 carried), None
 
@@ -292,7 +292,7 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
     lost = (int0, int0, jnp.zeros((), dtype=state.x.dtype))
     no = jnp.asarray(False)
     init = (state, cell, neighbors, first_step, -jnp.ones_like(first_step), no, no, lost,
-            exchanged, system.replace(cell=cell).energy_and_forces(state, neighbors))
+            exchanged, system.replace(cell=cell).energy_and_forces(state, neighbors)[1])
     (_, _, last_list, _, failed, overflowed, narrow, lost, *_), (states, cells, values) = \
         lax.scan(chunk, init, None, length=n_chunks)
     first = measure(state, cell, neighbors, exchanged)
