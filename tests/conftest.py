@@ -29,7 +29,10 @@ from affinebody._xla import pin_to_one_cpu  # noqa: E402  (imports no JAX)
 if "PYTEST_XDIST_WORKER" in os.environ:
     pin_to_one_cpu(int(os.environ["PYTEST_XDIST_WORKER"].removeprefix("gw") or 0))
 
+import gc  # noqa: E402
+
 import jax  # noqa: E402
+import pytest  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
@@ -56,3 +59,33 @@ LONGEST_FIRST = ("test_constraints", "test_nonholonomic", "test_integrators", "t
 def pytest_collection_modifyitems(config, items):
     rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))  # stable: order kept
+
+
+#: Memory mappings a worker may hold before its compiled executables are dropped. Every XLA:CPU
+#: executable maps about six regions (code, read-only data, data; measured with jax 0.10) and
+#: keeps them while JAX's caches hold it; Linux refuses a process more than vm.max_map_count
+#: mappings (65530 by default), and XLA then crashes with a segmentation fault inside LLVM. One
+#: worker of ``make test`` reached 53,704 mappings (a CI run crossed the limit and died at 98 %).
+MAPPINGS_BEFORE_CLEARING = 20_000
+
+
+def _mappings():
+    """Number of this process's memory mappings (Linux); 0 where /proc is not there."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps)
+    except OSError:
+        return 0
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _drop_compiled_executables_when_many():
+    """After each test file, drop JAX's compiled executables if the mappings grow large.
+
+    Recompiling costs a file that reuses another file's functions a little time; holding every
+    executable of the whole suite in one process costs the process (see MAPPINGS_BEFORE_CLEARING).
+    """
+    yield
+    if _mappings() > MAPPINGS_BEFORE_CLEARING:
+        jax.clear_caches()
+        gc.collect()
