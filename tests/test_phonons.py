@@ -537,3 +537,58 @@ def test_triangular_md_power_spectrum_peaks_in_2d():
             found.append(omega[i] + 0.5 * (a - c) / (a - 2 * b + c) * (omega[1] - omega[0]))
         assert np.abs(np.sort(found) - distinct).max() < 2e-3 * distinct.max(), m
         assert power[ranked[len(distinct)]] < 1e-3 * power[ranked[:len(distinct)]].min(), m
+
+
+def test_cells_and_sublattices_found_in_n_log_n_match_the_definition():
+    """find_cells / make_crystal (periodic k-d tree, O(N log N)) against the definition checked
+    pair by pair (O(N^2), written here): a 3D crystal with a 2-body basis of different inertia
+    and shape in an oblique box of 4 x 3 x 2 primitive cells, its bodies shuffled. The largest
+    translations h_j / m_j that map bodies onto equal bodies are found, every body's sublattice
+    differs from its basis body by a lattice vector with equal phi and inertia; one body with a
+    changed inertia leaves no translation (cells 1, 1, 1; every body its own sublattice)."""
+    rng = np.random.default_rng(5)
+    a = np.array([[1.0, 0.3, 0.1], [0.0, 1.1, 0.2], [0.0, 0.0, 0.9]])  # primitive vectors
+    cells = np.array([4, 3, 2])
+    box = a * cells[None, :]
+    offsets = np.array([[0.0, 0.0, 0.0], [0.4, 0.5, 0.3]])
+    shapes = np.stack([np.eye(3), np.eye(3) + 0.1 * rng.standard_normal((3, 3))])
+    grid = np.stack(np.meshgrid(*(np.arange(c) for c in cells), indexing="ij"), -1)
+    lattice = grid.reshape(-1, 3) @ a.T
+    x = np.concatenate([lattice + a @ o for o in offsets])
+    phi = np.concatenate([np.broadcast_to(s, (len(lattice), 3, 3)) for s in shapes])
+    inertia = np.concatenate([np.full(len(lattice), 0.7), np.full(len(lattice), 1.3)])
+    order = rng.permutation(len(x))
+    x, phi, inertia = x[order], phi[order], inertia[order]
+
+    def system_of(inertia):
+        return HamiltonianSystem(
+            kinetic.KineticEnergy(kinetic.DAlembertTranslational(np.ones(len(x))),
+                                  kinetic.DAlembert(inertia[:, None, None] * np.eye(3))),
+            None, "GL+")
+
+    def maps_onto_itself(shift, inertia):  # the definition, every pair of bodies
+        f = (x[None, :] - x[:, None] - shift) @ np.linalg.inv(box).T
+        close = np.all(np.abs(f - np.round(f)) < 1e-9, -1)
+        equal = (np.all(np.abs(phi[None] - phi[:, None]) < 1e-10, (-2, -1))
+                 & (np.abs(inertia[None] - inertia[:, None]) < 1e-12))
+        return bool(np.all(np.any(close & equal, axis=1)))
+
+    def brute_cells(inertia):
+        return tuple(max(m for m in range(1, len(x) + 1) if len(x) % m == 0
+                         and (m == 1 or maps_onto_itself(box[:, j] / m, inertia)))
+                     for j in range(3))
+
+    crystal = phonons.make_crystal(system_of(inertia), x, phi, box)
+    assert crystal.cells == brute_cells(inertia) == tuple(cells)
+    assert len(crystal.basis) == 2
+    for k in range(len(x)):
+        b = crystal.basis[crystal.sublattice[k]]
+        f = np.linalg.solve(a, x[k] - x[b])
+        assert np.abs(f - np.round(f)).max() < 1e-9
+        assert np.array_equal(phi[k], phi[b]) and inertia[k] == inertia[b]
+        assert np.allclose(x[b] + crystal.translation[k], x[k], atol=1e-12)
+    defect = inertia.copy()
+    defect[7] *= 1.01
+    broken = phonons.make_crystal(system_of(defect), x, phi, box)
+    assert broken.cells == brute_cells(defect) == (1, 1, 1)
+    assert len(broken.basis) == len(x)

@@ -67,6 +67,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.spatial import cKDTree
 
 from affinebody.groups import expm, lie_algebra, project_algebra
 from affinebody.pair_kernels import energy_and_gradients
@@ -111,15 +112,25 @@ def _per_body(leaf: Any, bodies: int) -> bool:
     return a.ndim % 2 == 1 and a.shape[0] == bodies
 
 
-def _same_bodies(system, bodies: int) -> np.ndarray:
-    """[N, N] True where bodies K, L have the same kinetic parameters."""
-    same = np.ones((bodies, bodies), dtype=bool)
+def _body_parameters(system, bodies: int) -> list[np.ndarray]:
+    """The per-body kinetic parameters [N, -1] (one array per such leaf of ``system.kinetic``)
+    with the tolerance of each: bodies are equal where every row agrees to 1e-12 of the
+    leaf's largest entry."""
+    out = []
     for leaf in jax.tree.leaves(system.kinetic):
         if _per_body(leaf, bodies):
-            a = np.asarray(leaf).reshape(bodies, -1)
-            scale = max(1.0, float(np.abs(a).max()))
-            same &= np.all(np.abs(a[:, None] - a[None]) <= 1e-12 * scale, axis=-1)
-    return same
+            a = np.asarray(leaf, dtype=float).reshape(bodies, -1)
+            out.append((a, 1e-12 * max(1.0, float(np.abs(a).max()))))
+    return out
+
+
+def _equal_bodies(x, phi, params, k, l) -> np.ndarray:
+    """[M] True where bodies k[m], l[m] have equal phi (to 1e-10) and kinetic parameters
+    (:func:`_body_parameters`): pairs compared one to one, O(M)."""
+    equal = np.all(np.abs(phi[k] - phi[l]) < 1e-10, axis=(-2, -1))
+    for a, tolerance in params:
+        equal &= np.all(np.abs(a[k] - a[l]) <= tolerance, axis=-1)
+    return equal
 
 
 def box_matrix(box, n: int) -> np.ndarray:
@@ -145,30 +156,70 @@ def _wrap(u, h) -> np.ndarray:
     return (f - np.round(f)) @ h.T
 
 
-def _maps_onto_itself(x, phi, box, same, shift) -> bool:
-    """Whether x -> x + shift (mod box) maps the bodies onto bodies with equal phi, inertia."""
-    u = _wrap(x[None, :, :] - (x[:, None, :] + shift), box)
+def _periodic_tree(fractional: np.ndarray) -> cKDTree:
+    """A k-d tree of points given by fractional coordinates, on the unit torus."""
+    f = np.mod(fractional, 1.0)
+    f[f >= 1.0] = 0.0  # np.mod(-1e-17, 1) rounds to 1.0
+    return cKDTree(f, boxsize=1.0)
+
+
+def _maps_onto_itself(x, phi, box, params, shift, tree=None) -> bool:
+    """Whether x -> x + shift (mod box) maps the bodies onto bodies with equal phi, inertia.
+
+    Each shifted body's image is the nearest body on the torus of fractional coordinates (a
+    k-d tree: O(N log N)), accepted where the minimum-image difference is below 1e-8 of the
+    box and the two bodies are equal (:func:`_equal_bodies`)."""
+    inverse = np.linalg.inv(box)
+    tree = _periodic_tree(x @ inverse.T) if tree is None else tree
+    target = np.mod((x + shift) @ inverse.T, 1.0)
+    target[target >= 1.0] = 0.0
+    _, image = tree.query(target, p=np.inf)
+    u = _wrap(x[image] - (x + shift), box)
     close = np.all(np.abs(u) < 1e-8 * np.abs(box).max(), axis=-1)
-    equal = np.all(np.abs(phi[None] - phi[:, None]) < 1e-10, axis=(-2, -1))
-    return bool(np.all(np.any(close & equal & same, axis=1)))
+    return bool(np.all(close & _equal_bodies(x, phi, params, np.arange(len(x)), image)))
 
 
 def find_cells(system, x, phi, box) -> tuple[int, ...]:
     """The largest numbers of primitive cells along each box vector: m_j such that the
     translation by h_j / m_j (h_j the j-th box vector, :func:`box_matrix`) maps the bodies onto
-    bodies with the same phi and inertia."""
+    bodies with the same phi and inertia (O(N log N) per candidate m_j, a divisor of N)."""
     x, phi = np.asarray(x, float), np.asarray(phi, float)
     bodies, n = x.shape
     box = box_matrix(box, n)
-    same = _same_bodies(system, bodies)
+    params = _body_parameters(system, bodies)
+    tree = _periodic_tree(x @ np.linalg.inv(box).T)
     cells = []
     for j in range(n):
         for m in sorted((d for d in range(1, bodies + 1) if bodies % d == 0), reverse=True):
             shift = box[:, j] / m
-            if m == 1 or _maps_onto_itself(x, phi, box, same, shift):
+            if m == 1 or _maps_onto_itself(x, phi, box, params, shift, tree):
                 cells.append(m)
                 break
     return tuple(cells)
+
+
+def _sublattices(x, phi, params, a_inv) -> tuple[np.ndarray, np.ndarray]:
+    """(basis [P], sublattice [N]): bodies k, b are on one sublattice where x_k - x_b is a
+    lattice vector (fractional coordinates a_inv (x_k - x_b) integers to 1e-8) and the bodies
+    are equal; the basis holds each sublattice's first body in index order. One periodic k-d
+    tree query per sublattice: O(N log N) for a small basis."""
+    bodies = len(x)
+    reduced = x @ a_inv.T
+    tree = _periodic_tree(reduced)
+    origin = np.mod(reduced, 1.0)
+    origin[origin >= 1.0] = 0.0
+    sublattice = -np.ones(bodies, dtype=int)
+    basis: list[int] = []
+    for k in range(bodies):
+        if sublattice[k] >= 0:
+            continue
+        near = np.asarray(tree.query_ball_point(origin[k], 1e-8, p=np.inf), dtype=int)
+        near = near[sublattice[near] < 0]
+        members = near[_equal_bodies(x, phi, params, np.full(len(near), k), near)]
+        sublattice[members] = len(basis)
+        sublattice[k] = len(basis)
+        basis.append(k)
+    return np.asarray(basis), sublattice
 
 
 @dataclass(frozen=True)
@@ -239,27 +290,15 @@ def make_crystal(system, x, phi, box, cells=None) -> Crystal:
     if cells is None:
         cells = find_cells(system, x, phi, box)
     cells = tuple(int(c) for c in cells)
-    same = _same_bodies(system, bodies)
+    params = _body_parameters(system, bodies)
     for j, m in enumerate(cells):
         shift = box[:, j] / max(m, 1)
-        if m < 1 or bodies % m or not _maps_onto_itself(x, phi, box, same, shift):
+        if m < 1 or bodies % m or not _maps_onto_itself(x, phi, box, params, shift):
             raise ValueError(f"phonons.cells[{j}] = {m}: the translation by box/{m} along axis "
                              f"{j} does not map the bodies onto equal bodies (drop phonons.cells "
                              f"to find the primitive cell)")
     a_inv = np.linalg.inv(box / np.asarray(cells, dtype=float)[None, :])
-    sublattice = -np.ones(bodies, dtype=int)
-    basis: list[int] = []
-    for k in range(bodies):
-        for s, b in enumerate(basis):
-            f = a_inv @ (x[k] - x[b])
-            if (np.all(np.abs(f - np.round(f)) < 1e-8) and same[k, b]
-                    and np.all(np.abs(phi[k] - phi[b]) < 1e-10)):
-                sublattice[k] = s
-                break
-        else:
-            sublattice[k] = len(basis)
-            basis.append(k)
-    basis_arr = np.asarray(basis)
+    basis_arr, sublattice = _sublattices(x, phi, params, a_inv)
     translation = np.round((x - x[basis_arr[sublattice]]) @ a_inv.T) @ np.linalg.inv(a_inv).T
     return Crystal(system, x, phi, box, cells, basis_arr, sublattice, translation,
                    algebra_basis(system.group, n))
