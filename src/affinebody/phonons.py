@@ -171,12 +171,17 @@ def _maps_onto_itself(x, phi, box, params, shift, tree=None) -> bool:
     box and the two bodies are equal (:func:`_equal_bodies`)."""
     inverse = np.linalg.inv(box)
     tree = _periodic_tree(x @ inverse.T) if tree is None else tree
-    target = np.mod((x + shift) @ inverse.T, 1.0)
-    target[target >= 1.0] = 0.0
-    _, image = tree.query(target, p=np.inf)
-    u = _wrap(x[image] - (x + shift), box)
-    close = np.all(np.abs(u) < 1e-8 * np.abs(box).max(), axis=-1)
-    return bool(np.all(close & _equal_bodies(x, phi, params, np.arange(len(x)), image)))
+
+    def mapped(bodies):
+        target = np.mod((x[bodies] + shift) @ inverse.T, 1.0)
+        target[target >= 1.0] = 0.0
+        _, image = tree.query(target, p=np.inf)
+        u = _wrap(x[image] - (x[bodies] + shift), box)
+        close = np.all(np.abs(u) < 1e-8 * np.abs(box).max(), axis=-1)
+        return bool(np.all(close & _equal_bodies(x, phi, params, bodies, image)))
+
+    # a few bodies first: most candidate translations fail on them, at O(log N)
+    return mapped(np.arange(min(8, len(x)))) and mapped(np.arange(len(x)))
 
 
 def find_cells(system, x, phi, box) -> tuple[int, ...]:
@@ -532,9 +537,17 @@ def kinetic_metric(crystal: Crystal) -> np.ndarray:
     v = dx/dt and xi = dphi/dt = X_dot phi0 (chart velocities; models (63)-(74)). ValueError
     when M is not positive definite (af-af (72) for n >= 2: its A Tr(Omega^2) is indefinite)."""
     system = crystal.system
-    cols = np.asarray(_metric_columns(system, jnp.asarray(crystal.x), jnp.asarray(crystal.phi),
-                              jnp.asarray(crystal.algebra)))
-    blocks = np.transpose(cols, (1, 2, 0))[crystal.basis]
+    basis, bodies = crystal.basis, len(crystal.x)
+    if bodies <= crystal.n:  # a shared [n] parameter could pass for a per-body one: take all
+        basis = np.arange(bodies)
+    # the primitive cell's bodies only (T is a sum over bodies), with their own parameters
+    kinetic = jax.tree.map(lambda leaf: np.asarray(leaf)[basis] if _per_body(leaf, bodies)
+                           else leaf, system.kinetic)
+    cols = np.asarray(_metric_columns(dataclasses.replace(system, kinetic=kinetic),
+                                      jnp.asarray(crystal.x[basis]),
+                                      jnp.asarray(crystal.phi[basis]),
+                                      jnp.asarray(crystal.algebra)))
+    blocks = np.transpose(cols, (1, 2, 0))[np.searchsorted(basis, crystal.basis)]
     blocks = 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
     smallest = float(np.linalg.eigvalsh(blocks).min())
     if not smallest > 0:
