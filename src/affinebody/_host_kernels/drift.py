@@ -7,9 +7,12 @@ With S = pi phi (left, af-is and af-af) or S = phi pi (right, is-af) and per-bod
     X_c = c0 S + c1 Tr(S) Id,   X_r = c2 (S^T - S),   C = expm(X_c),   R = expm(X_r);
     left:  phi -> phi C R,  pi -> R^T C^-1 pi;     right: phi -> R C phi,  pi -> pi C^-1 R^T.
 
-expm is the algorithm of :func:`affinebody._linalg.expm` (Pade [13/13], the same choice of
-the number s of squarings, (V - U)^-1 (V + U) by Gaussian elimination with the same partial
-pivoting, then s squarings), so the two agree to round-off. Bodies are independent: a range
+expm is Higham's scaling and squaring (2005, scipy's): for 1-norms above 2.1 exactly the
+algorithm of :func:`affinebody._linalg.expm` (Pade [13/13], the same number s of squarings,
+(V - U)^-1 (V + U) by Gaussian elimination with the same partial pivoting, then s squarings);
+below, the Pade approximant of the lowest degree (3, 5, 7 or 9) that is accurate to unit
+roundoff there, 2 to 5 products instead of 6 (a time step's h X is small). Both agree with
+the JAX flow to round-off. Bodies are independent: a range
 of bodies can run on any thread, the result is the same bit for bit.
 
 ``N`` (the dimension) and the Pade constants are module constants written by
@@ -33,6 +36,17 @@ CACHE = False
 # --- end of constants
 
 # error_model "numpy": a division by zero gives inf or nan, as in the JAX flow (no exception)
+#: Pade [m/m] coefficients of exp for m = 3, 5, 7, 9 (rows, zero-padded) and the 1-norms up to
+#: which each is accurate to unit roundoff (Higham 2005, as scipy.linalg.expm)
+_PADE_LOW = np.array([
+    [120.0, 60.0, 12.0, 1.0, 0, 0, 0, 0, 0, 0],
+    [30240.0, 15120.0, 3360.0, 420.0, 30.0, 1.0, 0, 0, 0, 0],
+    [17297280.0, 8648640.0, 1995840.0, 277200.0, 25200.0, 1512.0, 56.0, 1.0, 0, 0],
+    [17643225600.0, 8821612800.0, 2075673600.0, 302702400.0, 30270240.0, 2162160.0, 110880.0,
+     3960.0, 90.0, 1.0]])
+_THETA_LOW = (1.495585217958292e-2, 2.539398330063230e-1, 9.504178996162932e-1,
+              2.097847961257068e0)
+
 _jit = numba.njit(fastmath=False, boundscheck=False, nogil=True, cache=CACHE, error_model="numpy")
 _inline = numba.njit(fastmath=False, boundscheck=False, nogil=True, inline="always",
                      error_model="numpy")
@@ -49,7 +63,7 @@ def _mul(a, b, out):
             out[r, c] = acc
 
 
-@_jit
+@_inline
 def _solve(a, b, rows, out):
     """out = a^-1 b (b [N, N]): elimination with partial pivoting on the rows of [a | b] in
     ``rows`` [N, 2N], as ``_linalg._eliminate``, then back substitution."""
@@ -77,14 +91,55 @@ def _solve(a, b, rows, out):
 
 
 @_jit
-def _expm(a, out, x, x2, x4, x6, t1, t2, u, v, rows):
-    """out = expm(a): Pade [13/13] with scaling and squaring (``_linalg.expm``)."""
+def _expm(a, out, work, rows):
+    """out = expm(a): for |a|_1 <= 2.1 the Pade [m/m] approximant of the lowest degree
+    m in (3, 5, 7, 9) accurate to unit roundoff at that norm (Higham 2005), else Pade [13/13]
+    with scaling and squaring exactly as ``_linalg.expm`` (the same number of squarings)."""
+    x, x2, x4, x6, t1, t2, u, v = (work[0], work[1], work[2], work[3], work[4], work[5],
+                                   work[6], work[7])
     norm = 0.0
     for c in range(N):
         col = 0.0
         for r in range(N):
             col += abs(a[r, c])
         norm = max(norm, col)
+    if norm <= _THETA_LOW[3]:
+        k = 0
+        while norm > _THETA_LOW[k]:
+            k += 1
+        w = _PADE_LOW[k]
+        half = k + 1  # m = 2 half + 1: even powers a^0 .. a^(2 half) in x2, x4, x6, x (a^8)
+        _mul(a, a, x2)
+        if half >= 2:
+            _mul(x2, x2, x4)
+        if half >= 3:
+            _mul(x4, x2, x6)
+        if half >= 4:
+            _mul(x6, x2, x)
+        for r in range(N):
+            for c in range(N):
+                odd = w[1] if r == c else 0.0
+                even = w[0] if r == c else 0.0
+                odd += w[3] * x2[r, c]
+                even += w[2] * x2[r, c]
+                if half >= 2:
+                    odd += w[5] * x4[r, c]
+                    even += w[4] * x4[r, c]
+                if half >= 3:
+                    odd += w[7] * x6[r, c]
+                    even += w[6] * x6[r, c]
+                if half >= 4:
+                    odd += w[9] * x[r, c]
+                    even += w[8] * x[r, c]
+                t1[r, c] = odd
+                v[r, c] = even
+        _mul(a, t1, u)
+        for r in range(N):
+            for c in range(N):
+                t1[r, c] = v[r, c] - u[r, c]
+                t2[r, c] = v[r, c] + u[r, c]
+        _solve(t1, t2, rows, out)
+        return
     ratio = norm / THETA13 if norm > 0 else 1.0
     squarings = min(max(math.ceil(math.log2(ratio)), 0.0), float(MAX_SQUARINGS))
     scale = 2.0 ** squarings
@@ -135,8 +190,8 @@ def isotropic_flow(start, stop, left, phi, pi, coefs, phi_out, pi_out):
     r = np.empty((N, N))
     m = np.empty((N, N))
     y = np.empty((N, N))
-    x, x2, x4, x6 = np.empty((N, N)), np.empty((N, N)), np.empty((N, N)), np.empty((N, N))
-    t1, t2, u, v = np.empty((N, N)), np.empty((N, N)), np.empty((N, N)), np.empty((N, N))
+    work = np.empty((8, N, N))  # the expm's scratch matrices
+    t1, t2 = np.empty((N, N)), np.empty((N, N))
     rows = np.empty((N, 2 * N))
     for b in range(start, stop):
         if left:
@@ -151,8 +206,8 @@ def isotropic_flow(start, stop, left, phi, pi, coefs, phi_out, pi_out):
             for j in range(N):
                 xc[i, j] = c0 * s[i, j] + (c1 * tr if i == j else 0.0)
                 xr[i, j] = c2 * (s[j, i] - s[i, j])
-        _expm(xc, c, x, x2, x4, x6, t1, t2, u, v, rows)
-        _expm(xr, r, x, x2, x4, x6, t1, t2, u, v, rows)
+        _expm(xc, c, work, rows)
+        _expm(xr, r, work, rows)
         if left:  # phi C R and R^T C^-1 pi
             _mul(phi[b], c, m)
             _mul(m, r, phi_out[b])
