@@ -134,14 +134,25 @@ def _expm(a, out, work, rows):
                 t1[r, c] = odd
                 v[r, c] = even
         _mul(a, t1, u)
+        squarings = 0.0
+    else:
+        squarings = min(max(math.ceil(math.log2(norm / THETA13)), 0.0), float(MAX_SQUARINGS))
+        _pade13(a, squarings, x, x2, x4, x6, t1, t2, u, v)
+    for r in range(N):  # r(a) = (V - U)^-1 (V + U), squared s times
+        for c in range(N):
+            t1[r, c] = v[r, c] - u[r, c]
+            t2[r, c] = v[r, c] + u[r, c]
+    _solve(t1, t2, rows, out)
+    for _ in range(int(squarings)):
+        _mul(out, out, t1)
         for r in range(N):
             for c in range(N):
-                t1[r, c] = v[r, c] - u[r, c]
-                t2[r, c] = v[r, c] + u[r, c]
-        _solve(t1, t2, rows, out)
-        return
-    ratio = norm / THETA13 if norm > 0 else 1.0
-    squarings = min(max(math.ceil(math.log2(ratio)), 0.0), float(MAX_SQUARINGS))
+                out[r, c] = t1[r, c]
+
+
+@_inline
+def _pade13(a, squarings, x, x2, x4, x6, t1, t2, u, v):
+    """U and V of the Pade [13/13] approximant of exp at a / 2^squarings."""
     scale = 2.0 ** squarings
     for r in range(N):
         for c in range(N):
@@ -167,16 +178,6 @@ def _expm(a, out, work, rows):
         for c in range(N):
             v[r, c] = (v[r, c] + w[6] * x6[r, c] + w[4] * x4[r, c] + w[2] * x2[r, c]
                        + (w[0] if r == c else 0.0))
-    for r in range(N):
-        for c in range(N):
-            t1[r, c] = v[r, c] - u[r, c]
-            t2[r, c] = v[r, c] + u[r, c]
-    _solve(t1, t2, rows, out)
-    for _ in range(int(squarings)):
-        _mul(out, out, t1)
-        for r in range(N):
-            for c in range(N):
-                out[r, c] = t1[r, c]
 
 
 @_jit
