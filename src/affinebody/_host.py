@@ -1,9 +1,12 @@
 """Compiled host (CPU) code: whether the product runs it, and its kernels cached on disk.
 
-On a CPU backend with Numba installed, the pair kernel (``pair_kernels``) and the neighbour
-list build (``neighbors``) run compiled CPU loops reached through ``jax.pure_callback``; on
+On a CPU backend with Numba installed, the pair kernel (``pair_kernels``), the neighbour
+list build (``neighbors``) and the exact drift of the isotropic affine models
+(``kinetic.isotropic_flow``) run compiled CPU loops reached through ``jax.pure_callback``; on
 a GPU (or without Numba) they run their JAX versions, so nothing leaves the device inside the
-time loop. Both versions of each are tested against each other and against all-pairs sums.
+time loop. Both versions of each are tested against each other (the pair sums also against
+all-pairs sums). Work is split in fixed parts run on up to as many threads (:func:`in_parts`),
+so results do not depend on the number of cores.
 
 The kernels live in :mod:`affinebody._host_kernels` as modules whose dimension (and box kind)
 are module constants, which Numba compiles as constants so that the small loops unroll.
