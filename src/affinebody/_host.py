@@ -1,9 +1,12 @@
 """Compiled host (CPU) code: whether the product runs it, and its kernels cached on disk.
 
-On a CPU backend with Numba installed, the pair kernel (``pair_kernels``) and the neighbour
-list build (``neighbors``) run compiled CPU loops reached through ``jax.pure_callback``; on
+On a CPU backend with Numba installed, the pair kernel (``pair_kernels``), the neighbour
+list build (``neighbors``) and the exact drift of the isotropic affine models
+(``kinetic.isotropic_flow``) run compiled CPU loops reached through ``jax.pure_callback``; on
 a GPU (or without Numba) they run their JAX versions, so nothing leaves the device inside the
-time loop. Both versions of each are tested against each other and against all-pairs sums.
+time loop. Both versions of each are tested against each other (the pair sums also against
+all-pairs sums). Work is split in fixed parts run on up to as many threads (:func:`in_parts`),
+so results do not depend on the number of cores.
 
 The kernels live in :mod:`affinebody._host_kernels` as modules whose dimension (and box kind)
 are module constants, which Numba compiles as constants so that the small loops unroll.
@@ -14,6 +17,7 @@ first process on a machine compiles (about 5 s for the n = 3 pair kernel), the o
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib.util
 import os
@@ -21,6 +25,7 @@ import re
 import sys
 import threading
 import types
+from concurrent.futures import ThreadPoolExecutor
 from importlib import resources
 from pathlib import Path
 
@@ -37,6 +42,32 @@ _CONSTANTS = re.compile(r"# --- constants.*?\n(.*?)# --- end of constants", re.S
 def in_use() -> bool:
     """True when compiled host code runs: a CPU backend and Numba installed."""
     return numba is not None and jax.default_backend() == "cpu"
+
+
+def threads(parts: int) -> int:
+    """Threads for work split in ``parts`` fixed parts: the cores this process may run on, at
+    most ``parts`` (``taskset -c 0`` gives one)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(parts, cores))
+
+
+@functools.cache
+def _pool(count: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=count, thread_name_prefix="affinebody-host")
+
+
+def in_parts(work, rows: int, parts: int, count: int) -> list:
+    """``work(lo, hi)`` over ``parts`` fixed parts of range(rows) (the same parts whatever
+    ``count``), on ``count`` threads when ``count > 1`` (Numba kernels release the GIL);
+    results in part order, so sums over them are the same on any number of threads."""
+    bounds = [rows * k // parts for k in range(parts + 1)]
+    ranges = list(zip(bounds[:-1], bounds[1:], strict=True))
+    if count > 1:
+        return list(_pool(count).map(lambda r: work(*r), ranges))
+    return [work(lo, hi) for lo, hi in ranges]
 
 
 def cache_folder() -> Path:

@@ -172,14 +172,15 @@ def _lapack_solve(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.moveaxis(x, 0, -2)
 
 
-# Pade [13/13] coefficients of exp (Higham 2005, "The scaling and squaring method for the matrix
-# exponential revisited"), and the norm up to which it is accurate to unit roundoff.
-_PADE13 = (64764752532480000.0, 32382376266240000.0, 7771770303897600.0, 1187353796428800.0,
+#: Pade [13/13] coefficients of exp (Higham 2005, "The scaling and squaring method for the matrix
+#: exponential revisited"); THETA13: the 1-norm up to which it is accurate to unit roundoff
+#: (also the constants of the host kernel ``_host_kernels/drift.py``).
+PADE13 = (64764752532480000.0, 32382376266240000.0, 7771770303897600.0, 1187353796428800.0,
            129060195264000.0, 10559470521600.0, 670442572800.0, 33522128640.0, 1323241920.0,
            40840800.0, 960960.0, 16380.0, 182.0, 1.0)
-_THETA13 = 5.371920351148152
-#: squarings available: norms up to _THETA13 * 2**_MAX_SQUARINGS (~5.6e6 for 20)
-_MAX_SQUARINGS = 20
+THETA13 = 5.371920351148152
+#: squarings available: norms up to THETA13 * 2**MAX_SQUARINGS (~5.6e6 for 20)
+MAX_SQUARINGS = 20
 
 
 def expm(a) -> jax.Array:
@@ -198,11 +199,11 @@ def expm(a) -> jax.Array:
     if n > CLOSED_FORM_MAX_N:
         return jax.scipy.linalg.expm(a)
     norm = jnp.max(jnp.sum(jnp.abs(a), axis=-2), axis=-1)  # 1-norm, [...]
-    ratio = jnp.where(norm > 0, norm / _THETA13, 1.0)
-    s = jnp.clip(jnp.ceil(jnp.log2(ratio)), 0, _MAX_SQUARINGS)
+    ratio = jnp.where(norm > 0, norm / THETA13, 1.0)
+    s = jnp.clip(jnp.ceil(jnp.log2(ratio)), 0, MAX_SQUARINGS)
     x = a / (2.0**s)[..., None, None]
     eye = jnp.broadcast_to(jnp.eye(n, dtype=a.dtype), a.shape)
-    b = _PADE13
+    b = PADE13
     mm = matmul
     x2 = mm(x, x)
     x4 = mm(x2, x2)
@@ -215,4 +216,4 @@ def expm(a) -> jax.Array:
     def square(i, m):
         return jnp.where((i < s)[..., None, None], mm(m, m), m)
     # unrolled where products are fused: one kernel instead of a device loop of 20 trips
-    return jax.lax.fori_loop(0, _MAX_SQUARINGS, square, r, unroll=fused_products())
+    return jax.lax.fori_loop(0, MAX_SQUARINGS, square, r, unroll=fused_products())

@@ -56,12 +56,14 @@ gives an explicit symplectic 2nd-order drift (McLachlan's Lie-Poisson splitting 
 from __future__ import annotations
 
 import abc
+import functools
 from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from affinebody import _host
 from affinebody import _linalg as linalg
 from affinebody import _pytree as pytree
 from affinebody._checks import (
@@ -682,24 +684,22 @@ class _IsotropicAffineFamily:
         ci, ca, cb = self._constants(s.shape[-1])
         return 0.5 * (ci * _frob(s, s) + ca * trace(s @ s) + cb * trace(s) ** 2)
 
-    def _group_elements(self, s, h):
-        ci, ca, cb = self._constants(s.shape[-1])
-        casimir = _bcast(h * (ci + ca)) * s + _bcast(h * cb * trace(s)) * eye_like(s)
-        rotation = _bcast(h * ci) * (transpose(s) - s)
-        return expm(casimir), expm(rotation)
+    def _flow_coefficients(self, phi, h):
+        """[..., 3] per body: (h (1/I~ + 1/A~), h / B~, h / I~), the coefficients of
+        :func:`isotropic_flow` (batch of ``phi`` [..., n, n])."""
+        ci, ca, cb = self._constants(phi.shape[-1])
+        batch = phi.shape[:-2]
+        return jnp.stack([jnp.broadcast_to(h * (ci + ca), batch),
+                          jnp.broadcast_to(h * cb, batch), jnp.broadcast_to(h * ci, batch)], -1)
 
     def _flow_left(self, state: State, h) -> State:
-        mm = linalg.matmul
-        c, r = self._group_elements(mm(state.pi, state.phi), h)
-        # r is orthogonal (exponential of a skew matrix): r^-1 = r^T.
-        pi = mm(transpose(r), linalg.solve(c, state.pi))
-        return state._replace(phi=mm(mm(state.phi, c), r), pi=pi)
+        phi, pi = isotropic_flow(state.phi, state.pi, self._flow_coefficients(state.phi, h), True)
+        return state._replace(phi=phi, pi=pi)
 
     def _flow_right(self, state: State, h) -> State:
-        mm = linalg.matmul
-        c, r = self._group_elements(mm(state.phi, state.pi), h)
-        pi = mm(transpose(linalg.solve(transpose(c), transpose(state.pi))), transpose(r))
-        return state._replace(phi=mm(mm(r, c), state.phi), pi=pi)
+        phi, pi = isotropic_flow(state.phi, state.pi, self._flow_coefficients(state.phi, h),
+                                 False)
+        return state._replace(phi=phi, pi=pi)
 
     def _check_region(self, model: str, n: int | None) -> None:
         if not all(is_concrete(v) for v in self._iab()):
@@ -728,6 +728,82 @@ class _IsotropicAffineFamily:
                     f"kinetic.I + kinetic.A + n kinetic.B must be > 0 (n = {n}) for {model} to be "
                     f"positive definite {_first_bad(ok, I=i, A=a, B=b)}"
                 )
+
+
+def isotropic_flow_jax(phi, pi, coefs, left: bool):
+    """(phi, pi) after the exact drift of ``_IsotropicAffineFamily`` in JAX: S = pi phi (left)
+    or phi pi (right), (c0, c1, c2) = ``coefs[..., :]``, X_c = c0 S + c1 Tr(S) Id,
+    X_r = c2 (S^T - S), C = expm(X_c), R = expm(X_r); left: phi C R, R^T C^-1 pi;
+    right: R C phi, pi C^-1 R^T."""
+    mm = linalg.matmul
+    s = mm(pi, phi) if left else mm(phi, pi)
+    casimir = _bcast(coefs[..., 0]) * s + _bcast(coefs[..., 1] * trace(s)) * eye_like(s)
+    c, r = expm(casimir), expm(_bcast(coefs[..., 2]) * (transpose(s) - s))
+    # r is orthogonal (exponential of a skew matrix): r^-1 = r^T.
+    if left:
+        return mm(mm(phi, c), r), mm(transpose(r), linalg.solve(c, pi))
+    return (mm(mm(r, c), phi),
+            mm(transpose(linalg.solve(transpose(c), transpose(pi))), transpose(r)))
+
+
+#: Fixed parts of the bodies in the host drift (one per thread, at most).
+HOST_DRIFT_PARTS = 2
+#: Fewest bodies worth handing to threads in the host drift (below, one thread).
+HOST_DRIFT_THREAD_MIN_ROWS = 512
+
+
+def host_drift_threads() -> int:
+    """Threads the host drift uses: the cores this process may run on, at most
+    :data:`HOST_DRIFT_PARTS`."""
+    return _host.threads(HOST_DRIFT_PARTS)
+
+
+@functools.cache
+def _drift_kernel(n: int):
+    return _host.specialized("drift", N=n, PADE13=linalg.PADE13, THETA13=linalg.THETA13,
+                             MAX_SQUARINGS=linalg.MAX_SQUARINGS).isotropic_flow
+
+
+def _host_isotropic_flow(left: bool, phi, pi, coefs):
+    """The callback: the Numba kernel ``_host_kernels/drift.py`` over every body (leading axes
+    flattened), in :data:`HOST_DRIFT_PARTS` parts on up to :func:`host_drift_threads`
+    threads. Bodies are independent: the same bits on any number of threads."""
+    shape = phi.shape
+    n = shape[-1]
+    kernel = _drift_kernel(n)
+    phi = np.ascontiguousarray(np.asarray(phi).reshape(-1, n, n))
+    pi = np.ascontiguousarray(np.asarray(pi).reshape(-1, n, n))
+    coefs = np.ascontiguousarray(np.asarray(coefs).reshape(-1, 3))
+    phi_out, pi_out = np.empty_like(phi), np.empty_like(pi)
+    rows = phi.shape[0]
+    count = host_drift_threads() if rows >= HOST_DRIFT_THREAD_MIN_ROWS else 1
+    _host.in_parts(lambda lo, hi: kernel(lo, hi, left, phi, pi, coefs, phi_out, pi_out),
+                   rows, HOST_DRIFT_PARTS, count)
+    return phi_out.reshape(shape), pi_out.reshape(shape)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
+def isotropic_flow_host(phi, pi, coefs, left: bool):
+    """:func:`isotropic_flow_jax` computed by the compiled host kernel (Numba, CPU), reached
+    through ``jax.pure_callback`` (vmap: one call over the whole batch). A callback has no
+    derivative: jvp, grad and jacfwd differentiate :func:`isotropic_flow_jax` instead."""
+    out = jax.ShapeDtypeStruct(jnp.shape(phi), jnp.result_type(phi))
+    return jax.pure_callback(functools.partial(_host_isotropic_flow, left), (out, out),
+                             phi, pi, coefs, vmap_method="broadcast_all")
+
+
+@isotropic_flow_host.defjvp
+def _isotropic_flow_host_jvp(left, primals, tangents):
+    return jax.jvp(functools.partial(isotropic_flow_jax, left=left), primals, tangents)
+
+
+def isotropic_flow(phi, pi, coefs, left: bool):
+    """The exact drift of af-is / af-af (``left``) and is-af: :func:`isotropic_flow_host` on a
+    CPU with Numba (n <= 3), :func:`isotropic_flow_jax` otherwise (a GPU: no host round
+    trip)."""
+    if _host.in_use() and phi.shape[-1] <= linalg.CLOSED_FORM_MAX_N:
+        return isotropic_flow_host(phi, pi, coefs, left)
+    return isotropic_flow_jax(phi, pi, coefs, left)
 
 
 _REGION_DOC = """
@@ -938,5 +1014,6 @@ __all__ = [
     "MODELS", "SYMMETRIES", "TRANSLATIONAL_MODELS", "AbstractKineticTerm", "AffineAffine",
     "AffineIsotropic", "AffineJ", "AffineTranslational", "DAlembert", "DAlembertTranslational",
     "HAffine", "IsotropicAffine", "KineticEnergy", "LeftInvariant", "RightInvariant",
+    "host_drift_threads", "isotropic_flow", "isotropic_flow_host", "isotropic_flow_jax",
     "rank_one_splitting",
 ]

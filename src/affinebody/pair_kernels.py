@@ -50,9 +50,7 @@ of a potential evaluated with a neighbour list uses these closed forms, whicheve
 from __future__ import annotations
 
 import functools
-import os
 import types
-from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import NamedTuple
 
@@ -378,27 +376,14 @@ def _numba_kernels(n: int):
 def host_threads() -> int:
     """Threads the host kernel uses: the cores this process may run on, at most
     :data:`HOST_PARTITIONS` (``taskset -c 0`` gives one)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(HOST_PARTITIONS, cores))
-
-
-@functools.cache
-def _pool(threads: int) -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="affinebody-pairs")
+    return _host.threads(HOST_PARTITIONS)
 
 
 def _in_parts(work, rows: int) -> list:
     """``work(lo, hi)`` over :data:`HOST_PARTITIONS` fixed parts of range(rows), on up to
     :func:`host_threads` threads (Numba releases the GIL); results in part order."""
-    bounds = [rows * k // HOST_PARTITIONS for k in range(HOST_PARTITIONS + 1)]
-    ranges = list(zip(bounds[:-1], bounds[1:], strict=True))
-    threads = host_threads()
-    if threads > 1 and rows >= HOST_THREAD_MIN_ROWS:
-        return list(_pool(threads).map(lambda r: work(*r), ranges))
-    return [work(lo, hi) for lo, hi in ranges]
+    count = host_threads() if rows >= HOST_THREAD_MIN_ROWS else 1
+    return _host.in_parts(work, rows, HOST_PARTITIONS, count)
 
 
 class _HostGeometry(NamedTuple):
