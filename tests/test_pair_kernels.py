@@ -129,8 +129,9 @@ def test_list_forces_equal_all_pairs_forces_host_and_jax(case):
 
 def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch):
     """Chunks of pairs (per-body sums carried between callbacks) give the all-pairs forces,
-    and the threads' fixed parts give the same bits on one thread or two."""
-    potential, n = CASES["demo-3d"]
+    and the threads' fixed parts give the same bits on one thread or two (a Python f: XLA
+    evaluates it between the two callbacks; expression terms: test_fused_pair_kernel)."""
+    potential, n = CASES["material-affine-arrays-3d"]
     x, phi = configuration(np.random.default_rng(3), n, potential.space)
     _, nbrs = list_for(potential, x, phi)
     args = (potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count)
