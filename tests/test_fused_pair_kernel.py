@@ -4,11 +4,14 @@ compiled with the geometry and the chain rule, affinebody._host_kernels.pair_exp
 - the generated partial derivatives equal jax.grad of the expression at random points, for
   an expression that calls every whitelisted function, and at the kinks of abs, min and max
   (JAX's conventions);
-- energies and generalised forces over a neighbour list equal both the host path with XLA's
-  f between two callbacks (the same f as a Python function) and the all-pairs autodiff, for
-  n = 2 and 3, f in r, D, det, K_a, M_a (asymmetric: both orders, M'_a and 1/det), cut-offs
-  on r (periodic box) and on D (free space);
-- the fixed parts give the same bits on one thread or two."""
+- energies and generalised forces over a neighbour list equal the host path with XLA's f
+  between two callbacks (the same f as a Python function), for n = 2 and 3, f in r, D, det,
+  K_a, M_a (asymmetric: both orders, M'_a and 1/det), cut-offs on r (periodic box) and on D
+  (free space), and the all-pairs autodiff with the cut-off on D.
+
+test_pair_kernels runs its expression terms (cut-offs on r, n = 2 and 3, every pair variable)
+through this kernel against the all-pairs autodiff, and checks that its fixed parts give the
+same bits on one thread or two."""
 
 import math
 
@@ -19,14 +22,11 @@ import numpy as np
 import pytest
 
 from affinebody import _host
-from affinebody import neighbors as nb
 from affinebody import pair_kernels as pk
 from affinebody.expressions import FUNCTIONS, compile_expression, derivative_source
-from affinebody.potentials import Cutoff, PairPotential, generalized_forces
-from affinebody.space import free_space, triclinic
-
-BODIES = 24
-BOX3 = triclinic([[4.0, 0.6, -0.4], [0.0, 4.2, 0.5], [0.0, 0.0, 4.1]])
+from affinebody.potentials import Cutoff, PairPotential
+from affinebody.space import free_space
+from test_pair_kernels import BOX3, all_pairs, assert_same, configuration, list_for
 
 #: Calls every whitelisted function (aliases included) on arguments inside its domain for
 #: any pair: r, D > 0, det > 0 (phi with det > 0), K_a, M_a any real.
@@ -60,38 +60,6 @@ def potentials(case):
     plain = PairPotential(lambda **values: expression(**values), expression.used, cutoff,
                           fused.box)
     return fused, plain, n
-
-
-def configuration(seed: int, n: int, space):
-    rng = np.random.default_rng(seed)
-    if space.periodic:
-        x = rng.uniform(0.0, 1.0, size=(BODIES, n)) @ space.matrix.T
-    else:
-        x = rng.uniform(-1.3, 1.3, size=(BODIES, n))
-    phi = np.eye(n) + 0.25 * rng.normal(size=(BODIES, n, n))
-    phi[np.linalg.det(phi) < 0, 0] *= -1
-    return jnp.asarray(x), jnp.asarray(phi)
-
-
-@jax.jit(static_argnums=0)
-def _all_pairs(potential, x, phi):
-    return potential.energy(x, phi), generalized_forces(potential, x, phi)
-
-
-def neighbor_list(potential, x, phi):
-    return nb.allocate(potential.space, x, phi, potential.cutoff.r_cut,
-                       potential.cutoff.variable, 0.2, capacity=BODIES * (BODIES - 1) // 2,
-                       cell_capacity=BODIES)[1]
-
-
-def assert_close(result, reference, rtol=1e-12):
-    e, gx, gphi = (np.asarray(a) for a in result)
-    e_ref, gx_ref, gphi_ref = (np.asarray(a) for a in reference)
-    scale = max(np.max(np.abs(gx_ref)), np.max(np.abs(gphi_ref)))
-    assert scale > 1e-2  # the forces are not trivially zero
-    assert abs(float(e) - float(e_ref)) <= rtol * max(1.0, abs(float(e_ref))) * 10
-    np.testing.assert_allclose(gx, gx_ref, rtol=0, atol=rtol * scale)
-    np.testing.assert_allclose(gphi, gphi_ref, rtol=0, atol=rtol * scale)
 
 
 def test_generated_partials_equal_jax_grad_at_random_points():
@@ -135,12 +103,12 @@ def test_generated_partials_follow_jax_at_the_kinks():
 def test_fused_kernel_equals_the_two_callback_path(case):
     fused, plain, n = potentials(case)
     assert pk._fused_source(fused, n) is not None and pk._fused_source(plain, n) is None
-    x, phi = configuration(sum(map(ord, case)), n, fused.space)
-    nbrs = neighbor_list(fused, x, phi)
+    x, phi = configuration(np.random.default_rng(sum(map(ord, case))), n, fused.space)
+    _, nbrs = list_for(fused, x, phi)
     args = (x, phi, nbrs.i, nbrs.j, nbrs.count)
     result = pk.energy_and_gradients_host(fused, fused.space, *args)
     reference = pk.energy_and_gradients_host(plain, plain.space, *args)
-    assert_close(result, reference)
+    assert_same(result, tuple(np.asarray(a) for a in reference))
     # the energy alone (observables): the fused kernel without the chain rule
     alone = jax.jit(lambda a, b: fused.energy(a, b, nbrs))(x, phi)
     assert float(alone) == pytest.approx(float(reference[0]), rel=1e-12)
@@ -150,26 +118,7 @@ def test_fused_kernel_with_a_cut_off_on_D_equals_all_pairs():
     """(test_pair_kernels compares expression terms cut on r, through this kernel, with the
     all-pairs autodiff in n = 2 and 3.)"""
     fused, _, n = potentials("D-cut-free-2d")
-    x, phi = configuration(5, n, fused.space)
-    nbrs = neighbor_list(fused, x, phi)
-    energy, (fx, fphi) = _all_pairs(fused, x, phi)
-    assert_close(pk.energy_and_gradients_host(fused, fused.space, x, phi, nbrs.i, nbrs.j,
-                                              nbrs.count), (energy, -fx, -fphi))
-
-
-def test_fused_kernel_gives_the_same_bits_on_one_thread_or_two(monkeypatch):
-    fused, _, n = potentials("r-cut-periodic-3d")
-    x, phi = configuration(4, n, fused.space)
-    nbrs = neighbor_list(fused, x, phi)
-    args = (fused, fused.space, x, phi, nbrs.i, nbrs.j, nbrs.count)
-    monkeypatch.setattr(pk, "HOST_CHUNK_PAIRS", 61)  # several chunks, the last one partial
-    monkeypatch.setattr(pk, "HOST_THREAD_MIN_ROWS", 0)
-    chunked = jax.jit(pk._host_pair_sum, static_argnums=(0, 1))
-    assert nbrs.i.shape[0] > 3 * 61
-    monkeypatch.setattr(pk, "host_threads", lambda: 1)
-    one = chunked(*args)
-    monkeypatch.setattr(pk, "host_threads", lambda: 2)
-    two = chunked(*args)
-    for a, b in zip(one, two, strict=True):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))  # bit for bit
-    assert_close(one, pk.energy_and_gradients_host(fused, fused.space, *args[2:]))
+    x, phi = configuration(np.random.default_rng(5), n, fused.space)
+    _, nbrs = list_for(fused, x, phi)
+    assert_same(pk.energy_and_gradients_host(fused, fused.space, x, phi, nbrs.i, nbrs.j,
+                                             nbrs.count), all_pairs(fused, x, phi))

@@ -386,7 +386,8 @@ def _fused_source(pot, n: int) -> str | None:
     :mod:`affinebody._host_kernels.pair_expression`), or None where f is not a config
     expression (then XLA evaluates f between two callbacks)."""
     expression = getattr(pot, "expression", None)
-    if not isinstance(expression, CompiledExpression):
+    if not isinstance(expression, CompiledExpression) or not set(expression.used) <= set(
+            pot.variables):  # a variable f uses but the term does not declare: JAX refuses it
         return None
     plain, k_powers, m_powers, swapped = _requirements(pot, n)
     cutoff = pot.cutoff

@@ -29,20 +29,13 @@ def _fused(start, stop, i, j, x, phi, binv, det, mode, h, h_inv, edges, gradient
            gx, gphi, gb, gdet):
     """Energy of pairs start..stop-1 (cut-off and switch included); with ``gradients``
     their closed-form derivatives summed per body into gx, gphi, gb, gdet (as _scatter)."""
-    k_cols = max(1, K_POWERS)
-    m_cols = max(1, M_POWERS)
-    s_r = np.zeros(BLOCK)
-    s_d = np.zeros(BLOCK)
-    s_det = np.ones(BLOCK)
-    s_k = np.zeros((BLOCK, k_cols))
-    s_m = np.zeros((BLOCK, m_cols))
-    s_ms = np.zeros((BLOCK, m_cols))
-    g_r = np.zeros(BLOCK)
-    g_d = np.zeros(BLOCK)
-    g_det = np.zeros(BLOCK)
-    g_k = np.zeros((BLOCK, k_cols))
-    g_m = np.zeros((BLOCK, m_cols))
-    g_ms = np.zeros((BLOCK, m_cols))
+    # the scalars r, D, det, K, M, M' of a block and their partials (rows of scratch arrays)
+    plain = np.zeros((2, 3, BLOCK))
+    powers = np.zeros((2, 3, BLOCK, max(1, K_POWERS, M_POWERS)))
+    s_r, s_d, s_det = plain[0, 0], plain[0, 1], plain[0, 2]
+    g_r, g_d, g_det = plain[1, 0], plain[1, 1], plain[1, 2]
+    s_k, s_m, s_ms = powers[0, 0], powers[0, 1], powers[0, 2]
+    g_k, g_m, g_ms = powers[1, 0], powers[1, 1], powers[1, 2]
     energy = 0.0
     for lo in range(start, stop, BLOCK):
         hi = min(lo + BLOCK, stop)
