@@ -395,6 +395,32 @@ _OPERATOR_RULES: Mapping[str, tuple[str, tuple[str, ...]]] = {
 }
 
 
+def _literal(node: ast.AST) -> float | None:
+    """The value of a number literal, signs included (``-6``), else None."""
+    if isinstance(node, ast.Constant):
+        return float(node.value)
+    if isinstance(node, ast.UnaryOp):
+        value = _literal(node.operand)
+        if value is not None:
+            return -value if isinstance(node.op, ast.USub) else value
+    return None
+
+
+def _product(power: int) -> str:
+    """``{0}`` multiplied ``power`` >= 0 times (``1.0`` for 0)."""
+    return " * ".join(["{0}"] * power) or "1.0"
+
+
+def _integer_power(power: int) -> tuple[str, tuple[str, ...]]:
+    """x ** power for a small integer literal as products (a libm pow call costs more than
+    f; XLA itself rewrites pow(x, 2) as x * x), and its derivative power * x ** (power - 1),
+    JAX's rule for lax.pow; equal to the pow values up to rounding."""
+    if power > 0:
+        return f"{_product(power)}", (f"{float(power)!r} * {_product(power - 1)}",)
+    return (f"1.0 / ({_product(-power)})",
+            (f"{float(power)!r} / ({_product(1 - power)})",))
+
+
 class _SourceWriter:
     """Straight-line source of an accepted expression (one temporary per operation), then
     its reverse sweep: adjoints accumulated from the result back to the variables."""
@@ -418,6 +444,9 @@ class _SourceWriter:
             rule = _OPERATOR_RULES["u-" if isinstance(node.op, ast.USub) else "u+"]
             return self.operation(rule, [node.operand])
         if isinstance(node, ast.BinOp):
+            exponent = _literal(node.right) if isinstance(node.op, ast.Pow) else None
+            if exponent is not None and exponent.is_integer() and 1 <= abs(exponent) <= 8:
+                return self.operation(_integer_power(int(exponent)), [node.left])
             return self.operation(_OPERATOR_RULES[_BINARY[type(node.op)][1]],
                                   [node.left, node.right])
         fn, _ = FUNCTIONS[node.func.id]  # a call: the compiler allowed only whitelisted ones
