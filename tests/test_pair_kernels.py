@@ -127,10 +127,12 @@ def test_list_forces_equal_all_pairs_forces_host_and_jax(case):
         assert np.max(np.abs(charge)) <= 1e-11 * np.max(np.abs(reference[2]))
 
 
-def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch):
+@pytest.mark.parametrize("case", ["material-affine-arrays-3d", "demo-3d"])
+def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch, case):
     """Chunks of pairs (per-body sums carried between callbacks) give the all-pairs forces,
-    and the threads' fixed parts give the same bits on one thread or two."""
-    potential, n = CASES["demo-3d"]
+    and the threads' fixed parts give the same bits on one thread or two: with a Python f
+    (XLA evaluates it between two callbacks) and a config expression (the fused kernel)."""
+    potential, n = CASES[case]
     x, phi = configuration(np.random.default_rng(3), n, potential.space)
     _, nbrs = list_for(potential, x, phi)
     args = (potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count)

@@ -79,13 +79,16 @@ def cache_folder() -> Path:
     return Path(base) / "affinebody" / "kernels"
 
 
-def specialized(kernel: str, **constants) -> types.ModuleType:
+def specialized(kernel: str, extra: str = "", **constants) -> types.ModuleType:
     """The module ``affinebody._host_kernels.<kernel>`` with its block of constants set to
-    ``constants`` (and ``CACHE`` on), loaded from a file in :func:`cache_folder` named by a hash
-    of its text and of the Numba and Python versions, so a changed kernel never meets a stale
-    cache. Where the folder cannot be written, the module is compiled in memory, uncached."""
+    ``constants`` (and ``CACHE`` on) and the generated source ``extra`` appended, loaded from a
+    file in :func:`cache_folder` named by a hash of its text and of the Numba and Python
+    versions, so a changed kernel never meets a stale cache. Where the folder cannot be
+    written, the module is compiled in memory, uncached."""
     template = resources.files("affinebody._host_kernels").joinpath(f"{kernel}.py").read_text(
         encoding="utf-8")
+    if extra:
+        template = f"{template}\n\n{extra}"
     block = "".join(f"{name} = {value!r}\n" for name, value in {**constants, "CACHE": True}.items())
     text, count = _CONSTANTS.subn(lambda m: m.group(0).replace(m.group(1), block), template)
     if count != 1:

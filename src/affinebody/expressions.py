@@ -341,7 +341,164 @@ def expression_variables(text: str, *, field: str = "expr") -> tuple[str, ...]:
     return tuple(compiler.used)
 
 
+# --------------------------------------------------------------------------------------------
+# Source code of the value and the partial derivatives (compiled CPU kernels)
+
+#: Scalar source of each whitelisted function and of its partial derivatives, keyed by the
+#: JAX function (aliases share one entry): ``{0}``, ``{1}`` are the arguments, ``{t}`` the
+#: value. The derivatives are JAX's own rules (``jax._src.lax``), kinks included: d|x|/dx = 1
+#: at 0, min/max split the derivative evenly between equal arguments.
+_SOURCE_RULES: Mapping[Callable[..., jax.Array], tuple[str, tuple[str, ...]]] = {
+    jnp.exp: ("np.exp({0})", ("{t}",)),
+    jnp.log: ("np.log({0})", ("1.0 / {0}",)),
+    jnp.log1p: ("np.log1p({0})", ("1.0 / (1.0 + {0})",)),
+    jnp.expm1: ("np.expm1({0})", ("{t} + 1.0",)),
+    jnp.sqrt: ("np.sqrt({0})", ("0.5 / {t}",)),
+    jnp.cbrt: ("np.cbrt({0})", ("(1.0 / 3.0) / ({t} * {t})",)),
+    jnp.square: ("{0} * {0}", ("2.0 * {0}",)),
+    jnp.sin: ("np.sin({0})", ("np.cos({0})",)),
+    jnp.cos: ("np.cos({0})", ("-np.sin({0})",)),
+    jnp.tan: ("np.tan({0})", ("1.0 + {t} * {t}",)),
+    jnp.arcsin: ("np.arcsin({0})", ("1.0 / np.sqrt(1.0 - {0} * {0})",)),
+    jnp.arccos: ("np.arccos({0})", ("-1.0 / np.sqrt(1.0 - {0} * {0})",)),
+    jnp.arctan: ("np.arctan({0})", ("1.0 / (1.0 + {0} * {0})",)),
+    jnp.arctan2: ("np.arctan2({0}, {1})", ("{1} / ({0} * {0} + {1} * {1})",
+                                          "-{0} / ({0} * {0} + {1} * {1})")),
+    jnp.sinh: ("np.sinh({0})", ("np.cosh({0})",)),
+    jnp.cosh: ("np.cosh({0})", ("np.sinh({0})",)),
+    jnp.tanh: ("np.tanh({0})", ("(1.0 + {t}) * (1.0 - {t})",)),
+    jnp.arcsinh: ("np.arcsinh({0})", ("1.0 / np.sqrt({0} * {0} + 1.0)",)),
+    jnp.arccosh: ("np.arccosh({0})", ("1.0 / np.sqrt({0} * {0} - 1.0)",)),
+    jnp.arctanh: ("np.arctanh({0})", ("1.0 / (1.0 + {0}) / (1.0 - {0})",)),
+    jsp.erf: ("math.erf({0})", ("_TWO_OVER_SQRT_PI * np.exp(-({0} * {0}))",)),
+    jsp.erfc: ("math.erfc({0})", ("-_TWO_OVER_SQRT_PI * np.exp(-({0} * {0}))",)),
+    jnp.abs: ("np.abs({0})", ("(1.0 if {0} >= 0.0 else -1.0)",)),
+    jnp.minimum: ("np.minimum({0}, {1})", (
+        "((1.0 if {0} == {t} else 0.0) / (2.0 if {1} == {t} else 1.0))",
+        "((1.0 if {1} == {t} else 0.0) / (2.0 if {0} == {t} else 1.0))")),
+    jnp.maximum: ("np.maximum({0}, {1})", (
+        "((1.0 if {0} == {t} else 0.0) / (2.0 if {1} == {t} else 1.0))",
+        "((1.0 if {1} == {t} else 0.0) / (2.0 if {0} == {t} else 1.0))")),
+}
+
+#: Source of the operators and of their partial derivatives, ``{0} op {1}`` as in
+#: :data:`_SOURCE_RULES`; ``**``: JAX's ``lax.pow`` rules (d/dy uses log(x), x = 0 read as 1).
+_OPERATOR_RULES: Mapping[str, tuple[str, tuple[str, ...]]] = {
+    "+": ("{0} + {1}", ("1.0", "1.0")),
+    "-": ("{0} - {1}", ("1.0", "-1.0")),
+    "*": ("{0} * {1}", ("{1}", "{0}")),
+    "/": ("{0} / {1}", ("1.0 / {1}", "-{0} / ({1} * {1})")),
+    "**": ("{0} ** {1}", ("{1} * {0} ** ({1} - 1.0)",
+                          "np.log({0} if {0} != 0.0 else 1.0) * {t}")),
+    "u-": ("-{0}", ("-1.0",)),
+    "u+": ("{0}", ("1.0",)),
+}
+
+
+def _literal(node: ast.AST) -> float | None:
+    """The value of a number literal, signs included (``-6``), else None."""
+    if isinstance(node, ast.Constant):
+        return float(node.value)
+    if isinstance(node, ast.UnaryOp):
+        value = _literal(node.operand)
+        if value is not None:
+            return -value if isinstance(node.op, ast.USub) else value
+    return None
+
+
+def _product(power: int) -> str:
+    """``{0}`` multiplied ``power`` >= 0 times (``1.0`` for 0)."""
+    return " * ".join(["{0}"] * power) or "1.0"
+
+
+def _integer_power(power: int) -> tuple[str, tuple[str, ...]]:
+    """x ** power for a small integer literal as products (a libm pow call costs more than
+    f; XLA itself rewrites pow(x, 2) as x * x), and its derivative power * x ** (power - 1),
+    JAX's rule for lax.pow; equal to the pow values up to rounding."""
+    if power > 0:
+        return f"{_product(power)}", (f"{float(power)!r} * {_product(power - 1)}",)
+    return (f"1.0 / ({_product(-power)})",
+            (f"{float(power)!r} / ({_product(1 - power)})",))
+
+
+class _SourceWriter:
+    """Straight-line source of an accepted expression (one temporary per operation), then
+    its reverse sweep: adjoints accumulated from the result back to the variables."""
+
+    def __init__(self):
+        self.lines: list[str] = []
+        self.steps: list[tuple[str, list[tuple[str, bool]], tuple[str, ...]]] = []
+        self.count = 0
+
+    def walk(self, node: ast.AST) -> tuple[str, bool]:
+        """(source of the node's value, whether it depends on a variable)."""
+        if isinstance(node, ast.Expression):
+            return self.walk(node.body)
+        if isinstance(node, ast.Constant):
+            return f"({float(node.value)!r})", False
+        if isinstance(node, ast.Name):
+            if node.id in CONSTANTS:  # a variable of that name was refused by the compiler
+                return f"({CONSTANTS[node.id]!r})", False
+            return f"v_{node.id}", True
+        if isinstance(node, ast.UnaryOp):
+            rule = _OPERATOR_RULES["u-" if isinstance(node.op, ast.USub) else "u+"]
+            return self.operation(rule, [node.operand])
+        if isinstance(node, ast.BinOp):
+            exponent = _literal(node.right) if isinstance(node.op, ast.Pow) else None
+            if exponent is not None and exponent.is_integer() and 1 <= abs(exponent) <= 8:
+                return self.operation(_integer_power(int(exponent)), [node.left])
+            return self.operation(_OPERATOR_RULES[_BINARY[type(node.op)][1]],
+                                  [node.left, node.right])
+        fn, _ = FUNCTIONS[node.func.id]  # a call: the compiler allowed only whitelisted ones
+        return self.operation(_SOURCE_RULES[fn], node.args)
+
+    def operation(self, rule, operands) -> tuple[str, bool]:
+        args = [self.walk(operand) for operand in operands]
+        value, partials = rule
+        temp = f"_t{self.count}"
+        self.count += 1
+        self.lines.append(f"{temp} = {value.format(*(a for a, _ in args))}")
+        if any(depends for _, depends in args):
+            self.steps.append((temp, args, partials))
+            return temp, True
+        return temp, False
+
+
+def derivative_source(expression: CompiledExpression, name: str) -> str:
+    """Python source of a function ``name(v_x, v_y, ...)`` (one argument per name in
+    ``expression.used``, in that order) returning ``(f, df/dx, df/dy, ...)`` for scalar
+    float64 arguments, with NumPy's and :mod:`math`'s scalar functions (``np``, ``math``
+    and ``_TWO_OVER_SQRT_PI`` are names the surrounding module defines): the form compiled
+    by Numba in the host pair kernel (:mod:`affinebody._host_kernels.pair_expression`).
+
+    The partial derivatives come from a reverse sweep over the expression's operations
+    (each one's derivative by JAX's rule: the same values as ``jax.grad`` of the compiled
+    expression, kinks included, up to rounding)."""
+    tree, _ = _parse(expression.text, expression.field)
+    writer = _SourceWriter()
+    result, depends = writer.walk(tree)
+    body = list(writer.lines) + [f"_v = {result}"]
+    adjoint = {f"v_{v}": f"_d_{v}" for v in expression.used}
+    body += [f"{adjoint[f'v_{v}']} = 0.0" for v in expression.used]
+    if depends:
+        adjoint[result] = "_a_result"
+        body.append("_a_result = 1.0")
+        for temp, _, _ in writer.steps:
+            if temp != result:
+                adjoint[temp] = f"_a{temp}"
+                body.append(f"_a{temp} = 0.0")
+        for temp, args, partials in reversed(writer.steps):
+            for (arg, arg_depends), partial in zip(args, partials, strict=True):
+                if arg_depends:
+                    local = partial.format(*(a for a, _ in args), t=temp)
+                    body.append(f"{adjoint[arg]} += {adjoint[temp]} * ({local})")
+    outputs = ", ".join(["_v"] + [f"_d_{v}" for v in expression.used])
+    arguments = ", ".join(f"v_{v}" for v in expression.used)
+    return "\n".join([f"def {name}({arguments}):"] + [f"    {line}" for line in body]
+                     + [f"    return {outputs}", ""])
+
+
 __all__ = [
     "MAX_DEPTH", "MAX_LENGTH", "MAX_LITERAL_EXPONENT", "CompiledExpression",
-    "compile_expression", "expression_variables",
+    "compile_expression", "derivative_source", "expression_variables",
 ]

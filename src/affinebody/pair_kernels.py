@@ -35,7 +35,9 @@ product runs both, one per backend (:func:`pair_sum` chooses):
 - the host kernel (:func:`energy_and_gradients_host`): compiled CPU code (Numba) for the
   geometry and for the chain rule and per-body sums, reached from compiled JAX code through
   two ``jax.pure_callback`` calls per chunk of pairs, with f and its partial derivatives
-  evaluated by XLA between them (fused, elementwise). On a CPU the arrays stay in host
+  evaluated by XLA between them (fused, elementwise); where f is a config expression, one
+  callback per chunk instead, f and its partials compiled into the same loop
+  (:mod:`affinebody._host_kernels.pair_expression`). On a CPU the arrays stay in host
   memory, so the callbacks cost no transfer. Each chunk is split into
   :data:`HOST_PARTITIONS` fixed parts summed in a fixed order and run on as many threads as
   the process may use, so results do not depend on the core count;
@@ -60,6 +62,7 @@ import numpy as np
 from jax import lax
 
 from affinebody import _linalg as linalg
+from affinebody.expressions import CompiledExpression
 from affinebody.space import Space
 
 #: Pairs per pass of the JAX kernel on a CPU (where it runs without Numba, and in tests).
@@ -362,6 +365,7 @@ def neighbor_energy(pot, x, phi, neighbors, cell=None) -> jax.Array:
 
 from affinebody import _host  # noqa: E402
 from affinebody._host import in_use as _host_in_use  # noqa: E402
+from affinebody._host_kernels.pair_expression import fused_source  # noqa: E402
 
 
 @functools.cache
@@ -371,6 +375,30 @@ def _numba_kernels(n: int):
     kernels = _host.specialized("pair", N=n)
     return types.SimpleNamespace(geometry=kernels._geometry, scatter=kernels._scatter,
                                  finish=kernels._finish_numba, virial=kernels._virial)
+
+
+@functools.cache
+def _fused_source(pot, n: int) -> str | None:
+    """The generated source of the fused host kernel of ``pot`` in dimension n (f and its
+    partials compiled with the geometry and the chain rule,
+    :mod:`affinebody._host_kernels.pair_expression`), or None where f is not a config
+    expression (then XLA evaluates f between two callbacks)."""
+    expression = getattr(pot, "expression", None)
+    if not isinstance(expression, CompiledExpression) or not set(expression.used) <= set(
+            pot.variables):  # a variable f uses but the term does not declare: JAX refuses it
+        return None
+    plain, k_powers, m_powers, swapped = _requirements(pot, n)
+    cutoff = pot.cutoff
+    return fused_source(expression, n, plain, k_powers, m_powers, swapped,
+                        bool(pot.asymmetric), cutoff.variable, float(cutoff.r_on),
+                        float(cutoff.r_cut))
+
+
+@functools.cache
+def _fused_kernel(n: int, source: str):
+    """The compiled fused kernel: the pair kernels of dimension n with ``source`` appended
+    (cached on disk under a hash of the whole text, :func:`affinebody._host.specialized`)."""
+    return _host.specialized("pair", extra=source, N=n)._fused
 
 
 def host_threads() -> int:
@@ -505,6 +533,34 @@ def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
     return total
 
 
+def _host_fused(g: _HostGeometry, source: str, sums, x, phi, binv, det, i, j, valid, h,
+                h_inv):
+    """The fused kernel over the chunk's first ``valid`` pairs: their energy and, unless
+    ``sums`` is None, ``sums`` plus their closed-form derivatives (parts summed in a fixed
+    order, as :func:`_host_scatter`)."""
+    kernel = _fused_kernel(g.n, source)
+    valid = int(valid)
+    i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
+    x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
+    gradients = sums is not None
+    shapes = ([np.shape(a) for a in sums] if gradients
+              else [(1, g.n), (1, g.n, g.n), (1, g.n, g.n), (1,)])
+
+    def work(lo, hi):
+        acc = tuple(np.zeros(shape) for shape in shapes)
+        e = kernel(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, h, h_inv,
+                   g.edges, gradients, *acc)
+        return e, acc
+
+    energy = np.zeros(())
+    out = tuple(np.array(a, dtype=np.float64) for a in sums) if gradients else ()
+    for e, part in _in_parts(work, valid):  # a fixed order: the same on any thread count
+        energy += e
+        for total, add in zip(out, part, strict=False):
+            total += add
+    return (energy, out) if gradients else energy
+
+
 def _host_chunk(capacity: int) -> int:
     """Pairs per host-kernel pass for a list of ``capacity`` pairs (a function of the
     capacity only, so the summation order, hence every bit, is the same on every run)."""
@@ -517,10 +573,13 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     pairs, a ``jax.pure_callback`` computes the geometry (Numba), XLA the scalar function f
     and its partial derivatives (fused, elementwise), a second callback the closed-form chain
     rule and the per-body sums; the per-body chain rule through B = phi^-1 and det phi
-    finishes in JAX. No JAX runs inside a callback (that could wait on the thread that
-    called it). ``gradients=False``: the energy alone (no chain rule, no second callback).
-    ``cell``: the current cell of a box that a barostat deforms (an operand of the kernels:
-    one compilation serves every box), or None. ``virial=True``: (E, W), the energy and the
+    finishes in JAX. Where f is a config expression (``pot.expression``), one callback per
+    chunk runs the fused kernel instead (f and its partials compiled with the geometry and
+    the chain rule, :func:`_fused_source`); the virial pass keeps the two callbacks. No JAX
+    runs inside a callback (that could wait on the thread that called it).
+    ``gradients=False``: the energy alone (no chain rule, no second callback). ``cell``: the
+    current cell of a box that a barostat deforms (an operand of the kernels: one
+    compilation serves every box), or None. ``virial=True``: (E, W), the energy and the
     virial W [n, n] of :func:`pair_virial` instead (a third kernel after the geometry and f's
     partials)."""
     _require_cutoff(pot)
@@ -543,6 +602,7 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     sum_shapes = (f64(x.shape), f64(phi.shape), f64(phi.shape), f64((bodies,)))
     partials_of = _scalar_values_and_partials(pot, n)
     rows = jnp.arange(chunk)
+    fused = None if virial else _fused_source(pot, n)
 
     def step(carry, k):
         energy, sums = carry
@@ -550,6 +610,13 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
         ii = lax.dynamic_slice(i_all, (lo,), (chunk,))
         jj = lax.dynamic_slice(j_all, (lo,), (chunk,))
         valid = jnp.clip(count - lo, 0, chunk).astype(jnp.int32)
+        if fused is not None:  # f is a config expression: one callback does it all
+            out = jax.pure_callback(
+                partial(_host_fused, g, fused), (f64(()), sum_shapes) if gradients else f64(()),
+                sums if gradients else None, x, phi, binv, det, ii, jj, valid, h, h_inv,
+                vmap_method="sequential")
+            e, sums = out if gradients else (out, sums)
+            return (energy + e, sums), None
         scalars = jax.pure_callback(partial(_host_geometry, g), geometry_shapes, x, phi, binv,
                                     det, ii, jj, valid, h, h_inv, vmap_method="sequential")
         base = dict(zip(columns, scalars, strict=True))  # padding rows: beyond the cut-off

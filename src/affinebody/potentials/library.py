@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 
 from affinebody import _pytree as pytree
-from affinebody.expressions import compile_expression
+from affinebody.expressions import CompiledExpression, compile_expression
 from affinebody.potentials.terms import (
     Cutoff,
     OneBodyTerm,
@@ -110,6 +110,13 @@ class PairPotential(PairTerm):
 
     def term(self, values):
         return self.function(**{name: values[name] for name in self.variables})
+
+    @property
+    def expression(self) -> CompiledExpression | None:
+        """f as a config expression (:meth:`from_expression`), or None for a Python function:
+        the host pair kernel compiles an expression's f and its partials with the geometry
+        (``pair_kernels``)."""
+        return self.function if isinstance(self.function, CompiledExpression) else None
 
     @classmethod
     def from_expression(
