@@ -10,6 +10,11 @@ constants. Target: under 30 s in total (compilation included).
 
 Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/phonons_scale.py (first the whole
 ``affinebody phonons`` command on one core, then the split of its work by phase)
+
+``--box-sides 8 16 22 46`` instead times the whole command on boxes of side^3 bodies of one
+crystal (the simple cubic lattice of ``run_scale.py``'s config, no jitter: one body per
+primitive cell), with its peak memory: the work on the box (finding the primitive cell, the
+sublattices, the equilibrium check) must grow like N, the phonon work not at all.
 """
 
 from __future__ import annotations
@@ -93,7 +98,37 @@ def command() -> None:
               f"{os.getloadavg()[0]:.1f}")
 
 
+def box_sizes(sides: list[int]) -> None:
+    """The whole ``affinebody phonons`` command on growing boxes of one crystal (one core)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from run_scale import AFFINEBODY, pinned, timed, write_config
+
+    print("| bodies in the box | whole command (s) | peak RSS (GiB) |")
+    print("|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for side in sides:
+            path = write_config(Path(tmp), side, steps=10, every=10)
+            text = path.read_text().replace("jitter = 0.03", "jitter = 0.0")
+            path.write_text(text.replace("phi_noise = 0.05", "phi_noise = 0.0"))
+            wall, out, peak = timed(pinned("0", [*AFFINEBODY, "phonons", str(path), "-o", tmp,
+                                                 "--mesh", "4", "--points", "10"]))
+            if "wrote" not in out:
+                raise SystemExit(f"affinebody phonons failed at side {side}: {out[-400:]}")
+            print(f"| {side**3} | {wall:.1f} | {peak / 2**20:.2f} |", flush=True)
+
+
 def main() -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--box-sides", type=int, nargs="*", default=None,
+                        help="time the whole command on boxes of side^3 bodies instead")
+    args = parser.parse_args()
+    if args.box_sides:
+        box_sizes(args.box_sides)
+        return
     command()
     print("where the time goes (the same work through the library calls of the command):")
     from affinebody._xla import pin_to_one_cpu
