@@ -65,8 +65,10 @@ def in_parts(work, rows: int, parts: int, count: int) -> list:
     results in part order, so sums over them are the same on any number of threads."""
     bounds = [rows * k // parts for k in range(parts + 1)]
     ranges = list(zip(bounds[:-1], bounds[1:], strict=True))
-    if count > 1:
-        return list(_pool(count).map(lambda r: work(*r), ranges))
+    if count > 1:  # the calling thread runs the first part itself (one hand-off fewer)
+        rest = [_pool(count - 1).submit(work, *r) for r in ranges[1:]]
+        first = work(*ranges[0])
+        return [first, *(future.result() for future in rest)]
     return [work(lo, hi) for lo, hi in ranges]
 
 
