@@ -107,7 +107,9 @@ def algebra_basis(group: str, n: int) -> np.ndarray:
 
 
 def _per_body(leaf: Any, bodies: int) -> bool:
-    """A kinetic parameter with a leading body axis (mass [N], J [N, n, n], L [N, n, n, n, n])."""
+    """A kinetic parameter with a leading body axis (mass [N], J [N, n, n], L [N, n, n, n, n]):
+    shared parameters have an even number of axes (scalar, [n, n], [n, n, n, n]), so an odd
+    number with N leading is a per-body one whatever N and n are."""
     a = np.asarray(leaf)
     return a.ndim % 2 == 1 and a.shape[0] == bodies
 
@@ -156,26 +158,29 @@ def _wrap(u, h) -> np.ndarray:
     return (f - np.round(f)) @ h.T
 
 
+def _on_torus(fractional: np.ndarray) -> np.ndarray:
+    """Fractional coordinates reduced to [0, 1) (np.mod(-1e-17, 1) rounds to 1.0: made 0)."""
+    f = np.mod(fractional, 1.0)
+    f[f >= 1.0] = 0.0
+    return f
+
+
 def _periodic_tree(fractional: np.ndarray) -> cKDTree:
     """A k-d tree of points given by fractional coordinates, on the unit torus."""
-    f = np.mod(fractional, 1.0)
-    f[f >= 1.0] = 0.0  # np.mod(-1e-17, 1) rounds to 1.0
-    return cKDTree(f, boxsize=1.0)
+    return cKDTree(_on_torus(fractional), boxsize=1.0)
 
 
-def _maps_onto_itself(x, phi, box, params, shift, tree=None) -> bool:
+def _maps_onto_itself(x, phi, box, params, shift, tree: cKDTree) -> bool:
     """Whether x -> x + shift (mod box) maps the bodies onto bodies with equal phi, inertia.
 
     Each shifted body's image is the nearest body on the torus of fractional coordinates (a
     k-d tree: O(N log N)), accepted where the minimum-image difference is below 1e-8 of the
-    box and the two bodies are equal (:func:`_equal_bodies`)."""
+    box and the two bodies are equal (:func:`_equal_bodies`). ``tree``: the bodies'
+    :func:`_periodic_tree` in the box's fractional coordinates."""
     inverse = np.linalg.inv(box)
-    tree = _periodic_tree(x @ inverse.T) if tree is None else tree
 
     def mapped(bodies):
-        target = np.mod((x[bodies] + shift) @ inverse.T, 1.0)
-        target[target >= 1.0] = 0.0
-        _, image = tree.query(target, p=np.inf)
+        _, image = tree.query(_on_torus((x[bodies] + shift) @ inverse.T), p=np.inf)
         u = _wrap(x[image] - (x[bodies] + shift), box)
         close = np.all(np.abs(u) < 1e-8 * np.abs(box).max(), axis=-1)
         return bool(np.all(close & _equal_bodies(x, phi, params, bodies, image)))
@@ -210,9 +215,8 @@ def _sublattices(x, phi, params, a_inv) -> tuple[np.ndarray, np.ndarray]:
     tree query per sublattice: O(N log N) for a small basis."""
     bodies = len(x)
     reduced = x @ a_inv.T
-    tree = _periodic_tree(reduced)
-    origin = np.mod(reduced, 1.0)
-    origin[origin >= 1.0] = 0.0
+    origin = _on_torus(reduced)
+    tree = cKDTree(origin, boxsize=1.0)
     sublattice = -np.ones(bodies, dtype=int)
     basis: list[int] = []
     for k in range(bodies):
@@ -296,9 +300,10 @@ def make_crystal(system, x, phi, box, cells=None) -> Crystal:
         cells = find_cells(system, x, phi, box)
     cells = tuple(int(c) for c in cells)
     params = _body_parameters(system, bodies)
+    tree = _periodic_tree(x @ np.linalg.inv(box).T)
     for j, m in enumerate(cells):
         shift = box[:, j] / max(m, 1)
-        if m < 1 or bodies % m or not _maps_onto_itself(x, phi, box, params, shift):
+        if m < 1 or bodies % m or not _maps_onto_itself(x, phi, box, params, shift, tree):
             raise ValueError(f"phonons.cells[{j}] = {m}: the translation by box/{m} along axis "
                              f"{j} does not map the bodies onto equal bodies (drop phonons.cells "
                              f"to find the primitive cell)")
@@ -538,8 +543,6 @@ def kinetic_metric(crystal: Crystal) -> np.ndarray:
     when M is not positive definite (af-af (72) for n >= 2: its A Tr(Omega^2) is indefinite)."""
     system = crystal.system
     basis, bodies = crystal.basis, len(crystal.x)
-    if bodies <= crystal.n:  # a shared [n] parameter could pass for a per-body one: take all
-        basis = np.arange(bodies)
     # the primitive cell's bodies only (T is a sum over bodies), with their own parameters
     kinetic = jax.tree.map(lambda leaf: np.asarray(leaf)[basis] if _per_body(leaf, bodies)
                            else leaf, system.kinetic)
@@ -547,7 +550,7 @@ def kinetic_metric(crystal: Crystal) -> np.ndarray:
                                       jnp.asarray(crystal.x[basis]),
                                       jnp.asarray(crystal.phi[basis]),
                                       jnp.asarray(crystal.algebra)))
-    blocks = np.transpose(cols, (1, 2, 0))[np.searchsorted(basis, crystal.basis)]
+    blocks = np.transpose(cols, (1, 2, 0))
     blocks = 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
     smallest = float(np.linalg.eigvalsh(blocks).min())
     if not smallest > 0:
