@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import importlib.util
+import itertools
 import os
 import re
 import sys
@@ -59,17 +60,34 @@ def _pool(count: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=count, thread_name_prefix="affinebody-host")
 
 
+def part_ranges(rows: int, parts: int) -> list[tuple[int, int]]:
+    """The ``parts`` fixed parts (lo, hi) of range(rows) that :func:`in_parts` runs, in order
+    (equal sizes to within one row)."""
+    bounds = [rows * k // parts for k in range(parts + 1)]
+    return list(zip(bounds[:-1], bounds[1:], strict=True))
+
+
 def in_parts(work, rows: int, parts: int, count: int) -> list:
     """``work(lo, hi)`` over ``parts`` fixed parts of range(rows) (the same parts whatever
     ``count``), on ``count`` threads when ``count > 1`` (Numba kernels release the GIL);
-    results in part order, so sums over them are the same on any number of threads."""
-    bounds = [rows * k // parts for k in range(parts + 1)]
-    ranges = list(zip(bounds[:-1], bounds[1:], strict=True))
-    if count > 1:  # the calling thread runs the first part itself (one hand-off fewer)
-        rest = [_pool(count - 1).submit(work, *r) for r in ranges[1:]]
-        first = work(*ranges[0])
-        return [first, *(future.result() for future in rest)]
-    return [work(lo, hi) for lo, hi in ranges]
+    results in part order, so sums over them are the same on any number of threads. The
+    threads take the next part as they become free (the calling thread included), so a core
+    that another process slows down takes fewer parts."""
+    ranges = part_ranges(rows, parts)
+    if count <= 1:
+        return [work(lo, hi) for lo, hi in ranges]
+    results: list = [None] * parts
+    taken = itertools.count()  # next() is atomic under the GIL
+
+    def drain() -> None:
+        while (k := next(taken)) < parts:
+            results[k] = work(*ranges[k])
+
+    helpers = [_pool(count - 1).submit(drain) for _ in range(count - 1)]
+    drain()
+    for helper in helpers:
+        helper.result()
+    return results
 
 
 def cache_folder() -> Path:

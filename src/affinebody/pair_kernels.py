@@ -36,8 +36,9 @@ product runs both, one per backend (:func:`pair_sum` chooses):
   geometry and for the chain rule and per-body sums, reached from compiled JAX code through
   two ``jax.pure_callback`` calls per chunk of pairs, with f and its partial derivatives
   evaluated by XLA between them (fused, elementwise); where f is a config expression, one
-  callback per chunk instead, f and its partials compiled into the same loop
-  (:mod:`affinebody._host_kernels.pair_expression`). On a CPU the arrays stay in host
+  callback for the whole list instead, f and its partials compiled into the same loop
+  (:mod:`affinebody._host_kernels.pair_expression`) and the chain rule through B and det phi
+  applied per body in Numba too. On a CPU the arrays stay in host
   memory, so the callbacks cost no transfer. Each chunk is split into
   :data:`HOST_PARTITIONS` fixed parts summed in a fixed order and run on as many threads as
   the process may use, so results do not depend on the core count;
@@ -374,7 +375,7 @@ def _numba_kernels(n: int):
     to n and cached on disk by :func:`affinebody._host.specialized`)."""
     kernels = _host.specialized("pair", N=n)
     return types.SimpleNamespace(geometry=kernels._geometry, scatter=kernels._scatter,
-                                 finish=kernels._finish_numba, virial=kernels._virial)
+                                 virial=kernels._virial)
 
 
 @functools.cache
@@ -397,8 +398,10 @@ def _fused_source(pot, n: int) -> str | None:
 @functools.cache
 def _fused_kernel(n: int, source: str):
     """The compiled fused kernel: the pair kernels of dimension n with ``source`` appended
-    (cached on disk under a hash of the whole text, :func:`affinebody._host.specialized`)."""
-    return _host.specialized("pair", extra=source, N=n)._fused
+    (cached on disk under a hash of the whole text, :func:`affinebody._host.specialized`):
+    ``fused`` (the pair loop) and ``merge_finish`` (the parts' sums and the chain rule)."""
+    kernels = _host.specialized("pair", extra=source, N=n)
+    return types.SimpleNamespace(fused=kernels._fused, merge_finish=kernels._merge_finish)
 
 
 def host_threads() -> int:
@@ -533,32 +536,38 @@ def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
     return total
 
 
-def _host_fused(g: _HostGeometry, source: str, sums, x, phi, binv, det, i, j, valid, h,
-                h_inv):
-    """The fused kernel over the chunk's first ``valid`` pairs: their energy and, unless
-    ``sums`` is None, ``sums`` plus their closed-form derivatives (parts summed in a fixed
-    order, as :func:`_host_scatter`)."""
-    kernel = _fused_kernel(g.n, source)
-    valid = int(valid)
+def _host_fused(g: _HostGeometry, source: str, gradients: bool, x, phi, binv, det, i, j,
+                count, h, h_inv):
+    """The fused kernel over the list's first ``count`` pairs, in :data:`HOST_PARTITIONS`
+    fixed parts with per-body sums each: the energy and, with ``gradients``, (dV/dx,
+    dV/dphi), the parts' sums added in part order and the chain rule through B = phi^-1 and
+    det phi applied per body (``_merge_finish``, in parts of the bodies). One callback for
+    the whole list: no pair scalars are held, so no chunks."""
+    kernels = _fused_kernel(g.n, source)
+    valid = int(count)
     i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
     x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
-    gradients = sums is not None
-    shapes = ([np.shape(a) for a in sums] if gradients
-              else [(1, g.n), (1, g.n, g.n), (1, g.n, g.n), (1,)])
+    bodies, n = x.shape
+    rows = bodies if gradients else 1  # the kernel adds nothing to the sums without gradients
+    parts = HOST_PARTITIONS
+    gx, gphi, gb = (np.zeros((parts, rows, *shape)) for shape in ((n,), (n, n), (n, n)))
+    gdet = np.zeros((parts, rows))
+    part_of = {bounds: k for k, bounds in enumerate(_host.part_ranges(valid, parts))}
 
-    def work(lo, hi):
-        acc = tuple(np.zeros(shape) for shape in shapes)
-        e = kernel(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, h, h_inv,
-                   g.edges, gradients, *acc)
-        return e, acc
+    def pairs(lo, hi):
+        k = part_of[lo, hi]
+        return kernels.fused(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges,
+                             gradients, gx[k], gphi[k], gb[k], gdet[k])
 
     energy = np.zeros(())
-    out = tuple(np.array(a, dtype=np.float64) for a in sums) if gradients else ()
-    for e, part in _in_parts(work, valid):  # a fixed order: the same on any thread count
+    for e in _in_parts(pairs, valid):  # a fixed order: the same on any thread count
         energy += e
-        for total, add in zip(out, part, strict=False):
-            total += add
-    return (energy, out) if gradients else energy
+    if not gradients:
+        return energy
+    g_x, g_phi = np.empty_like(x), np.empty_like(phi)
+    _in_parts(lambda lo, hi: kernels.merge_finish(lo, hi, gx, gphi, gb, gdet, binv, det, g_x,
+                                                  g_phi), bodies)
+    return energy, g_x, g_phi
 
 
 def _host_chunk(capacity: int) -> int:
@@ -573,9 +582,10 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     pairs, a ``jax.pure_callback`` computes the geometry (Numba), XLA the scalar function f
     and its partial derivatives (fused, elementwise), a second callback the closed-form chain
     rule and the per-body sums; the per-body chain rule through B = phi^-1 and det phi
-    finishes in JAX. Where f is a config expression (``pot.expression``), one callback per
-    chunk runs the fused kernel instead (f and its partials compiled with the geometry and
-    the chain rule, :func:`_fused_source`); the virial pass keeps the two callbacks. No JAX
+    finishes in JAX. Where f is a config expression (``pot.expression``), one callback over
+    the whole list runs the fused kernel instead (f and its partials compiled with the
+    geometry and the chain rule, :func:`_fused_source`, then the chain rule through B and
+    det phi, :func:`_host_fused`); the virial pass keeps the two callbacks. No JAX
     runs inside a callback (that could wait on the thread that called it).
     ``gradients=False``: the energy alone (no chain rule, no second callback). ``cell``: the
     current cell of a box that a barostat deforms (an operand of the kernels: one
@@ -590,6 +600,13 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     else:
         h, h_inv = cell, linalg.inv(cell)
     binv, det = linalg.inv(phi), linalg.det(phi)
+    fused = None if virial else _fused_source(pot, n)
+    if fused is not None:  # f is a config expression: one callback does it all
+        f64 = lambda shape: jax.ShapeDtypeStruct(shape, x.dtype)  # noqa: E731
+        return jax.pure_callback(
+            partial(_host_fused, g, fused, gradients),
+            (f64(()), f64(x.shape), f64(phi.shape)) if gradients else f64(()),
+            x, phi, binv, det, i, j, count, h, h_inv, vmap_method="sequential")
     capacity = i.shape[0]
     chunk = _host_chunk(capacity)
     chunks = -(-capacity // chunk)
@@ -602,7 +619,6 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     sum_shapes = (f64(x.shape), f64(phi.shape), f64(phi.shape), f64((bodies,)))
     partials_of = _scalar_values_and_partials(pot, n)
     rows = jnp.arange(chunk)
-    fused = None if virial else _fused_source(pot, n)
 
     def step(carry, k):
         energy, sums = carry
@@ -610,13 +626,6 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
         ii = lax.dynamic_slice(i_all, (lo,), (chunk,))
         jj = lax.dynamic_slice(j_all, (lo,), (chunk,))
         valid = jnp.clip(count - lo, 0, chunk).astype(jnp.int32)
-        if fused is not None:  # f is a config expression: one callback does it all
-            out = jax.pure_callback(
-                partial(_host_fused, g, fused), (f64(()), sum_shapes) if gradients else f64(()),
-                sums if gradients else None, x, phi, binv, det, ii, jj, valid, h, h_inv,
-                vmap_method="sequential")
-            e, sums = out if gradients else (out, sums)
-            return (energy + e, sums), None
         scalars = jax.pure_callback(partial(_host_geometry, g), geometry_shapes, x, phi, binv,
                                     det, ii, jj, valid, h, h_inv, vmap_method="sequential")
         base = dict(zip(columns, scalars, strict=True))  # padding rows: beyond the cut-off

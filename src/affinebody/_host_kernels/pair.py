@@ -1,6 +1,7 @@
 """Numba kernels of the host pair path (:mod:`affinebody.pair_kernels`): the scalar pair
 variables of a chunk of pairs (``_geometry``), their closed-form derivatives summed per body
-(``_scatter``) and the per-body chain rule through B = phi^-1 and det phi (``_finish_numba``).
+(``_scatter``) and, for the fused kernel, the parts' sums added and the per-body chain rule through
+B = phi^-1 and det phi (``_merge_finish``).
 
 The dimension ``N`` is a module constant, which Numba compiles as a constant, so the small
 loops over components unroll (about 5x faster than a run-time n). The loader
@@ -258,23 +259,44 @@ def _scatter(start, stop, i, j, x, phi, binv, det, mode, h, h_inv, edges,
                         gphi[l_body, r, c] += acc_p
 
 @_jit
-def _finish_numba(binv, det, gphi, gb, gdet, out):
-    bodies = det.shape[0]
+def _merge_finish(start, stop, gx_parts, gphi_parts, gb_parts, gdet_parts, binv, det,
+                  gx_out, gphi_out):
+    """Bodies start..stop-1: the per-body sums of the parts added in part order, then the
+    chain rule through B = phi^-1 and det phi, gphi_out = g_phi - B^T g_B B^T + g_det det B^T
+    (as pair_kernels._finish)."""
+    parts = gx_parts.shape[0]
+    gb = np.empty((N, N))
     tmp = np.empty((N, N))
-    for body in range(bodies):
+    for body in range(start, stop):
+        for d in range(N):
+            acc = 0.0
+            for p in range(parts):
+                acc += gx_parts[p, body, d]
+            gx_out[body, d] = acc
+        gdet = 0.0
+        for p in range(parts):
+            gdet += gdet_parts[p, body]
+        for r in range(N):
+            for c in range(N):
+                acc = 0.0
+                for p in range(parts):
+                    acc += gb_parts[p, body, r, c]
+                gb[r, c] = acc
         for r in range(N):  # tmp = B^T gB
             for c in range(N):
                 acc = 0.0
                 for k in range(N):
-                    acc += binv[body, k, r] * gb[body, k, c]
+                    acc += binv[body, k, r] * gb[k, c]
                 tmp[r, c] = acc
-        for r in range(N):  # out = gphi - tmp B^T + gdet det B^T
+        for r in range(N):
             for c in range(N):
                 acc = 0.0
                 for k in range(N):
                     acc += tmp[r, k] * binv[body, c, k]
-                out[body, r, c] = (gphi[body, r, c] - acc
-                                   + gdet[body] * det[body] * binv[body, c, r])
+                g = 0.0
+                for p in range(parts):
+                    g += gphi_parts[p, body, r, c]
+                gphi_out[body, r, c] = g - acc + gdet * det[body] * binv[body, c, r]
 
 @_jit
 def _virial(start, stop, i, j, x, binv, mode, h, h_inv, edges, g_r, g_d, need_r, need_d,
