@@ -2,6 +2,8 @@
 orthorhombic, triclinic), its reach follows the largest singular value of the phi's, the
 rebuild criterion keeps it complete, and overflows are reported and fixed by reallocation."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -165,3 +167,36 @@ def test_host_build_and_jax_build_give_the_same_list(kind):
     assert int(host.count) > BODIES  # many pairs
     for a, b in zip(host, reference, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("kind", list(BOXES))
+def test_host_build_in_parts_on_two_threads_is_the_one_pass_list(kind, monkeypatch):
+    """The host build searches fixed parts of the bodies on two threads, each writing into
+    its share of the rows, then moves the parts together: the list of the JAX build, in its
+    order, both when every part's pairs fit in its share and when one part has more (a
+    capacity of exactly the pair count: then the bodies are searched again in one pass)."""
+    space = BOXES[kind]
+    x, phi = system(np.random.default_rng(23), space)
+    spec, _ = nb.allocate(space, x, phi, 1.1, "D", 0.25)
+    reference = jax.jit(nb.build_jax, static_argnums=0)(spec, x, phi)
+    count = int(reference.count)
+    monkeypatch.setattr(nb, "HOST_THREAD_MIN_BODIES", 0)
+    monkeypatch.setattr(nb._host, "threads", lambda parts: parts)
+    searched = []
+    one_pass = nb._host_pairs
+
+    def spy(bodies, capacity, pairs_i, pairs_j, search):
+        def logged(first, last, offset, room):
+            searched.append((first, last))
+            return search(first, last, offset, room)
+        return one_pass(bodies, capacity, pairs_i, pairs_j, logged)
+
+    monkeypatch.setattr(nb, "_host_pairs", spy)
+    for capacity, again in ((4 * count, False), (count, True)):
+        searched.clear()
+        host = nb.build(dataclasses.replace(spec, capacity=capacity), x, phi)
+        assert ((0, BODIES) in searched) == again and len(searched) == 2 + again
+        assert int(host.count) == count
+        for a, b in ((host.i, reference.i), (host.j, reference.j)):
+            np.testing.assert_array_equal(np.asarray(a)[:count], np.asarray(b)[:count])
+            assert np.all(np.asarray(a)[count:] == BODIES)

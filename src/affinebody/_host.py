@@ -40,6 +40,12 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
 _CONSTANTS = re.compile(r"# --- constants.*?\n(.*?)# --- end of constants", re.S)
 
 
+#: Fixed parts of the work of a host kernel (pairs of a list, bodies), each run whole by one
+#: thread and combined in part order, so results are the same on any number of cores; the
+#: threads (at most this many) take the parts as they become free (:func:`in_parts`).
+PARTS = 2
+
+
 def in_use() -> bool:
     """True when compiled host code runs: a CPU backend and Numba installed."""
     return numba is not None and jax.default_backend() == "cpu"

@@ -746,16 +746,14 @@ def isotropic_flow_jax(phi, pi, coefs, left: bool):
             mm(transpose(linalg.solve(transpose(c), transpose(pi))), transpose(r)))
 
 
-#: Fixed parts of the bodies in the host drift (one per thread, at most).
-HOST_DRIFT_PARTS = 2
 #: Fewest bodies worth handing to threads in the host drift (below, one thread).
 HOST_DRIFT_THREAD_MIN_ROWS = 512
 
 
 def host_drift_threads() -> int:
     """Threads the host drift uses: the cores this process may run on, at most
-    :data:`HOST_DRIFT_PARTS`."""
-    return _host.threads(HOST_DRIFT_PARTS)
+    :data:`affinebody._host.PARTS`."""
+    return _host.threads(_host.PARTS)
 
 
 @functools.cache
@@ -766,7 +764,7 @@ def _drift_kernel(n: int):
 
 def _host_isotropic_flow(left: bool, phi, pi, coefs):
     """The callback: the Numba kernel ``_host_kernels/drift.py`` over every body (leading axes
-    flattened), in :data:`HOST_DRIFT_PARTS` parts on up to :func:`host_drift_threads`
+    flattened), in :data:`affinebody._host.PARTS` parts on up to :func:`host_drift_threads`
     threads. Bodies are independent: the same bits on any number of threads."""
     shape = phi.shape
     n = shape[-1]
@@ -778,7 +776,7 @@ def _host_isotropic_flow(left: bool, phi, pi, coefs):
     rows = phi.shape[0]
     count = host_drift_threads() if rows >= HOST_DRIFT_THREAD_MIN_ROWS else 1
     _host.in_parts(lambda lo, hi: kernel(lo, hi, left, phi, pi, coefs, phi_out, pi_out),
-                   rows, HOST_DRIFT_PARTS, count)
+                   rows, _host.PARTS, count)
     return phi_out.reshape(shape), pi_out.reshape(shape)
 
 

@@ -307,17 +307,54 @@ def build_jax(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> Ne
 build_jit = jax.jit(build, static_argnums=0)
 
 
+#: Fewest bodies worth handing to threads in the host build (below, one thread).
+HOST_THREAD_MIN_BODIES = 2048
+
+
 @functools.cache
-def _host_kernel(n: int, periodic: bool):
+def _host_kernels(n: int, periodic: bool):
     """The compiled build for dimension n (:mod:`affinebody._host_kernels.cells`, specialized
     and cached on disk by :func:`affinebody._host.specialized`)."""
-    return _host.specialized("cells", N=n, PERIODIC=bool(periodic)).pairs
+    return _host.specialized("cells", N=n, PERIODIC=bool(periodic))
+
+
+def _host_pairs(bodies: int, capacity: int, pairs_i, pairs_j, search) -> int:
+    """Fill pairs_i, pairs_j (padded with ``bodies``) by ``search(first, last, offset, room)``
+    (the pairs of bodies first..last-1, written from row ``offset`` while they fit in ``room``
+    rows; returns how many there are) over :data:`affinebody._host.PARTS` fixed parts of the
+    bodies, on up to as many threads: part k writes into its share of the rows, then the parts
+    are moved together in order, so the list is the one-pass list whatever the thread count.
+    Where a part has more pairs than its share (an uneven system), the bodies are searched
+    again in one pass. Returns the number of pairs (more than ``capacity``: overflow)."""
+    parts = _host.PARTS
+    shares = _host.part_ranges(capacity, parts)
+    ranges = _host.part_ranges(bodies, parts)
+    part_of = {bounds: k for k, bounds in enumerate(ranges)}
+
+    def work(first, last):
+        lo, hi = shares[part_of[first, last]]
+        return search(first, last, lo, hi - lo)
+
+    count = _host.threads(parts) if bodies >= HOST_THREAD_MIN_BODIES else 1
+    found = _host.in_parts(work, bodies, parts, count)
+    if any(f > hi - lo for f, (lo, hi) in zip(found, shares, strict=True)):
+        total = search(0, bodies, 0, capacity)
+    else:
+        total = 0
+        for f, (lo, _) in zip(found, shares, strict=True):
+            pairs_i[total:total + f] = pairs_i[lo:lo + f]  # moves left: total <= lo
+            pairs_j[total:total + f] = pairs_j[lo:lo + f]
+            total += f
+    pairs_i[min(total, capacity):] = bodies
+    pairs_j[min(total, capacity):] = bodies
+    return total
 
 
 def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> NeighborList:
     """:func:`build` with compiled CPU loops through ``jax.pure_callback``: a counting sort of
     the bodies by cell (no cell capacity), then, for each body K in order, the cells of the
-    stencil in order and their bodies L > K in index order, as :func:`build_jax`."""
+    stencil in order and their bodies L > K in index order, as :func:`build_jax` (the bodies
+    in fixed parts on up to two threads, :func:`_host_pairs`)."""
     bodies, n = x.shape
     reach = spatial_reach(spec.cutoff, spec.variable, phi)
     radius = reach + spec.skin
@@ -331,17 +368,25 @@ def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> 
         h, h_inv, edges = space.matrix, space.inverse, space.edges
     else:
         mode, h, h_inv, edges = 0, np.eye(n), np.eye(n), np.ones(n)
-    statics = (np.asarray(spec.grid, np.int64), _strides(spec.grid).astype(np.int64),
-               _stencil(spec).astype(np.int64), mode, np.asarray(edges, np.float64))
+    grid, strides, stencil = (np.asarray(spec.grid, np.int64),
+                              _strides(spec.grid).astype(np.int64),
+                              _stencil(spec).astype(np.int64))
 
     def host(flat, coords, x, radius, h, h_inv):
-        pairs_i = np.full(spec.capacity, bodies, np.int32)
-        pairs_j = np.full(spec.capacity, bodies, np.int32)
-        grid, strides, stencil, mode, edges = statics
-        total = _host_kernel(n, space.periodic)(
-            np.asarray(flat, np.int64), np.asarray(coords, np.int64), np.asarray(x), grid,
-            strides, stencil, mode, np.asarray(h, np.float64), np.asarray(h_inv, np.float64),
-            edges, float(radius) ** 2, spec.capacity, pairs_i, pairs_j)
+        kernels = _host_kernels(n, space.periodic)
+        start, order = kernels.order_by_cell(np.asarray(flat, np.int64), int(np.prod(grid)))
+        coords, x = np.asarray(coords, np.int64), np.asarray(x)
+        h, h_inv = np.asarray(h, np.float64), np.asarray(h_inv, np.float64)
+        radius2 = float(radius) ** 2
+        pairs_i = np.empty(spec.capacity, np.int32)
+        pairs_j = np.empty(spec.capacity, np.int32)
+
+        def search(first, last, offset, room):
+            return kernels.pairs(first, last, coords, x, start, order, grid, strides, stencil,
+                                 mode, h, h_inv, np.asarray(edges, np.float64), radius2,
+                                 offset, room, pairs_i, pairs_j)
+
+        total = _host_pairs(bodies, spec.capacity, pairs_i, pairs_j, search)
         return pairs_i, pairs_j, np.asarray(min(total, np.iinfo(np.int32).max), np.int32)
 
     shapes = (jax.ShapeDtypeStruct((spec.capacity,), jnp.int32),) * 2 + (

@@ -40,7 +40,7 @@ product runs both, one per backend (:func:`pair_sum` chooses):
   (:mod:`affinebody._host_kernels.pair_expression`) and the chain rule through B and det phi
   applied per body in Numba too. On a CPU the arrays stay in host
   memory, so the callbacks cost no transfer. Each chunk is split into
-  :data:`HOST_PARTITIONS` fixed parts summed in a fixed order and run on as many threads as
+  :data:`affinebody._host.PARTS` fixed parts summed in a fixed order and run on as many threads as
   the process may use, so results do not depend on the core count;
 - :func:`energy_and_gradients` in JAX (jit, CPU or GPU; chunks of pairs in a ``lax.scan`` so
   memory stays linear in N): the path on a GPU (no host round trip inside the loop) and where
@@ -71,9 +71,6 @@ PAIR_CHUNK = 1 << 16
 #: Pairs per pass of the JAX kernel on a GPU: every pass is a handful of kernel launches and
 #: one trip of a device loop, so passes must be few and large (memory ~1 kB per pair of a pass).
 ACCELERATOR_PAIR_CHUNK = 1 << 22
-#: Fixed parts of a chunk of pairs in the host kernel, each with its own per-body sums, added
-#: in a fixed order (threads run the parts; the result is the same on any number of cores).
-HOST_PARTITIONS = 2
 #: Largest chunk of pairs per host-kernel pass: bounds the pair scalars held at once (about
 #: 0.15 GB) while keeping the per-chunk copies of the per-body sums few (10^6 bodies in 3D:
 #: about 25 chunks per evaluation, their copies ~10 % of its time).
@@ -406,15 +403,15 @@ def _fused_kernel(n: int, source: str):
 
 def host_threads() -> int:
     """Threads the host kernel uses: the cores this process may run on, at most
-    :data:`HOST_PARTITIONS` (``taskset -c 0`` gives one)."""
-    return _host.threads(HOST_PARTITIONS)
+    :data:`affinebody._host.PARTS` (``taskset -c 0`` gives one)."""
+    return _host.threads(_host.PARTS)
 
 
 def _in_parts(work, rows: int) -> list:
-    """``work(lo, hi)`` over :data:`HOST_PARTITIONS` fixed parts of range(rows), on up to
+    """``work(lo, hi)`` over :data:`affinebody._host.PARTS` fixed parts of range(rows), on up to
     :func:`host_threads` threads (Numba releases the GIL); results in part order."""
     count = host_threads() if rows >= HOST_THREAD_MIN_ROWS else 1
-    return _host.in_parts(work, rows, HOST_PARTITIONS, count)
+    return _host.in_parts(work, rows, _host.PARTS, count)
 
 
 class _HostGeometry(NamedTuple):
@@ -538,7 +535,7 @@ def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
 
 def _host_fused(g: _HostGeometry, source: str, gradients: bool, x, phi, binv, det, i, j,
                 count, h, h_inv):
-    """The fused kernel over the list's first ``count`` pairs, in :data:`HOST_PARTITIONS`
+    """The fused kernel over the list's first ``count`` pairs, in :data:`affinebody._host.PARTS`
     fixed parts with per-body sums each: the energy and, with ``gradients``, (dV/dx,
     dV/dphi), the parts' sums added in part order and the chain rule through B = phi^-1 and
     det phi applied per body (``_merge_finish``, in parts of the bodies). One callback for
@@ -549,7 +546,7 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, x, phi, binv, de
     x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
     bodies, n = x.shape
     rows = bodies if gradients else 1  # the kernel adds nothing to the sums without gradients
-    parts = HOST_PARTITIONS
+    parts = _host.PARTS
     gx, gphi, gb = (np.zeros((parts, rows, *shape)) for shape in ((n,), (n, n), (n, n)))
     gdet = np.zeros((parts, rows))
     part_of = {bounds: k for k, bounds in enumerate(_host.part_ranges(valid, parts))}

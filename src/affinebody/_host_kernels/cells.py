@@ -18,14 +18,15 @@ CACHE = False
 # --- end of constants
 
 
-@numba.njit(boundscheck=False, nogil=True, cache=CACHE)
-def pairs(flat, coords, x, grid, strides, stencil, mode, h, h_inv, edges, radius2,
-          capacity, pairs_i, pairs_j):
-    bodies = x.shape[0]
-    cells = 1
-    for d in range(N):
-        cells *= grid[d]
-    start = np.zeros(cells + 1, np.int64)  # counting sort: bodies by cell, then index
+_jit = numba.njit(boundscheck=False, nogil=True, cache=CACHE)
+
+
+@_jit
+def order_by_cell(flat, cells):
+    """Counting sort of the bodies by cell, then index: (start [cells + 1], order [bodies]),
+    the bodies of cell c being order[start[c]:start[c + 1]]."""
+    bodies = flat.shape[0]
+    start = np.zeros(cells + 1, np.int64)
     for k in range(bodies):
         start[flat[k] + 1] += 1
     for c in range(cells):
@@ -35,10 +36,19 @@ def pairs(flat, coords, x, grid, strides, stencil, mode, h, h_inv, edges, radius
     for k in range(bodies):
         order[fill[flat[k]]] = k
         fill[flat[k]] += 1
+    return start, order
+
+
+@_jit
+def pairs(first, last, coords, x, start, order, grid, strides, stencil, mode, h, h_inv, edges,
+          radius2, offset, room, pairs_i, pairs_j):
+    """The pairs (k, l > k) closer than sqrt(radius2) of the bodies k = first..last-1, in
+    order (k, then the stencil's cells, then the cell's bodies by index), written from
+    pairs_i[offset] on while they fit in ``room`` rows; returns how many there are."""
     u = np.empty(N)
     s = np.empty(N)
     total = 0
-    for k in range(bodies):
+    for k in range(first, last):
         for o in range(stencil.shape[0]):
             cell = 0
             inside = True
@@ -77,8 +87,8 @@ def pairs(flat, coords, x, grid, strides, stencil, mode, h, h_inv, edges, radius
                 for d in range(N):
                     r2 += u[d] * u[d]
                 if r2 < radius2:
-                    if total < capacity:
-                        pairs_i[total] = k
-                        pairs_j[total] = other
+                    if total < room:
+                        pairs_i[offset + total] = k
+                        pairs_j[offset + total] = other
                     total += 1
     return total
