@@ -196,7 +196,7 @@ def memory(sizes: list[int]) -> None:
         for bodies in sizes:
             side = round(bodies ** (1 / 3))
             config = write_config(folder, side, steps=4, every=4)
-            result = ours(config, folder / "m.h5", ",".join(map(str, sorted(
+            result = ours(config, folder / f"m{side}.h5", ",".join(map(str, sorted(
                 os.sched_getaffinity(0)))), len(os.sched_getaffinity(0)))
             peak = result["peak_kb"] * 1024
             print(f"| {side**3} | {peak / 2**30:.2f} GiB | {peak / side**3 / 1024:.1f} kB | "
