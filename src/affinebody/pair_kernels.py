@@ -541,7 +541,7 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, x, phi, binv, de
     det phi applied per body (``_merge_finish``, in parts of the bodies). One callback for
     the whole list: no pair scalars are held, so no chunks."""
     kernels = _fused_kernel(g.n, source)
-    valid = int(count)
+    valid = min(int(count), i.shape[0])  # an overflowed list counts pairs it could not hold
     i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
     x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
     bodies, n = x.shape
