@@ -24,6 +24,7 @@ stochastic cell-rescaling barostat (:data:`BAROSTAT`, isotropic; the neighbour l
 the box), both on all the cores, printing steps/s in the loop and their ratio.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py            # vs LAMMPS, 2 cores
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py --repeat 3 # + the ratio's spread
     .venv/bin/python benchmarks/run_scale.py --memory 1000 10000 100000 1000000
     .venv/bin/python benchmarks/run_scale.py --npt --steps 200         # NPT vs NVT, 4096
 """
@@ -35,6 +36,7 @@ import os
 import re
 import resource
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -163,13 +165,20 @@ def lammps(folder: Path, side: int, steps: int) -> dict | None:
     return {"wall": wall, "loop": loop, "rate": atoms * steps / loop}
 
 
-def versus_lammps(side: int, steps: int) -> None:
+def versus_lammps(side: int, steps: int, repeat: int = 1) -> None:
+    """Ours on one core, LAMMPS on the same core, ours on both cores; then, for ``repeat``
+    (one core, two cores) pairs of our runs in all, ``repeat`` - 1 more pairs, each run back
+    to back (the spread of the two-core ratio)."""
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         config = write_config(folder, side, steps, every=steps // 10)
         one = ours(config, folder / "one.h5", "0", 1)
         peer = lammps(folder, side, steps)
         two = ours(config, folder / "two.h5", "0,1", 2)
+        pairs = [(one, two)]
+        for k in range(1, repeat):
+            pairs.append((ours(config, folder / f"one{k}.h5", "0", 1),
+                          ours(config, folder / f"two{k}.h5", "0,1", 2)))
     bodies = side**3
     print(f"affinebody run, {bodies} bodies, {steps} steps (phases of the one-core run):")
     print("\n".join(line for line in one["text"].splitlines() if line.startswith("  ")))
@@ -180,12 +189,19 @@ def versus_lammps(side: int, steps: int) -> None:
     print(f"| affinebody, 2 cores | {two['rate']:.3g} | {two['wall']:.1f} | {two['compile']:.1f} |")
     if peer is None:
         print("| LAMMPS Gay-Berne | not measured: `lmp` not found (apt-get install lammps) | | |")
-        return
-    print(f"| LAMMPS Gay-Berne, 1 core | {peer['rate']:.3g} | {peer['wall']:.1f} | |")
-    print()
-    print(f"in the loop, ours / Gay-Berne (1 core): {one['rate'] / peer['rate']:.2f} (goal >= 2)")
-    print(f"whole command, lmp / ours (1 core): {peer['wall'] / one['wall']:.2f} (goal >= 1)")
-    print(f"2 cores / 1 core (ours, in the loop): {two['rate'] / one['rate']:.2f} (goal >= 1.7)")
+    else:
+        print(f"| LAMMPS Gay-Berne, 1 core | {peer['rate']:.3g} | {peer['wall']:.1f} | |")
+        print()
+        print(f"in the loop, ours / Gay-Berne (1 core): {one['rate'] / peer['rate']:.2f} "
+              "(goal >= 2)")
+        print(f"whole command, lmp / ours (1 core): {peer['wall'] / one['wall']:.2f} (goal >= 1)")
+    ratios = [b["rate"] / a["rate"] for a, b in pairs]
+    print(f"2 cores / 1 core (ours, in the loop): {ratios[0]:.2f} (goal >= 1.7)")
+    if repeat > 1:
+        print("every pair (1 core, 2 cores, ratio): " + "; ".join(
+            f"{a['rate']:.3g}, {b['rate']:.3g}, {r:.2f}" for (a, b), r in zip(pairs, ratios,
+                                                                             strict=True)))
+        print(f"median ratio of {repeat} pairs: {statistics.median(ratios):.2f}")
 
 
 def memory(sizes: list[int]) -> None:
@@ -240,6 +256,8 @@ def main() -> None:
     parser.add_argument("--memory", type=int, nargs="*")
     parser.add_argument("--bodies", type=int)
     parser.add_argument("--npt", action="store_true")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="(one core, two cores) pairs of our runs, for the ratio's spread")
     args = parser.parse_args()
     if args.npt:
         npt_versus_nvt(args.side, args.steps)
@@ -248,7 +266,7 @@ def main() -> None:
     elif args.bodies:
         single(args.bodies, args.steps)
     else:
-        versus_lammps(args.side, args.steps)
+        versus_lammps(args.side, args.steps, args.repeat)
 
 
 if __name__ == "__main__":
