@@ -292,10 +292,13 @@ def harmonics(operator: Operator, Q: np.ndarray, angles: int = ANGLES,
     k = np.arange(-reach, reach + 1)
     E = np.exp(-1j * t[:, None] * k[None, :]) / angles  # [N, K]: the DFT of the harmonics kept
     F = np.empty((len(Q), len(k), len(k)), complex)
-    step = max(1, 2_000_000 // angles**2)
+    step = min(len(Q), max(1, 2_000_000 // angles**2))
     for s in range(0, len(Q), step):
-        values = np.broadcast_to(operator(Q[s:s + step, None, None, :], A[None], B[None]),
-                                 (len(Q[s:s + step]), angles, angles))  # [p, N, N]
+        part = Q[s:s + step]
+        if len(part) < step:  # one shape for every chunk: the expression compiles once
+            part = np.concatenate([part, np.repeat(part[-1:], step - len(part), 0)])
+        values = np.broadcast_to(operator(part[:, None, None, :], A[None], B[None]),
+                                 (step, angles, angles))[:len(Q) - s]  # [p, N, N]
         # F[k, l] = mean O e^{-i(k a + l b)}
         F[s:s + step] = np.swapaxes(np.swapaxes(values @ E, 1, 2) @ E, 1, 2)
     size = np.max(np.abs(F), axis=0)
@@ -316,14 +319,12 @@ def bandwidth2(operator: Operator, Q: np.ndarray, tolerance=tops.BAND_TOLERANCE
     if not operator.angular:
         return 0
     t = 2 * np.pi * np.arange(PROBE2) / PROBE2
-    band = 0
-    for fixed in np.random.default_rng(16).uniform(0, 2 * np.pi, 2):
-        for f in (operator(Q[:, None, :], t[None], fixed), operator(Q[:, None, :], fixed, t[None])):
-            reach = tops.fourier_reach(np.broadcast_to(f, (len(Q), PROBE2)), tolerance)
-            if reach is None:
-                return None
-            band = max(band, reach)
-    return band
+    fixed = np.repeat(np.random.default_rng(16).uniform(0, 2 * np.pi, 2), PROBE2)
+    sweep = np.tile(t, 2)  # one call: alpha swept at two betas, then beta at two alphas
+    alpha, beta = np.concatenate([sweep, fixed]), np.concatenate([fixed, sweep])
+    f = np.broadcast_to(operator(Q[:, None, :], alpha[None], beta[None]), (len(Q), 4 * PROBE2))
+    reach = [tops.fourier_reach(f[:, k * PROBE2:(k + 1) * PROBE2], tolerance) for k in range(4)]
+    return None if None in reach else max(reach)
 
 
 def probe_nodes(Q: np.ndarray, mass: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
