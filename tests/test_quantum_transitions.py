@@ -442,6 +442,7 @@ def test_cli_transitions_json_and_errors(tmp_path):
                                [-HBAR * OMEGA, 0, HBAR * OMEGA], atol=1e-12)
     assert len(rows[2]["sector_final"]) == 10 and rows[1]["allowed"] is False
     assert "(+1, +1)" in data["selection_rule"]
+    assert data["projection_error"] < 1e-13  # a polynomial: the two angular grids agree
     for args, needle in ((["--operator", "phi11 + foo"], "unknown name 'foo'"),
                          (["--operator", "phi11", "--from", "7"], "--from 7 is not a level"),
                          (["--operator", "abs(phi11)"], "angular harmonics do not decay"),

@@ -1,6 +1,8 @@
 """n = 3 configuration operators as sums of SO(3) x SO(3) tensor operators: the expansion of an
 expression in the invariants and the components of phi, G, C in Wigner D functions of the two
-rotations of phi = L diag(Q) R^T (docs/quantum-transitions.md, "n = 3: any expression").
+rotations of phi = L diag(Q) R^T (docs/quantum-transitions.md, "n = 3: any polynomial
+expression"), and the numerical projection of any other expression on the ranks a pair of
+multiplets can couple (:func:`project`; "Operators that are not polynomials").
 
 Structure. An operator O is read as a polynomial in the components x (phi^i_a, G_ab, C_ij) with
 coefficients that are any expression in the invariants v (q, Q, trG, K, det),
@@ -9,7 +11,8 @@ coefficients that are any expression in the invariants v (q, Q, trG, K, det),
 
 found numerically: the degree along random rays x -> t x, then the monomials by least squares
 at random points, checked at fresh points (an expression that is not of that form, e.g.
-exp(G12) or |G11|, whose SO(3) ranks do not terminate, is refused). At phi = L diag(Q) R^T
+exp(G12) or |G11|, whose SO(3) ranks do not terminate, is refused here and projected
+numerically instead, :func:`project`). At phi = L diag(Q) R^T
 
     phi^i_a = sum_k L_ik Q_k R_ak,  G_ab = sum_k R_ak R_bk Q_k^2,  C_ij = sum_k L_ik L_jk Q_k^2,
 

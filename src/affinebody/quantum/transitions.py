@@ -23,19 +23,21 @@ with (Ds, Dv) = (s_f - s_i, v_f - v_i): the angular Fourier coefficient of the o
 is the selection rule, read off the operator itself: an element is nonzero only for the
 (Ds, Dv) where O_Delta does not vanish (components of phi: (+-1, +-1); G =
 phi^T phi = R diag(Q^2) R^T: Ds = 0, Dv in {0, +-2}; C = phi phi^T: Dv = 0, Ds in {0, +-2};
-invariants: (0, 0)). The angular integrals are done by the trapezoidal rule on a 16 x 16 grid
-(exact for trigonometric polynomials of degree < 16 - |Delta|; operators with harmonics beyond
-|Delta| = 4 are refused), the reduced integral by Gauss-Legendre over the box where the states
-live.
+invariants: (0, 0)). The angular integrals are done by the trapezoidal rule on N x N angles,
+N from the operator's bandwidth (exact for trigonometric polynomials of degree < N - |Delta|),
+and checked on a second grid (:func:`converged_elements`; any smooth operator), the reduced
+integral by Gauss-Legendre over the box where the states live.
 
 n = 3. A state of the multiplet (j, j') is psi_c = sqrt(d) c^T Psi, Psi(L diag Q R^T) =
 (D^j(L) (x) D^j'(R)) F(Q), F = Psi(diag Q) in V_j (x) V_j' (covariants3), c a unit vector,
 d = (2j + 1)(2j' + 1). An operator in the invariants is a scalar of SO(3) x SO(3) (Dj = Dj' = 0,
 the same element for each state of the multiplet). An operator with components is any
 polynomial of degree <= 4 in the components of phi, G, C whose coefficients are expressions in
-the invariants (e.g. phi11*phi22, G11 - trG/3, exp(-trG)*C13); it is expanded in Wigner D
+the invariants (e.g. phi11*phi22, G11 - trG/3, exp(-trG)*C13) is expanded in Wigner D
 functions of L and R by quantum.tensor_operators3 (docs/quantum-transitions.md, "n = 3: any
-expression"): radial functions r_t(Q) times constant tensors of ranks (l, l'). The angular
+polynomial expression"): radial functions r_t(Q) times constant tensors of ranks (l, l'); any
+other expression is projected numerically on the ranks the levels can couple, at the nodes of
+a chamber rule (:func:`project_levels`; "Operators that are not polynomials"). The angular
 integrals are exact: int D^j_{ab} D^j'_{cd} D^l_{pq} = w[a, c, p] w[b, d, q] with w the
 invariant vector of V_j (x) V_j' (x) V_l, and the strength summed over both multiplets is
 d_F d_I |M|^2 with M of :func:`multiplet_matrix` (a Frobenius norm:
