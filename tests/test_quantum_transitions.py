@@ -391,7 +391,7 @@ def test_n3_non_polynomial_closed_forms_and_hermiticity(oscillator3, states3):
     of which the N = 2 eigenvectors hold a trace; polynomial operators do not). G11/trG (a
     polynomial with a coefficient in the invariants: the exact path): <0|.|0> = 1/3 by
     symmetry. The element matrices of a non-polynomial operator are symmetric."""
-    a = 0.05
+    a = 0.02
     g = 1 + 2 * a * U
     table = transitions(oscillator3, Operator(f"exp(-{a}*G11)", 3), 0, states3)
     got = [t.strength for t in table.transitions]

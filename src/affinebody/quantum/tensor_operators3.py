@@ -412,8 +412,8 @@ def operator_grid(expr, used: tuple[str, ...], Q: np.ndarray, left: np.ndarray,
                   right: np.ndarray) -> np.ndarray:
     """O(L diag(Q) R^T) [P, NL, NR] at nodes Q [P, 3] and rotations L [NL, 3, 3], R [NR, 3, 3]:
     phi^i_a = sum_k L_ik Q_k R_ak, G_ab = sum_k R_ak R_bk Q_k^2, C_ij = sum_k L_ik L_jk Q_k^2,
-    the invariants of Q; only the components ``used`` are formed. ValueError where O is not
-    finite."""
+    the invariants of Q; only the components ``used`` are formed (the expression compiled once
+    per shape). ValueError where O is not finite."""
     comps = set(component_names())
     values = invariant_values(Q)
     args = {}
@@ -428,12 +428,19 @@ def operator_grid(expr, used: tuple[str, ...], Q: np.ndarray, left: np.ndarray,
             args[name] = ((Q * Q) @ (right[:, a, :] * right[:, b, :]).T)[:, None, :]
         else:
             args[name] = ((Q * Q) @ (left[:, a, :] * left[:, b, :]).T)[:, :, None]
-    with np.errstate(all="ignore"):
-        out = np.asarray(expr(**args), float)
+    out = np.asarray(_compiled(expr)(args), float)
     out = np.broadcast_to(out, (len(Q), len(left), len(right)))
     if not np.all(np.isfinite(out)):
         raise ValueError("is not finite where the states live (e.g. log of 0)")
     return out
+
+
+@cache
+def _compiled(expr):
+    """The expression as one compiled JAX program (per shape of its arguments)."""
+    import jax
+
+    return jax.jit(lambda args: expr(**args))
 
 
 def fourier_reach(f: np.ndarray, tolerance=BAND_TOLERANCE) -> int | None:
@@ -448,6 +455,12 @@ def fourier_reach(f: np.ndarray, tolerance=BAND_TOLERANCE) -> int | None:
     above = F > tolerance * np.maximum(top, 1e-300)
     reach = int(np.max(np.where(above, m[None], 0)))
     return None if reach >= samples // 2 - 2 else reach
+
+
+def _padded(Q: np.ndarray, rows: int) -> np.ndarray:
+    """Q with its last row repeated up to ``rows`` rows: every chunk of one grid has one shape,
+    so the expression (JAX, compiled per shape) compiles once."""
+    return np.concatenate([Q, np.repeat(Q[-1:], rows - len(Q), 0)]) if len(Q) < rows else Q
 
 
 def _random_rotations(rng, count: int) -> np.ndarray:
@@ -467,6 +480,10 @@ def bandwidth(expr, used: tuple[str, ...], Q: np.ndarray, samples: int = PROBE_S
     wide)."""
     rng = np.random.default_rng(16)
     t = 2 * np.pi * np.arange(samples) / samples
+    count = len(Q)
+    Q = _padded(Q, 32 * -(-count // 32))  # one shape for most probes (compiled once)
+    tolerance = _padded(np.broadcast_to(np.asarray(tolerance, float), (count,))[:, None],
+                        len(Q))[:, 0]
     out = []
     for side in (0, 1):
         band = 0
@@ -514,10 +531,11 @@ def project(expr, used: tuple[str, ...], Q: np.ndarray, lmax: tuple[int, int],
             [(2 * l + 1) * (w[:, None, None] * wigner(l, rot)).reshape(len(rot), -1)
              for l in range(lmax[side] + 1)], axis=1))  # [N, K]
     DL, DR = bases
-    step = max(1, chunk // (len(rots[0]) * len(rots[1])))
+    step = min(len(Q), max(1, chunk // (len(rots[0]) * len(rots[1]))))
     c = np.empty((len(Q), DL.shape[1], DR.shape[1]))
     for s in range(0, len(Q), step):
-        V = operator_grid(expr, used, Q[s:s + step], rots[0], rots[1])  # [p, NL, NR]
+        V = operator_grid(expr, used, _padded(Q[s:s + step], step), rots[0], rots[1])
+        V = V[:len(Q) - s]  # [p, NL, NR]
         c[s:s + step] = np.einsum("lk,plm->pkm", DL, V @ DR, optimize=True)
     out, i0 = {}, 0
     for l in range(lmax[0] + 1):

@@ -73,6 +73,11 @@ PROJECTION_TOLERANCE = 1e-10
 RULES3 = {"lebesgue3": ((28, 12), (36, 16)), "haar3": ((24, 12, 24), (32, 16, 32))}
 #: n = 3: the fine grid's Euler-angle rank exceeds the coarse one's by this on each side
 RANK_STEP = 2
+#: n = 3: shells of |Q| (quantiles of the nodes where the states live), each with its own
+#: bandwidth and Euler-angle ranks, when one bandwidth for all would need more evaluations
+#: than SHELL_WORK
+SHELLS = 6
+SHELL_WORK = 5e7
 #: n = 3: most evaluations of the operator on the fine grid, and most angular components kept
 MAX_PROJECTION = 4e8
 MAX_COEFFICIENTS = 6e7
@@ -329,16 +334,21 @@ def bandwidth2(operator: Operator, Q: np.ndarray, tolerance=tops.BAND_TOLERANCE
     return None if None in reach else max(reach)
 
 
-def probe_nodes(Q: np.ndarray, mass: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def probe_nodes(Q: np.ndarray, mass: np.ndarray, largest: float | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Where the bandwidth of an operator is probed: among the nodes holding more than 1e-12
-    of the largest mass (w times the states' |amplitude|^2), the 12 farthest out (|Q| largest)
-    and 8 spread over the rest; with the tolerance of each, BAND_TOLERANCE relaxed by the
-    ratio of the largest mass to its own (at most 1e6): an aliased harmonic enters an element
-    weighted by that mass (the two-grid comparison checks the result)."""
-    heavy = np.flatnonzero(mass > 1e-12 * np.max(mass))
+    of the ``largest`` mass (w times the states' |amplitude|^2; default the largest of
+    ``mass``), the 12 farthest out (|Q| largest) and 8 spread over the rest (the farthest 20
+    nodes when none holds that much); with the tolerance of each, BAND_TOLERANCE relaxed by
+    the ratio of the largest mass to its own (at most 1e6): an aliased harmonic enters an
+    element weighted by that mass (the two-grid comparison checks the result)."""
+    largest = float(np.max(mass)) if largest is None else largest
+    heavy = np.flatnonzero(mass > 1e-12 * largest)
+    if len(heavy) == 0:
+        heavy = np.argsort(-np.linalg.norm(Q, axis=1))[:20]
     far = heavy[np.argsort(-np.linalg.norm(Q[heavy], axis=1))[:12]]
     probe = np.unique(np.concatenate([far, heavy[:: max(1, len(heavy) // 8)]]))
-    relax = np.clip(np.max(mass) / mass[probe], 1.0, 1e6)
+    relax = np.clip(largest / np.maximum(mass[probe], 1e-300), 1.0, 1e6)
     return probe, tops.BAND_TOLERANCE * relax
 
 
@@ -778,37 +788,65 @@ def project_levels(spectrum: Spectrum, operator: Operator, states: LevelStates,
     rules = [projection_rule(spectrum, joint, fine) for fine in (False, True)]
     expr, used = operator.expression, operator.expression.used
     name = f"{operator.field}: {operator.text!r}"
-    y, w = rules[0]
+    # the bandwidth per shell of |Q| (it grows outwards, and the work like its sixth power)
+    y, w = rules[1]
     Q = invariants_at(joint.model, y)
     mass = sum(w * np.sum(amplitudes(c, y) ** 2, -1) for k in levels for c in comps[k])
-    probe, tolerance = probe_nodes(Q, mass)
-    try:
-        band = tops.bandwidth(expr, used, Q[probe], tolerance=tolerance)
-    except ValueError as err:
-        raise ValueError(f"{name} {err}") from None
-    if None in band:
-        raise ValueError(f"{name}: its angular spectrum does not decay (to "
-                         f"{tops.BAND_TOLERANCE:g} by rank {tops.PROBE_SAMPLES // 2 - 2}) where "
-                         f"the states live: it is not smooth enough in the rotations of "
-                         f"phi = L diag(Q) R^T (e.g. abs) to be projected")
-    lm = tuple(0 if band[side] == 0 else lmax[side] for side in (0, 1))
-    coarse = tuple(band[side] + lm[side] for side in (0, 1))
-    fine = tuple(r + RANK_STEP if band[side] > 0 else 0 for side, r in enumerate(coarse))
-    work = len(rules[1][0]) * tops.euler_points(fine[0]) * tops.euler_points(fine[1])
+    radius = np.linalg.norm(Q, axis=1)
+    heavy = mass > 1e-12 * np.max(mass)
+
+    def plan(shells):
+        edges = np.quantile(radius[heavy], np.linspace(0, 1, shells + 1)[1:-1])
+        shell = np.searchsorted(edges, radius)
+        bands = []
+        for g in range(shells):
+            members = np.flatnonzero(shell == g)
+            probe, tolerance = probe_nodes(Q[members], mass[members], np.max(mass))
+            try:
+                band = tops.bandwidth(expr, used, Q[members[probe]], tolerance=tolerance)
+            except ValueError as err:
+                raise ValueError(f"{name} {err}") from None
+            if None in band:
+                raise ValueError(f"{name}: its angular spectrum does not decay (to "
+                                 f"{tops.BAND_TOLERANCE:g} by rank "
+                                 f"{tops.PROBE_SAMPLES // 2 - 2}) where the states live: it is "
+                                 f"not smooth enough in the rotations of phi = L diag(Q) R^T "
+                                 f"(e.g. abs) to be projected")
+            bands.append(band)
+        wide = tuple(max(b[side] for b in bands) for side in (0, 1))
+        lm = tuple(0 if wide[side] == 0 else lmax[side] for side in (0, 1))
+        coarse = [tuple(b[side] + lm[side] for side in (0, 1)) for b in bands]
+        fine = [tuple(r + RANK_STEP if wide[side] > 0 else 0 for side, r in enumerate(c))
+                for c in coarse]
+        counts = np.bincount(shell, minlength=shells)
+        work = sum(int(counts[g]) * tops.euler_points(fine[g][0])
+                   * tops.euler_points(fine[g][1]) for g in range(shells))
+        return edges, lm, coarse, fine, work
+
+    edges, lm, coarse, fine, work = plan(1)
+    if work > SHELL_WORK:  # worth a bandwidth per shell
+        edges, lm, coarse, fine, work = plan(SHELLS)
     kept = len(rules[1][0]) * sum((2 * l + 1) ** 2 for l in range(lm[0] + 1)) * sum(
         (2 * l + 1) ** 2 for l in range(lm[1] + 1))
     if work > MAX_PROJECTION or kept > MAX_COEFFICIENTS:
         raise ValueError(f"{name}: projecting it on the ranks up to {lm} of these levels needs "
-                         f"Euler-angle ranks {fine} on {len(rules[1][0])} nodes ({work:.1e} "
-                         f"evaluations, {kept:.1e} coefficients), more than the "
+                         f"Euler-angle ranks up to {fine[-1]} on {len(rules[1][0])} nodes "
+                         f"({work:.1e} evaluations, {kept:.1e} coefficients), more than the "
                          f"{MAX_PROJECTION:.0e} / {MAX_COEFFICIENTS:.0e} this command is built "
                          f"for: ask for fewer levels, or a smoother operator")
     results = []
     for (y, w), ranks in zip(rules, (coarse, fine), strict=True):
-        try:
-            tensors = tops.project(expr, used, invariants_at(joint.model, y), lm, ranks)
-        except ValueError as err:
-            raise ValueError(f"{name} {err}") from None
+        Q = invariants_at(joint.model, y)
+        where = np.searchsorted(edges, np.linalg.norm(Q, axis=1))
+        tensors = {}
+        for g in range(len(edges) + 1):
+            members = np.flatnonzero(where == g)
+            try:
+                part = tops.project(expr, used, Q[members], lm, ranks[g])
+            except ValueError as err:
+                raise ValueError(f"{name} {err}") from None
+            for key, T in part.items():
+                tensors.setdefault(key, np.zeros((len(Q), *T.shape[1:])))[members] = T
         largest = max(float(np.max(np.abs(T))) for T in tensors.values())
         tensors = {key: T for key, T in tensors.items()
                    if np.max(np.abs(T)) > HARMONIC_FLOOR * largest}
@@ -837,7 +875,7 @@ def project_levels(spectrum: Spectrum, operator: Operator, states: LevelStates,
                          f"{diff / size:.1e} of the largest, more than "
                          f"{PROJECTION_TOLERANCE:g})")
     return Projection3(results[1][0], diff / size if size > 0 else 0.0, results[1][1], lm,
-                       (coarse, fine))
+                       (max(coarse), max(fine)))
 
 
 def _multiplets(c: Component) -> set[tuple[int, int]]:
@@ -853,7 +891,7 @@ def trk_sum(table: TransitionTable) -> float:
 
 
 __all__ = ["ANGLES", "MAX_ANGLES", "PROBE2", "bandwidth2", "probe_nodes", "PROJECTION_TOLERANCE",
-           "RULES3", "RANK_STEP",
+           "RULES3", "RANK_STEP", "SHELLS", "SHELL_WORK",
            "MAX_PROJECTION", "MAX_COEFFICIENTS", "MAX_STATES", "converged_elements",
            "Projection3", "projection_rule", "project_levels", "pointwise_moments",
            "component_names", "operator_names",
