@@ -386,11 +386,14 @@ def test_n3_non_polynomial_closed_forms_and_hermiticity(oscillator3, states3):
     """n = 3, the R^9 oscillator: exp(-a G11), G11 = phi11^2 + phi21^2 + phi31^2 (three modes,
     the one-mode integrals of test_n2_non_polynomial_closed_forms): B(0 -> 0) = (1 + 2aU)^-3,
     B(0 -> N = 2) = 3 (aU sqrt 2)^2 (1 + 2aU)^{-5} (one mode in |2>), and N = 1 is not reached
-    (ranks (0, l') cannot couple (0, 0) to (1, 1)). The N = 2 value holds to the accuracy of
-    the eigenvectors (7e-10 measured: an operator that is not a polynomial also reaches N = 4,
-    of which the N = 2 eigenvectors hold a trace; polynomial operators do not). G11/trG (a
+    (ranks (0, l') cannot couple (0, 0) to (1, 1)); exp(b phi11) and phi11 exp(-a G11), which
+    depend on both rotations (one row of each: the reduced Euler rules). The values to excited
+    levels hold to the accuracy of the eigenvectors (measured 7e-10 for phi11 exp(-0.1 G11):
+    an operator that is not a polynomial also reaches N = 3, 4, of which the computed N <= 2
+    eigenvectors hold a trace; polynomial operators do not). G11/trG (a
     polynomial with a coefficient in the invariants: the exact path): <0|.|0> = 1/3 by
-    symmetry. The element matrices of a non-polynomial operator are symmetric."""
+    symmetry. The element matrix of a non-polynomial operator inside N = 1 (9 states) is
+    symmetric, not diagonal."""
     a = 0.02
     g = 1 + 2 * a * U
     table = transitions(oscillator3, Operator(f"exp(-{a}*G11)", 3), 0, states3)
@@ -398,17 +401,26 @@ def test_n3_non_polynomial_closed_forms_and_hermiticity(oscillator3, states3):
     assert abs(got[0] - g**-3) < 1e-13 and got[1] == 0 and not table.transitions[1].allowed
     assert abs(got[2] / (6 * a**2 * U**2 * g**-5) - 1) < 1e-8
     assert table.projection_error < 1e-10
+    # both rotations: exp(b phi11), one mode, (b^2 U)^N e^{b^2 U} / N! to level N; phi11
+    # exp(-a G11): sqrt U g^{-3/2} from the mode phi11, g^{-1/2} from phi21 and phi31
+    b = 0.2
+    table = transitions(oscillator3, Operator(f"exp({b}*phi11)", 3), 0, states3)
+    np.testing.assert_allclose([t.strength for t in table.transitions],
+                               [math.exp(b * b * U) * (b * b * U) ** N / math.factorial(N)
+                                for N in range(3)], rtol=1e-10)
+    got = strengths3(oscillator3, f"phi11*exp(-{a}*G11)", 0, states3)[1]
+    assert abs(got[1] / (U * g**-5) - 1) < 1e-8 and got[0] == 0 and got[2] < 1e-28
     assert abs(strengths3(oscillator3, "G11/trG", 0, states3)[1][0] - 1 / 9) < 1e-13
-    op = Operator(f"exp(-{a}*G11) + 0.1*G12/trG", 3)
-    M = level_matrix(oscillator3, op, 0, 2, states3)
-    T = level_matrix(oscillator3, op, 2, 0, states3)
-    assert np.abs(M).max() > 1e-3 and np.abs(M - T.T).max() < 1e-13
+    M = level_matrix(oscillator3, Operator(f"exp(-{a}*G11) + 0.1*G12/trG", 3), 1, 1, states3)
+    assert np.abs(M - np.diag(np.diag(M))).max() > 1e-3 and np.abs(M - M.T).max() < 1e-13
 
 
 def test_n3_non_polynomial_refusals(oscillator3, states3):
     """A kink (abs) has an angular spectrum that does not decay: refused in one line; an
-    operator wide in both rotations is refused for the work its projection needs."""
-    for text, needle in (("abs(G12)", "does not decay"), ("exp(0.3*phi11)", "more than the")):
+    operator wide in both rotations, through two rows of each, is refused for the work its
+    projection needs."""
+    for text, needle in (("abs(G12)", "does not decay"),
+                         ("exp(0.3*(phi11 + phi22))", "more than the")):
         with pytest.raises(ValueError, match=needle) as err:
             transitions(oscillator3, Operator(text, 3), 0, states3)
         assert "\n" not in str(err.value)

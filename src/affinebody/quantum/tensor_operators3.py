@@ -506,9 +506,69 @@ def bandwidth(expr, used: tuple[str, ...], Q: np.ndarray, samples: int = PROBE_S
     return out[0], out[1]
 
 
-def euler_points(rank: int) -> int:
-    """The rotations of :func:`euler_quadrature` of ``rank``."""
-    return (rank + 1) ** 2 * (rank // 2 + 1)
+def side_rows(used: tuple[str, ...]) -> tuple[set[int], set[int]]:
+    """The rows of L and of R that an expression's components involve (0-based): phi_ia row i
+    of L and row a of R, G_ab rows a, b of R, C_ij rows i, j of L (phi^i_a = sum_k L_ik Q_k R_ak,
+    G_ab = sum_k R_ak R_bk Q_k^2, C_ij = sum_k L_ik L_jk Q_k^2)."""
+    left, right = set(), set()
+    for name in used:
+        if name not in set(component_names()):
+            continue
+        a, b = int(name[-2]) - 1, int(name[-1]) - 1
+        if name.startswith("phi"):
+            left.add(a)
+            right.add(b)
+        elif name.startswith("G"):
+            right |= {a, b}
+        else:
+            left |= {a, b}
+    return left, right
+
+
+def side_points(rank: int, rows: set[int]) -> int:
+    """The rotations of :func:`side_rule` of ``rank`` for an operator using ``rows``."""
+    return (rank + 1) * (rank // 2 + 1) * (1 if len(rows) == 1 else rank + 1)
+
+
+@cache
+def side_rule(rank: int, row: int | None) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Rotations [N, 3, 3], weights [N] (sum 1) and, per l, the matrix A^l with
+    int f(L) D^l(L) dL = sum_k w_k f(L_k) A^l D^l(M_k) for every f of rank <= ``rank`` ... on
+    one side of phi = L diag Q R^T. ``row`` None: :func:`euler_quadrature` (M_k = L_k, A^l = 1).
+    ``row`` i: f depends on L only through its row i (f(S L) = f(L) for S fixing e_i), so with
+    L = Pi R_3(alpha) M, Pi e_3 = e_i, the average over alpha is that of D^l(R_3(alpha)), the
+    projector P^l on its m = 0 vector: L_k = Pi M_k, M_k = R_2(beta) R_3(gamma) on the rule's
+    (beta, gamma) points and A^l = D^l(Pi) P^l, rank + 1 times fewer points."""
+    if row is None:
+        rot, w = euler_quadrature(rank)
+        return rot, w, ()
+    n = rank + 1
+    t = 2 * np.pi * np.arange(n) / n
+    x, wx = np.polynomial.legendre.leggauss(rank // 2 + 1)
+    X, C = np.meshgrid(x, t, indexing="ij")
+    M = _axis_rotation(1, np.arccos(X.ravel())) @ _axis_rotation(2, C.ravel())
+    weights = np.broadcast_to(wx[:, None] / (2 * n), X.shape).ravel()
+    Pi = {0: _axis_rotation(1, np.pi / 2), 1: _axis_rotation(0, -np.pi / 2),
+          2: np.eye(3)}[row]
+    return Pi @ M, weights, (Pi, M)
+
+
+def _side_basis(rank: int, rows: set[int], lmax: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations [N, 3, 3] of :func:`side_rule` and the weighted Wigner matrices [N, K]
+    (2l + 1) w_k (A^l D^l(M_k))_pq, l <= lmax, flattened over (l, p, q)."""
+    row = next(iter(rows)) if len(rows) == 1 else None
+    rot, w, zonal = side_rule(rank, row)
+    blocks = []
+    for l in range(lmax + 1):
+        if zonal:
+            Pi, M = zonal
+            alpha = 2 * np.pi * np.arange(2 * l + 1) / (2 * l + 1)
+            P = np.mean(wigner(l, _axis_rotation(2, alpha)), axis=0)
+            D = (wigner(l, Pi) @ P)[None] @ wigner(l, M)
+        else:
+            D = wigner(l, rot)
+        blocks.append((2 * l + 1) * (w[:, None, None] * D).reshape(len(rot), -1))
+    return rot, np.concatenate(blocks, axis=1)
 
 
 def project(expr, used: tuple[str, ...], Q: np.ndarray, lmax: tuple[int, int],
@@ -520,17 +580,14 @@ def project(expr, used: tuple[str, ...], Q: np.ndarray, lmax: tuple[int, int],
                                   D^l'_rs(R) dL dR,
 
     exact when O's ranks are at most ``ranks`` - ``lmax`` on each side, else with the aliasing
-    of its higher ranks (docs/quantum-transitions.md, "Operators that are not polynomials").
-    Returns {(l, l'): c [P, 2l + 1, 2l + 1, 2l' + 1, 2l' + 1]}: the tensors of :func:`contract`
-    with the nodes as terms."""
-    rots, bases = [], []
-    for side in (0, 1):
-        rot, w = euler_quadrature(ranks[side])
-        rots.append(rot)
-        bases.append(np.concatenate(
-            [(2 * l + 1) * (w[:, None, None] * wigner(l, rot)).reshape(len(rot), -1)
-             for l in range(lmax[side] + 1)], axis=1))  # [N, K]
-    DL, DR = bases
+    of its higher ranks (docs/quantum-transitions.md, "Operators that are not polynomials");
+    a side whose components involve one row of its rotation only takes the reduced rule of
+    :func:`side_rule`. Returns {(l, l'): c [P, 2l + 1, 2l + 1, 2l' + 1, 2l' + 1]}: the tensors
+    of :func:`contract` with the nodes as terms."""
+    rows = side_rows(used)
+    (rotL, DL), (rotR, DR) = (_side_basis(ranks[side], rows[side], lmax[side])
+                              for side in (0, 1))
+    rots = (rotL, rotR)
     step = min(len(Q), max(1, chunk // (len(rots[0]) * len(rots[1]))))
     c = np.empty((len(Q), DL.shape[1], DR.shape[1]))
     for s in range(0, len(Q), step):
@@ -550,5 +607,6 @@ def project(expr, used: tuple[str, ...], Q: np.ndarray, lmax: tuple[int, int],
 
 
 __all__ = ["MAX_DEGREE", "MAX_MONOMIALS", "PROBE_SAMPLES", "BAND_TOLERANCE", "component_names",
-           "wigner", "euler_quadrature", "euler_points", "coupling_tensor", "Expansion", "expand",
+           "wigner", "euler_quadrature", "side_rows", "side_points", "side_rule", "coupling_tensor",
+           "Expansion", "expand",
            "reduced_matrix", "contract", "operator_grid", "fourier_reach", "bandwidth", "project"]

@@ -71,8 +71,10 @@ PROJECTION_TOLERANCE = 1e-10
 #: n = 3 chamber rules of the numerical projection, (coarse, fine): (radial nodes, angle nodes)
 #: of ChamberQuadrature.polar (d'Alembert), (r, angle, sigma nodes) of haar3_grid (affine)
 RULES3 = {"lebesgue3": ((28, 12), (36, 16)), "haar3": ((24, 12, 24), (32, 16, 32))}
-#: n = 3: the fine grid's Euler-angle rank exceeds the coarse one's by this on each side
+#: n = 3: the fine grid's Euler-angle rank exceeds the coarse one's by this on each side; while
+#: the two grids disagree both are raised by it, at most RETRIES times
 RANK_STEP = 2
+RETRIES = 2
 #: n = 3: shells of |Q| (quantiles of the nodes where the states live), each with its own
 #: bandwidth and Euler-angle ranks, when one bandwidth for all would need more evaluations
 #: than SHELL_WORK
@@ -819,23 +821,21 @@ def project_levels(spectrum: Spectrum, operator: Operator, states: LevelStates,
         fine = [tuple(r + RANK_STEP if wide[side] > 0 else 0 for side, r in enumerate(c))
                 for c in coarse]
         counts = np.bincount(shell, minlength=shells)
-        work = sum(int(counts[g]) * tops.euler_points(fine[g][0])
-                   * tops.euler_points(fine[g][1]) for g in range(shells))
+        rows = tops.side_rows(used)
+        work = sum(int(counts[g]) * tops.side_points(fine[g][0], rows[0])
+                   * tops.side_points(fine[g][1], rows[1]) for g in range(shells))
         return edges, lm, coarse, fine, work
 
     edges, lm, coarse, fine, work = plan(1)
     if work > SHELL_WORK:  # worth a bandwidth per shell
         edges, lm, coarse, fine, work = plan(SHELLS)
+    counts = np.bincount(np.searchsorted(edges, radius), minlength=len(edges) + 1)
     kept = len(rules[1][0]) * sum((2 * l + 1) ** 2 for l in range(lm[0] + 1)) * sum(
         (2 * l + 1) ** 2 for l in range(lm[1] + 1))
-    if work > MAX_PROJECTION or kept > MAX_COEFFICIENTS:
-        raise ValueError(f"{name}: projecting it on the ranks up to {lm} of these levels needs "
-                         f"Euler-angle ranks up to {fine[-1]} on {len(rules[1][0])} nodes "
-                         f"({work:.1e} evaluations, {kept:.1e} coefficients), more than the "
-                         f"{MAX_PROJECTION:.0e} / {MAX_COEFFICIENTS:.0e} this command is built "
-                         f"for: ask for fewer levels, or a smoother operator")
-    results = []
-    for (y, w), ranks in zip(rules, (coarse, fine), strict=True):
+    rows = tops.side_rows(used)
+
+    def evaluate(rule, ranks):
+        y, w = rule
         Q = invariants_at(joint.model, y)
         where = np.searchsorted(edges, np.linalg.norm(Q, axis=1))
         tensors = {}
@@ -859,23 +859,37 @@ def project_levels(spectrum: Spectrum, operator: Operator, states: LevelStates,
                     for (sf, si), m in moments.items():
                         blocks[(kf, ki, nf, ni, sf, si)] = tops.contract(
                             tensors, m, (sf.spin, sf.vorticity), (si.spin, si.vorticity))
-        results.append((blocks, tuple(sorted(tensors))))
-    diff, size = 0.0, 0.0
-    for key, M in results[1][0].items():
-        scale = math.sqrt(key[4].dimension * key[5].dimension)
-        other = results[0][0][key]
-        M = 0.0 if M is None else M
-        other = 0.0 if other is None else other
-        size = max(size, scale * float(np.max(np.abs(M))))
-        diff = max(diff, scale * float(np.max(np.abs(np.asarray(M) - np.asarray(other)))))
-    if diff > PROJECTION_TOLERANCE * size:
-        raise ValueError(f"{name}: its projection on the angles does not converge (Euler-angle "
-                         f"ranks {coarse} and {fine}, chamber rules of {len(rules[0][0])} and "
-                         f"{len(rules[1][0])} nodes: the elements differ by "
-                         f"{diff / size:.1e} of the largest, more than "
-                         f"{PROJECTION_TOLERANCE:g})")
-    return Projection3(results[1][0], diff / size if size > 0 else 0.0, results[1][1], lm,
-                       (max(coarse), max(fine)))
+        return blocks, tuple(sorted(tensors))
+
+    for attempt in range(1 + RETRIES):  # the ranks raised while the two grids disagree
+        if attempt:
+            coarse = fine
+            fine = [tuple(r + RANK_STEP if r else 0 for r in c) for c in coarse]
+            work = sum(int(n) * tops.side_points(f[0], rows[0]) * tops.side_points(f[1], rows[1])
+                       for n, f in zip(counts, fine, strict=True))
+        if work > MAX_PROJECTION or kept > MAX_COEFFICIENTS:
+            raise ValueError(f"{name}: projecting it on the ranks up to {lm} of these levels "
+                             f"needs Euler-angle ranks up to {max(fine)} on {len(rules[1][0])} "
+                             f"nodes ({work:.1e} evaluations, {kept:.1e} coefficients), more "
+                             f"than the {MAX_PROJECTION:.0e} / {MAX_COEFFICIENTS:.0e} this "
+                             f"command is built for: ask for fewer levels, or a smoother "
+                             f"operator")
+        low, high = evaluate(rules[0], coarse), evaluate(rules[1], fine)
+        diff, size = 0.0, 0.0
+        for key, M in high[0].items():
+            scale = math.sqrt(key[4].dimension * key[5].dimension)
+            A = np.zeros(1) if M is None else np.asarray(M)
+            B = np.zeros(1) if low[0][key] is None else np.asarray(low[0][key])
+            size = max(size, scale * float(np.max(np.abs(A))))
+            diff = max(diff, scale * float(np.max(np.abs(A - B))))
+        if diff <= PROJECTION_TOLERANCE * size:
+            return Projection3(high[0], diff / size if size > 0 else 0.0, high[1], lm,
+                               (max(coarse), max(fine)))
+    raise ValueError(f"{name}: its projection on the angles does not converge (Euler-angle "
+                     f"ranks up to {max(coarse)} and {max(fine)}, chamber rules of "
+                     f"{len(rules[0][0])} and {len(rules[1][0])} nodes: the elements differ "
+                     f"by {diff / size:.1e} of the largest, more than "
+                     f"{PROJECTION_TOLERANCE:g})")
 
 
 def _multiplets(c: Component) -> set[tuple[int, int]]:
@@ -891,7 +905,7 @@ def trk_sum(table: TransitionTable) -> float:
 
 
 __all__ = ["ANGLES", "MAX_ANGLES", "PROBE2", "bandwidth2", "probe_nodes", "PROJECTION_TOLERANCE",
-           "RULES3", "RANK_STEP", "SHELLS", "SHELL_WORK",
+           "RULES3", "RANK_STEP", "RETRIES", "SHELLS", "SHELL_WORK",
            "MAX_PROJECTION", "MAX_COEFFICIENTS", "MAX_STATES", "converged_elements",
            "Projection3", "projection_rule", "project_levels", "pointwise_moments",
            "component_names", "operator_names",
