@@ -457,7 +457,7 @@ def test_cli_transitions_json_and_errors(tmp_path):
     assert data["projection_error"] < 1e-13  # a polynomial: the two angular grids agree
     for args, needle in ((["--operator", "phi11 + foo"], "unknown name 'foo'"),
                          (["--operator", "phi11", "--from", "7"], "--from 7 is not a level"),
-                         (["--operator", "abs(phi11)"], "angular harmonics do not decay"),
+                         (["--operator", "abs(phi11)"], "harmonics do not decay"),
                          (["--operator", "phi11", "--levels", "100000"], "at most 2000"),
                          (["--operator", "phi11", "--levels", "0"], "--levels must be >= 1")):
         bad = CliRunner().invoke(transitions_command, [str(path), *args])

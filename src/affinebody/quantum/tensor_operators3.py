@@ -402,8 +402,8 @@ def contract(tensors: dict, moments: np.ndarray, jf: tuple[int, int], ji: tuple[
 
 
 # ------------------------------------------------- the numerical projection (any expression)
-#: samples per one-parameter subgroup of the bandwidth probe (harmonics |m| < 32 resolved)
-PROBE_SAMPLES = 64
+#: samples per one-parameter subgroup of the bandwidth probe (harmonics |m| < 62 resolved)
+PROBE_SAMPLES = 128
 #: a Fourier coefficient of the probe below this fraction of the largest counts as absent
 BAND_TOLERANCE = 1e-13
 
@@ -443,16 +443,18 @@ def _compiled(expr):
     return jax.jit(lambda args: expr(**args))
 
 
-def fourier_reach(f: np.ndarray, tolerance=BAND_TOLERANCE) -> int | None:
+def fourier_reach(f: np.ndarray, tolerance=BAND_TOLERANCE, floor=0.0) -> int | None:
     """The largest |m| whose discrete Fourier coefficient of the periodic samples f [P, S]
-    (each row one period) exceeds ``tolerance`` (a number, or one per row) times the row's
-    largest; None when that is within 2 of the Nyquist frequency S/2 (not resolved)."""
+    (each row one period) exceeds ``tolerance`` times the row's largest and the absolute
+    ``floor`` (each a number, or one per row); None when that is within 2 of the Nyquist
+    frequency S/2 (not resolved)."""
     samples = f.shape[1]
-    F = np.abs(np.fft.fft(f, axis=1))
+    F = np.abs(np.fft.fft(f, axis=1)) / samples
     m = np.abs(np.fft.fftfreq(samples, 1 / samples))
     top = np.max(F, axis=1, keepdims=True)
     tolerance = np.reshape(np.broadcast_to(tolerance, (len(f),)), (-1, 1))
-    above = F > tolerance * np.maximum(top, 1e-300)
+    floor = np.reshape(np.broadcast_to(floor, (len(f),)), (-1, 1))
+    above = F > np.maximum(tolerance * np.maximum(top, 1e-300), floor)
     reach = int(np.max(np.where(above, m[None], 0)))
     return None if reach >= samples // 2 - 2 else reach
 
@@ -470,20 +472,21 @@ def _random_rotations(rng, count: int) -> np.ndarray:
 
 
 def bandwidth(expr, used: tuple[str, ...], Q: np.ndarray, samples: int = PROBE_SAMPLES,
-              tolerance=BAND_TOLERANCE) -> tuple[int | None, int | None]:
+              tolerance=BAND_TOLERANCE, floor=0.0) -> tuple[int | None, int | None]:
     """Estimated ranks (B_L, B_R) of L -> O(L diag Q R^T) and R -> O(...) at nodes Q [P, 3]:
     the largest |m| whose Fourier coefficient along t -> exp(t K) L (resp. R), K a random
     generator, exceeds ``tolerance`` times the largest, over three random subgroups and
     starting points (a function of rank l has |m| <= l along every such circle, and its rank
-    shows along a generic one); ``tolerance`` a number or one per node; None when the
-    coefficients have not decayed by |m| = samples/2 - 2 (not resolved: a kink, or too
-    wide)."""
+    shows along a generic one); ``tolerance`` (relative) and ``floor`` (absolute) as in
+    :func:`fourier_reach`, a number or one per node; None when the coefficients have not
+    decayed by |m| = samples/2 - 2 (not resolved: a kink, or too wide)."""
     rng = np.random.default_rng(16)
     t = 2 * np.pi * np.arange(samples) / samples
     count = len(Q)
     Q = _padded(Q, 32 * -(-count // 32))  # one shape for most probes (compiled once)
     tolerance = _padded(np.broadcast_to(np.asarray(tolerance, float), (count,))[:, None],
                         len(Q))[:, 0]
+    floor = _padded(np.broadcast_to(np.asarray(floor, float), (count,))[:, None], len(Q))[:, 0]
     out = []
     for side in (0, 1):
         band = 0
@@ -497,7 +500,7 @@ def bandwidth(expr, used: tuple[str, ...], Q: np.ndarray, samples: int = PROBE_S
             moving = path @ start
             f = (operator_grid(expr, used, Q, moving, other[None]) if side == 0
                  else operator_grid(expr, used, Q, other[None], moving)).reshape(len(Q), -1)
-            reach = fourier_reach(f, tolerance)
+            reach = fourier_reach(f, tolerance, floor)
             if reach is None:
                 band = None
                 break

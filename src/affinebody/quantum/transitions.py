@@ -319,12 +319,12 @@ def harmonics(operator: Operator, Q: np.ndarray, angles: int = ANGLES,
     return out or {(0, 0): np.zeros(len(Q))}
 
 
-def bandwidth2(operator: Operator, Q: np.ndarray, tolerance=tops.BAND_TOLERANCE
+def bandwidth2(operator: Operator, Q: np.ndarray, tolerance=tops.BAND_TOLERANCE, floor=0.0
                ) -> int | None:
     """n = 2: the largest harmonic |k| of O along alpha and along beta (the other angle fixed
     at two random values) at the nodes Q [P, 2] whose Fourier coefficient on PROBE2 samples
-    exceeds ``tolerance`` (one per node, or a number) of the largest; None when not
-    resolved."""
+    exceeds ``tolerance`` of the largest and ``floor`` (tensor_operators3.fourier_reach);
+    None when not resolved."""
     if not operator.angular:
         return 0
     t = 2 * np.pi * np.arange(PROBE2) / PROBE2
@@ -332,26 +332,32 @@ def bandwidth2(operator: Operator, Q: np.ndarray, tolerance=tops.BAND_TOLERANCE
     sweep = np.tile(t, 2)  # one call: alpha swept at two betas, then beta at two alphas
     alpha, beta = np.concatenate([sweep, fixed]), np.concatenate([fixed, sweep])
     f = np.broadcast_to(operator(Q[:, None, :], alpha[None], beta[None]), (len(Q), 4 * PROBE2))
-    reach = [tops.fourier_reach(f[:, k * PROBE2:(k + 1) * PROBE2], tolerance) for k in range(4)]
+    reach = [tops.fourier_reach(f[:, k * PROBE2:(k + 1) * PROBE2], tolerance, floor)
+             for k in range(4)]
     return None if None in reach else max(reach)
 
 
-def probe_nodes(Q: np.ndarray, mass: np.ndarray, largest: float | None = None
+def probe_nodes(Q: np.ndarray, mass: np.ndarray, values: np.ndarray,
+                largest: float | None = None, scale: float | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Where the bandwidth of an operator is probed: among the nodes holding more than 1e-12
-    of the ``largest`` mass (w times the states' |amplitude|^2; default the largest of
-    ``mass``), the 12 farthest out (|Q| largest) and 8 spread over the rest (the farthest 20
-    nodes when none holds that much); with the tolerance of each, BAND_TOLERANCE relaxed by
-    the ratio of the largest mass to its own (at most 1e6): an aliased harmonic enters an
-    element weighted by that mass (the two-grid comparison checks the result)."""
+    """Where the bandwidth of an operator is probed, and the absolute floor below which its
+    Fourier coefficients there do not count: among the nodes holding more than 1e-11 of the
+    ``largest`` mass (w times the states' |amplitude|^2; default the largest of ``mass``), the
+    12 farthest out (|Q| largest) and 8 spread over the rest (the farthest 20 nodes when none
+    holds that much). An aliased harmonic enters the elements weighted by the node's mass, and
+    the elements are of the size of the mass-weighted mean of |O| (``scale``, by default from
+    ``values``, O at each node in one orientation): the floor is BAND_TOLERANCE times that
+    mean times the largest mass over the node's own (the two-grid comparison checks the
+    result)."""
     largest = float(np.max(mass)) if largest is None else largest
-    heavy = np.flatnonzero(mass > 1e-12 * largest)
+    heavy = np.flatnonzero(mass > 1e-11 * largest)
     if len(heavy) == 0:
         heavy = np.argsort(-np.linalg.norm(Q, axis=1))[:20]
     far = heavy[np.argsort(-np.linalg.norm(Q[heavy], axis=1))[:12]]
     probe = np.unique(np.concatenate([far, heavy[:: max(1, len(heavy) // 8)]]))
-    relax = np.clip(largest / np.maximum(mass[probe], 1e-300), 1.0, 1e6)
-    return probe, tops.BAND_TOLERANCE * relax
+    if scale is None:
+        scale = float(np.sum(mass * np.abs(values)) / np.sum(mass))
+    return probe, tops.BAND_TOLERANCE * scale * largest / np.maximum(mass[probe], 1e-300)
 
 
 def converged_elements(operator: Operator, Q: np.ndarray, weights: np.ndarray, jobs: list
@@ -368,14 +374,16 @@ def converged_elements(operator: Operator, Q: np.ndarray, weights: np.ndarray, j
     mass = np.zeros(len(Q))
     for a in {id(a): a for af, ai, _ in jobs for a in (af, ai)}.values():
         mass += weights * np.sum(a * a, -1)
-    probe, tolerance = probe_nodes(Q, mass)
-    band = bandwidth2(operator, Q[probe], tolerance)
+    alpha, beta = np.random.default_rng(7).uniform(0, 2 * np.pi, 2)
+    values = np.broadcast_to(operator(Q, alpha, beta), (len(Q),))
+    probe, floor = probe_nodes(Q, mass, values)
+    band = bandwidth2(operator, Q[probe], floor=floor)
     name = f"{operator.field} {operator.text!r}"
     if band is None:
-        raise ValueError(f"{name}: its angular harmonics do not decay (to "
-                         f"{tops.BAND_TOLERANCE:g} by |k| = {PROBE2 // 2 - 2}) where the states "
-                         f"live: it is not smooth enough in the angles of L and R (e.g. abs) "
-                         f"to be projected")
+        raise ValueError(f"{name}: its angular harmonics do not decay by |k| = "
+                         f"{PROBE2 // 2 - 2} where the states live: a kink in the angles of L "
+                         f"and R (e.g. abs), or features too sharp where |Q| is largest; it "
+                         f"cannot be projected")
     angles = max(ANGLES, 2 * (band + reach) + 2)
     if angles > MAX_ANGLES:
         raise ValueError(f"{name}: its projection on these levels needs {angles} x {angles} "
@@ -795,7 +803,14 @@ def project_levels(spectrum: Spectrum, operator: Operator, states: LevelStates,
     Q = invariants_at(joint.model, y)
     mass = sum(w * np.sum(amplitudes(c, y) ** 2, -1) for k in levels for c in comps[k])
     radius = np.linalg.norm(Q, axis=1)
-    heavy = mass > 1e-12 * np.max(mass)
+    heavy = mass > 1e-11 * np.max(mass)
+    turn = tops.side_rule(1, None)[0][:2]  # two rotations: O at every node in one orientation
+    values = np.zeros(len(Q))
+    try:
+        values[heavy] = tops.operator_grid(expr, used, Q[heavy], turn[:1], turn[1:])[:, 0, 0]
+    except ValueError as err:
+        raise ValueError(f"{name} {err}") from None
+    scale = float(np.sum(mass * np.abs(values)) / np.sum(mass))
 
     def plan(shells):
         edges = np.quantile(radius[heavy], np.linspace(0, 1, shells + 1)[1:-1])
@@ -803,17 +818,18 @@ def project_levels(spectrum: Spectrum, operator: Operator, states: LevelStates,
         bands = []
         for g in range(shells):
             members = np.flatnonzero(shell == g)
-            probe, tolerance = probe_nodes(Q[members], mass[members], np.max(mass))
+            probe, floor = probe_nodes(Q[members], mass[members], values[members],
+                                       np.max(mass), scale)
             try:
-                band = tops.bandwidth(expr, used, Q[members[probe]], tolerance=tolerance)
+                band = tops.bandwidth(expr, used, Q[members[probe]], floor=floor)
             except ValueError as err:
                 raise ValueError(f"{name} {err}") from None
             if None in band:
-                raise ValueError(f"{name}: its angular spectrum does not decay (to "
-                                 f"{tops.BAND_TOLERANCE:g} by rank "
-                                 f"{tops.PROBE_SAMPLES // 2 - 2}) where the states live: it is "
-                                 f"not smooth enough in the rotations of phi = L diag(Q) R^T "
-                                 f"(e.g. abs) to be projected")
+                raise ValueError(f"{name}: its angular spectrum does not decay by rank "
+                                 f"{tops.PROBE_SAMPLES // 2 - 2} where the states live: a kink "
+                                 f"in the rotations of phi = L diag(Q) R^T (e.g. abs), or "
+                                 f"features too sharp where |Q| is largest (e.g. exp(-0.1*G11) "
+                                 f"for a body whose Q spreads to 100); it cannot be projected")
             bands.append(band)
         wide = tuple(max(b[side] for b in bands) for side in (0, 1))
         lm = tuple(0 if wide[side] == 0 else lmax[side] for side in (0, 1))
