@@ -797,7 +797,7 @@ def project_levels(spectrum: Spectrum, operator: Operator, states: LevelStates,
     joint = comps[levels[0]][0].joint
     rules = [projection_rule(spectrum, joint, fine) for fine in (False, True)]
     expr, used = operator.expression, operator.expression.used
-    name = f"{operator.field}: {operator.text!r}"
+    name = f"{operator.field} {operator.text!r}"
     # the bandwidth per shell of |Q| (it grows outwards, and the work like its sixth power)
     y, w = rules[1]
     Q = invariants_at(joint.model, y)
