@@ -401,6 +401,13 @@ def test_n3_non_polynomial_closed_forms_and_hermiticity(oscillator3, states3):
     assert abs(got[0] - g**-3) < 1e-13 and got[1] == 0 and not table.transitions[1].allowed
     assert abs(got[2] / (6 * a**2 * U**2 * g**-5) - 1) < 1e-8
     assert table.projection_error < 1e-10
+    # from N = 1 (9 states, a quantum in one mode): inside N = 1 only the diagonal elements,
+    # <1|e^{-ax^2}|1> = g^{-3/2} times g^{-1} (the two other modes of G11) for the 3 modes of
+    # G11 and g^{-3/2} for the 6 others; N = 0 and N = 2 have the wrong parity
+    got = [t.strength for t in transitions(oscillator3, Operator(f"exp(-{a}*G11)", 3), 1,
+                                           states3).transitions]
+    np.testing.assert_allclose(got, [0, (3 * g**-5 + 6 * g**-3) / 9, 0], rtol=1e-10,
+                               atol=1e-20)
     # both rotations: exp(b phi11), one mode, (b^2 U)^N e^{b^2 U} / N! to level N; phi11
     # exp(-a G11): sqrt U g^{-3/2} from the mode phi11, g^{-1/2} from phi21 and phi31
     b = 0.2

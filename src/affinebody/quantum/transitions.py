@@ -80,9 +80,10 @@ RETRIES = 2
 #: than SHELL_WORK
 SHELLS = 6
 SHELL_WORK = 5e7
-#: n = 3: most evaluations of the operator on the fine grid, and most angular components kept
+#: n = 3: most evaluations of the operator on the fine grid, and most angular components
+#: computed (nodes x components; they are held a chunk of nodes at a time)
 MAX_PROJECTION = 4e8
-MAX_COEFFICIENTS = 6e7
+MAX_COEFFICIENTS = 3e8
 #: Gauss-Legendre nodes per reduced coordinate (n = 2)
 NODES2 = 96
 #: elements of a non-vanishing harmonic are computed; below this fraction of the operator's
@@ -847,35 +848,52 @@ def project_levels(spectrum: Spectrum, operator: Operator, states: LevelStates,
         edges, lm, coarse, fine, work = plan(SHELLS)
     counts = np.bincount(np.searchsorted(edges, radius), minlength=len(edges) + 1)
     kept = len(rules[1][0]) * sum((2 * l + 1) ** 2 for l in range(lm[0] + 1)) * sum(
-        (2 * l + 1) ** 2 for l in range(lm[1] + 1))
+        (2 * l + 1) ** 2 for l in range(lm[1] + 1))  # angular components computed
     rows = tops.side_rows(used)
 
+    per_node = sum((2 * l + 1) ** 2 for l in range(lm[0] + 1)) * sum(
+        (2 * l + 1) ** 2 for l in range(lm[1] + 1))
+    chunk = max(1, int(4e6 // per_node))  # nodes whose angular components are held at once
+
     def evaluate(rule, ranks):
+        """The blocks on one grid: the contraction is a sum over the nodes, done chunk by
+        chunk and rank by rank; the ranks below HARMONIC_FLOOR of the largest are dropped at
+        the end (the selection rule)."""
         y, w = rule
         Q = invariants_at(joint.model, y)
         where = np.searchsorted(edges, np.linalg.norm(Q, axis=1))
-        tensors = {}
+        amps = {k: [amplitudes(c, y) for c in comps[k]] for k in levels}
+        sums, size = {}, {}
         for g in range(len(edges) + 1):
             members = np.flatnonzero(where == g)
-            try:
-                part = tops.project(expr, used, Q[members], lm, ranks[g])
-            except ValueError as err:
-                raise ValueError(f"{name} {err}") from None
-            for key, T in part.items():
-                tensors.setdefault(key, np.zeros((len(Q), *T.shape[1:])))[members] = T
-        largest = max(float(np.max(np.abs(T))) for T in tensors.values())
-        tensors = {key: T for key, T in tensors.items()
-                   if np.max(np.abs(T)) > HARMONIC_FLOOR * largest}
-        amps = {k: [amplitudes(c, y) for c in comps[k]] for k in levels}
+            for start in range(0, len(members), chunk):
+                idx = members[start:start + chunk]
+                try:
+                    part = tops.project(expr, used, Q[idx], lm, ranks[g])
+                except ValueError as err:
+                    raise ValueError(f"{name} {err}") from None
+                for key, T in part.items():
+                    size[key] = max(size.get(key, 0.0), float(np.max(np.abs(T))))
+                for kf, ki in pairs:
+                    for nf, cf in enumerate(comps[kf]):
+                        for ni, ci in enumerate(comps[ki]):
+                            moments = pointwise_moments(cf, amps[kf][nf][idx], ci,
+                                                        amps[ki][ni][idx], w[idx])
+                            for (sf, si), m in moments.items():
+                                block = (kf, ki, nf, ni, sf, si)
+                                for key, T in part.items():
+                                    M = tops.contract({key: T}, m, (sf.spin, sf.vorticity),
+                                                      (si.spin, si.vorticity))
+                                    if M is not None:
+                                        sums[(block, key)] = sums.get((block, key), 0.0) + M
+                                sums.setdefault((block, None), None)
+        largest = max(size.values())
+        kept = tuple(sorted(key for key, v in size.items() if v > HARMONIC_FLOOR * largest))
         blocks = {}
-        for kf, ki in pairs:
-            for nf, cf in enumerate(comps[kf]):
-                for ni, ci in enumerate(comps[ki]):
-                    moments = pointwise_moments(cf, amps[kf][nf], ci, amps[ki][ni], w)
-                    for (sf, si), m in moments.items():
-                        blocks[(kf, ki, nf, ni, sf, si)] = tops.contract(
-                            tensors, m, (sf.spin, sf.vorticity), (si.spin, si.vorticity))
-        return blocks, tuple(sorted(tensors))
+        for block, _ in [k for k in sums if k[1] is None]:
+            found = [sums[(block, key)] for key in kept if (block, key) in sums]
+            blocks[block] = sum(found) if found else None
+        return blocks, kept
 
     for attempt in range(1 + RETRIES):  # the ranks raised while the two grids disagree
         if attempt:
