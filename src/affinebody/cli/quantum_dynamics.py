@@ -3,12 +3,13 @@ of a quantum affine body and the time evolution of a wave packet (docs/quantum-t
 
 ``affinebody transitions CONFIG.toml --operator EXPR [--levels K] [--from I] [--json]``: the
 reduced strengths B(I -> F) = (1/d_I) sum |<f|O|i>|^2 of the operator EXPR (in q1..qn, Q1..Qn,
-trG, K1..Kn, det, and the components phi11.., G11.., C11..; n = 3 a polynomial of degree <= 4
-in the components with coefficients in the invariants) from level I
+trG, K1..Kn, det, and the components phi11.., G11.., C11..: any smooth expression, projected
+numerically on the angles where it is not a polynomial in the components) from level I
 (default 0; levels numbered as the ``states`` of ``affinebody spectrum --json``, the converged
 levels ascending) to each of the levels computed; with --json one object
 ``{"transitions": [{"initial", "final", "E_initial", "E_final", "strength", "sector_final",
-"sector_initial", "allowed"}, ...], "operator", "selection_rule", "energy_weighted_sum", ...}``.
+"sector_initial", "allowed"}, ...], "operator", "selection_rule", "energy_weighted_sum",
+"projection_error", ...}``.
 
 ``affinebody evolve CONFIG.toml --at X1,X2 [--momentum P1,P2] [--width W] [--time T]
 [--steps N] [--json] [--plot FILE.png]`` (n = 2; n = 3 with --at X1,X2,X3 and --momentum
@@ -54,7 +55,7 @@ def _numbers(text: str, flag: str, count: int) -> tuple[float, ...]:
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
 @click.option("--operator", "operator", required=True,
               help="expression in q1..qn, Q1..Qn, trG, K1..Kn, det and phi11.., G11.., C11.. "
-                   "(n = 3: linear in phi, G, C)")
+                   "(any smooth expression)")
 @click.option("--levels", "levels", type=int, default=None, help="number of states K")
 @click.option("--from", "initial", type=int, default=0, help="initial level (0: the ground)")
 @click.option("--json", "as_json", is_flag=True, help="print one JSON object")
@@ -94,6 +95,7 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
             "selection_rule": table.selection_rule,
             "energy_weighted_sum": tr.trk_sum(table),
             "orthonormality_error": table.orthonormality_error,
+            "projection_error": table.projection_error,
             "model": result.model, "n": result.n, "levels": count,
             "warnings": warnings,
         }))
@@ -114,6 +116,9 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
     console.print(out)
     console.print(f"selection rule: {table.selection_rule}")
     console.print(f"energy-weighted sum over these levels: {tr.trk_sum(table):.10g}")
+    if table.projection_error is not None:
+        console.print(f"angular projection: the elements of two grids agree to "
+                      f"{table.projection_error:.1e} of the largest")
     for text in warnings:
         console.print(f"[bold red]warning:[/] {text}")
 

@@ -1,6 +1,8 @@
 """n = 3 configuration operators as sums of SO(3) x SO(3) tensor operators: the expansion of an
 expression in the invariants and the components of phi, G, C in Wigner D functions of the two
-rotations of phi = L diag(Q) R^T (docs/quantum-transitions.md, "n = 3: any expression").
+rotations of phi = L diag(Q) R^T (docs/quantum-transitions.md, "n = 3: any polynomial
+expression"), and the numerical projection of any other expression on the ranks a pair of
+multiplets can couple (:func:`project`; "Operators that are not polynomials").
 
 Structure. An operator O is read as a polynomial in the components x (phi^i_a, G_ab, C_ij) with
 coefficients that are any expression in the invariants v (q, Q, trG, K, det),
@@ -9,7 +11,8 @@ coefficients that are any expression in the invariants v (q, Q, trG, K, det),
 
 found numerically: the degree along random rays x -> t x, then the monomials by least squares
 at random points, checked at fresh points (an expression that is not of that form, e.g.
-exp(G12) or |G11|, whose SO(3) ranks do not terminate, is refused). At phi = L diag(Q) R^T
+exp(G12) or |G11|, whose SO(3) ranks do not terminate, is refused here and projected
+numerically instead, :func:`project`). At phi = L diag(Q) R^T
 
     phi^i_a = sum_k L_ik Q_k R_ak,  G_ab = sum_k R_ak R_bk Q_k^2,  C_ij = sum_k L_ik L_jk Q_k^2,
 
@@ -36,7 +39,7 @@ up to sign when the triangle rule holds, none otherwise).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, cached_property
 from itertools import combinations_with_replacement, product
 
 import numpy as np
@@ -50,6 +53,8 @@ MAX_DEGREE = 4
 MAX_MONOMIALS = 1200
 #: relative residual below which a polynomial fit is exact
 FIT_TOLERANCE = 1e-9
+#: the second, far ray of the degree test: component values up to this
+RAY_REACH = 40.0
 
 
 def component_names() -> tuple[str, ...]:
@@ -176,6 +181,17 @@ class Expansion:
     def ranks(self) -> tuple[tuple[int, int], ...]:
         return tuple(sorted({key for _, _, tensors in self.terms for key in tensors}))
 
+    @cached_property
+    def stacked(self) -> dict:
+        """{(l, l'): T [terms, 2l + 1, 2l + 1, 2l' + 1, 2l' + 1]} (zero where a term lacks the
+        rank): the tensors of :func:`contract`."""
+        out = {}
+        for key in self.ranks:
+            shape = (2 * key[0] + 1,) * 2 + (2 * key[1] + 1,) * 2
+            out[key] = np.stack([tensors.get(key, np.zeros(shape))
+                                 for _, _, tensors in self.terms])
+        return out
+
     def radial(self, expr, Q: np.ndarray) -> np.ndarray:
         """r_t(Q) [P, terms] at signed singular values Q [P, 3]: the coefficient function of
         the term's monomial (read off O at the interpolation points ``probes``; 1 for constant
@@ -235,18 +251,19 @@ def expand(expr, used: tuple[str, ...], text: str, field: str = "--operator") ->
         with np.errstate(all="ignore"):
             return np.broadcast_to(np.asarray(expr(**args), float), x.shape[:-1])
 
-    # degree along rays
-    t = np.cos(np.pi * (np.arange(MAX_DEGREE + 4) + 0.5) / (MAX_DEGREE + 4)) * 1.5
+    # degree along rays, out to component values of 1.5 and of RAY_REACH (an expression that is
+    # a polynomial only to the fit's tolerance near 0, e.g. exp(-0.02 G11), is not one there)
+    u = np.cos(np.pi * (np.arange(MAX_DEGREE + 4) + 0.5) / (MAX_DEGREE + 4))
     degree = 0
     for Q in Qs:
-        for _ in range(2):
+        for reach in (1.5, RAY_REACH):
             x0 = rng.uniform(-1, 1, len(comps))
-            g = evaluate(Q, t[:, None] * x0[None])
+            g = evaluate(Q, reach * u[:, None] * x0[None])
             if not np.all(np.isfinite(g)):
                 raise ValueError(refuse)
             for d in range(MAX_DEGREE + 1):
-                c = np.polynomial.chebyshev.chebfit(t / 1.5, g, d)
-                if np.max(np.abs(np.polynomial.chebyshev.chebval(t / 1.5, c) - g)) <= \
+                c = np.polynomial.chebyshev.chebfit(u, g, d)
+                if np.max(np.abs(np.polynomial.chebyshev.chebval(u, c) - g)) <= \
                         FIT_TOLERANCE * (np.max(np.abs(g)) + 1e-300):
                     break
             else:
@@ -351,27 +368,248 @@ def reduced_matrix(expansion: Expansion, moments: np.ndarray, jf: tuple[int, int
                    ji: tuple[int, int]) -> np.ndarray | None:
     """M [(2 j_f + 1)(2 j'_f + 1), (2 j_i + 1)(2 j'_i + 1)] of two multiplets (spin, vorticity)
     ``jf``, ``ji`` from the radial moments [terms, b, d, b', d'] = int mu r_t F_f[b, d]
-    F_i[b', d'] (module docstring): M[(a, c), (a', c')] = sum_t sum_{l l'} sum_pqrs
-    T_t[p, q, r, s] w_l[a, a', p] w_l[b, b', q] w_l'[c, c', r] w_l'[d, d', s] moments_t;
-    None when no rank of the operator satisfies both triangle rules (the selection rule)."""
+    F_i[b', d'] (module docstring): :func:`contract` of the expansion's tensors stacked over
+    its terms; None when no rank of the operator satisfies both triangle rules (the selection
+    rule)."""
+    return contract(expansion.stacked, moments, jf, ji)
+
+
+def contract(tensors: dict, moments: np.ndarray, jf: tuple[int, int], ji: tuple[int, int]
+             ) -> np.ndarray | None:
+    """The contraction shared by the exact expansion and the numerical projection: with
+    ``tensors`` {(l, l'): T [t, 2l + 1, 2l + 1, 2l' + 1, 2l' + 1]} and ``moments``
+    [t, b, d, b', d'] over the same terms t (the radial functions of an :class:`Expansion`, or
+    the nodes of a chamber rule for :func:`project`),
+
+        M[(a, c), (a', c')] = sum_t sum_{l l'} sum_pqrs T_t[p, q, r, s] w_l[a, a', p]
+                              w_l[b, b', q] w_l'[c, c', r] w_l'[d, d', s] moments_t[b, d, b', d'],
+
+    w the invariant vectors of :func:`coupling_tensor`; None when no rank satisfies both
+    triangle rules."""
     out, reached = 0.0, False
-    for key in expansion.ranks:
+    for key, T in tensors.items():
         wL = coupling_tensor(jf[0], ji[0], key[0])
         wR = coupling_tensor(jf[1], ji[1], key[1])
         if not (len(wL) and len(wR)):
             continue
         wL, wR = wL[0], wR[0]
-        X = 0.0
-        for t, (_, _, tensors) in enumerate(expansion.terms):
-            if key not in tensors:
-                continue
-            Y = np.einsum("bBq,dDs,bdBD->qs", wL, wR, moments[t], optimize=True)
-            X = X + np.einsum("pqrs,qs->pr", tensors[key], Y)
+        Y = np.einsum("bBq,dDs,tbdBD->tqs", wL, wR, moments, optimize=True)
+        X = np.einsum("tpqrs,tqs->pr", T, Y, optimize=True)
         M = np.einsum("aAp,cCr,pr->acAC", wL, wR, X, optimize=True)
         out = out + M.reshape(wL.shape[0] * wR.shape[0], wL.shape[1] * wR.shape[1])
         reached = True
     return out if reached else None
 
 
-__all__ = ["MAX_DEGREE", "MAX_MONOMIALS", "component_names", "wigner", "euler_quadrature",
-           "coupling_tensor", "Expansion", "expand", "reduced_matrix"]
+# ------------------------------------------------- the numerical projection (any expression)
+#: samples per one-parameter subgroup of the bandwidth probe (harmonics |m| < 62 resolved)
+PROBE_SAMPLES = 128
+#: a Fourier coefficient of the probe below this fraction of the largest counts as absent
+BAND_TOLERANCE = 1e-13
+
+
+def operator_grid(expr, used: tuple[str, ...], Q: np.ndarray, left: np.ndarray,
+                  right: np.ndarray) -> np.ndarray:
+    """O(L diag(Q) R^T) [P, NL, NR] at nodes Q [P, 3] and rotations L [NL, 3, 3], R [NR, 3, 3]:
+    phi^i_a = sum_k L_ik Q_k R_ak, G_ab = sum_k R_ak R_bk Q_k^2, C_ij = sum_k L_ik L_jk Q_k^2,
+    the invariants of Q; only the components ``used`` are formed (the expression compiled once
+    per shape). ValueError where O is not finite."""
+    comps = set(component_names())
+    values = invariant_values(Q)
+    args = {}
+    for name in used:
+        if name not in comps:
+            args[name] = np.asarray(values[name], float).reshape(-1, 1, 1)
+            continue
+        a, b = int(name[-2]) - 1, int(name[-1]) - 1
+        if name.startswith("phi"):
+            args[name] = (Q[:, None, :] * left[None, :, a, :]) @ right[:, b, :].T
+        elif name.startswith("G"):
+            args[name] = ((Q * Q) @ (right[:, a, :] * right[:, b, :]).T)[:, None, :]
+        else:
+            args[name] = ((Q * Q) @ (left[:, a, :] * left[:, b, :]).T)[:, :, None]
+    out = np.asarray(_compiled(expr)(args), float)
+    out = np.broadcast_to(out, (len(Q), len(left), len(right)))
+    if not np.all(np.isfinite(out)):
+        raise ValueError("is not finite where the states live (e.g. log of 0)")
+    return out
+
+
+@cache
+def _compiled(expr):
+    """The expression as one compiled JAX program (per shape of its arguments)."""
+    import jax
+
+    return jax.jit(lambda args: expr(**args))
+
+
+def fourier_reach(f: np.ndarray, tolerance=BAND_TOLERANCE, floor=0.0) -> int | None:
+    """The largest |m| whose discrete Fourier coefficient of the periodic samples f [P, S]
+    (each row one period) exceeds ``tolerance`` times the row's largest and the absolute
+    ``floor`` (each a number, or one per row); None when that is within 2 of the Nyquist
+    frequency S/2 (not resolved)."""
+    samples = f.shape[1]
+    F = np.abs(np.fft.fft(f, axis=1)) / samples
+    m = np.abs(np.fft.fftfreq(samples, 1 / samples))
+    top = np.max(F, axis=1, keepdims=True)
+    tolerance = np.reshape(np.broadcast_to(tolerance, (len(f),)), (-1, 1))
+    floor = np.reshape(np.broadcast_to(floor, (len(f),)), (-1, 1))
+    above = F > np.maximum(tolerance * np.maximum(top, 1e-300), floor)
+    reach = int(np.max(np.where(above, m[None], 0)))
+    return None if reach >= samples // 2 - 2 else reach
+
+
+def _padded(Q: np.ndarray, rows: int) -> np.ndarray:
+    """Q with its last row repeated up to ``rows`` rows: every chunk of one grid has one shape,
+    so the expression (JAX, compiled per shape) compiles once."""
+    return np.concatenate([Q, np.repeat(Q[-1:], rows - len(Q), 0)]) if len(Q) < rows else Q
+
+
+def _random_rotations(rng, count: int) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(count, 3, 3)))
+    q = q * np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]
+    return q * np.linalg.det(q)[:, None, None]
+
+
+def bandwidth(expr, used: tuple[str, ...], Q: np.ndarray, samples: int = PROBE_SAMPLES,
+              tolerance=BAND_TOLERANCE, floor=0.0) -> tuple[int | None, int | None]:
+    """Estimated ranks (B_L, B_R) of L -> O(L diag Q R^T) and R -> O(...) at nodes Q [P, 3]:
+    the largest |m| whose Fourier coefficient along t -> exp(t K) L (resp. R), K a random
+    generator, exceeds ``tolerance`` times the largest, over three random subgroups and
+    starting points (a function of rank l has |m| <= l along every such circle, and its rank
+    shows along a generic one); ``tolerance`` (relative) and ``floor`` (absolute) as in
+    :func:`fourier_reach`, a number or one per node; None when the coefficients have not
+    decayed by |m| = samples/2 - 2 (not resolved: a kink, or too wide)."""
+    rng = np.random.default_rng(16)
+    t = 2 * np.pi * np.arange(samples) / samples
+    count = len(Q)
+    Q = _padded(Q, 32 * -(-count // 32))  # one shape for most probes (compiled once)
+    tolerance = _padded(np.broadcast_to(np.asarray(tolerance, float), (count,))[:, None],
+                        len(Q))[:, 0]
+    floor = _padded(np.broadcast_to(np.asarray(floor, float), (count,))[:, None], len(Q))[:, 0]
+    out = []
+    for side in (0, 1):
+        band = 0
+        for _ in range(3):
+            n = rng.normal(size=3)
+            n /= np.linalg.norm(n)
+            K = np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
+            path = (np.eye(3) + np.sin(t)[:, None, None] * K
+                    + (1 - np.cos(t))[:, None, None] * (K @ K))
+            start, other = _random_rotations(rng, 2)
+            moving = path @ start
+            f = (operator_grid(expr, used, Q, moving, other[None]) if side == 0
+                 else operator_grid(expr, used, Q, other[None], moving)).reshape(len(Q), -1)
+            reach = fourier_reach(f, tolerance, floor)
+            if reach is None:
+                band = None
+                break
+            band = max(band, reach)
+        out.append(band)
+    return out[0], out[1]
+
+
+def side_rows(used: tuple[str, ...]) -> tuple[set[int], set[int]]:
+    """The rows of L and of R that an expression's components involve (0-based): phi_ia row i
+    of L and row a of R, G_ab rows a, b of R, C_ij rows i, j of L (phi^i_a = sum_k L_ik Q_k R_ak,
+    G_ab = sum_k R_ak R_bk Q_k^2, C_ij = sum_k L_ik L_jk Q_k^2)."""
+    left, right = set(), set()
+    for name in used:
+        if name not in set(component_names()):
+            continue
+        a, b = int(name[-2]) - 1, int(name[-1]) - 1
+        if name.startswith("phi"):
+            left.add(a)
+            right.add(b)
+        elif name.startswith("G"):
+            right |= {a, b}
+        else:
+            left |= {a, b}
+    return left, right
+
+
+def side_points(rank: int, rows: set[int]) -> int:
+    """The rotations of :func:`side_rule` of ``rank`` for an operator using ``rows``."""
+    return (rank + 1) * (rank // 2 + 1) * (1 if len(rows) == 1 else rank + 1)
+
+
+@cache
+def side_rule(rank: int, row: int | None) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Rotations [N, 3, 3], weights [N] (sum 1) and, per l, the matrix A^l with
+    int f(L) D^l(L) dL = sum_k w_k f(L_k) A^l D^l(M_k) for every f of rank <= ``rank`` ... on
+    one side of phi = L diag Q R^T. ``row`` None: :func:`euler_quadrature` (M_k = L_k, A^l = 1).
+    ``row`` i: f depends on L only through its row i (f(S L) = f(L) for S fixing e_i), so with
+    L = Pi R_3(alpha) M, Pi e_3 = e_i, the average over alpha is that of D^l(R_3(alpha)), the
+    projector P^l on its m = 0 vector: L_k = Pi M_k, M_k = R_2(beta) R_3(gamma) on the rule's
+    (beta, gamma) points and A^l = D^l(Pi) P^l, rank + 1 times fewer points."""
+    if row is None:
+        rot, w = euler_quadrature(rank)
+        return rot, w, ()
+    n = rank + 1
+    t = 2 * np.pi * np.arange(n) / n
+    x, wx = np.polynomial.legendre.leggauss(rank // 2 + 1)
+    X, C = np.meshgrid(x, t, indexing="ij")
+    M = _axis_rotation(1, np.arccos(X.ravel())) @ _axis_rotation(2, C.ravel())
+    weights = np.broadcast_to(wx[:, None] / (2 * n), X.shape).ravel()
+    Pi = {0: _axis_rotation(1, np.pi / 2), 1: _axis_rotation(0, -np.pi / 2),
+          2: np.eye(3)}[row]
+    return Pi @ M, weights, (Pi, M)
+
+
+def _side_basis(rank: int, rows: set[int], lmax: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations [N, 3, 3] of :func:`side_rule` and the weighted Wigner matrices [N, K]
+    (2l + 1) w_k (A^l D^l(M_k))_pq, l <= lmax, flattened over (l, p, q)."""
+    row = next(iter(rows)) if len(rows) == 1 else None
+    rot, w, zonal = side_rule(rank, row)
+    blocks = []
+    for l in range(lmax + 1):
+        if zonal:
+            Pi, M = zonal
+            alpha = 2 * np.pi * np.arange(2 * l + 1) / (2 * l + 1)
+            P = np.mean(wigner(l, _axis_rotation(2, alpha)), axis=0)
+            D = (wigner(l, Pi) @ P)[None] @ wigner(l, M)
+        else:
+            D = wigner(l, rot)
+        blocks.append((2 * l + 1) * (w[:, None, None] * D).reshape(len(rot), -1))
+    return rot, np.concatenate(blocks, axis=1)
+
+
+def project(expr, used: tuple[str, ...], Q: np.ndarray, lmax: tuple[int, int],
+            ranks: tuple[int, int], chunk: int = 2_000_000) -> dict:
+    """The angular components of O at every node Q [P, 3] up to the ranks ``lmax`` = (l_max,
+    l'_max), by the Euler-angle rules of ``ranks`` on each side:
+
+        c^{l l'}(Q)[p, q, r, s] = (2l + 1)(2l' + 1) int int O(L diag Q R^T) D^l_pq(L)
+                                  D^l'_rs(R) dL dR,
+
+    exact when O's ranks are at most ``ranks`` - ``lmax`` on each side, else with the aliasing
+    of its higher ranks (docs/quantum-transitions.md, "Operators that are not polynomials");
+    a side whose components involve one row of its rotation only takes the reduced rule of
+    :func:`side_rule`. Returns {(l, l'): c [P, 2l + 1, 2l + 1, 2l' + 1, 2l' + 1]}: the tensors
+    of :func:`contract` with the nodes as terms."""
+    rows = side_rows(used)
+    (rotL, DL), (rotR, DR) = (_side_basis(ranks[side], rows[side], lmax[side])
+                              for side in (0, 1))
+    rots = (rotL, rotR)
+    step = min(len(Q), max(1, chunk // (len(rots[0]) * len(rots[1]))))
+    c = np.empty((len(Q), DL.shape[1], DR.shape[1]))
+    for s in range(0, len(Q), step):
+        V = operator_grid(expr, used, _padded(Q[s:s + step], step), rots[0], rots[1])
+        V = V[:len(Q) - s]  # [p, NL, NR]
+        c[s:s + step] = np.einsum("lk,plm->pkm", DL, V @ DR, optimize=True)
+    out, i0 = {}, 0
+    for l in range(lmax[0] + 1):
+        j0 = 0
+        for lp in range(lmax[1] + 1):
+            a, b = (2 * l + 1) ** 2, (2 * lp + 1) ** 2
+            out[(l, lp)] = c[:, i0:i0 + a, j0:j0 + b].reshape(
+                len(Q), 2 * l + 1, 2 * l + 1, 2 * lp + 1, 2 * lp + 1)
+            j0 += b
+        i0 += a
+    return out
+
+
+__all__ = ["MAX_DEGREE", "MAX_MONOMIALS", "PROBE_SAMPLES", "BAND_TOLERANCE", "component_names",
+           "wigner", "euler_quadrature", "side_rows", "side_points", "side_rule", "coupling_tensor",
+           "Expansion", "expand",
+           "reduced_matrix", "contract", "operator_grid", "fourier_reach", "bandwidth", "project"]
