@@ -748,6 +748,10 @@ def isotropic_flow_jax(phi, pi, coefs, left: bool):
 
 #: Fewest bodies worth handing to threads in the host drift (below, one thread).
 HOST_DRIFT_THREAD_MIN_ROWS = 512
+#: Fewest bodies (n = 3) for which the product runs the host drift: one core, medians, n = 3,
+#: JAX flow / host kernel 171 / 181 us at 256 bodies, 633 / 435 us at 1024, 2.9 / 1.5 ms at
+#: 4096 (for n = 2 the JAX flow: 0.79 / 1.27 ms at 4096).
+HOST_DRIFT_MIN_BODIES = 512
 
 
 def host_drift_threads() -> int:
@@ -797,9 +801,12 @@ def _isotropic_flow_host_jvp(left, primals, tangents):
 
 def isotropic_flow(phi, pi, coefs, left: bool):
     """The exact drift of af-is / af-af (``left``) and is-af: :func:`isotropic_flow_host` on a
-    CPU with Numba (n <= 3), :func:`isotropic_flow_jax` otherwise (a GPU: no host round
-    trip)."""
-    if _host.in_use() and phi.shape[-1] <= linalg.CLOSED_FORM_MAX_N:
+    CPU with Numba for n = 3 and at least :data:`HOST_DRIFT_MIN_BODIES` bodies,
+    :func:`isotropic_flow_jax` otherwise (a GPU: no host round trip; few bodies: a callback's
+    fixed cost, ~0.1 ms, outweighs the work; n = 2: XLA's flow was the faster at every size
+    measured, to 4096 bodies)."""
+    bodies = int(np.prod(phi.shape[:-2]))
+    if _host.in_use() and phi.shape[-1] == 3 and bodies >= HOST_DRIFT_MIN_BODIES:
         return isotropic_flow_host(phi, pi, coefs, left)
     return isotropic_flow_jax(phi, pi, coefs, left)
 
