@@ -1,6 +1,6 @@
-"""Densities of the diagonal components G_aa of the Green tensor G = phi^T phi = R diag(Q^2) R^T
-of an n = 3 state, superposition or thermal mixture (paper, last section; docs/theory/
-densities.md, "Components of G (n = 3)").
+"""Densities of the components G_ab of the Green tensor G = phi^T phi = R diag(Q^2) R^T of an
+n = 3 state, superposition or thermal mixture (paper, last section; docs/theory/densities.md,
+"Components of G (n = 3)").
 
 Integrating |Psi|^2 over L (Schur orthogonality, as for the orientation of R in
 quantum.orientations3) leaves, per unit of the Haar measure of R and of the reduced measure,
@@ -29,6 +29,18 @@ sqrt((A - P0_3)(A - g))), both theta and pi - theta), so the radial profile of t
 integrated in its own variable; t = t_A + v^2 removes the square-root end point at g = A.
 Gauss-Legendre in v and in the chamber coordinates, the trapezoid rule in phi; two rules of
 increasing size are compared (``error``).
+
+Off-diagonal G_ab = u^T P v (u, v rows a, b of R, :func:`offdiagonal_density`): the same scale
+trick (G_ab = e^{s/kappa} g0, s* = kappa ln(y/g0) for g0 of y's sign, factor kappa/|y|), with
+R^T = F(u) R_3(psi) S_a (u anywhere on the sphere, F(u) any rotation taking e_3 to u): g0 =
+b cos(psi' - gamma) and the twist psi no longer drops out, but its two roots are summed
+exactly, 2 e^{i dm (gamma - c_b)} T_|dm|(g0/b) for each difference dm = m - m' of magnetic
+numbers (T the Chebyshev polynomials), so psi is traded for the scale (|dpsi| = |dg0| /
+sqrt(b^2 - g0^2)). b(u) vanishes only on the axes u = +-e_k (b ~ distance, an integrable 1/b
+at y = 0): the sphere rule (:func:`octant_sphere`) is Duffy-mapped to them and graded towards
+them, which keeps the density finite and the rule convergent down to y = 0. The scale
+integral depends on u only through b; it is tabulated per chamber direction on a grid in ln b
+and interpolated to the sphere's nodes.
 """
 
 from __future__ import annotations
@@ -381,7 +393,7 @@ def _scale_nodes(dirs: Directions, value: float, b: np.ndarray, bounds: tuple, x
 
 
 def offdiagonal_density(pair_list, model: str, axes: tuple[int, int], y: np.ndarray,
-                        rule: tuple, bounds: tuple, chunk: int = 400_000) -> np.ndarray:
+                        rule: tuple, bounds: tuple) -> np.ndarray:
     """The density of G_ab (a, b = ``axes``, a != b) at the values y with the rule (chamber
     nodes, sphere nodes per triangle side, table nodes in ln b, v nodes) (module docstring).
 
@@ -414,7 +426,8 @@ def offdiagonal_density(pair_list, model: str, axes: tuple[int, int], y: np.ndar
     P0u = dirs.P0[:, None, :] * u  # [N, P, 3]
     zc = np.sum(P0u * frames[..., 0], -1) + 1j * np.sum(P0u * frames[..., 1], -1)
     b = np.maximum(np.abs(zc), 1e-300)
-    phase, log_b = zc / b, np.log(b)
+    gamma, log_b = np.angle(zc), np.log(b)
+    measure = wu / b * dirs.weights[:, None]  # [N, P]
     top = np.log((dirs.P0.max(1) - dirs.P0.min(1)) / 2)
     z_hi = math.exp(bounds[1] / dirs.kappa)
     out = np.zeros(len(y))
@@ -433,20 +446,20 @@ def offdiagonal_density(pair_list, model: str, axes: tuple[int, int], y: np.ndar
         f = q - i0
         lagrange = np.stack([-(f - 1) * (f - 2) * (f - 3) / 6, f * (f - 2) * (f - 3) / 2,
                              -f * (f - 1) * (f - 3) / 2, f * (f - 1) * (f - 2) / 6], -1)
-        measure = wu / b  # [N, P]
         for (deltas, h), (Fk, Fl) in zip(H, _amplitudes(pair_list, dirs.at_nodes(t)),
                                          strict=True):
-            M = np.swapaxes(Fk, -1, -2) @ Fl  # [N, B, V, d, e]
+            M = np.swapaxes(Fk, -1, -2) @ Fl  # [N, B, V, d, e], real
             K = np.einsum("nbv,nbvD,nbvde->nbDde", weight,
                           2 * np.cos(np.abs(deltas) * turn[..., None]), M)
-            size = max(1, chunk // (len(u) * K[0, 0].size))
-            for i in range(0, len(K), size):
-                rows_n = np.arange(i, min(i + size, len(K)))[:, None]
-                Kp = sum(lagrange[i:i + size, :, j, None, None, None]
-                         * K[rows_n, i0[i:i + size] + j] for j in range(4))  # [n, P, D, d, e]
-                G = np.einsum("pDde,npDde->npD", h, Kp)
-                out[n] += np.sum(measure[i:i + size, :, None] * dirs.weights[i:i + size, None,
-                                 None] * phase[i:i + size, :, None] ** deltas * G).real
+            K = K.reshape(len(K), n_b, -1)
+            hr, hi = (part.reshape(len(u), len(deltas), -1) for part in (h.real, h.imag))
+            for i in np.flatnonzero(live):  # b K at the sphere's b [P, dm, d e]
+                Kp = np.einsum("pj,pjx->px", lagrange[i], K[i][i0[i, :, None] + np.arange(4)])
+                Kp = Kp.reshape(hr.shape)
+                phase = deltas * gamma[i, :, None]
+                G = np.cos(phase) * np.einsum("pDx,pDx->pD", hr, Kp) \
+                    - np.sin(phase) * np.einsum("pDx,pDx->pD", hi, Kp)
+                out[n] += measure[i] @ np.sum(G, -1)
     return out / (2 * np.pi)
 
 
