@@ -323,8 +323,10 @@ def octant_sphere(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     unit sphere whose nodes crowd towards the six axes +-e_k. Each octant is the central
     projection of its flat triangle, cut into six triangles (a corner e_k, the midpoint of an
     edge through it, the centroid), each Duffy-mapped with the corner as the collapsed side
-    (n x n Gauss-Legendre nodes, densities.projected_triangle), so a 1/|u - e_k| integrand is
-    smooth in the rule's coordinates."""
+    (densities.projected_triangle), so a 1/|u - e_k| integrand is smooth in the rule's
+    coordinates; n Gauss-Legendre nodes across and, towards the corner, in rho = 1 - s on the
+    panels [1/10, 1] (n nodes), [1/100, 1/10], ..., [0, 10^-GRADES] (n/2 nodes each), which
+    resolve the feature of size ~|y| that b K(b) has near the axes at small |y|."""
     x, w = np.polynomial.legendre.leggauss(n)
     x, w = (x + 1) / 2, w / 2
     edges = np.concatenate([10.0 ** -np.arange(GRADES + 1), [0.0]])  # rho = 1 - s panels
@@ -448,7 +450,7 @@ def offdiagonal_density(pair_list, model: str, axes: tuple[int, int], y: np.ndar
                              -f * (f - 1) * (f - 3) / 2, f * (f - 1) * (f - 2) / 6], -1)
         for (deltas, h), (Fk, Fl) in zip(H, _amplitudes(pair_list, dirs.at_nodes(t)),
                                          strict=True):
-            M = np.swapaxes(Fk, -1, -2) @ Fl  # [N, B, V, d, e], real
+            M = np.swapaxes(Fk, -1, -2) @ Fl  # [N, B, V, d, e], real (real amplitudes)
             K = np.einsum("nbv,nbvD,nbvde->nbDde", weight,
                           2 * np.cos(np.abs(deltas) * turn[..., None]), M)
             K = K.reshape(len(K), n_b, -1)
