@@ -247,8 +247,9 @@ def directions(model: str, n: int, r_max: float) -> Directions:
 def support(model: str, pair_list) -> tuple[float, float, float, float, float]:
     """(s_lo, s_hi, r_max, trg, spread): the scale range (and, affine, the traceless radius)
     outside which the mixture has less than 1e-14 of its largest density, the Tr G below which
-    all but 1e-10 of its mass lies and the same for (P_max - P_min)/2 >= |G_ab| (a != b),
-    from a coarse scan of |Psi|^2 (the scale grid's mass summed over the directions)."""
+    all but 1e-10 of its mass lies and the (P_max - P_min)/2 (>= |G_ab|, a != b) below which
+    all but 1e-6 lies (a bound, so the tail of G_ab beyond it holds less still), from a coarse
+    scan of |Psi|^2 (the scale grid's mass summed over the directions)."""
     if model == "lebesgue3":
         dirs, s = directions(model, 6, 1.0), np.linspace(-8.0, 4.0, 241)
     else:
@@ -267,12 +268,11 @@ def support(model: str, pair_list) -> tuple[float, float, float, float, float]:
         radius = np.linalg.norm(dirs.x0, axis=-1)
         r_max = float(min(radius[keep.any(0)].max() * 1.25 + 0.5, 12.0))
     tops = []
-    for g in (np.sum(dirs.P0, -1), (dirs.P0.max(-1) - dirs.P0.min(-1)) / 2):
+    for g, tail in ((np.sum(dirs.P0, -1), 1e-10), ((dirs.P0.max(-1) - dirs.P0.min(-1)) / 2, 1e-6)):
         value = (np.exp(s / dirs.kappa)[:, None] * g[None, :]).ravel()
         order = np.argsort(value)
         below = np.cumsum(mass.ravel()[order]) / mass.sum()
-        tops.append(float(value[order][min(np.searchsorted(below, 1 - 1e-10),
-                                            len(order) - 1)]))
+        tops.append(float(value[order][min(np.searchsorted(below, 1 - tail), len(order) - 1)]))
     return float(lo), float(hi), r_max, *tops
 
 
