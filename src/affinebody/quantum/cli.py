@@ -147,7 +147,7 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
               help="orientation densities of the thermal mixture at T (k_B = 1)")
 @click.option("--g-components", "g_components", default=None,
               help="n = 3: also the densities of these components of G, e.g. G11,G33,G12 "
-                   "(about a second per point each, a few for G12, G13, G23)")
+                   "(about a second per point each)")
 @one_line_errors
 def density(config: str, state: int | None, output: str, as_json: bool, orientation: bool,
             superpose: str | None, temperature: float | None,

@@ -150,9 +150,6 @@ def write_orientation(spectrum: Spectrum, directory: str | Path, state: int | No
 
 #: n = 3: the most (points x components) of G densities one request may ask for
 MAX_GREEN_WORK = 80
-#: what one point of an off-diagonal component counts in MAX_GREEN_WORK (it costs a few
-#: diagonal ones: a 4-dimensional rule against 3, quantum.green3)
-OFF_DIAGONAL_WORK = 3
 
 
 def _write_orientation3(spectrum: Spectrum, directory: Path, state: int | None,
@@ -177,12 +174,10 @@ def _write_orientation3(spectrum: Spectrum, directory: Path, state: int | None,
     if unknown:
         raise ValueError(f"--g-components: {', '.join(unknown)} not computed for n = 3 (the "
                          f"components {', '.join(known)})")
-    work = sum(1 if name in green3.COMPONENTS else OFF_DIAGONAL_WORK for name in green)
-    if work * points > MAX_GREEN_WORK:
-        raise ValueError(f"--g-components: {len(green)} densities x {points} points (an "
-                         f"off-diagonal one counting {OFF_DIAGONAL_WORK}) is more than the "
-                         f"{MAX_GREEN_WORK} this command is built for (about a second each): "
-                         f"lower quantum.density_points or ask for fewer components")
+    if len(green) * points > MAX_GREEN_WORK:
+        raise ValueError(f"--g-components: {len(green)} densities x {points} points is more "
+                         f"than the {MAX_GREEN_WORK} this command is built for (about a second "
+                         f"each): lower quantum.density_points or ask for fewer components")
 
     if state is not None:
         data = orientation_densities3(spectrum, state)
