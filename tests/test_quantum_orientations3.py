@@ -425,6 +425,7 @@ def test_density_command_n3_green_components(tmp_path):
     g = doc["densities"]["G12"]
     y, p = np.array(g["x"]), np.array(g["density"])
     assert y[5] == 0 and g["converged"] and not doc["warnings"]
+    assert abs(g["integral"] - 1) < 0.05  # 11 points across the cusp-like peak: 1.03
     np.testing.assert_allclose(p, p[::-1], rtol=1e-12)
     with np.errstate(invalid="ignore"):
         exact = np.where(y == 0, 1 / (math.pi * U), np.abs(y) * special.k1(np.abs(y) / U)

@@ -65,6 +65,9 @@ OFF_DIAGONAL = ("G12", "G13", "G23")
 #: (chamber nodes per coordinate, sphere nodes per triangle side, table nodes in ln b, v nodes)
 #: of the two rules compared for the off-diagonal components
 OFF_RULES = ((8, 6, 64, 12), (10, 8, 96, 16))
+#: the chamber nodes of the two rules for the affine models (whose chamber directions need more:
+#: 8, 10, 12, 14 nodes change the af-is ground state's G12 density by 1e-2, 9e-4, 1.5e-4 x peak)
+OFF_AFFINE_DIRECTIONS = (12, 14)
 #: the off-diagonal scale integral is tabulated down to e^{-SPAN} x the largest b (below, b K
 #: is held at its last value: the contribution of those nodes is O(e^{-SPAN}))
 SPAN = 12.0
@@ -244,12 +247,13 @@ def directions(model: str, n: int, r_max: float) -> Directions:
     return Directions(model, q, w, np.exp(2 * q), 1.5, 0.0)
 
 
-def support(model: str, pair_list) -> tuple[float, float, float, float, float]:
-    """(s_lo, s_hi, r_max, trg, spread): the scale range (and, affine, the traceless radius)
-    outside which the mixture has less than 1e-14 of its largest density, the Tr G below which
-    all but 1e-10 of its mass lies and the (P_max - P_min)/2 (>= |G_ab|, a != b) below which
-    all but 1e-6 lies (a bound, so the tail of G_ab beyond it holds less still), from a coarse
-    scan of |Psi|^2 (the scale grid's mass summed over the directions)."""
+def support(model: str, pair_list) -> tuple[float, float, float, float, float, float]:
+    """(s_lo, s_hi, r_max, trg, spread, median): the scale range (and, affine, the traceless
+    radius) outside which the mixture has less than 1e-14 of its largest density, the Tr G
+    below which all but 1e-10 of its mass lies, the (P_max - P_min)/2 (>= |G_ab|, a != b)
+    below which all but 1e-6 lies (a bound, so the tail of G_ab beyond it holds less still) and
+    its median, from a coarse scan of |Psi|^2 (the scale grid's mass summed over the
+    directions)."""
     if model == "lebesgue3":
         dirs, s = directions(model, 6, 1.0), np.linspace(-8.0, 4.0, 241)
     else:
@@ -268,11 +272,12 @@ def support(model: str, pair_list) -> tuple[float, float, float, float, float]:
         radius = np.linalg.norm(dirs.x0, axis=-1)
         r_max = float(min(radius[keep.any(0)].max() * 1.25 + 0.5, 12.0))
     tops = []
-    for g, tail in ((np.sum(dirs.P0, -1), 1e-10), ((dirs.P0.max(-1) - dirs.P0.min(-1)) / 2, 1e-6)):
+    spread = (dirs.P0.max(-1) - dirs.P0.min(-1)) / 2
+    for g, level in ((np.sum(dirs.P0, -1), 1 - 1e-10), (spread, 1 - 1e-6), (spread, 0.5)):
         value = (np.exp(s / dirs.kappa)[:, None] * g[None, :]).ravel()
         order = np.argsort(value)
         below = np.cumsum(mass.ravel()[order]) / mass.sum()
-        tops.append(float(value[order][min(np.searchsorted(below, 1 - tail), len(order) - 1)]))
+        tops.append(float(value[order][min(np.searchsorted(below, level), len(order) - 1)]))
     return float(lo), float(hi), r_max, *tops
 
 
@@ -481,9 +486,10 @@ def g_densities3(spectrum, mixture, points: int = 51, tolerance: float = TOLERAN
     [MultipletState])] (quantum.orientations3) of an n = 3 spectrum, each with the difference
     between the two rules of :data:`RULES` (diagonal) or :data:`OFF_RULES` (off-diagonal) as
     its error, flagged unconverged above ``tolerance`` (``off_tolerance`` for the
-    off-diagonal ones) x the peak. Diagonal: ``points`` values in (0, max Tr G]; off-diagonal:
-    ``points`` values in [-m, m], m = max (P_max - P_min)/2; ``integral``: by the trapezoid
-    rule over the points (from y = 0, where a diagonal density vanishes)."""
+    off-diagonal ones) x the peak. Diagonal: ``points`` values in (0, max Tr G], ``integral``
+    by the trapezoid rule over them (from y = 0, where the density vanishes); off-diagonal:
+    ``points`` values y = c sinh(xi) in [-m, m] (xi uniform, m = max (P_max - P_min)/2, c its
+    median: :func:`support`), ``integral`` by the trapezoid rule in xi."""
     model = "lebesgue3" if spectrum.model == "dalembert" else "haar3"
     pair_list = pairs(mixture)
     bounds = support(model, pair_list)
@@ -496,19 +502,29 @@ def g_densities3(spectrum, mixture, points: int = 51, tolerance: float = TOLERAN
                              for rule in RULES)
             limit, nodes = tolerance, RULES[-1][2]
         else:
-            y = np.linspace(-bounds[4], bounds[4], points)
+            # y = c sinh(xi), xi uniform and symmetric (y = 0 exactly for an odd count), c the
+            # median bound: points gather at the peak and still reach the tails
+            c = bounds[5]
+            xi = math.asinh(bounds[4] / c) * (2 * np.arange(points) - points + 1) / (points - 1)
+            y = c * np.sinh(xi)
+            rules = OFF_RULES if model == "lebesgue3" else tuple(
+                (n, *rule[1:]) for n, rule in zip(OFF_AFFINE_DIRECTIONS, OFF_RULES, strict=True))
             first, second = (offdiagonal_density(pair_list, model, (a, b), y, rule, bounds)
-                             for rule in OFF_RULES)
-            limit, nodes = off_tolerance, OFF_RULES[-1][3]
+                             for rule in rules)
+            limit, nodes = off_tolerance, rules[-1][3]
         err = float(np.max(np.abs(second - first)))
-        integral = float(np.sum((second[1:] + second[:-1]) * np.diff(y)) / 2
-                         + (y[0] * second[0] / 2 if a == b else 0.0))
+        if a == b:
+            integral = float(np.sum((second[1:] + second[:-1]) * np.diff(y)) / 2
+                             + y[0] * second[0] / 2)
+        else:  # the trapezoid rule in xi, dy = c cosh(xi) dxi
+            f = second * c * np.cosh(xi)
+            integral = float(np.sum(f[1:] + f[:-1]) * (xi[1] - xi[0]) / 2)
         out[name] = Marginal(y, second, err, integral, nodes,
                              bool(err <= limit * np.max(np.abs(second))))
     return out
 
 
-__all__ = ["RULES", "COMPONENTS", "TOLERANCE", "OFF_DIAGONAL", "OFF_RULES", "OFF_TOLERANCE",
-           "SPAN", "GRADES", "Pair", "pairs", "weight_matrix", "Directions", "directions",
-           "support", "diagonal_density", "octant_sphere", "offdiagonal_density",
-           "component_axes", "g_densities3"]
+__all__ = ["RULES", "COMPONENTS", "TOLERANCE", "OFF_DIAGONAL", "OFF_RULES",
+           "OFF_AFFINE_DIRECTIONS", "OFF_TOLERANCE", "SPAN", "GRADES", "Pair", "pairs",
+           "weight_matrix", "Directions", "directions", "support", "diagonal_density",
+           "octant_sphere", "offdiagonal_density", "component_axes", "g_densities3"]
