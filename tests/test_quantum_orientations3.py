@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from scipy import special
 
 from affinebody.quantum import green3
 from affinebody.quantum import spectra as sp
@@ -354,15 +355,66 @@ def test_green_diagonal_densities_against_closed_form_and_transition_elements(os
         assert abs(np.sum(wy * y**power * p) - element) < 5e-4 * element
 
 
+def test_green_offdiagonal_densities_against_closed_form_and_transition_elements(
+        oscillator3):
+    """Densities of G_ab, a != b (quantum.green3): the ground state's G12 = sum_i phi_i1 phi_i2
+    is a sum of three products of independent normals of variance U, whose density is
+    |y| K_1(|y|/U) / (pi U^2) (the sum of n products of standard normal pairs has
+    |x|^{(n-1)/2} K_{(n-1)/2}(|x|) / (sqrt(pi) Gamma(n/2) 2^{(n-1)/2}), characteristic
+    function (1 + k^2)^{-n/2}; 1/(pi U) at y = 0), to 2e-4 relative over y in [-1, 2] with y = 0
+    included, and G13 and G23 have the same law; for a superposition with complex amplitudes of
+    the three states of the multiplet (1, 1) of N = 1 that share their magnetic number in L
+    (anisotropic, <G12> = 0.137: a single state |j' m'> has <G12> = 0) the first two moments
+    of the G12 density equal <G12> and <G12^2> computed as matrix elements by the transitions'
+    expansion in Wigner D functions (an independent route)."""
+    U = HBAR / (2 * INERTIA * math.sqrt(K / INERTIA))
+    ground, _ = multiplet_state(oscillator3, 0)
+    pair_list = green3.pairs([(1.0, np.ones(1), [ground])])
+    bounds = green3.support("lebesgue3", pair_list)
+    y = np.array([-1.0, 0.0, 0.2, 0.5, 2.0])
+    with np.errstate(invalid="ignore"):
+        exact = np.where(y == 0, 1 / (math.pi * U), np.abs(y) * special.k1(np.abs(y) / U)
+                         / (math.pi * U**2))
+    p = green3.offdiagonal_density(pair_list, "lebesgue3", (0, 1), y, green3.OFF_RULES[1],
+                                   bounds)
+    np.testing.assert_allclose(p, exact, rtol=2e-4)  # 3e-5 measured
+    for axes in ((0, 2), (1, 2)):
+        p = green3.offdiagonal_density(pair_list, "lebesgue3", axes, y[[0, 3]],
+                                       green3.OFF_RULES[0], bounds)
+        np.testing.assert_allclose(p, exact[[0, 3]], rtol=1e-3)
+    picked = [multiplet_state(oscillator3, k) for k in (1, 2, 3)]  # (1, 1), one m, three m'
+    states, w = [state for state, _ in picked], picked[0][1]
+    amplitudes = np.array([1.0, 0.5 + 0.4j, -0.3j]) / math.sqrt(1.5)
+    pair_list = green3.pairs([(1.0, amplitudes, states)])
+    bounds = green3.support("lebesgue3", pair_list)
+    u, wu = np.polynomial.legendre.leggauss(8)
+    u, wu = (u + 1) / 2, wu / 2
+    y = np.concatenate([-6 * u[::-1] ** 2, 6 * u**2])
+    wy = np.concatenate([12 * (u * wu)[::-1], 12 * u * wu])
+    p = green3.offdiagonal_density(pair_list, "lebesgue3", (0, 1), y, (6, 4, 32, 10), bounds)
+    # psi = sum_k a_k sqrt(d) u_k^H D(L) F D(R)^T conj(v_k): coefficients conj(u_k (x) v_k)
+    c = sum(a * np.kron(s.u, s.v).conj() for a, s in zip(amplitudes, states, strict=True))
+    Q = level_states(oscillator3).Q
+    assert abs(np.sum(wy * p) - 1) < 2e-3  # the tails beyond |y| = 6 left out: 1.2e-3 measured
+    for power, tolerance in ((1, 2e-3), (2, 3e-3)):  # 9e-4, 1e-3 measured
+        op = Operator(f"G12**{power}", 3)
+        moments = np.einsum("p,pt,pbd,pBD->tbdBD", w, op.radial(Q), states[0].F, states[0].F)
+        M = reduced_matrix(op.expansion, moments, (1, 1), (1, 1))
+        element = (states[0].sector.dimension * c.conj() @ M @ c).real
+        assert abs(element) > 0.1
+        assert abs(np.sum(wy * y**power * p) - element) < tolerance * abs(element)
+
+
 def test_density_command_n3_green_components(tmp_path):
-    """--g-components for n = 3: orientation.json holds the density of G33 of the thermal
-    mixture at low T (the ground state's: U x chi-square(3), integral ~1 on the coarse grid);
-    off-diagonal or too many points: one line, exit 1."""
+    """--g-components for n = 3: orientation.json holds the densities of G33 and G12 of the
+    thermal mixture at low T (the ground state's: U x chi-square(3) and the variance-gamma law
+    |y| K_1(|y|/U)/(pi U^2), the latter symmetric under y -> -y as the mixture is isotropic);
+    an unknown component or too many points: one line, exit 1."""
     path = tmp_path / "osc3.toml"
     path.write_text(CONFIG3)
     out = tmp_path / "g"
     result = CliRunner().invoke(density, [str(path), "--temperature", "0.03", "--g-components",
-                                          "G33", "-o", str(out)])
+                                          "G33,G12", "-o", str(out)])
     assert result.exit_code == 0, result.output
     doc = json.loads((out / "orientation.json").read_text())
     g = doc["densities"]["G33"]
@@ -370,7 +422,16 @@ def test_density_command_n3_green_components(tmp_path):
     y = np.array(g["x"])
     exact = np.sqrt(y) * np.exp(-y / (2 * U)) / (math.gamma(1.5) * (2 * U) ** 1.5)
     np.testing.assert_allclose(g["density"], exact, atol=1e-4 * exact.max())
-    for args, needle in ((["--g-components", "G12"], "diagonal components"),
+    g = doc["densities"]["G12"]
+    y, p = np.array(g["x"]), np.array(g["density"])
+    assert y[5] == 0 and g["converged"] and not doc["warnings"]
+    assert abs(g["integral"] - 1) < 0.05  # 11 points across the cusp-like peak: 1.03
+    np.testing.assert_allclose(p, p[::-1], rtol=1e-12)
+    with np.errstate(invalid="ignore"):
+        exact = np.where(y == 0, 1 / (math.pi * U), np.abs(y) * special.k1(np.abs(y) / U)
+                         / (math.pi * U**2))
+    np.testing.assert_allclose(p, exact, atol=1e-4 * exact.max())
+    for args, needle in ((["--g-components", "G21"], "not computed"),
                          (["--g-components", "G11,G22,G33", "--superpose", "1:1"], None)):
         if needle is None:
             path.write_text(CONFIG3.replace("density_points = 11", "density_points = 60"))

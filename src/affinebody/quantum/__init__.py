@@ -24,8 +24,8 @@ Layers, bottom to top (no module imports one above it; only core and kinematics 
 - :mod:`.transitions`  matrix elements of configuration operators between levels, reduced
                        strengths, selection rules (docs/quantum-transitions.md).
 - :mod:`.orientations3`, :mod:`.green3`: n = 3 orientation densities of states,
-                       superpositions and thermal mixtures; densities of the diagonal
-                       components of G.
+                       superpositions and thermal mixtures; densities of the components
+                       of G (diagonal and off-diagonal).
 - :mod:`.evolution`    exact evolution of an n = 2 wave packet: the sector (0, 0), or a Gaussian
                        in phi around a classical (phi, pi) over every sector it populates.
 - :mod:`.evolution3`   exact evolution of an n = 3 wave packet of the sector (0, 0).

@@ -18,7 +18,7 @@ sectors; a sector search stopped by max_spin), also printed under the table.
 ``--superpose 0:1,8:0.5j`` or ``--temperature T`` instead of ``--state``: the orientation
 densities only, orientation.json / .npz / .png; n = 3: rotation angles and principal-axis
 directions of the state, superposition or thermal mixture, quantum.orientations3, and with
---g-components G11,G33 the densities of those diagonal components of G, quantum.green3): the
+--g-components G11,G12 the densities of those components of G, quantum.green3): the
 exact marginal densities of the invariants (Q_a or q_a, det phi, Tr G) and of the orientations
 for the k-th state (0-based), each with a quadrature error estimate, written as densities.npz,
 densities.json and one PNG per density; with --json the same JSON object (arrays included) on
@@ -146,7 +146,7 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
 @click.option("--temperature", type=float, default=None,
               help="orientation densities of the thermal mixture at T (k_B = 1)")
 @click.option("--g-components", "g_components", default=None,
-              help="n = 3: also the densities of these diagonal components of G, e.g. G11,G33 "
+              help="n = 3: also the densities of these components of G, e.g. G11,G33,G12 "
                    "(about a second per point each)")
 @one_line_errors
 def density(config: str, state: int | None, output: str, as_json: bool, orientation: bool,

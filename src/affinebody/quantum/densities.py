@@ -383,7 +383,8 @@ def _marginals3(joint: Joint) -> dict:
             # sphere |Q|^2 = y through the chamber: Q = rho Z/|Z|, Z on the flat triangle
             # e1, (1,1,1), (1,1,-1) (area coordinates a = s, b = (1 - s) t), d omega =
             # 2 da db / |Z|^3; p = (rho / 2) int p(rho omega) d omega
-            Z, dom = _triangle(s, t, np.array([[1.0, 0, 0], [1, 1, 1], [1, 1, -1]]), 2.0)
+            Z, dom = projected_triangle(s, t, np.array([[1.0, 0, 0], [1, 1, 1], [1, 1, -1]]),
+                                        2.0)
             rho = np.sqrt(np.maximum(Y, 0.0))
             return rho[..., None] * Z, rho / 2 * dom
 
@@ -420,7 +421,7 @@ def _marginals3(joint: Joint) -> dict:
         def trg(Y, s, t):
             # Q = e^q on Q1 > Q2 > Q3 > 0: Q = rho Z/|Z| on the flat triangle e1, (1,1,0),
             # (1,1,1) (d omega = da db / |Z|^3), dq = dQ / (Q1 Q2 Q3), |Q|^2 = y
-            Z, dom = _triangle(s, t, np.array([[1.0, 0, 0], [1, 1, 0], [1, 1, 1]]), 1.0)
+            Z, dom = projected_triangle(s, t, np.array([[1.0, 0, 0], [1, 1, 0], [1, 1, 1]]), 1.0)
             rho = np.sqrt(Y)
             Q = rho[..., None] * Z
             with np.errstate(divide="ignore"):
@@ -438,7 +439,7 @@ def _stack(a, b, c):
     return np.stack([a, b, c], -1)
 
 
-def _triangle(s, t, vertices: np.ndarray, volume: float):
+def projected_triangle(s, t, vertices: np.ndarray, volume: float):
     """Unit vectors over the central projection of the flat triangle ``vertices`` (Duffy map:
     area coordinates a = s, b = (1 - s) t) and the solid-angle Jacobian volume (1 - s) / |Z|^3
     (``volume`` = |det vertices|)."""
@@ -929,5 +930,5 @@ __all__ = [
     "joint_density", "Marginal", "density_at", "densities", "marginal_densities", "orientation",
     "ORIENTATION_NODES", "G_TOLERANCE", "G_COMPONENTS", "PureState", "sector_joint",
     "state_components", "pure_state", "thermal_states", "angle_densities", "g_component_densities",
-    "orientation_densities"
+    "orientation_densities", "projected_triangle"
 ]

@@ -1,6 +1,6 @@
-"""Densities of the diagonal components G_aa of the Green tensor G = phi^T phi = R diag(Q^2) R^T
-of an n = 3 state, superposition or thermal mixture (paper, last section; docs/theory/
-densities.md, "Components of G (n = 3)").
+"""Densities of the components G_ab of the Green tensor G = phi^T phi = R diag(Q^2) R^T of an
+n = 3 state, superposition or thermal mixture (paper, last section; docs/theory/densities.md,
+"Components of G (n = 3)").
 
 Integrating |Psi|^2 over L (Schur orthogonality, as for the orientation of R in
 quantum.orientations3) leaves, per unit of the Haar measure of R and of the reduced measure,
@@ -29,6 +29,18 @@ sqrt((A - P0_3)(A - g))), both theta and pi - theta), so the radial profile of t
 integrated in its own variable; t = t_A + v^2 removes the square-root end point at g = A.
 Gauss-Legendre in v and in the chamber coordinates, the trapezoid rule in phi; two rules of
 increasing size are compared (``error``).
+
+Off-diagonal G_ab = u^T P v (u, v rows a, b of R, :func:`offdiagonal_density`): the same scale
+trick (G_ab = e^{s/kappa} g0, s* = kappa ln(y/g0) for g0 of y's sign, factor kappa/|y|), with
+R^T = F(u) R_3(psi) S_a (u anywhere on the sphere, F(u) any rotation taking e_3 to u): g0 =
+b cos(psi' - gamma) and the twist psi no longer drops out, but its two roots are summed
+exactly, 2 e^{i dm (gamma - c_b)} T_|dm|(g0/b) for each difference dm = m - m' of magnetic
+numbers (T the Chebyshev polynomials), so psi is traded for the scale (|dpsi| = |dg0| /
+sqrt(b^2 - g0^2)). b(u) vanishes only on the axes u = +-e_k (b ~ distance, an integrable 1/b
+at y = 0): the sphere rule (:func:`octant_sphere`) is Duffy-mapped to them and graded towards
+them, which keeps the density finite and the rule convergent down to y = 0. The scale
+integral depends on u only through b; it is tabulated per chamber direction on a grid in ln b
+and interpolated to the sphere's nodes.
 """
 
 from __future__ import annotations
@@ -41,13 +53,30 @@ import numpy as np
 
 from affinebody.quantum import covariants3 as cov
 from affinebody.quantum.channels3 import ChamberQuadrature
-from affinebody.quantum.densities import Marginal
+from affinebody.quantum.densities import Marginal, projected_triangle
 from affinebody.quantum.tensor_operators3 import wigner
 
 #: (chamber nodes per coordinate, points in phi, Gauss nodes in v) of the two rules compared
 RULES = ((10, 48, 24), (12, 64, 30))
-#: the components reported
+#: the diagonal components
 COMPONENTS = ("G11", "G22", "G33")
+#: the off-diagonal components (:func:`offdiagonal_density`)
+OFF_DIAGONAL = ("G12", "G13", "G23")
+#: (chamber nodes per coordinate, sphere nodes per triangle side, table nodes in ln b, v nodes)
+#: of the two rules compared for the off-diagonal components
+OFF_RULES = ((8, 6, 64, 12), (10, 8, 96, 16))
+#: the chamber nodes of the two rules for the affine models (whose chamber directions need more:
+#: 8, 10, 12, 14 nodes change the af-is ground state's G12 density by 1e-2, 9e-4, 1.5e-4 x peak)
+OFF_AFFINE_DIRECTIONS = (12, 14)
+#: the off-diagonal scale integral is tabulated down to e^{-SPAN} x the largest b (below, b K
+#: is held at its last value: the contribution of those nodes is O(e^{-SPAN}))
+SPAN = 12.0
+#: default tolerance (x the peak) of the off-diagonal densities: near y = 0 the integrand
+#: gathers at the axes of the chamber's directions that are close to its walls, where the rules
+#: converge slowly (about 1e-3 of the peak at y = 0 for an anisotropic state)
+OFF_TOLERANCE = 2e-3
+#: panels of the sphere rule towards each axis (distance 1, 1/10, ..., 10^-GRADES, 0)
+GRADES = 2
 #: default tolerance (x the peak) of the difference between the two rules (the integrand has
 #: square-root end points on the walls of the chamber: the rules converge algebraically)
 TOLERANCE = 1e-4
@@ -115,22 +144,26 @@ def pairs(mixture, floor: float = 1e-3 * TOLERANCE) -> list[Pair]:
                  tuple(v)) for sk, sl, v in found.values()]
 
 
-def _twist_weights(pair: Pair, axis: int) -> np.ndarray:
-    """W[m] for the common magnetic numbers m of the two sides: sum c alpha_k,m conj(alpha_l,m),
-    alpha = v^T D(S_a^T) U (the twist average keeps equal m)."""
+def weight_matrix(pair: Pair, axis: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(W, m_k, m_l): W[m, m'] = sum c alpha_k,m conj(alpha_l,m') over the pair's vectors,
+    alpha = v^T D(S_a^T) U (U: the magnetic eigenvectors along the third axis), so that
+    v_k^T D(R) = sum_m alpha_k,m e^{i m psi} (row m after the twist psi of R = S_a^T
+    (... R_3(psi))^T), and the magnetic numbers of the two sides."""
     mk, Uk = _magnetic(pair.jp_k)
     ml, Ul = _magnetic(pair.jp_l)
-
     Sk = wigner(pair.jp_k, _TO_THIRD[axis].T)  # D(S_a^T)
     Sl = wigner(pair.jp_l, _TO_THIRD[axis].T)
-    out = {}
+    W = np.zeros((len(mk), len(ml)), complex)
     for c, vk, vl in pair.vectors:
-        ak, al = vk @ Sk @ Uk, vl @ Sl @ Ul
-        for i, m in enumerate(np.round(mk).astype(int)):
-            jl = np.flatnonzero(np.round(ml).astype(int) == m)
-            if len(jl):
-                out[m] = out.get(m, 0.0) + c * ak[i] * np.conj(al[jl[0]])
-    return out
+        W += c * np.outer(vk @ Sk @ Uk, np.conj(vl @ Sl @ Ul))
+    return W, np.round(mk).astype(int), np.round(ml).astype(int)
+
+
+def _twist_weights(pair: Pair, axis: int) -> dict[int, complex]:
+    """W[m] for the common magnetic numbers m of the two sides (the twist average keeps equal
+    m): the diagonal of :func:`weight_matrix`."""
+    W, mk, ml = weight_matrix(pair, axis)
+    return {int(m): W[i, j] for i, m in enumerate(mk) for j in np.flatnonzero(ml == m)}
 
 
 def _rows(j: int, theta: np.ndarray, phi: np.ndarray) -> dict[int, np.ndarray]:
@@ -142,6 +175,20 @@ def _rows(j: int, theta: np.ndarray, phi: np.ndarray) -> dict[int, np.ndarray]:
     left = U.conj().T @ _exp(j, 1, theta)  # U^H D(R_2(-theta)) [N, phi, V, m, c]
     rows = left @ _exp(j, 0, -phi)[None, :, None]  # ... D(R_3(-phi))
     return {int(round(mm)): rows[..., i, :] for i, mm in enumerate(m)}
+
+
+def _amplitudes(pair_list, x: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[(F_k, F_l) per pair] at the reduced coordinates x [..., 3], each amplitude evaluated
+    once."""
+    flat = x.reshape(-1, 3)
+    F, cache = [], {}
+    for pair in pair_list:
+        for amplitude in (pair.amplitude_k, pair.amplitude_l):
+            if id(amplitude) not in cache:
+                values = np.asarray(amplitude(flat))
+                cache[id(amplitude)] = values.reshape(*x.shape[:-1], *values.shape[1:])
+        F.append((cache[id(pair.amplitude_k)], cache[id(pair.amplitude_l)]))
+    return F
 
 
 def _rho(pair_list, weights, F, theta, phi) -> np.ndarray:
@@ -200,11 +247,13 @@ def directions(model: str, n: int, r_max: float) -> Directions:
     return Directions(model, q, w, np.exp(2 * q), 1.5, 0.0)
 
 
-def support(model: str, pair_list) -> tuple[float, float, float, float]:
-    """(s_lo, s_hi, r_max, trg): the scale range (and, affine, the traceless radius) outside
-    which the mixture has less than 1e-14 of its largest density, and the Tr G below which
-    all but 1e-10 of its mass lies, from a coarse scan of |Psi|^2 (the scale grid's mass
-    summed over the directions)."""
+def support(model: str, pair_list) -> tuple[float, float, float, float, float, float]:
+    """(s_lo, s_hi, r_max, trg, spread, median): the scale range (and, affine, the traceless
+    radius) outside which the mixture has less than 1e-14 of its largest density, the Tr G
+    below which all but 1e-10 of its mass lies, the (P_max - P_min)/2 (>= |G_ab|, a != b)
+    below which all but 1e-6 lies (a bound, so the tail of G_ab beyond it holds less still) and
+    its median, from a coarse scan of |Psi|^2 (the scale grid's mass summed over the
+    directions)."""
     if model == "lebesgue3":
         dirs, s = directions(model, 6, 1.0), np.linspace(-8.0, 4.0, 241)
     else:
@@ -222,11 +271,14 @@ def support(model: str, pair_list) -> tuple[float, float, float, float]:
     if model != "lebesgue3":
         radius = np.linalg.norm(dirs.x0, axis=-1)
         r_max = float(min(radius[keep.any(0)].max() * 1.25 + 0.5, 12.0))
-    trg = (np.exp(s / dirs.kappa)[:, None] * np.sum(dirs.P0, -1)[None, :]).ravel()
-    order = np.argsort(trg)
-    below = np.cumsum(mass.ravel()[order]) / mass.sum()
-    top = float(trg[order][min(np.searchsorted(below, 1 - 1e-10), len(order) - 1)])
-    return float(lo), float(hi), r_max, top
+    tops = []
+    spread = (dirs.P0.max(-1) - dirs.P0.min(-1)) / 2
+    for g, level in ((np.sum(dirs.P0, -1), 1 - 1e-10), (spread, 1 - 1e-6), (spread, 0.5)):
+        value = (np.exp(s / dirs.kappa)[:, None] * g[None, :]).ravel()
+        order = np.argsort(value)
+        below = np.cumsum(mass.ravel()[order]) / mass.sum()
+        tops.append(float(value[order][min(np.searchsorted(below, level), len(order) - 1)]))
+    return float(lo), float(hi), r_max, *tops
 
 
 def diagonal_density(pair_list, model: str, axis: int, y: np.ndarray, rule: tuple,
@@ -263,47 +315,216 @@ def diagonal_density(pair_list, model: str, axis: int, y: np.ndarray, rule: tupl
                 (A - P3)[..., None] * gap)), 0.0)
         sin2 = np.clip((g - P3[..., None]) / np.where(A > P3, A - P3, 1.0)[..., None], 0, 1)
         theta = np.arcsin(np.sqrt(sin2))
-        x = dirs.at_nodes(t)
-        flat = x.reshape(-1, 3)
-        F, cache = [], {}
-        for pair in pair_list:
-            for amplitude in (pair.amplitude_k, pair.amplitude_l):
-                if id(amplitude) not in cache:
-                    values = np.asarray(amplitude(flat))
-                    cache[id(amplitude)] = values.reshape(*x.shape[:-1], *values.shape[1:])
-            F.append((cache[id(pair.amplitude_k)], cache[id(pair.amplitude_l)]))
+        F = _amplitudes(pair_list, dirs.at_nodes(t))
         rho = _rho(pair_list, W, F, theta, phi) + _rho(pair_list, W, F, np.pi - theta, phi)
         integrand = rho * jac * np.exp(dirs.power * t) * wvv * ok[..., None]
         out[n] = np.einsum("i,ipv->", dirs.weights, integrand) / (2 * n_phi)
     return out * kappa / np.abs(y)
 
 
+@cache
+def octant_sphere(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u [P, 3], weights [P] summing to 1, frames F [P, 3, 3] with F e_3 = u): a rule on the
+    unit sphere whose nodes crowd towards the six axes +-e_k. Each octant is the central
+    projection of its flat triangle, cut into six triangles (a corner e_k, the midpoint of an
+    edge through it, the centroid), each Duffy-mapped with the corner as the collapsed side
+    (densities.projected_triangle), so a 1/|u - e_k| integrand is smooth in the rule's
+    coordinates; n Gauss-Legendre nodes across and, towards the corner, in rho = 1 - s on the
+    panels [1/10, 1] (n nodes), [1/100, 1/10], ..., [0, 10^-GRADES] (n/2 nodes each), which
+    resolve the feature of size ~|y| that b K(b) has near the axes at small |y|."""
+    x, w = np.polynomial.legendre.leggauss(n)
+    x, w = (x + 1) / 2, w / 2
+    edges = np.concatenate([10.0 ** -np.arange(GRADES + 1), [0.0]])  # rho = 1 - s panels
+    xs, ws = np.polynomial.legendre.leggauss(max(2, n // 2))  # the small panels
+    xs, ws = (xs + 1) / 2, ws / 2
+    panels = [(x, w) if i == 0 else (xs, ws) for i in range(GRADES + 1)]
+    rho = np.concatenate([hi + (lo - hi) * xp for (xp, _), hi, lo in
+                          zip(panels, edges[:-1], edges[1:], strict=True)])
+    w_rho = np.concatenate([(hi - lo) * wp for (_, wp), hi, lo in
+                            zip(panels, edges[:-1], edges[1:], strict=True)])
+    S, T = np.meshgrid(1 - rho, x, indexing="ij")
+    weights = np.outer(w_rho, w)
+    eye, centre = np.eye(3), np.full(3, 1 / 3)
+    nodes, rule = [], []
+    for k in range(3):
+        for j in range(3):
+            if j != k:
+                vertices = np.array([eye[k], (eye[k] + eye[j]) / 2, centre])
+                u, dom = projected_triangle(S, T, vertices, abs(np.linalg.det(vertices)))
+                nodes.append(u.reshape(-1, 3))
+                rule.append((weights * dom).ravel())
+    u, w = np.concatenate(nodes), np.concatenate(rule)
+    signs = np.array([[a, b, c] for a in (1, -1) for b in (1, -1) for c in (1, -1)], float)
+    u = (signs[:, None, :] * u[None]).reshape(-1, 3)
+    w = np.tile(w, len(signs))
+    helper = np.eye(3)[np.argmin(np.abs(u), axis=1)]
+    e1 = np.cross(helper, u)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return u, w / w.sum(), np.stack([e1, np.cross(u, e1), u], -1)
+
+
+def _scale_nodes(dirs: Directions, value: float, b: np.ndarray, bounds: tuple, xv, wv):
+    """(t, g0/b, weight) [..., V] for |G_ab| = y: the scale t = s* of the chamber point along
+    each branch of the twist, g0 = y e^{-t/kappa}, and the weight dt / sqrt(b^2 - g0^2) x the
+    Gauss weight (zero where the range is empty), at the amplitudes b [...] of g0 over the
+    twist. d'Alembert: z = e^{t/kappa} (the scale of G) = z_b + v^2 from z_b = |y|/b, so
+    dt / sqrt(b^2 - g0^2) = 2 kappa dv / (b sqrt(z + z_b)) (the square-root end point removed,
+    and z itself the variable when z_b -> 0: the profile is a polynomial in |Q| times a
+    Gaussian); affine models: t = t_b + v^2 (t_b = kappa ln(|y|/b)) within the support."""
+    lo, hi = bounds[:2]
+    kappa = dirs.kappa
+    b = np.maximum(b, 1e-300)[..., None]
+    sign = 1.0 if value >= 0 else -1.0
+    if dirs.model == "lebesgue3":
+        z_b = abs(value) / b
+        z_hi = math.exp(hi / kappa)
+        v1 = np.sqrt(np.maximum(z_hi - z_b, 0.0))
+        v = v1 * (xv + 1) / 2
+        z = z_b + v * v
+        with np.errstate(divide="ignore"):
+            t = kappa * np.log(z)
+        return t, sign * z_b / z, 2 * kappa * v1 * wv / 2 / (b * np.sqrt(z + z_b))
+    if value == 0:
+        t = np.broadcast_to(lo + (hi - lo) * (xv + 1) / 2, b.shape[:-1] + xv.shape)
+        return t, np.zeros_like(t), (hi - lo) * wv / 2 / b
+    t_b = kappa * np.log(abs(value) / b)
+    start = np.maximum(t_b, lo)
+    ok = hi > start
+    v0 = np.sqrt(np.where(ok, start - t_b, 0.0))
+    v1 = np.sqrt(np.where(ok, hi - t_b, 0.0))
+    v = v0 + (v1 - v0) * (xv + 1) / 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        weight = np.where(ok, (v1 - v0) * wv / 2 * 2 * v / (
+            b * np.sqrt(-np.expm1(-2 * v * v / kappa))), 0.0)
+    return t_b + v * v, sign * np.exp(-v * v / kappa), weight
+
+
+def offdiagonal_density(pair_list, model: str, axes: tuple[int, int], y: np.ndarray,
+                        rule: tuple, bounds: tuple) -> np.ndarray:
+    """The density of G_ab (a, b = ``axes``, a != b) at the values y with the rule (chamber
+    nodes, sphere nodes per triangle side, table nodes in ln b, v nodes) (module docstring).
+
+    R^T = F(u) R_3(psi) S_a with S_a e_a = e_3 and F(u) e_3 = u (:func:`octant_sphere`), so
+    u = R^T e_a, v = R^T e_b = cos psi' e1(u) + sin psi' e2(u) (psi' = psi + c_b) and
+    g0 = u^T P0 v = b cos(psi' - gamma), b e^{i gamma} = u^T P0 (e1 + i e2). The two roots
+    psi' = gamma +- arccos(g0/b) of G_ab = y give sum e^{i dm psi} = 2 e^{i dm (gamma - c_b)}
+    T_|dm|(g0/b) for the magnetic numbers dm = m - m' of the rotation factor. The scale
+    integral depends on u only through b: per chamber direction it is tabulated as b K_dm(b)
+    on a uniform grid in ln b (from the b below which G_ab = y is out of reach, at most
+    :data:`SPAN` below the largest b, (P0_max - P0_min)/2) and interpolated (cubic) to the
+    sphere's nodes."""
+    a, b_axis = axes
+    n_dir, n_sphere, n_b, n_v = rule
+    dirs = directions(model, n_dir, bounds[2])
+    e = _TO_THIRD[a] @ np.eye(3)[b_axis]
+    c_b = math.atan2(e[1], e[0])
+    u, wu, frames = octant_sphere(n_sphere)
+    xv, wv = np.polynomial.legendre.leggauss(n_v)
+    H = []  # per pair: (dm values, sum over m - m' = dm of W row_k (x) conj(row_l)) [P, dm, d, e]
+    for pair in pair_list:
+        W, mk, ml = weight_matrix(pair, a)
+        rows = {j: _magnetic(j)[1].conj().T @ wigner(j, np.swapaxes(frames, -1, -2))
+                for j in {pair.jp_k, pair.jp_l}}
+        dm = np.subtract.outer(mk, ml)
+        deltas = np.unique(dm)
+        Wd = np.stack([np.where(dm == d, W * np.exp(-1j * d * c_b), 0) for d in deltas])
+        H.append((deltas, np.einsum("Dmn,pmd,pne->pDde", Wd, rows[pair.jp_k],
+                                    rows[pair.jp_l].conj())))
+    P0u = dirs.P0[:, None, :] * u  # [N, P, 3]
+    zc = np.sum(P0u * frames[..., 0], -1) + 1j * np.sum(P0u * frames[..., 1], -1)
+    b = np.maximum(np.abs(zc), 1e-300)
+    gamma, log_b = np.angle(zc), np.log(b)
+    measure = wu / b * dirs.weights[:, None]  # [N, P]
+    top = np.log((dirs.P0.max(1) - dirs.P0.min(1)) / 2)
+    z_hi = math.exp(bounds[1] / dirs.kappa)
+    out = np.zeros(len(y))
+    for n, value in enumerate(np.asarray(y, float)):
+        bottom = top - SPAN if value == 0 else np.maximum(math.log(abs(value) / z_hi), top - SPAN)
+        live = bottom < top
+        bottom = np.where(live, bottom, top - 1)
+        step = (top - bottom) / (n_b - 1)
+        grid = bottom[:, None] + step[:, None] * np.arange(n_b)  # [N, B]
+        t, ratio, weight = _scale_nodes(dirs, value, np.exp(grid), bounds, xv, wv)
+        weight = weight * np.exp((dirs.power - 1 / dirs.kappa) * t + grid[..., None]) \
+            * live[:, None, None]
+        turn = np.arccos(np.clip(ratio, -1.0, 1.0))
+        q = np.clip((log_b - bottom[:, None]) / step[:, None], 0, n_b - 1)  # [N, P]
+        i0 = np.clip(np.floor(q).astype(int) - 1, 0, n_b - 4)
+        f = q - i0
+        lagrange = np.stack([-(f - 1) * (f - 2) * (f - 3) / 6, f * (f - 2) * (f - 3) / 2,
+                             -f * (f - 1) * (f - 3) / 2, f * (f - 1) * (f - 2) / 6], -1)
+        for (deltas, h), (Fk, Fl) in zip(H, _amplitudes(pair_list, dirs.at_nodes(t)),
+                                         strict=True):
+            M = np.swapaxes(Fk, -1, -2) @ Fl  # [N, B, V, d, e], real (real amplitudes)
+            K = np.einsum("nbv,nbvD,nbvde->nbDde", weight,
+                          2 * np.cos(np.abs(deltas) * turn[..., None]), M)
+            K = K.reshape(len(K), n_b, -1)
+            hr, hi = (part.reshape(len(u), len(deltas), -1) for part in (h.real, h.imag))
+            for i in np.flatnonzero(live):  # b K at the sphere's b [P, dm, d e]
+                Kp = np.einsum("pj,pjx->px", lagrange[i], K[i][i0[i, :, None] + np.arange(4)])
+                Kp = Kp.reshape(hr.shape)
+                phase = deltas * gamma[i, :, None]
+                G = np.cos(phase) * np.einsum("pDx,pDx->pD", hr, Kp) \
+                    - np.sin(phase) * np.einsum("pDx,pDx->pD", hi, Kp)
+                out[n] += measure[i] @ np.sum(G, -1)
+    return out / (2 * np.pi)
+
+
+def component_axes(name: str) -> tuple[int, int]:
+    """(a, b), 0-based, of a component name G11 .. G23 (:data:`COMPONENTS`,
+    :data:`OFF_DIAGONAL`)."""
+    if name not in COMPONENTS + OFF_DIAGONAL:
+        raise ValueError(f"n = 3: densities of {name} are not computed (the components "
+                         f"{', '.join(COMPONENTS + OFF_DIAGONAL)})")
+    return int(name[1]) - 1, int(name[2]) - 1
+
+
 def g_densities3(spectrum, mixture, points: int = 51, tolerance: float = TOLERANCE,
-                 components=COMPONENTS) -> dict[str, Marginal]:
-    """Densities of the diagonal ``components`` of G for a mixture [(probability,
-    amplitudes, [MultipletState])] (quantum.orientations3) of an n = 3 spectrum on
-    ``points`` values in (0, max Tr G], each with the difference between the two rules of
-    :data:`RULES` as its error; ``integral``: by the trapezoid rule over the points (from
-    y = 0, where the density vanishes)."""
+                 components=COMPONENTS, off_tolerance: float = OFF_TOLERANCE
+                 ) -> dict[str, Marginal]:
+    """Densities of the ``components`` of G for a mixture [(probability, amplitudes,
+    [MultipletState])] (quantum.orientations3) of an n = 3 spectrum, each with the difference
+    between the two rules of :data:`RULES` (diagonal) or :data:`OFF_RULES` (off-diagonal) as
+    its error, flagged unconverged above ``tolerance`` (``off_tolerance`` for the
+    off-diagonal ones) x the peak. Diagonal: ``points`` values in (0, max Tr G], ``integral``
+    by the trapezoid rule over them (from y = 0, where the density vanishes); off-diagonal:
+    ``points`` values y = c sinh(xi) in [-m, m] (xi uniform, m = max (P_max - P_min)/2, c its
+    median: :func:`support`), ``integral`` by the trapezoid rule in xi."""
     model = "lebesgue3" if spectrum.model == "dalembert" else "haar3"
     pair_list = pairs(mixture)
     bounds = support(model, pair_list)
-    y = np.linspace(0.0, bounds[3], points + 1)[1:]
     out = {}
     for name in components:
-        if name not in COMPONENTS:
-            raise ValueError(f"n = 3: densities of {name} are not computed (only the diagonal "
-                             f"components {', '.join(COMPONENTS)})")
-        axis = int(name[1]) - 1
-        first, second = (diagonal_density(pair_list, model, axis, y, rule, bounds)
-                         for rule in RULES)
+        a, b = component_axes(name)
+        if a == b:
+            y = np.linspace(0.0, bounds[3], points + 1)[1:]
+            first, second = (diagonal_density(pair_list, model, a, y, rule, bounds)
+                             for rule in RULES)
+            limit, nodes = tolerance, RULES[-1][2]
+        else:
+            # y = c sinh(xi), xi uniform and symmetric (y = 0 exactly for an odd count), c the
+            # median bound: points gather at the peak and still reach the tails
+            c = bounds[5]
+            xi = math.asinh(bounds[4] / c) * (2 * np.arange(points) - points + 1) / (points - 1)
+            y = c * np.sinh(xi)
+            rules = OFF_RULES if model == "lebesgue3" else tuple(
+                (n, *rule[1:]) for n, rule in zip(OFF_AFFINE_DIRECTIONS, OFF_RULES, strict=True))
+            first, second = (offdiagonal_density(pair_list, model, (a, b), y, rule, bounds)
+                             for rule in rules)
+            limit, nodes = off_tolerance, rules[-1][3]
         err = float(np.max(np.abs(second - first)))
-        integral = float(np.sum((second[1:] + second[:-1]) * np.diff(y)) / 2
-                         + y[0] * second[0] / 2)
-        out[name] = Marginal(y, second, err, integral, RULES[-1][2],
-                             bool(err <= tolerance * np.max(np.abs(second))))
+        if a == b:
+            integral = float(np.sum((second[1:] + second[:-1]) * np.diff(y)) / 2
+                             + y[0] * second[0] / 2)
+        else:  # the trapezoid rule in xi, dy = c cosh(xi) dxi
+            f = second * c * np.cosh(xi)
+            integral = float(np.sum(f[1:] + f[:-1]) * (xi[1] - xi[0]) / 2)
+        out[name] = Marginal(y, second, err, integral, nodes,
+                             bool(err <= limit * np.max(np.abs(second))))
     return out
 
 
-__all__ = ["RULES", "COMPONENTS", "TOLERANCE", "Pair", "pairs", "Directions", "directions",
-           "support", "diagonal_density", "g_densities3"]
+__all__ = ["RULES", "COMPONENTS", "TOLERANCE", "OFF_DIAGONAL", "OFF_RULES",
+           "OFF_AFFINE_DIRECTIONS", "OFF_TOLERANCE", "SPAN", "GRADES", "Pair", "pairs",
+           "weight_matrix", "Directions", "directions", "support", "diagonal_density",
+           "octant_sphere", "offdiagonal_density", "component_axes", "g_densities3"]
