@@ -9,7 +9,11 @@ product, median of repeated calls after one warm-up (compile excluded, reported 
 - ``list build``: a full neighbour-list build (``neighbors.build``);
 - ``list check``: the displacement test run every step (``neighbors.needs_rebuild``);
 - ``step``: one whole integrator step as the loop runs it (``affinebody run``'s summary line
-  over a longer run is the reference; this isolates one step).
+  over a longer run is the reference; this isolates one step);
+- ``loop``: ``simulate.run`` (what ``affinebody run`` compiles) over ``--loop-steps`` steps with
+  two frames, per step (median of three runs after a warm-up), and the time spent inside the
+  host kernels' callbacks in it (pair forces, drift; wall time of the callbacks, summed):
+  the rest of a step runs in XLA on one thread.
 
 ``--pair-chunks`` and ``--candidate-chunks`` time the forces and the build at other pass sizes
 of the JAX kernels (how ``pair_kernels.ACCELERATOR_PAIR_CHUNK`` and
@@ -55,6 +59,8 @@ def main() -> None:
                         help="log2 of pair-kernel pass sizes to compare")
     parser.add_argument("--candidate-chunks", type=int, nargs="*", default=[],
                         help="log2 of list-build pass sizes to compare")
+    parser.add_argument("--loop-steps", type=int, default=200,
+                        help="steps of the simulate.run loop timed (0: skip it)")
     args = parser.parse_args()
 
     import jax
@@ -104,6 +110,44 @@ def main() -> None:
         return method.advance(system, s, f, config.run.dt, spec, lst)
 
     report("step (kick, drift, list, forces)", *timed(step, state, f0))
+    if args.loop_steps:
+        loop(system, state, config.run.dt, built.neighbors, args.loop_steps)
+
+
+def loop(system, state, dt, neighbors, steps: int) -> None:
+    """Per step of ``simulate.run`` over ``steps`` steps, and the part of it spent inside the
+    host kernels' callbacks (on a CPU with Numba)."""
+    from affinebody import kinetic, pair_kernels, simulate
+
+    inside: dict[str, float] = {}
+
+    def clocked(module, name, label):
+        kernel = getattr(module, name)
+
+        def run(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return kernel(*args, **kwargs)
+            finally:
+                inside[label] = inside.get(label, 0.0) + time.perf_counter() - start
+        setattr(module, name, run)
+
+    clocked(pair_kernels, "_host_fused", "pair forces")
+    clocked(kinetic, "_host_isotropic_flow", "drift")
+
+    def once():
+        inside.clear()
+        start = time.perf_counter()
+        simulate.run(system, state, dt, steps, every=steps // 2, neighbors=neighbors)
+        return time.perf_counter() - start, dict(inside)
+
+    once()  # compiles
+    runs = sorted((once() for _ in range(3)), key=lambda run: run[0])
+    total, parts = runs[1]
+    kernels = ", ".join(f"{k} {v / steps * 1e3:.2f} ms" for k, v in parts.items())
+    print(f"  loop: simulate.run, {steps} steps: {total / steps * 1e3:.2f} ms per step; inside "
+          f"the host kernels {sum(parts.values()) / steps * 1e3:.2f} ms ({kernels or 'none'})",
+          flush=True)
 
 
 if __name__ == "__main__":
