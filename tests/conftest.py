@@ -53,7 +53,10 @@ settings.load_profile("ci" if os.environ.get("CI") else "default")
 LONGEST_FIRST = ("test_constraints", "test_nonholonomic", "test_integrators", "test_kinetic",
                  "test_pair_kernels", "test_cli_neighbor_list", "test_crash_safety",
                  "test_linalg", "test_neighbor_runs", "test_potentials",
-                 "test_quantum_operators", "test_sweep", "test_studies", "test_quantum_limits")
+                 "test_quantum_operators", "test_sweep", "test_studies", "test_quantum_limits",
+                 "test_thermostats", "test_barostat", "test_phonons", "test_npt_neighbors",
+                 "test_quantum_transitions", "test_quantum_orientations3",
+                 "test_quantum_evolution3")
 
 
 def pytest_collection_modifyitems(config, items):
