@@ -74,20 +74,21 @@ def part_ranges(rows: int, parts: int) -> list[tuple[int, int]]:
 
 
 def in_parts(work, rows: int, parts: int, count: int) -> list:
-    """``work(lo, hi)`` over ``parts`` fixed parts of range(rows) (the same parts whatever
-    ``count``), on ``count`` threads when ``count > 1`` (Numba kernels release the GIL);
-    results in part order, so sums over them are the same on any number of threads. The
-    threads take the next part as they become free (the calling thread included), so a core
-    that another process slows down takes fewer parts."""
+    """``work(part, lo, hi)`` over ``parts`` fixed parts of range(rows) (part k is
+    ``part_ranges(rows, parts)[k]``, the same whatever ``count``; a part's index picks its own
+    output, e.g. its per-body sums), on ``count`` threads when ``count > 1`` (Numba kernels
+    release the GIL); results in part order, so sums over them are the same on any number of
+    threads. The threads take the next part as they become free (the calling thread
+    included), so a core that another process slows down takes fewer parts."""
     ranges = part_ranges(rows, parts)
     if count <= 1:
-        return [work(lo, hi) for lo, hi in ranges]
+        return [work(k, lo, hi) for k, (lo, hi) in enumerate(ranges)]
     results: list = [None] * parts
     taken = itertools.count()  # next() is atomic under the GIL
 
     def drain() -> None:
         while (k := next(taken)) < parts:
-            results[k] = work(*ranges[k])
+            results[k] = work(k, *ranges[k])
 
     helpers = [_pool(count - 1).submit(drain) for _ in range(count - 1)]
     drain()

@@ -779,7 +779,7 @@ def _host_isotropic_flow(left: bool, phi, pi, coefs):
     phi_out, pi_out = np.empty_like(phi), np.empty_like(pi)
     rows = phi.shape[0]
     count = host_drift_threads() if rows >= HOST_DRIFT_THREAD_MIN_ROWS else 1
-    _host.in_parts(lambda lo, hi: kernel(lo, hi, left, phi, pi, coefs, phi_out, pi_out),
+    _host.in_parts(lambda _, lo, hi: kernel(lo, hi, left, phi, pi, coefs, phi_out, pi_out),
                    rows, _host.PARTS, count)
     return phi_out.reshape(shape), pi_out.reshape(shape)
 

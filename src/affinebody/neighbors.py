@@ -328,11 +328,9 @@ def _host_pairs(bodies: int, capacity: int, pairs_i, pairs_j, search) -> int:
     again in one pass. Returns the number of pairs (more than ``capacity``: overflow)."""
     parts = _host.PARTS
     shares = _host.part_ranges(capacity, parts)
-    ranges = _host.part_ranges(bodies, parts)
-    part_of = {bounds: k for k, bounds in enumerate(ranges)}
 
-    def work(first, last):
-        lo, hi = shares[part_of[first, last]]
+    def work(k, first, last):
+        lo, hi = shares[k]
         return search(first, last, lo, hi - lo)
 
     count = _host.threads(parts) if bodies >= HOST_THREAD_MIN_BODIES else 1

@@ -408,8 +408,8 @@ def host_threads() -> int:
 
 
 def _in_parts(work, rows: int) -> list:
-    """``work(lo, hi)`` over :data:`affinebody._host.PARTS` fixed parts of range(rows), on up to
-    :func:`host_threads` threads (Numba releases the GIL); results in part order."""
+    """``work(part, lo, hi)`` over :data:`affinebody._host.PARTS` fixed parts of range(rows),
+    on up to :func:`host_threads` threads (Numba releases the GIL); results in part order."""
     count = host_threads() if rows >= HOST_THREAD_MIN_ROWS else 1
     return _host.in_parts(work, rows, _host.PARTS, count)
 
@@ -467,7 +467,7 @@ def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid, h, h_inv):
     i = np.ascontiguousarray(i)
     j = np.ascontiguousarray(j)
 
-    def work(lo, hi):
+    def work(_, lo, hi):
         view = {key: a[lo:hi] for key, a in out.items()}
         kernels.geometry(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, h,
                          h_inv, g.edges, "r" in g.plain, "D" in g.plain, "det" in g.plain,
@@ -492,7 +492,7 @@ def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partia
     partials = dict(zip(keys, (np.asarray(a) for a in partials), strict=True))
     empty1, empty2 = np.zeros(1), np.zeros((1, 1))
 
-    def work(lo, hi):
+    def work(_, lo, hi):
         acc = tuple(np.zeros(np.shape(a)) for a in sums)
         rows = lambda key, empty: partials[key][lo:hi] if key in partials else empty  # noqa: E731
         kernels.scatter(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, h,
@@ -520,7 +520,7 @@ def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
                         strict=True))
     empty1 = np.zeros(1)
 
-    def work(lo, hi):
+    def work(_, lo, hi):
         out = np.zeros((g.n, g.n))
         rows = lambda key: partials[key][lo:hi] if key in partials else empty1  # noqa: E731
         kernels.virial(0, hi - lo, i[lo:hi], j[lo:hi], x, binv, g.mode, h, h_inv, g.edges,
@@ -549,10 +549,8 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, x, phi, binv, de
     parts = _host.PARTS
     gx, gphi, gb = (np.zeros((parts, rows, *shape)) for shape in ((n,), (n, n), (n, n)))
     gdet = np.zeros((parts, rows))
-    part_of = {bounds: k for k, bounds in enumerate(_host.part_ranges(valid, parts))}
 
-    def pairs(lo, hi):
-        k = part_of[lo, hi]
+    def pairs(k, lo, hi):
         return kernels.fused(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges,
                              gradients, gx[k], gphi[k], gb[k], gdet[k])
 
@@ -562,8 +560,8 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, x, phi, binv, de
     if not gradients:
         return energy
     g_x, g_phi = np.empty_like(x), np.empty_like(phi)
-    _in_parts(lambda lo, hi: kernels.merge_finish(lo, hi, gx, gphi, gb, gdet, binv, det, g_x,
-                                                  g_phi), bodies)
+    _in_parts(lambda _, lo, hi: kernels.merge_finish(lo, hi, gx, gphi, gb, gdet, binv, det,
+                                                     g_x, g_phi), bodies)
     return energy, g_x, g_phi
 
 
@@ -597,9 +595,9 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     else:
         h, h_inv = cell, linalg.inv(cell)
     binv, det = linalg.inv(phi), linalg.det(phi)
+    f64 = lambda shape: jax.ShapeDtypeStruct(shape, x.dtype)  # noqa: E731
     fused = None if virial else _fused_source(pot, n)
     if fused is not None:  # f is a config expression: one callback does it all
-        f64 = lambda shape: jax.ShapeDtypeStruct(shape, x.dtype)  # noqa: E731
         return jax.pure_callback(
             partial(_host_fused, g, fused, gradients),
             (f64(()), f64(x.shape), f64(phi.shape)) if gradients else f64(()),
@@ -611,7 +609,6 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     i_all = jnp.concatenate([i, jnp.zeros(fill, i.dtype)])
     j_all = jnp.concatenate([j, jnp.zeros(fill, j.dtype)])
     columns = g.columns(chunk)
-    f64 = lambda shape: jax.ShapeDtypeStruct(shape, x.dtype)  # noqa: E731
     geometry_shapes = tuple(f64(shape) for shape in columns.values())
     sum_shapes = (f64(x.shape), f64(phi.shape), f64(phi.shape), f64((bodies,)))
     partials_of = _scalar_values_and_partials(pot, n)
