@@ -17,6 +17,8 @@ first process on a machine compiles (about 5 s for the n = 3 pair kernel), the o
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import functools
 import hashlib
 import importlib.util
@@ -95,6 +97,33 @@ def in_parts(work, rows: int, parts: int, count: int) -> list:
     for helper in helpers:
         helper.result()
     return results
+
+
+#: glibc ``mallopt`` parameters (malloc.h) and the values :func:`keep_freed_memory` sets: blocks
+#: up to 32 MiB (glibc's largest heap threshold) from the heap, and a heap trimmed only when
+#: 2 GiB (the largest int) lie free at its top.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_MMAP_THRESHOLD = 32 * 1024 * 1024
+_TRIM_THRESHOLD = 2**31 - 1
+
+
+def keep_freed_memory() -> bool:
+    """Let this process's C heap keep the memory it frees (glibc ``mallopt``), so that the
+    arrays a time step allocates and frees (a callback's results and sums, XLA's copies of
+    them) reuse pages that are already mapped instead of faulting in fresh zeroed ones: about
+    a thousand page faults per step of a 4096-body run without it, one with it (docs/
+    performance.md). The peak memory is unchanged (what is kept is what was in use at the
+    peak). What the command line and the workers do for their own process, like float64;
+    importing affinebody never does it. False where the C library is not glibc (nothing
+    changed)."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc (macOS, musl): nothing to tune
+        return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD)
+                and mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD))
 
 
 def cache_folder() -> Path:

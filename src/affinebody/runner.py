@@ -34,7 +34,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from affinebody import barostat, pressure
+from affinebody import _host, barostat, pressure
 from affinebody import neighbors as nb
 from affinebody._checks import enable_x64
 from affinebody._timing import CompileClock, Phases
@@ -159,6 +159,7 @@ def run_simulation(
     from affinebody.simulate import run as integrate
 
     enable_x64()  # the simulator as a tool computes in float64 (the CLI turns it on too)
+    _host.keep_freed_memory()  # a step's freed arrays are reused, not faulted in afresh
     started = time.perf_counter()
     output = Path(output)
     total = config.run.steps if steps is None else int(steps)

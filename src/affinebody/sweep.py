@@ -115,6 +115,7 @@ from typing import Any
 
 import numpy as np
 
+from affinebody import _host
 from affinebody.config import Config, ConfigError, ScanRange, check_config
 from affinebody.simulate import Stop, relative_error
 
@@ -358,7 +359,8 @@ def make_tasks(points: Sequence[ScanPoint], spec: SweepSpec) -> list[Task]:
 
 # --------------------------------------------------------------------------- worker side
 def prepare_worker() -> dict[str, Any]:
-    """Make this process compute in float64 with single-threaded XLA/BLAS (where not yet set).
+    """Make this process compute in float64 with single-threaded XLA/BLAS (where not yet set),
+    its C heap keeping the memory it frees (:func:`affinebody._host.keep_freed_memory`).
 
     Run at the start of every task: a remote cluster's workers are used unchanged otherwise.
     The thread settings only take effect in a process whose XLA backend has not started yet
@@ -370,6 +372,7 @@ def prepare_worker() -> dict[str, Any]:
     import jax.numpy as jnp
 
     jax.config.update("jax_enable_x64", True)
+    _host.keep_freed_memory()
     dtype = str(jnp.zeros(()).dtype)
     if dtype != "float64":
         raise RuntimeError(f"worker {os.getpid()} could not switch JAX to float64 (got {dtype})")

@@ -13,6 +13,7 @@ from pathlib import Path
 import click
 
 from affinebody._checks import enable_x64
+from affinebody._host import keep_freed_memory
 from affinebody.cli.common import one_line_errors
 from affinebody.sweep import json_safe, run_sweep
 
@@ -126,6 +127,7 @@ def sweep(config_file, samples, seed, scheduler, workers, output_dir, as_json):
     from affinebody.config import load_config
 
     enable_x64()
+    keep_freed_memory()  # samples run here too (without workers)
     config = load_config(config_file)
     folder = Path(output_dir) if output_dir else Path(config_file).with_name(
         Path(config_file).stem + "_sweep")
