@@ -1,12 +1,57 @@
-"""The host side of the product's process (``affinebody._host``): the C heap that
-``keep_freed_memory`` tunes for the command line and the workers."""
+"""The host side of the product (``affinebody._host``): the call from compiled code into a host
+kernel (``callback``, against ``jax.pure_callback``), and the C heap that ``keep_freed_memory``
+tunes for the command line and the workers."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
 
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
+
+from affinebody import _host
+
+
+def _kernel(a, b):
+    """A host function of a batch: a [..., 3, 4], b [..., 4]; it checks its operands are
+    NumPy arrays it may not write."""
+    a, b = np.asarray(a), np.asarray(b)
+    assert not a.flags.writeable and not b.flags.writeable
+    return a * 2.0 + b[..., None, :], a.sum(-1)
+
+
+def _shapes(a):
+    return (jax.ShapeDtypeStruct(a.shape, a.dtype), jax.ShapeDtypeStruct(a.shape[:-1], a.dtype))
+
+
+@pytest.mark.parametrize("vmap_method", ["sequential", "broadcast_all"])
+def test_callback_is_pure_callback_under_jit_and_vmap(vmap_method):
+    """_host.callback gives jax.pure_callback's results, bit for bit, called once, under jit,
+    and under vmap and nested vmap (one batched operand, then two), for both vmap methods."""
+    def ours(a, b):
+        return _host.callback(_kernel, _shapes(a), a, b, vmap_method=vmap_method)
+
+    def theirs(a, b):
+        return jax.pure_callback(_kernel, _shapes(a), a, b, vmap_method=vmap_method)
+
+    rng = np.random.default_rng(3)
+    a, b = jnp.asarray(rng.standard_normal((3, 4))), jnp.asarray(rng.standard_normal(4))
+    batch_a = jnp.asarray(rng.standard_normal((2, 3, 4)))
+    batch_b = jnp.asarray(rng.standard_normal((5, 4)))
+    cases = (
+        (lambda f: f, (a, b)),
+        (jax.jit, (a, b)),
+        (lambda f: jax.jit(jax.vmap(f, (0, None))), (batch_a, b)),
+        (lambda f: jax.vmap(jax.vmap(f, (0, None)), (None, 0)), (batch_a, batch_b)),
+    )
+    for transform, args in cases:
+        got, want = transform(ours)(*args), transform(theirs)(*args)
+        for x, y in zip(got, want, strict=True):
+            assert x.shape == y.shape and np.array_equal(x, y)
+    assert _host.CALLBACK_NAME in str(jax.make_jaxpr(ours)(a, b))
 
 # 16 arrays of 2 MiB allocated, touched and freed, four times over: the page faults of each round
 REFILL = """

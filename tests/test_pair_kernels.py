@@ -116,7 +116,7 @@ def test_list_forces_equal_all_pairs_forces_host_and_jax(case):
         potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count)
     assert_same(host_result, reference)
     # inside compiled code the backend's kernel runs: on a CPU the host kernel (through
-    # jax.pure_callback), on a GPU the JAX one with its large passes (no host round trip)
+    # _host.callback), on a GPU the JAX one with its large passes (no host round trip)
     assert pk.host_kernel_in_use() == (jax.default_backend() == "cpu")
     assert_same(_in_loop(potential, x, phi, nbrs), reference)
     # translation invariance: the pair forces on the centres sum to zero

@@ -1,12 +1,12 @@
 """Compiled host (CPU) code: whether the product runs it, and its kernels cached on disk.
 
-On a CPU backend with Numba installed, the pair kernel (``pair_kernels``), the neighbour
-list build (``neighbors``) and the exact drift of the isotropic affine models
-(``kinetic.isotropic_flow``) run compiled CPU loops reached through ``jax.pure_callback``; on
-a GPU (or without Numba) they run their JAX versions, so nothing leaves the device inside the
-time loop. Both versions of each are tested against each other (the pair sums also against
-all-pairs sums). Work is split in fixed parts run on up to as many threads (:func:`in_parts`),
-so results do not depend on the number of cores.
+On a CPU backend with Numba installed, the pair kernel (``pair_kernels``), the neighbour list build
+(``neighbors``) and the exact drift of the isotropic affine models (``kinetic.isotropic_flow``) run
+compiled CPU loops reached through :func:`callback` (a ``jax.pure_callback`` without its copies of
+the operands); on a GPU (or without Numba) they run their JAX versions, so nothing leaves the device
+inside the time loop. Both versions of each are tested against each other (the pair sums also
+against all-pairs sums). Work is split in fixed parts run on up to as many threads
+(:func:`in_parts`), so results do not depend on the number of cores.
 
 The kernels live in :mod:`affinebody._host_kernels` as modules whose dimension (and box kind)
 are module constants, which Numba compiles as constants so that the small loops unroll.
@@ -33,6 +33,11 @@ from importlib import resources
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jax.extend.core import Primitive
+from jax.interpreters import batching, mlir
 
 try:  # optional at import: the JAX paths work without it (pyproject installs it)
     import numba
@@ -124,6 +129,108 @@ def keep_freed_memory() -> bool:
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return bool(mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD)
                 and mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD))
+
+
+# --------------------------------------------------------------------------------------------
+# the call from compiled code into a host kernel
+
+try:  # JAX's own emitter of Python callbacks (what jax.pure_callback lowers to), if present
+    from jax._src.callback import emit_python_callback as _emit_python_callback
+except ImportError:  # pragma: no cover - a JAX without it: jax.pure_callback instead
+    _emit_python_callback = None
+
+#: The name of :func:`callback`'s primitive in a jaxpr (where a host kernel is called).
+CALLBACK_NAME = "affinebody_host_callback"
+_CALLBACK = Primitive(CALLBACK_NAME)
+_CALLBACK.multiple_results = True
+
+
+def callback(function, result_shapes, *args, vmap_method: str = "sequential"):
+    """``jax.pure_callback(function, result_shapes, *args, vmap_method=...)`` without its
+    per-operand cost: pure_callback first copies every operand into a new JAX array
+    (``device_put``), ~20 us per operand plus the bytes (a 4096-body pair call: 9 operands,
+    ~0.3 ms a step); here ``function`` gets read-only NumPy views of XLA's buffers. The same
+    lowering (JAX's Python-callback custom call), purity (XLA may drop or merge calls whose
+    results are unused or equal) and vmap methods ("sequential": one call per batch
+    element; "broadcast_all": one call over the batch, every operand given the batch axes).
+    No derivative (as pure_callback): wrap it in a ``custom_jvp``. Where this JAX lacks the
+    emitter, it is jax.pure_callback."""
+    if _emit_python_callback is None:  # pragma: no cover
+        return jax.pure_callback(function, result_shapes, *args, vmap_method=vmap_method)
+    leaves, tree = jax.tree.flatten(result_shapes)
+    flat_args, args_tree = jax.tree.flatten(args)
+    avals = tuple(jax.core.ShapedArray(leaf.shape, leaf.dtype) for leaf in leaves)
+    out = _CALLBACK.bind(*flat_args, function=_Flat(function, args_tree), result_avals=avals,
+                         vmap_method=vmap_method)
+    return jax.tree.unflatten(tree, out)
+
+
+class _Flat:
+    """``function`` called with its operands unflattened (hashable, so jit caches by it)."""
+
+    def __init__(self, function, tree):
+        self.function, self.tree = function, tree
+
+    def __call__(self, *flat):
+        out = self.function(*jax.tree.unflatten(self.tree, flat))
+        return tuple(np.asarray(a) for a in jax.tree.leaves(out))
+
+    def __hash__(self):
+        return hash((self.function, self.tree))
+
+    def __eq__(self, other):
+        return (isinstance(other, _Flat) and self.function == other.function
+                and self.tree == other.tree)
+
+
+def _callback_abstract(*args, function, result_avals, vmap_method):
+    return result_avals
+
+
+def _callback_impl(*args, **params):  # outside jit: compile the one call
+    return jax.jit(functools.partial(_CALLBACK.bind, **params))(*args)
+
+
+def _callback_lowering(ctx, *args, function, result_avals, vmap_method):
+    result, _, _ = _emit_python_callback(ctx, function, None, list(args), ctx.avals_in,
+                                         ctx.avals_out, has_side_effect=False,
+                                         returns_token=False)
+    return result
+
+
+def _callback_batched(args, dims, *, function, result_avals, vmap_method):
+    size = next(a.shape[d] for a, d in zip(args, dims, strict=True)
+                if d is not batching.not_mapped)
+    front = [a if d is batching.not_mapped else jnp.moveaxis(a, d, 0)
+             for a, d in zip(args, dims, strict=True)]
+    if vmap_method == "broadcast_all":
+        full = [jnp.broadcast_to(a, (size, *a.shape)) if d is batching.not_mapped else a
+                for a, d in zip(front, dims, strict=True)]
+        batched = tuple(jax.core.ShapedArray((size, *a.shape), a.dtype) for a in result_avals)
+        out = _CALLBACK.bind(*full, function=function, result_avals=batched,
+                             vmap_method=vmap_method)
+    elif vmap_method == "sequential":
+        mapped = [k for k, d in enumerate(dims) if d is not batching.not_mapped]
+
+        def one(slices):
+            operands = list(front)
+            for k, a in zip(mapped, slices, strict=True):
+                operands[k] = a
+            return _CALLBACK.bind(*operands, function=function, result_avals=result_avals,
+                                  vmap_method=vmap_method)
+
+        out = lax.map(one, [front[k] for k in mapped])
+    else:
+        raise ValueError(f"vmap_method must be 'sequential' or 'broadcast_all' "
+                         f"(got {vmap_method!r})")
+    return list(out), [0] * len(result_avals)
+
+
+_CALLBACK.def_impl(_callback_impl)
+_CALLBACK.def_abstract_eval(_callback_abstract)
+batching.primitive_batchers[_CALLBACK] = _callback_batched
+if _emit_python_callback is not None:
+    mlir.register_lowering(_CALLBACK, _callback_lowering)
 
 
 def cache_folder() -> Path:

@@ -787,11 +787,11 @@ def _host_isotropic_flow(left: bool, phi, pi, coefs):
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
 def isotropic_flow_host(phi, pi, coefs, left: bool):
     """:func:`isotropic_flow_jax` computed by the compiled host kernel (Numba, CPU), reached
-    through ``jax.pure_callback`` (vmap: one call over the whole batch). A callback has no
+    through ``_host.callback`` (vmap: one call over the whole batch). A callback has no
     derivative: jvp, grad and jacfwd differentiate :func:`isotropic_flow_jax` instead."""
     out = jax.ShapeDtypeStruct(jnp.shape(phi), jnp.result_type(phi))
-    return jax.pure_callback(functools.partial(_host_isotropic_flow, left), (out, out),
-                             phi, pi, coefs, vmap_method="broadcast_all")
+    return _host.callback(functools.partial(_host_isotropic_flow, left), (out, out),
+                          phi, pi, coefs, vmap_method="broadcast_all")
 
 
 @isotropic_flow_host.defjvp

@@ -349,7 +349,7 @@ def _host_pairs(bodies: int, capacity: int, pairs_i, pairs_j, search) -> int:
 
 
 def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> NeighborList:
-    """:func:`build` with compiled CPU loops through ``jax.pure_callback``: a counting sort of
+    """:func:`build` with compiled CPU loops through ``_host.callback``: a counting sort of
     the bodies by cell (no cell capacity), then, for each body K in order, the cells of the
     stencil in order and their bodies L > K in index order, as :func:`build_jax` (the bodies
     in fixed parts on up to two threads, :func:`_host_pairs`)."""
@@ -389,7 +389,7 @@ def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> 
 
     shapes = (jax.ShapeDtypeStruct((spec.capacity,), jnp.int32),) * 2 + (
         jax.ShapeDtypeStruct((), jnp.int32),)
-    pairs_i, pairs_j, total = jax.pure_callback(
+    pairs_i, pairs_j, total = _host.callback(
         host, shapes, flat, coords, x, radius, jnp.asarray(h, x.dtype),
         jnp.asarray(h_inv, x.dtype), vmap_method="sequential")
     overflow = (jnp.where(total > spec.capacity, PAIR_OVERFLOW, 0)

@@ -33,10 +33,10 @@ Two implementations of the same formulas, same interface
 product runs both, one per backend (:func:`pair_sum` chooses):
 
 - the host kernel (:func:`energy_and_gradients_host`): compiled CPU code (Numba) for the
-  geometry and for the chain rule and per-body sums, reached from compiled JAX code through
-  two ``jax.pure_callback`` calls per chunk of pairs, with f and its partial derivatives
-  evaluated by XLA between them (fused, elementwise); where f is a config expression, one
-  callback for the whole list instead, f and its partials compiled into the same loop
+  geometry and for the chain rule and per-body sums, reached from compiled JAX code through two host
+  callbacks (``_host.callback``) per chunk of pairs, with f and its partial derivatives evaluated by
+  XLA between them (fused, elementwise); where f is a config expression, one callback for the whole
+  list instead, f and its partials compiled into the same loop
   (:mod:`affinebody._host_kernels.pair_expression`) and the chain rule through B and det phi
   applied per body in Numba too. On a CPU the arrays stay in host
   memory, so the callbacks cost no transfer. Each chunk is split into
@@ -574,9 +574,9 @@ def _host_chunk(capacity: int) -> int:
 def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = True,
                    cell=None, virial: bool = False):
     """(E, dV/dx, dV/dphi) with the compiled host kernel, from compiled JAX code: per chunk of
-    pairs, a ``jax.pure_callback`` computes the geometry (Numba), XLA the scalar function f
-    and its partial derivatives (fused, elementwise), a second callback the closed-form chain
-    rule and the per-body sums; the per-body chain rule through B = phi^-1 and det phi
+    pairs, a host callback (``_host.callback``) computes the geometry (Numba), XLA the scalar
+    function f and its partial derivatives (fused, elementwise), a second callback the closed-form
+    chain rule and the per-body sums; the per-body chain rule through B = phi^-1 and det phi
     finishes in JAX. Where f is a config expression (``pot.expression``), one callback over
     the whole list runs the fused kernel instead (f and its partials compiled with the
     geometry and the chain rule, :func:`_fused_source`, then the chain rule through B and
@@ -598,7 +598,7 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     f64 = lambda shape: jax.ShapeDtypeStruct(shape, x.dtype)  # noqa: E731
     fused = None if virial else _fused_source(pot, n)
     if fused is not None:  # f is a config expression: one callback does it all
-        return jax.pure_callback(
+        return _host.callback(
             partial(_host_fused, g, fused, gradients),
             (f64(()), f64(x.shape), f64(phi.shape)) if gradients else f64(()),
             x, phi, binv, det, i, j, count, h, h_inv, vmap_method="sequential")
@@ -620,7 +620,7 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
         ii = lax.dynamic_slice(i_all, (lo,), (chunk,))
         jj = lax.dynamic_slice(j_all, (lo,), (chunk,))
         valid = jnp.clip(count - lo, 0, chunk).astype(jnp.int32)
-        scalars = jax.pure_callback(partial(_host_geometry, g), geometry_shapes, x, phi, binv,
+        scalars = _host.callback(partial(_host_geometry, g), geometry_shapes, x, phi, binv,
                                     det, ii, jj, valid, h, h_inv, vmap_method="sequential")
         base = dict(zip(columns, scalars, strict=True))  # padding rows: beyond the cut-off
         inside = rows < valid
@@ -629,12 +629,12 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
             return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
         energies, partials = partials_of(base)
         if virial:
-            w = jax.pure_callback(
+            w = _host.callback(
                 partial(_host_virial, g), f64((n, n)), x, binv, ii, jj, valid,
                 tuple(partials[key] for key in columns), h, h_inv, vmap_method="sequential")
             return ((energy[0] + jnp.sum(jnp.where(inside, energies, 0.0)), energy[1] + w),
                     sums), None
-        sums = jax.pure_callback(
+        sums = _host.callback(
             partial(_host_scatter, g), sum_shapes, sums, x, phi, binv, det, ii, jj, valid,
             tuple(partials[key] for key in columns), h, h_inv, vmap_method="sequential")
         return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
