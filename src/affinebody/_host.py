@@ -22,6 +22,7 @@ import ctypes.util
 import functools
 import hashlib
 import importlib.util
+import inspect
 import itertools
 import os
 import re
@@ -116,8 +117,8 @@ def keep_freed_memory() -> bool:
     """Let this process's C heap keep the memory it frees (glibc ``mallopt``), so that the
     arrays a time step allocates and frees (a callback's results and sums, XLA's copies of
     them) reuse pages that are already mapped instead of faulting in fresh zeroed ones: about
-    a thousand page faults per step of a 4096-body run without it, one with it (docs/
-    performance.md). The peak memory is unchanged (what is kept is what was in use at the
+    a thousand page faults per step of a 4096-body run without it, about five with it
+    (docs/performance.md). The peak memory is unchanged (what is kept is what was in use at the
     peak). What the command line and the workers do for their own process, like float64;
     importing affinebody never does it. False where the C library is not glibc (nothing
     changed)."""
@@ -137,6 +138,9 @@ def keep_freed_memory() -> bool:
 try:  # JAX's own emitter of Python callbacks (what jax.pure_callback lowers to), if present
     from jax._src.callback import emit_python_callback as _emit_python_callback
 except ImportError:  # pragma: no cover - a JAX without it: jax.pure_callback instead
+    _emit_python_callback = None
+if _emit_python_callback is not None and not {"has_side_effect", "returns_token"} <= set(
+        inspect.signature(_emit_python_callback).parameters):  # pragma: no cover - changed
     _emit_python_callback = None
 
 #: The name of :func:`callback`'s primitive in a jaxpr (where a host kernel is called).
