@@ -4,6 +4,7 @@ tunes for the command line and the workers."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -85,3 +86,25 @@ def test_freed_memory_is_refilled_without_page_faults():
     assert min(default[1:]) > pages // 2, default  # the pattern does fault by default
     assert kept[0] > pages // 2, kept  # the first round maps the pages
     assert max(kept[1:]) < pages // 100, kept  # later rounds reuse them
+
+
+def test_xla_flags_go_in_front_keep_the_users_and_are_known_to_this_xla():
+    """compile_faster's flags go before the first word that is not a flag (XLA stops reading
+    there), a flag the user set keeps the user's value, and this jaxlib accepts them: XLA
+    aborts a process on a flag it does not know, so a JAX computation in a process with them
+    must finish (and it does with a flag XLA does not know: the check can fail)."""
+    from affinebody import _xla
+
+    assert _xla.with_flags("--xla_a=1 words", ("--xla_b=2", "--xla_a=3")) == \
+        "--xla_b=2 --xla_a=1 words"
+    assert _xla.flags_known()  # the pinned jaxlib
+    run = "import jax.numpy as jnp; print(float(jnp.arange(4.0).sum()))"
+
+    def finishes(flags: str) -> bool:
+        env = {**os.environ, "XLA_FLAGS": flags}
+        out = subprocess.run([sys.executable, "-c", run], env=env, capture_output=True,
+                             text=True, timeout=120)
+        return out.returncode == 0 and out.stdout.strip() == "6.0"
+
+    assert finishes(_xla.with_flags("", _xla.FAST_COMPILATION))
+    assert not finishes("--xla_cpu_no_such_flag_of_affinebody=true")

@@ -115,13 +115,15 @@ from typing import Any
 
 import numpy as np
 
-from affinebody import _host
+from affinebody import _host, _xla
 from affinebody.config import Config, ConfigError, ScanRange, check_config
 from affinebody.simulate import Stop, relative_error
 
-#: Environment of local Dask workers: one thread for XLA and BLAS, float64 JAX.
+#: Environment of local Dask workers: one thread for XLA and BLAS, XLA's faster compilation
+#: (``_xla.FAST_COMPILATION``, where jaxlib knows it), float64 JAX.
 WORKER_ENV = {
-    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+    "XLA_FLAGS": _xla.with_flags("--xla_cpu_multi_thread_eigen=false",
+                                 _xla.FAST_COMPILATION if _xla.flags_known() else ()),
     "OMP_NUM_THREADS": "1",
     "OPENBLAS_NUM_THREADS": "1",
     "MKL_NUM_THREADS": "1",

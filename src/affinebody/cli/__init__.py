@@ -4,8 +4,8 @@
 ``spectrum`` and ``density`` (:mod:`affinebody.quantum.cli`), ``transitions`` and ``evolve``
 (:mod:`.quantum_dynamics`), ``phonons`` (:mod:`.phonons`)
 and ``kinematics-demo``. Every
-command turns JAX's float64 mode on for its own process and reports errors as one line
-(:mod:`.common`).
+command turns JAX's float64 mode on for its own process (and XLA's faster compilation,
+``_xla.compile_faster``) and reports errors as one line (:mod:`.common`).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import click
 
 from affinebody import __version__
 from affinebody._checks import enable_x64
+from affinebody._xla import compile_faster
 
 #: Subcommand -> "module:attribute" of its click command, imported when the command is used
 #: (so that ``affinebody run`` does not import the quantum solvers, and no command module
@@ -52,6 +53,7 @@ class _LazyGroup(click.Group):
 @click.version_option(__version__, prog_name="affinebody")
 def main() -> None:
     """Classical and quantum mechanics of affinely-rigid bodies (Slawianowski's affine models)."""
+    compile_faster()  # before any command starts JAX's backend
 
 
 @main.command("kinematics-demo")
