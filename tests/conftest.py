@@ -16,10 +16,18 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 # LLVM's expensive passes off and backend optimisation level 0 cut the CPU time of the heaviest
 # files by about 14 % (test_constraints + test_nonholonomic: 266 s against more than 309 s of
 # CPU, measured side by side). Results may differ from optimised code in the last bits only
-# (float64 either way); the whole suite passes with it.
-os.environ["XLA_FLAGS"] = " ".join(filter(None, (
-    os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0",
-    "--xla_llvm_disable_expensive_passes=true")))
+# (float64 either way); the whole suite passes with it. XLA:CPU's MLIR fusion emitters off
+# (the elemental IR emitter fuses instead) halves the compile time again: the tracker of
+# test_constraints (RATTLE on R+SO) 2.43 -> 1.08 s, H-af on UL 2.43 -> 0.98 s, exact drifts
+# on SL 1.09 -> 0.56 s, with the same energy errors; test_constraints 53.5 -> 36.2 s,
+# test_nonholonomic 84 -> 48 s, test_kinetic 64 -> 28 s (one process each, back to back).
+# Local Dask workers get sweep.WORKER_ENV instead of this environment: the fixture
+# _cheap_compilation_in_dask_workers gives them these flags too.
+SUITE_XLA_FLAGS = ("--xla_backend_optimization_level=0",
+                   "--xla_llvm_disable_expensive_passes=true",
+                   "--xla_cpu_use_fusion_emitters=false")
+os.environ["XLA_FLAGS"] = " ".join(filter(None, (os.environ.get("XLA_FLAGS", ""),
+                                                 *SUITE_XLA_FLAGS)))
 
 from affinebody._xla import pin_to_one_cpu  # noqa: E402  (imports no JAX)
 
@@ -46,17 +54,40 @@ settings.register_profile(
 settings.register_profile("ci", parent=settings.get_profile("default"), derandomize=True)
 settings.load_profile("ci" if os.environ.get("CI") else "default")
 
-#: Test files that take longest (seconds of test time measured on the 2-core machine, largest
-#: first). ``make test`` distributes whole files over two workers (--dist loadfile) in
-#: collection order; starting with the longest files keeps a long file from starting last while
-#: the other worker idles (longest-processing-time-first). Files not listed keep their order.
-LONGEST_FIRST = ("test_constraints", "test_nonholonomic", "test_integrators", "test_kinetic",
-                 "test_pair_kernels", "test_cli_neighbor_list", "test_crash_safety",
-                 "test_linalg", "test_neighbor_runs", "test_potentials",
-                 "test_quantum_operators", "test_sweep", "test_studies", "test_quantum_limits",
-                 "test_thermostats", "test_barostat", "test_phonons", "test_npt_neighbors",
-                 "test_quantum_transitions", "test_quantum_orientations3",
-                 "test_quantum_evolution3")
+#: Test files that take longest (seconds of test time, largest first; measured one file per
+#: process on one core of the 2-core machine, 2026-11-25: nonholonomic 57, constraints 37,
+#: kinetic 30, barostat 28, integrators 26, potentials 24, crash_safety 24, sweep 24, linalg 19,
+#: cli_neighbor_list 18, quantum_operators 18, quantum_orientations3 18, thermostats 17,
+#: pair_kernels 17, quantum_limits 16, quantum_transitions 15, phonons 14, neighbor_runs 13,
+#: quantum_evolution3 13, contracts 13, npt_neighbors 12, studies 12, quantum_densities 12,
+#: quantum_n3 11, quantum_evolution 11; every other file 10 s or less). ``make test``
+#: distributes whole files over two workers (--dist loadfile) in collection order; starting
+#: with the longest files keeps a long file from starting last while the other worker idles
+#: (longest-processing-time-first). Files not listed keep their order.
+LONGEST_FIRST = ("test_nonholonomic", "test_constraints", "test_kinetic", "test_barostat",
+                 "test_integrators", "test_potentials", "test_crash_safety", "test_sweep",
+                 "test_linalg", "test_cli_neighbor_list", "test_quantum_operators",
+                 "test_quantum_orientations3", "test_thermostats", "test_pair_kernels",
+                 "test_quantum_limits", "test_quantum_transitions", "test_phonons",
+                 "test_neighbor_runs", "test_quantum_evolution3", "test_contracts",
+                 "test_npt_neighbors", "test_studies", "test_quantum_densities",
+                 "test_quantum_n3", "test_quantum_evolution")
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _cheap_compilation_in_dask_workers():
+    """The suite's XLA flags for the local Dask clusters the tests start (their workers get
+    sweep.WORKER_ENV, not this environment), before the product's flags, which the workers
+    keep (one thread). Before, not after: XLA stops reading XLA_FLAGS at the first word that
+    is not a flag, and WORKER_ENV's flags end with one ("intra_op_parallelism_threads=1"),
+    so flags appended after it are ignored. A thermal sweep task compiles in 1.2 s instead
+    of 5.2 s (one fresh worker process, measured)."""
+    from affinebody import sweep
+
+    flags = " ".join((*SUITE_XLA_FLAGS, sweep.WORKER_ENV["XLA_FLAGS"]))
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setitem(sweep.WORKER_ENV, "XLA_FLAGS", flags)
+        yield
 
 
 def pytest_collection_modifyitems(config, items):
