@@ -26,10 +26,10 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 SUITE_XLA_FLAGS = ("--xla_backend_optimization_level=0",
                    "--xla_llvm_disable_expensive_passes=true",
                    "--xla_cpu_use_fusion_emitters=false")
-os.environ["XLA_FLAGS"] = " ".join(filter(None, (os.environ.get("XLA_FLAGS", ""),
-                                                 *SUITE_XLA_FLAGS)))
 
-from affinebody._xla import pin_to_one_cpu  # noqa: E402  (imports no JAX)
+from affinebody._xla import pin_to_one_cpu, with_flags  # noqa: E402  (imports no JAX)
+
+os.environ["XLA_FLAGS"] = with_flags(os.environ.get("XLA_FLAGS", ""), SUITE_XLA_FLAGS)
 
 # One core per xdist worker (gw0 -> first CPU, gw1 -> second, ...): see pin_to_one_cpu for the
 # jaxlib LAPACK thread-pool deadlock this avoids.
@@ -77,14 +77,13 @@ LONGEST_FIRST = ("test_nonholonomic", "test_constraints", "test_kinetic", "test_
 @pytest.fixture(autouse=True, scope="session")
 def _cheap_compilation_in_dask_workers():
     """The suite's XLA flags for the local Dask clusters the tests start (their workers get
-    sweep.WORKER_ENV, not this environment), before the product's flags, which the workers
-    keep (one thread). Before, not after: XLA stops reading XLA_FLAGS at the first word that
-    is not a flag, and WORKER_ENV's flags end with one ("intra_op_parallelism_threads=1"),
-    so flags appended after it are ignored. A thermal sweep task compiles in 1.2 s instead
-    of 5.2 s (one fresh worker process, measured)."""
+    sweep.WORKER_ENV, not this environment), with the product's flags, which the workers
+    keep (one thread). A thermal sweep task compiles in 1.2 s instead of 5.2 s (one fresh
+    worker process, measured with the product's flags of before, which lacked
+    --xla_cpu_use_fusion_emitters=false)."""
     from affinebody import sweep
 
-    flags = " ".join((*SUITE_XLA_FLAGS, sweep.WORKER_ENV["XLA_FLAGS"]))
+    flags = with_flags(sweep.WORKER_ENV["XLA_FLAGS"], SUITE_XLA_FLAGS)
     with pytest.MonkeyPatch.context() as patch:
         patch.setitem(sweep.WORKER_ENV, "XLA_FLAGS", flags)
         yield
