@@ -21,6 +21,7 @@ from affinebody.groups import expm, is_member, project_algebra
 from affinebody.integrators import INTEGRATORS
 from affinebody.state import State
 from affinebody.system import HamiltonianSystem
+from tracking import energy_and_residual_tracker
 
 J3 = jnp.asarray([[2.0, 0.3, 0.1], [0.3, 1.0, 0.2], [0.1, 0.2, 1.5]])
 ELASTIC = pot.total_potential([pot.StVenantKirchhoff(0.3, 0.5), pot.ExternalHarmonic(0.5)])
@@ -53,34 +54,13 @@ def make_system(internal, group, potential=ELASTIC):
 
 
 def tracker(system, integrator="strang"):
-    """Jitted (state, dt, steps) -> (final, max |E - E0|, max constraint residual, (E0, E_end)).
-
-    The energies at both ends come from the compiled graph too: the same H evaluated eagerly,
-    op by op, costs more than the compilation (constrained H solves for the metric lift). H is
-    traced once: the loop runs steps + 1 times, measuring the state it starts from, and keeps
-    the state of its last step (the step taken there is discarded), so one copy of H serves
-    E0, every step and E_end (each copy of the constrained H costs about a second to compile).
-    """
+    """Jitted (state, dt, steps) -> (final, max |E - E0|, max constraint residual, (E0, E_end))
+    of ``integrator`` (the energies at both ends from the compiled graph too: the same H
+    evaluated eagerly, op by op, costs more than the compilation)."""
     method = INTEGRATORS[integrator]
-
-    @jax.jit
-    def evolve(state, dt, steps):
-        def body(k, carry):
-            s, e0, _, emax, rmax = carry
-            e = system.hamiltonian(s)
-            e0 = jnp.where(k == 0, e, e0)
-            emax = jnp.maximum(emax, jnp.abs(e - e0))
-            res = jnp.max(jnp.abs(constraints.constraint_residual(s.phi, system.group)))
-            after = method.step(system, s, dt)
-            s = jax.tree.map(lambda a, b: jnp.where(k < steps, a, b), after, s)
-            return s, e0, e, emax, jnp.maximum(rmax, res)
-
-        zero = jnp.zeros(())
-        final, e0, end, emax, rmax = lax.fori_loop(0, steps + 1, body,
-                                                   (state, zero, zero, zero, zero))
-        return final, emax, rmax, (e0, end)
-
-    return evolve
+    return energy_and_residual_tracker(
+        system, lambda s, dt: method.step(system, s, dt),
+        lambda s: jnp.max(jnp.abs(constraints.constraint_residual(s.phi, system.group))))
 
 
 def stepper(system, integrator="strang"):

@@ -12,7 +12,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax import lax
 from jax.flatten_util import ravel_pytree
 from scipy.integrate import solve_ivp
 
@@ -25,6 +24,7 @@ from affinebody.polar import polar
 from affinebody.simulate import run
 from affinebody.state import State
 from affinebody.system import HamiltonianSystem
+from tracking import energy_and_residual_tracker
 
 J3 = jnp.asarray([[2.0, 0.3, 0.1], [0.3, 1.0, 0.2], [0.1, 0.2, 1.5]])
 POTENTIAL = pot.total_potential([pot.StVenantKirchhoff(0.3, 0.5), pot.Dilatation(1.0),
@@ -47,31 +47,11 @@ def random_state(seed, group="GL+", bodies=2, n=3):
 
 
 def tracker(system):
-    """Jitted (state, dt, steps) -> (final, max |E - E0|, max constraint residual, (E0, E_end)).
-
-    The loop runs steps + 1 times: each iteration measures the state it starts from (energy,
-    residual) and steps it, and the last iteration's step is discarded; so E0 and E_end come
-    from the compiled graph (an eager H, op by op, costs more) with one copy of H and of the
-    residual in it (each copy adds to the compilation)."""
-
-    @jax.jit
-    def evolve(state, dt, steps):
-        def body(k, carry):
-            s, e0, _, emax, rmax = carry
-            e = system.hamiltonian(s)
-            e0 = jnp.where(k == 0, e, e0)
-            emax = jnp.maximum(emax, jnp.abs(e - e0))
-            res = nh.residuals(system.kinetic, s, system.rotationless, system.group)
-            after = NHR.step(system, s, dt)
-            s = jax.tree.map(lambda a, b: jnp.where(k < steps, a, b), after, s)
-            return s, e0, e, emax, jnp.maximum(rmax, res)
-
-        zero = jnp.zeros(())
-        final, e0, end, emax, rmax = lax.fori_loop(0, steps + 1, body,
-                                                   (state, zero, zero, zero, zero))
-        return final, emax, rmax, (e0, end)
-
-    return evolve
+    """Jitted (state, dt, steps) -> (final, max |E - E0|, max constraint residual, (E0, E_end))
+    of the non-holonomic RATTLE step."""
+    return energy_and_residual_tracker(
+        system, lambda s, dt: NHR.step(system, s, dt),
+        lambda s: nh.residuals(system.kinetic, s, system.rotationless, system.group))
 
 
 INTERNAL = {"dalembert": kin.DAlembert(J3), "af-is": kin.AffineIsotropic(2.0, 0.5, 0.3)}
