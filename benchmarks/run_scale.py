@@ -19,6 +19,9 @@ the end) for each N, and the memory per body.
 ``--bodies N --steps S``: one run at N bodies on whatever JAX backend is installed (a GPU
 when there is one: the same command, nothing else to change), printing body-steps/s.
 
+``--faults``: minor page faults per step of the loop of ``affinebody run`` on one core
+(``--side``, ``--steps``; a run of steps / 5 steps subtracted, so set-up and output cancel).
+
 ``--npt``: the same lattice (``--side``, ``--steps``) at constant volume and under the
 stochastic cell-rescaling barostat (:data:`BAROSTAT`, isotropic; the neighbour list follows
 the box), both on all the cores, printing steps/s in the loop and their ratio.
@@ -27,6 +30,7 @@ the box), both on all the cores, printing steps/s in the loop and their ratio.
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py --repeat 3 # + the ratio's spread
     .venv/bin/python benchmarks/run_scale.py --memory 1000 10000 100000 1000000
     .venv/bin/python benchmarks/run_scale.py --npt --steps 200         # NPT vs NVT, 4096
+    .venv/bin/python benchmarks/run_scale.py --faults --steps 1000     # page faults per step
 """
 
 from __future__ import annotations
@@ -114,21 +118,23 @@ def write_config(folder: Path, side: int, steps: int, every: int, npt: bool = Fa
     return path
 
 
-def timed(command: list[str], env: dict | None = None) -> tuple[float, str, int]:
-    """(wall seconds, stdout + stderr, peak RSS of the command in kB, from GNU time; without
-    /usr/bin/time, the largest peak of any child so far, from getrusage)."""
+def timed(command: list[str], env: dict | None = None) -> tuple[float, str, int, int | None]:
+    """(wall seconds, stdout + stderr, peak RSS of the command in kB, its minor page faults),
+    from GNU time; without /usr/bin/time, the largest peak of any child so far (getrusage)
+    and no fault count."""
     gnu_time = Path("/usr/bin/time").is_file()
     start = time.perf_counter()
-    done = subprocess.run(["/usr/bin/time", "-f", "MAXRSS_KB %M", *command] if gnu_time
-                          else command, capture_output=True, text=True, env=env, check=False)
+    done = subprocess.run(["/usr/bin/time", "-f", "MAXRSS_KB %M FAULTS %R", *command]
+                          if gnu_time else command, capture_output=True, text=True, env=env,
+                          check=False)
     wall = time.perf_counter() - start
     if done.returncode:
         raise SystemExit(f"{' '.join(command)} failed:\n{done.stderr[-2000:]}")
     if gnu_time:
-        peak = int(re.findall(r"MAXRSS_KB (\d+)", done.stderr)[-1])
-    else:
-        peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return wall, done.stdout + done.stderr, peak
+        peak, faults = map(int, re.findall(r"MAXRSS_KB (\d+) FAULTS (\d+)", done.stderr)[-1])
+        return wall, done.stdout + done.stderr, peak, faults
+    return wall, done.stdout + done.stderr, resource.getrusage(
+        resource.RUSAGE_CHILDREN).ru_maxrss, None
 
 
 def pinned(cores: str, command: list[str]) -> list[str]:
@@ -139,14 +145,14 @@ def pinned(cores: str, command: list[str]) -> list[str]:
 def ours(config: Path, out: Path, cores: str, threads: int) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS=str(threads))
     out.unlink(missing_ok=True)
-    wall, text, peak = timed(pinned(cores, [*AFFINEBODY, "run", str(config), "-o", str(out),
-                                            "--verbose"]), env)
+    wall, text, peak, faults = timed(pinned(cores, [*AFFINEBODY, "run", str(config), "-o",
+                                                    str(out), "--verbose"]), env)
     match = re.search(r"compiling ([\d.]+) s, integrating ([\d.]+) s \(([\d.e+]+) steps/s, "
                       r"([\d.e+]+) body-steps/s\)", text)
     if not match:
         raise SystemExit(f"no summary line in the output of affinebody run:\n{text}")
     return {"wall": wall, "compile": float(match[1]), "loop": float(match[2]),
-            "rate": float(match[4]), "peak_kb": peak, "text": text}
+            "rate": float(match[4]), "peak_kb": peak, "faults": faults, "text": text}
 
 
 def lammps(folder: Path, side: int, steps: int) -> dict | None:
@@ -158,8 +164,8 @@ def lammps(folder: Path, side: int, steps: int) -> dict | None:
     script = folder / "in.gb"
     script.write_text(text)
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    wall, output, _ = timed(["taskset", "-c", "0", "lmp", "-in", str(script), "-log", "none"],
-                            env)
+    wall, output, *_ = timed(["taskset", "-c", "0", "lmp", "-in", str(script), "-log", "none"],
+                             env)
     loop = float(re.search(r"Loop time of ([\d.]+)", output)[1])
     atoms = int(re.search(r"with (\d+) atoms", output)[1])
     return {"wall": wall, "loop": loop, "rate": atoms * steps / loop}
@@ -219,6 +225,22 @@ def memory(sizes: list[int]) -> None:
                   f"{result['wall']:.1f} | {result['rate']:.3g} |", flush=True)
 
 
+def page_faults(side: int, steps: int) -> None:
+    """Minor page faults per step of the loop on one core: the faults of a run of ``steps``
+    steps minus those of a run of ``steps // 5``, over the steps between (set-up, compilation
+    and output cancel)."""
+    counts = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for length in (steps // 5, steps):
+            config = write_config(Path(tmp), side, length, every=length)
+            counts[length] = ours(config, Path(tmp) / f"f{length}.h5", "0", 1)["faults"]
+    if None in counts.values():
+        raise SystemExit("page faults need GNU time (/usr/bin/time)")
+    per_step = (counts[steps] - counts[steps // 5]) / (steps - steps // 5)
+    print(f"{side**3} bodies, one core: {counts[steps // 5]} minor page faults in "
+          f"{steps // 5} steps, {counts[steps]} in {steps}: {per_step:.1f} per step")
+
+
 def single(bodies: int, steps: int) -> None:
     side = round(bodies ** (1 / 3))
     with tempfile.TemporaryDirectory() as tmp:
@@ -256,11 +278,15 @@ def main() -> None:
     parser.add_argument("--memory", type=int, nargs="*")
     parser.add_argument("--bodies", type=int)
     parser.add_argument("--npt", action="store_true")
+    parser.add_argument("--faults", action="store_true",
+                        help="minor page faults per step of the loop (one core)")
     parser.add_argument("--repeat", type=int, default=1,
                         help="(one core, two cores) pairs of our runs, for the ratio's spread")
     args = parser.parse_args()
     if args.npt:
         npt_versus_nvt(args.side, args.steps)
+    elif args.faults:
+        page_faults(args.side, args.steps)
     elif args.memory:
         memory(args.memory)
     elif args.bodies:

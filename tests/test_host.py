@@ -92,7 +92,7 @@ def test_xla_flags_go_in_front_keep_the_users_and_are_known_to_this_xla():
     """compile_faster's flags go before the first word that is not a flag (XLA stops reading
     there), a flag the user set keeps the user's value, and this jaxlib accepts them: XLA
     aborts a process on a flag it does not know, so a JAX computation in a process with them
-    must finish (and it does with a flag XLA does not know: the check can fail)."""
+    must finish (and with a flag XLA does not know it does not: the check can fail)."""
     from affinebody import _xla
 
     assert _xla.with_flags("--xla_a=1 words", ("--xla_b=2", "--xla_a=3")) == \

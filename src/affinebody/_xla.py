@@ -26,7 +26,7 @@ def pin_to_one_cpu(index: int = 0) -> None:
 #: XLA:CPU flags that the command line and its sweep workers set for their own process before
 #: JAX starts: the MLIR fusion emitters off (XLA fuses with its elemental IR emitter instead).
 #: Compilation takes about two thirds of the time for the same speed of the compiled loop
-#: (``affinebody run`` on the demo: 4.5-4.9 s -> 3.2-3.3 s of compiling, the loop the same;
+#: (``affinebody run`` on the demo: 4.5-4.9 s -> 3.2-3.7 s of compiling, the loop the same;
 #: docs/performance.md).
 FAST_COMPILATION = ("--xla_cpu_use_fusion_emitters=false",)
 #: jaxlib versions (major, minor) below this are known to have those flags: XLA aborts the
