@@ -2,8 +2,10 @@
 
 The system is the one of ``run_scale.py`` (3D lattice, d'Alembert + af-is, the affine pair
 potential with D and M1, a dilatation term, neighbour list on), built by the same
-``config.build`` that ``affinebody run`` calls. Timed, each as a jitted function of the
-product, median of repeated calls after one warm-up (compile excluded, reported apart):
+``config.build`` that ``affinebody run`` calls, in a process set up as that command sets up
+its own (``runner.prepare_process``, ``_host.keep_freed_memory``). Timed, each as a jitted
+function of the product, median of repeated calls after one warm-up (compile excluded,
+reported apart):
 
 - ``forces``: all generalised forces (the pair kernel of the backend and the one-body terms);
 - ``list build``: a full neighbour-list build (``neighbors.build``);
@@ -66,14 +68,18 @@ def main() -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    from affinebody import _host
     from affinebody import neighbors as nb
     from affinebody import pair_kernels as pk
     from affinebody.config import build, load_config
     from affinebody.integrators import get_integrator
+    from affinebody.runner import prepare_process
 
     side = round(args.bodies ** (1 / 3))
     with tempfile.TemporaryDirectory() as tmp:
         config = load_config(write_config(Path(tmp), side, steps=10, every=10))
+    prepare_process(config)  # the process as `affinebody run` sets it up
+    _host.keep_freed_memory()
     start = time.perf_counter()
     built = build(config)
     stages = ", ".join(f"{k} {v:.2f}" for k, v in built.timings.items())

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from affinebody import _host
+from affinebody import _host, _xla
 
 
 def _kernel(a, b):
@@ -93,8 +93,6 @@ def test_xla_flags_go_in_front_keep_the_users_and_are_known_to_this_xla():
     there), a flag the user set keeps the user's value, and this jaxlib accepts them: XLA
     aborts a process on a flag it does not know, so a JAX computation in a process with them
     must finish (and with a flag XLA does not know it does not: the check can fail)."""
-    from affinebody import _xla
-
     assert _xla.with_flags("--xla_a=1 words", ("--xla_b=2", "--xla_a=3")) == \
         "--xla_b=2 --xla_a=1 words"
     assert _xla.flags_known()  # the pinned jaxlib
@@ -108,3 +106,34 @@ def test_xla_flags_go_in_front_keep_the_users_and_are_known_to_this_xla():
 
     assert finishes(_xla.with_flags("", _xla.FAST_COMPILATION))
     assert not finishes("--xla_cpu_no_such_flag_of_affinebody=true")
+
+
+POOL = """
+import os, sys
+import jax.numpy as jnp
+from jax._src import xla_bridge
+from affinebody import _xla
+set_here = _xla.single_xla_thread()
+started = xla_bridge.backends_are_initialized()
+jnp.arange(4.0).sum().block_until_ready()
+names = [open(f"/proc/self/task/{t}/comm").read() for t in os.listdir("/proc/self/task")]
+pool = sum(n.startswith("tf_XLAEigen") for n in names)
+print(set_here, started, os.environ.get("PJRT_NPROC"), pool)
+"""
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="threads counted in /proc")
+def test_single_xla_thread_sizes_xla_pool_and_keeps_the_users_size():
+    """single_xla_thread sets PJRT_NPROC=1 before JAX starts its backend and XLA's CPU client
+    then has one pool thread; a size the user gave (here 3, which XLA honours: 3 threads) is
+    kept."""
+    def pool(**sizes):
+        env = {k: v for k, v in os.environ.items() if k not in _xla.POOL_SIZE_VARIABLES}
+        out = subprocess.run([sys.executable, "-c", POOL], env={**env, **sizes},
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.split()
+
+    assert pool() == ["True", "False", "1", "1"]
+    assert pool(PJRT_NPROC="3") == ["False", "False", "3", "3"]
+    assert pool(NPROC="3") == ["False", "False", "None", "3"]

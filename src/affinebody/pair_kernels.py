@@ -392,6 +392,12 @@ def _fused_source(pot, n: int) -> str | None:
                         float(cutoff.r_cut))
 
 
+def fused_on_host(pot, n: int) -> bool:
+    """Whether the host kernel sums ``pot`` with the fused kernel (f a config expression,
+    :func:`_fused_source`) rather than with XLA evaluating f between two host calls."""
+    return _fused_source(pot, n) is not None
+
+
 @functools.cache
 def _fused_kernel(n: int, source: str):
     """The compiled fused kernel: the pair kernels of dimension n with ``source`` appended
@@ -680,6 +686,6 @@ def pair_sum(pot, space: Space, x, phi, i, j, count, cell=None):
 
 __all__ = [
     "ACCELERATOR_PAIR_CHUNK", "PAIR_CHUNK", "energy_and_gradients", "energy_and_gradients_host",
-    "host_kernel_in_use", "host_threads", "neighbor_energy", "padding_value", "pair_chunk",
-    "pair_sum", "pair_virial", "scalar_columns",
+    "fused_on_host", "host_kernel_in_use", "host_threads", "neighbor_energy", "padding_value",
+    "pair_chunk", "pair_sum", "pair_virial", "scalar_columns",
 ]

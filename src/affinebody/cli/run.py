@@ -24,7 +24,7 @@ from affinebody.config import (
     uses_neighbor_list,
 )
 from affinebody.h5md import open_trajectory, read_trajectory
-from affinebody.runner import demo_config_text, run_simulation
+from affinebody.runner import demo_config_text, prepare_process, run_simulation
 
 
 def _progress_callback(quiet: bool):
@@ -102,6 +102,7 @@ def run(config_file, output, steps, resume, overwrite, quiet, verbose):
     started = time.perf_counter()
     enable_x64()
     config = load_config(config_file)
+    single_xla_thread = prepare_process(config)  # before JAX starts its backend
     loaded = time.perf_counter() - started
     output = Path(output) if output else Path(config_file).with_suffix(".h5")
     if resume and overwrite:
@@ -115,6 +116,9 @@ def run(config_file, output, steps, resume, overwrite, quiet, verbose):
 
         device = jax.devices()[0]
         click.echo(f"device: {device.platform} {device.device_kind} (JAX {jax.__version__})")
+        if single_xla_thread:
+            click.echo("threads: XLA's CPU client 1 (the host kernels split the work over the "
+                       "cores)")
         click.echo("phases:")
         click.echo(f"  {'load and validate':<22} {loaded:9.3f} s")
         for line in summary.phase_lines():
@@ -138,6 +142,7 @@ def demo(output_dir, steps, quiet):
     text = demo_config_text()
     (folder / "demo.toml").write_text(text, encoding="utf-8")
     config = check_config(parse_config(text, "demo.toml"))
+    prepare_process(config)
     output = folder / "demo.h5"
     # the demo's folder is its own: a repeated `make demo` replaces its trajectory
     summary = _run_with_progress(config, output, steps, False, quiet, overwrite=True)
