@@ -22,6 +22,10 @@ when there is one: the same command, nothing else to change), printing body-step
 ``--faults``: minor page faults per step of the loop of ``affinebody run`` on one core
 (``--side``, ``--steps``; a run of steps / 5 steps subtracted, so set-up and output cancel).
 
+``--families``: the pair term's Morse part as the built-in family (``kind = "morse"``) and as
+the same f written as an expression, each on one core and on all (``--repeat`` rounds,
+interleaved), printing body-steps/s: a built-in family runs the same fused host kernel.
+
 ``--npt``: the same lattice (``--side``, ``--steps``) at constant volume and under the
 stochastic cell-rescaling barostat (:data:`BAROSTAT`, isotropic; the neighbour list follows
 the box), both on all the cores, printing steps/s in the loop and their ratio.
@@ -31,6 +35,7 @@ the box), both on all the cores, printing steps/s in the loop and their ratio.
     .venv/bin/python benchmarks/run_scale.py --memory 1000 10000 100000 1000000
     .venv/bin/python benchmarks/run_scale.py --npt --steps 200         # NPT vs NVT, 4096
     .venv/bin/python benchmarks/run_scale.py --faults --steps 1000     # page faults per step
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py --families --repeat 3
 """
 
 from __future__ import annotations
@@ -75,9 +80,7 @@ A = 0.2
 B = 0.1
 
 [[potential]]
-kind = "pair"
-expr = "(1 - exp(-3*(r - 1)))**2 - 1 + 0.5*exp(-D**2/4)*(M1 - 3)**2"
-r_cut = 2.5
+{pair}
 
 [[potential]]
 kind = "dilatation"
@@ -100,6 +103,20 @@ neighbor_list = "on"
 """
 
 
+#: The pair term of the benchmark system (the issue's affine potential).
+PAIR = """kind = "pair"
+expr = "(1 - exp(-3*(r - 1)))**2 - 1 + 0.5*exp(-D**2/4)*(M1 - 3)**2"
+r_cut = 2.5"""
+#: ``--families``: its Morse part as the built-in family, and the same f as an expression.
+MORSE_FAMILY = """kind = "morse"
+depth = 1.0
+alpha = 3.0
+r0 = 1.0
+r_cut = 2.5"""
+MORSE_EXPRESSION = """kind = "pair"
+expr = "(1 - exp(-3*(r - 1)))**2 - 1"
+r_cut = 2.5"""
+
 #: The barostat of ``--npt`` (appended to :data:`CONFIG`).
 BAROSTAT = """
 [barostat]
@@ -111,10 +128,11 @@ coupling = "isotropic"
 """
 
 
-def write_config(folder: Path, side: int, steps: int, every: int, npt: bool = False) -> Path:
-    path = folder / f"lattice{side}{'-npt' if npt else ''}.toml"
-    path.write_text(CONFIG.format(bodies=side**3, side=side, steps=steps, every=every)
-                    + (BAROSTAT if npt else ""))
+def write_config(folder: Path, side: int, steps: int, every: int, npt: bool = False,
+                 pair: str = PAIR, name: str = "lattice") -> Path:
+    path = folder / f"{name}{side}{'-npt' if npt else ''}.toml"
+    path.write_text(CONFIG.format(bodies=side**3, side=side, steps=steps, every=every,
+                                  pair=pair) + (BAROSTAT if npt else ""))
     return path
 
 
@@ -271,6 +289,38 @@ def npt_versus_nvt(side: int, steps: int) -> None:
     print(f"NPT / NVT steps/s: {rates[True]['rate'] / rates[False]['rate']:.2f}")
 
 
+def families(side: int, steps: int, repeat: int) -> None:
+    """The pair term as a built-in family (``kind = "morse"``) and as the same f written as an
+    expression, each on one core and on two, ``repeat`` rounds interleaved: a family runs the
+    fused host kernel as an expression does (``potentials.library``'s ``expression``)."""
+    cores = ",".join(map(str, sorted(os.sched_getaffinity(0))))
+    threads = len(os.sched_getaffinity(0))
+    rates: dict[tuple[str, int], list[float]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        configs = {name: write_config(folder, side, steps, every=steps // 10, pair=pair,
+                                      name=name)
+                   for name, pair in (("family", MORSE_FAMILY),
+                                      ("expression", MORSE_EXPRESSION))}
+        for k in range(repeat):
+            for name, config in configs.items():
+                for used, count in (("0", 1), (cores, threads)):
+                    out = folder / f"{name}-{count}-{k}.h5"
+                    rates.setdefault((name, count), []).append(
+                        ours(config, out, used, count)["rate"])
+    print(f"affinebody run, {side**3} bodies, {steps} steps, Morse pair term + dilatation "
+          f"(body-steps/s in the loop, {repeat} runs each, median):")
+    print("| pair term | 1 core | all cores | all / 1 |")
+    print("|---|---|---|---|")
+    for name, label in (("family", 'kind = "morse"'), ("expression", "the same expr")):
+        one, all_ = (statistics.median(rates[(name, count)]) for count in (1, threads))
+        print(f"| {label} | {one:.3g} | {all_:.3g} | {all_ / one:.2f} |")
+    for count in sorted({1, threads}):
+        family, expression = (statistics.median(rates[(name, count)])
+                              for name in ("family", "expression"))
+        print(f"family / expression, {count} core(s): {family / expression:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--side", type=int, default=16)
@@ -282,8 +332,12 @@ def main() -> None:
                         help="minor page faults per step of the loop (one core)")
     parser.add_argument("--repeat", type=int, default=1,
                         help="(one core, two cores) pairs of our runs, for the ratio's spread")
+    parser.add_argument("--families", action="store_true",
+                        help="the Morse pair term as a built-in family and as an expression")
     args = parser.parse_args()
-    if args.npt:
+    if args.families:
+        families(args.side, args.steps, args.repeat)
+    elif args.npt:
         npt_versus_nvt(args.side, args.steps)
     elif args.faults:
         page_faults(args.side, args.steps)

@@ -365,16 +365,9 @@ def test_a_sweep_sample_whose_list_overflows_is_repeated_with_room(all_pairs_swe
                                all_pairs_sweep.samples["final_energy"], rtol=1e-10)
 
 
-MORSE = '''[[potential]]
-kind = "morse"
-depth = 1.0
-alpha = 3.0
-r0 = 1.0
-r_cut = 1.5
-'''
-MORSE_AS_EXPRESSION = '''[[potential]]
-kind = "pair"
-expr = "(1 - exp(-3*(r - 1)))**2 - 1"
+HARMONIC = '''[[potential]]
+kind = "harmonic-invariants"
+stiffness = 0.5
 r_cut = 1.5
 '''
 BAROSTAT = '''[barostat]
@@ -386,17 +379,14 @@ temperature = 0.3
 
 
 def test_xla_gets_one_thread_only_where_the_host_kernels_do_all_the_parallel_work():
-    """The rule of ``runner.host_kernels_do_the_threading``: a list and every pair term a
-    config expression (the fused host kernel); a built-in family (XLA evaluates its f between
-    two host calls), all pairs, or a barostat (its virial pass) leave XLA its threads."""
+    """The rule of ``runner.host_kernels_do_the_threading``: a list and every pair term through
+    the fused host kernel (config expressions and the Morse family); a pair term whose f XLA
+    evaluates between two host calls (harmonic-invariants), all pairs, or a barostat (its
+    virial pass) leave XLA its threads."""
     from affinebody.runner import host_kernels_do_the_threading as decides
 
-    text = textwrap.dedent(CRYSTAL)
-    assert MORSE in text
-    expressions = text.replace(MORSE, MORSE_AS_EXPRESSION)
     config = lambda mode, text: check_config(parse_config(crystal(mode, text), "c.toml"))  # noqa: E731
-    assert decides(config("on", expressions))
-    assert not decides(config("on", text))  # the morse family
-    assert not decides(config("off", expressions))  # all pairs, in XLA
-    with_barostat = expressions.replace("[initial]", BAROSTAT + "[initial]")
-    assert not decides(config("on", with_barostat))
+    assert decides(config("on", CRYSTAL))  # morse and an expression
+    assert not decides(config("on", CRYSTAL.replace("[initial]", HARMONIC + "[initial]")))
+    assert not decides(config("off", CRYSTAL))  # all pairs, in XLA
+    assert not decides(config("on", CRYSTAL.replace("[initial]", BAROSTAT + "[initial]")))

@@ -249,3 +249,23 @@ def test_list_energy_alone_equals_the_energy_of_the_gradient_pass():
     with_gradients = float(_in_loop(potential, x, phi, nbrs)[0])
     assert alone == pytest.approx(with_gradients, rel=1e-14)
     assert alone == pytest.approx(all_pairs(potential, x, phi)[0], rel=1e-12)
+
+
+def test_built_in_families_reach_the_fused_kernel_as_their_own_formula():
+    """Lennard-Jones, Morse and Gaussian give the host kernel their f as a config expression
+    (so the fused kernel computes them, as the list-vs-all-pairs cases above check): the
+    expression is the family's term at random arguments, r and D alike (to round-off), and
+    harmonic-invariants (f of the vector of M_a) stays with the two-call kernel."""
+    rng = np.random.default_rng(11)
+    s = jnp.asarray(rng.uniform(0.6, 3.0, size=64))
+    cut = Cutoff(2.5)
+    families = [LennardJones(0.3, 0.45, cutoff=cut), LennardJones(1.7, 1.1, argument="D"),
+                Morse(1.3, 2.5, 1.05, cutoff=cut), Morse(0.4, 1.5, 0.9, argument="D"),
+                Gaussian(-0.7, 0.5, cutoff=cut), Gaussian(2.5, 1.3, argument="D")]
+    for family in families:
+        assert pk.fused_on_host(family, 3) == (family.cutoff is not None)  # no cut-off: no list
+        expression = family.expression
+        assert set(expression.used) == {family.argument}
+        np.testing.assert_allclose(expression(**{family.argument: s}),
+                                   family.term({family.argument: s}), rtol=1e-13, atol=1e-300)
+    assert not pk.fused_on_host(HarmonicInvariants(0.8, "M", cutoff=Cutoff(1.5)), 3)

@@ -394,8 +394,9 @@ def _fused_source(pot, n: int) -> str | None:
 
 def fused_on_host(pot, n: int) -> bool:
     """Whether the host kernel sums ``pot`` with the fused kernel (f a config expression,
-    :func:`_fused_source`) rather than with XLA evaluating f between two host calls."""
-    return _fused_source(pot, n) is not None
+    :func:`_fused_source`) rather than with XLA evaluating f between two host calls (False
+    without a cut-off: no list, no host kernel)."""
+    return getattr(pot, "cutoff", None) is not None and _fused_source(pot, n) is not None
 
 
 @functools.cache

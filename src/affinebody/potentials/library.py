@@ -221,6 +221,15 @@ class ExternalLinear(OneBodyTerm):
 # Built-in pair families
 
 
+def _family_expression(owner: str, text: str, argument: str, **numbers: float):
+    """A family's f as a config expression in its argument (r or D), ``text`` with each
+    ``{name}`` replaced by the parenthesised value of ``numbers[name]``: what the host pair
+    kernel compiles with the geometry (the fused kernel), as it does for ``kind = "pair"``."""
+    values = {name: f"({float(value)!r})" for name, value in numbers.items()}
+    return compile_expression(text.format(s=argument, **values), (argument,),
+                              field=f"{owner} (as an expression)")
+
+
 @pytree.dataclass(static=True)
 class LennardJones(PairTerm):
     """V_KL = 4 eps ((sigma/s)^12 - (sigma/s)^6), s = r or the affine distance D (75);
@@ -239,6 +248,12 @@ class LennardJones(PairTerm):
     def term(self, values):
         q6 = (self.sigma / values[self.argument]) ** 6
         return 4.0 * self.epsilon * (q6 * q6 - q6)
+
+    @property
+    def expression(self) -> CompiledExpression:
+        """:meth:`term` as a config expression (:func:`_family_expression`)."""
+        return _family_expression("lennard-jones", "4*{eps}*(({sigma}/{s})**12 - ({sigma}/{s})**6)",
+                                  self.argument, eps=self.epsilon, sigma=self.sigma)
 
 
 @pytree.dataclass(static=True)
@@ -260,6 +275,12 @@ class Morse(PairTerm):
         decay = jnp.exp(-self.alpha * (values[self.argument] - self.r0))
         return self.depth * ((1.0 - decay) ** 2 - 1.0)
 
+    @property
+    def expression(self) -> CompiledExpression:
+        """:meth:`term` as a config expression (:func:`_family_expression`)."""
+        return _family_expression("morse", "{depth}*((1 - exp(-{alpha}*({s} - {r0})))**2 - 1)",
+                                  self.argument, depth=self.depth, alpha=self.alpha, r0=self.r0)
+
 
 @pytree.dataclass(static=True)
 class Gaussian(PairTerm):
@@ -278,6 +299,12 @@ class Gaussian(PairTerm):
     def term(self, values):
         s = values[self.argument]
         return self.amplitude * jnp.exp(-(s**2) / (2.0 * self.width**2))
+
+    @property
+    def expression(self) -> CompiledExpression:
+        """:meth:`term` as a config expression (:func:`_family_expression`)."""
+        return _family_expression("gaussian", "{amplitude}*exp(-{s}**2/(2*{width}**2))",
+                                  self.argument, amplitude=self.amplitude, width=self.width)
 
 
 def _invariants(value: str) -> str:
