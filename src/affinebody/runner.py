@@ -432,5 +432,6 @@ def demo_config_text() -> str:
 
 __all__ = [
     "CHUNK_TARGET_STEPS", "SimulationStopped", "RunSummary", "chunk_steps", "run_simulation",
-    "constant_pressure", "thermostat_hook", "demo_config_text"
+    "constant_pressure", "thermostat_hook", "demo_config_text", "host_kernels_do_the_threading",
+    "prepare_process",
 ]
