@@ -390,3 +390,23 @@ def test_xla_gets_one_thread_only_where_the_host_kernels_do_all_the_parallel_wor
     assert not decides(config("on", CRYSTAL.replace("[initial]", HARMONIC + "[initial]")))
     assert not decides(config("off", CRYSTAL))  # all pairs, in XLA
     assert not decides(config("on", CRYSTAL.replace("[initial]", BAROSTAT + "[initial]")))
+
+
+def test_prepare_process_gives_xla_one_thread_where_the_host_kernels_take_every_core(
+        monkeypatch):
+    """``runner.prepare_process`` sets PJRT_NPROC=1 for such a run when the host kernels'
+    threads take every core the process may use (two here), not on a larger machine, where
+    XLA's pool threads have cores of their own."""
+    import os
+
+    from affinebody import _host, runner
+
+    config = check_config(parse_config(crystal("on"), "c.toml"))
+    for name in ("PJRT_NPROC", "NPROC"):
+        monkeypatch.setenv(name, "")  # unset for XLA; restored after the test
+    monkeypatch.setattr(_host, "cores", lambda: 16)
+    assert not runner.prepare_process(config)
+    assert os.environ["PJRT_NPROC"] == ""
+    monkeypatch.setattr(_host, "cores", lambda: _host.PARTS)
+    assert runner.prepare_process(config)
+    assert os.environ["PJRT_NPROC"] == "1"

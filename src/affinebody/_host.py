@@ -59,14 +59,17 @@ def in_use() -> bool:
     return numba is not None and jax.default_backend() == "cpu"
 
 
-def threads(parts: int) -> int:
-    """Threads for work split in ``parts`` fixed parts: the cores this process may run on, at
-    most ``parts`` (``taskset -c 0`` gives one)."""
+def cores() -> int:
+    """The cores this process may run on (``taskset -c 0`` gives one)."""
     try:
-        cores = len(os.sched_getaffinity(0))
+        return len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not on Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(parts, cores))
+        return os.cpu_count() or 1
+
+
+def threads(parts: int) -> int:
+    """Threads for work split in ``parts`` fixed parts: the :func:`cores`, at most ``parts``."""
+    return max(1, min(parts, cores()))
 
 
 @functools.cache
