@@ -134,8 +134,7 @@ def main() -> None:
     from affinebody._xla import pin_to_one_cpu
 
     pin_to_one_cpu()
-    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false "
-                                       "intra_op_parallelism_threads=1")
+    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
     from affinebody._checks import enable_x64
 
     enable_x64()
