@@ -142,10 +142,11 @@ def chunk_steps(config: Config) -> int:
 def host_kernels_do_the_threading(config: Config) -> bool:
     """Whether a run of ``config`` on a CPU does all its parallel work in the host kernels
     (:mod:`affinebody._host`, which split it over the cores on threads of their own): pair
-    forces over a neighbour list, every pair term a config expression (the fused kernel,
+    forces over a neighbour list, every pair term through the fused kernel (a config
+    expression, or a family that gives its f as one:
     :func:`affinebody.pair_kernels.fused_on_host`), no barostat (its virial pass evaluates f
     in XLA). Any other run leaves XLA work it spreads over the cores itself: the all-pairs
-    sums, the built-in families' f between two host calls."""
+    sums, an f that XLA evaluates between two host calls (a Python f, harmonic-invariants)."""
     if config.barostat is not None:
         return False
     terms = [build_potential_entry(e, k, config) for k, e in enumerate(config.potential)]

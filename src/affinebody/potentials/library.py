@@ -221,7 +221,8 @@ class ExternalLinear(OneBodyTerm):
 # Built-in pair families
 
 
-def _family_expression(owner: str, text: str, argument: str, **numbers: float):
+def _family_expression(owner: str, text: str, argument: str,
+                       **numbers: float) -> CompiledExpression:
     """A family's f as a config expression in its argument (r or D), ``text`` with each
     ``{name}`` replaced by the parenthesised value of ``numbers[name]``: what the host pair
     kernel compiles with the geometry (the fused kernel), as it does for ``kind = "pair"``."""
