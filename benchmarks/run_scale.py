@@ -22,6 +22,10 @@ when there is one: the same command, nothing else to change), printing body-step
 ``--faults``: minor page faults per step of the loop of ``affinebody run`` on one core
 (``--side``, ``--steps``; a run of steps / 5 steps subtracted, so set-up and output cancel).
 
+``--pool-of-cores``: our runs with XLA's CPU pool of one thread per core (PJRT_NPROC, kept by
+the command), as before ``runner.prepare_process`` gave such runs one thread: the A/B of that
+choice.
+
 ``--families``: the pair term's Morse part as the built-in family (``kind = "morse"``) and as
 the same f written as an expression, each on one core and on all (``--repeat`` rounds,
 interleaved), printing body-steps/s: a built-in family runs the same fused host kernel.
@@ -36,6 +40,7 @@ the box), both on all the cores, printing steps/s in the loop and their ratio.
     .venv/bin/python benchmarks/run_scale.py --npt --steps 200         # NPT vs NVT, 4096
     .venv/bin/python benchmarks/run_scale.py --faults --steps 1000     # page faults per step
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py --families --repeat 3
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py --repeat 3 --pool-of-cores
 """
 
 from __future__ import annotations
@@ -160,8 +165,16 @@ def pinned(cores: str, command: list[str]) -> list[str]:
     return ["taskset", "-c", cores, *command] if shutil.which("taskset") else command
 
 
+#: ``--pool-of-cores``: give XLA's CPU client one thread per core in our runs (its size before
+#: ``runner.prepare_process`` gave such runs one thread), through PJRT_NPROC, which the
+#: command keeps.
+POOL_OF_CORES = False
+
+
 def ours(config: Path, out: Path, cores: str, threads: int) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+    if POOL_OF_CORES:
+        env["PJRT_NPROC"] = str(threads)
     out.unlink(missing_ok=True)
     wall, text, peak, faults = timed(pinned(cores, [*AFFINEBODY, "run", str(config), "-o",
                                                     str(out), "--verbose"]), env)
@@ -332,9 +345,14 @@ def main() -> None:
                         help="minor page faults per step of the loop (one core)")
     parser.add_argument("--repeat", type=int, default=1,
                         help="(one core, two cores) pairs of our runs, for the ratio's spread")
+    parser.add_argument("--pool-of-cores", action="store_true",
+                        help="XLA's CPU pool of one thread per core in our runs (as before "
+                             "runner.prepare_process)")
     parser.add_argument("--families", action="store_true",
                         help="the Morse pair term as a built-in family and as an expression")
     args = parser.parse_args()
+    global POOL_OF_CORES
+    POOL_OF_CORES = args.pool_of_cores
     if args.families:
         families(args.side, args.steps, args.repeat)
     elif args.npt:
