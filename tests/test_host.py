@@ -16,6 +16,12 @@ import pytest
 from affinebody import _host, _xla
 
 
+def python(code: str, *args: str, env=None) -> subprocess.CompletedProcess:
+    """``code`` run by this interpreter in a fresh process (JAX not yet started there)."""
+    return subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True,
+                          text=True, timeout=120)
+
+
 def _kernel(a, b):
     """A host function of a batch: a [..., 3, 4], b [..., 4]; it checks its operands are
     NumPy arrays it may not write."""
@@ -54,6 +60,7 @@ def test_callback_is_pure_callback_under_jit_and_vmap(vmap_method):
             assert x.shape == y.shape and np.array_equal(x, y)
     assert _host.CALLBACK_NAME in str(jax.make_jaxpr(ours)(a, b))
 
+
 # 16 arrays of 2 MiB allocated, touched and freed, four times over: the page faults of each round
 REFILL = """
 import resource, sys
@@ -71,8 +78,8 @@ for _ in range(4):
 
 
 def refill_faults(mode: str) -> list[int]:
-    out = subprocess.run([sys.executable, "-c", REFILL, mode], capture_output=True, text=True,
-                         check=True, timeout=120)
+    out = python(REFILL, mode)
+    assert out.returncode == 0, out.stderr
     return [int(line) for line in out.stdout.split()]
 
 
@@ -99,9 +106,7 @@ def test_xla_flags_go_in_front_keep_the_users_and_are_known_to_this_xla():
     run = "import jax.numpy as jnp; print(float(jnp.arange(4.0).sum()))"
 
     def finishes(flags: str) -> bool:
-        env = {**os.environ, "XLA_FLAGS": flags}
-        out = subprocess.run([sys.executable, "-c", run], env=env, capture_output=True,
-                             text=True, timeout=120)
+        out = python(run, env={**os.environ, "XLA_FLAGS": flags})
         return out.returncode == 0 and out.stdout.strip() == "6.0"
 
     assert finishes(_xla.with_flags("", _xla.FAST_COMPILATION))
@@ -129,8 +134,7 @@ def test_single_xla_thread_sizes_xla_pool_and_keeps_the_users_size():
     kept."""
     def pool(**sizes):
         env = {k: v for k, v in os.environ.items() if k not in _xla.POOL_SIZE_VARIABLES}
-        out = subprocess.run([sys.executable, "-c", POOL], env={**env, **sizes},
-                             capture_output=True, text=True, timeout=120)
+        out = python(POOL, env={**env, **sizes})
         assert out.returncode == 0, out.stderr
         return out.stdout.split()
 

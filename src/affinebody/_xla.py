@@ -72,9 +72,10 @@ def single_xla_thread() -> bool:
     """Give XLA's CPU client a pool of one thread (``PJRT_NPROC=1``), unless the user sized
     it (:data:`POOL_SIZE_VARIABLES`); True when set here. For a process whose parallel work
     the host kernels do on threads of their own (:mod:`affinebody._host`): XLA's idle pool
-    threads then no longer compete with them for the cores (``affinebody run`` on two contended
-    cores, 4096 bodies: 4.14e5 -> 4.35e5 body-steps/s; docs/performance.md), and jaxlib's batched
-    LAPACK kernels run inline (no two-thread deadlock, :func:`pin_to_one_cpu`). Not for
+    threads then no longer compete with them for the cores (about 5 % on two contended cores,
+    nothing measurable on idle ones: docs/performance.md, "Two cores: XLA's threads and the
+    host kernels'"), and the pool has the one
+    thread that :func:`pin_to_one_cpu` relies on against jaxlib's LAPACK deadlock. Not for
     work that XLA itself spreads over the cores (all-pairs sums: 1.6x slower on two cores).
     XLA reads it when JAX creates its CPU backend: call it before any JAX computation."""
     if any(os.environ.get(name, "").strip() for name in POOL_SIZE_VARIABLES):

@@ -35,7 +35,8 @@ product runs both, one per backend (:func:`pair_sum` chooses):
 - the host kernel (:func:`energy_and_gradients_host`): compiled CPU code (Numba) for the
   geometry and for the chain rule and per-body sums, reached from compiled JAX code through two host
   callbacks (``_host.callback``) per chunk of pairs, with f and its partial derivatives evaluated by
-  XLA between them (fused, elementwise); where f is a config expression, one callback for the whole
+  XLA between them (fused, elementwise); where f is a config expression (``PairTerm.expression``:
+  ``kind = "pair"``, and the Lennard-Jones, Morse and Gaussian families), one callback for the whole
   list instead, f and its partials compiled into the same loop
   (:mod:`affinebody._host_kernels.pair_expression`) and the chain rule through B and det phi
   applied per body in Numba too. On a CPU the arrays stay in host
@@ -381,7 +382,7 @@ def _fused_source(pot, n: int) -> str | None:
     partials compiled with the geometry and the chain rule,
     :mod:`affinebody._host_kernels.pair_expression`), or None where f is not a config
     expression (then XLA evaluates f between two callbacks)."""
-    expression = getattr(pot, "expression", None)
+    expression = pot.expression
     if not isinstance(expression, CompiledExpression) or not set(expression.used) <= set(
             pot.variables):  # a variable f uses but the term does not declare: JAX refuses it
         return None
@@ -393,10 +394,11 @@ def _fused_source(pot, n: int) -> str | None:
 
 
 def fused_on_host(pot, n: int) -> bool:
-    """Whether the host kernel sums ``pot`` with the fused kernel (f a config expression,
-    :func:`_fused_source`) rather than with XLA evaluating f between two host calls (False
-    without a cut-off: no list, no host kernel)."""
-    return getattr(pot, "cutoff", None) is not None and _fused_source(pot, n) is not None
+    """Whether the host kernel sums ``pot`` with the fused kernel (``pot.expression``: a config
+    expression, or a built-in family's f written as one; :func:`_fused_source`) rather than
+    with XLA evaluating f between two host calls (False without a cut-off: no list, no host
+    kernel)."""
+    return pot.cutoff is not None and _fused_source(pot, n) is not None
 
 
 @functools.cache
@@ -584,7 +586,8 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     pairs, a host callback (``_host.callback``) computes the geometry (Numba), XLA the scalar
     function f and its partial derivatives (fused, elementwise), a second callback the closed-form
     chain rule and the per-body sums; the per-body chain rule through B = phi^-1 and det phi
-    finishes in JAX. Where f is a config expression (``pot.expression``), one callback over
+    finishes in JAX. Where f is a config expression (``pot.expression``: a ``kind = "pair"``
+    term, or a family that writes its f as one), one callback over
     the whole list runs the fused kernel instead (f and its partials compiled with the
     geometry and the chain rule, :func:`_fused_source`, then the chain rule through B and
     det phi, :func:`_host_fused`); the virial pass keeps the two callbacks. No JAX

@@ -159,10 +159,9 @@ def prepare_process(config: Config) -> bool:
     """What ``affinebody run`` does for its own process before JAX starts, once the config is
     known: where :func:`host_kernels_do_the_threading` and the host kernels' threads take
     every core the process may use (at most :data:`affinebody._host.PARTS` cores), XLA's CPU
-    client gets one thread (:func:`affinebody._xla.single_xla_thread`; two contended
-    cores, 4096 bodies: 4.14e5 -> 4.35e5 body-steps/s; docs/performance.md). With more
-    cores XLA's idle pool threads have cores of their own, and its per-body work of large
-    systems may use them. True when it set it."""
+    client gets one thread (:func:`affinebody._xla.single_xla_thread`). With more cores
+    XLA's idle pool threads have cores of their own, and its per-body work of large systems
+    may use them. True when it set it."""
     return (_host.cores() <= _host.PARTS and host_kernels_do_the_threading(config)
             and _xla.single_xla_thread())
 

@@ -174,8 +174,10 @@ class PairTerm(AbstractPotentialTerm):
 
     The contract with :mod:`affinebody.pair_kernels`: :meth:`scalar_requirements` (which
     scalar pair variables f needs), :attr:`asymmetric` (whether f is averaged over both
-    orders of a pair) and :meth:`energy_from_scalars` (the pair energies from those scalars,
-    elementwise, so that its gradient gives the per-pair partial derivatives)."""
+    orders of a pair), :meth:`energy_from_scalars` (the pair energies from those scalars,
+    elementwise, so that its gradient gives the per-pair partial derivatives) and
+    :attr:`expression` (f as a config expression, which the host kernel compiles with the
+    geometry, or None)."""
 
     cutoff: Cutoff | None
     box: tuple[float, ...] | Space | None
@@ -207,6 +209,14 @@ class PairTerm(AbstractPotentialTerm):
                 f"{owner}: r_cut = {self.cutoff.r_cut} exceeds half the shortest box edge "
                 f"(perpendicular width) {limit}: the minimum image would miss images in range"
             )
+
+    @property
+    def expression(self):
+        """f as a config expression (``affinebody.expressions.CompiledExpression``) in
+        :attr:`variables`, or None (here): where it is one, the host pair kernel compiles f
+        and its partials with the geometry and the chain rule in one loop (the fused kernel
+        of :mod:`affinebody.pair_kernels`); otherwise XLA evaluates f between two host calls."""
+        return None
 
     @property
     def _needed(self) -> frozenset[str]:
