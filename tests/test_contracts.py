@@ -70,6 +70,49 @@ def test_demo_system_is_an_array_pytree_and_two_runs_compile_once(demo):
     assert moved[1] < moved[0]
 
 
+def _registered_models(n: int = 2) -> list:
+    """One instance of every registered kinetic model and potential family."""
+    rng = np.random.default_rng(0)
+    models = [kinetic_sample(cls, n, rng) for cls in dict.fromkeys(K.MODELS.values())]
+    models += [kinetic_sample(cls, n, rng) for cls in TRANSLATIONAL.values()]
+    models += [build_potential(name, POTENTIAL_EXAMPLES[name](n), n=n, field="potential.0")
+               for name in POTENTIALS]
+    return models
+
+
+def test_models_of_different_classes_never_share_a_treedef():
+    """jax.jit reuses a compiled program for arguments of equal treedef, so two classes must
+    never have equal treedefs (docs/architecture.md, "The pytree convention"): HAffine(H) and
+    DAlembert(J) have one array field of the same shape each, and under jaxlib 0.10.1's
+    register_dataclass their treedefs compared equal."""
+    models = _registered_models()
+    for a, b in ((a, b) for a in models for b in models if type(a) is not type(b)):
+        assert jax.tree.structure(a) != jax.tree.structure(b), (type(a), type(b))
+    # equal static values of one class: one treedef, the compiled program is shared
+    lj = POTENTIAL_EXAMPLES["lennard-jones"](2)
+    assert jax.tree.structure(build_potential("lennard-jones", lj, n=2, field="p")) == \
+        jax.tree.structure(build_potential("lennard-jones", dict(lj), n=2, field="p"))
+
+
+def test_one_jitted_function_runs_each_class_its_own_program():
+    """A hundred classes with identical fields (one array, one static value) through one jit:
+    each call computes with its own class's method. Under register_dataclass about one class
+    in ten (400 classes: 44) got another class's program, depending on the hash seed."""
+    from affinebody import _pytree
+
+    classes = []
+    for k in range(100):
+        cls = type(f"Model{k}", (), {"__annotations__": {"a": "Any", "s": "float"},
+                                     "s": _pytree.static_field(default=1.0),
+                                     "energy": lambda self, k=k: (k + self.s) * self.a})
+        classes.append(_pytree.dataclass(cls))
+    energy = jax.jit(lambda model: model.energy())
+    got = [float(energy(cls(jnp.ones(())))) for cls in classes]
+    assert got == [k + 1.0 for k in range(100)]
+
+
+# --------------------------------------------------------------------------------------------
+# Kinetic models: declarations, symmetries, degenerate parameters, drifts on subgroups
 # --------------------------------------------------------------------------------------------
 # Kinetic models: declarations, symmetries, degenerate parameters, drifts on subgroups
 

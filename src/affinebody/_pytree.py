@@ -75,11 +75,41 @@ def dataclass(cls: type | None = None, *, static: bool = False):
         cls.__post_init__ = __post_init__
         dc = dataclasses.dataclass(frozen=True)(cls)
         fields = [f for f in dataclasses.fields(dc) if f.init]
-        meta = [f.name for f in fields if static or is_static(f)]
-        data = [f.name for f in fields if f.name not in meta]
-        return jax.tree_util.register_dataclass(dc, data_fields=data, meta_fields=meta)
+        meta = tuple(f.name for f in fields if static or is_static(f))
+        data = tuple(f.name for f in fields if f.name not in meta)
+        return _register(dc, data, meta)
 
     return wrap if cls is None else wrap(cls)
+
+
+def _register(cls: type, data: tuple[str, ...], meta: tuple[str, ...]) -> type:
+    """Register ``cls`` as a pytree node: ``data`` fields are the children (keyed by
+    ``GetAttrKey``, as ``jax.tree_util.register_dataclass`` keys them), the values of the
+    ``meta`` fields the node's auxiliary data; rebuilding calls ``cls(**fields)``.
+
+    Why not ``jax.tree_util.register_dataclass``: in jaxlib 0.10.1 the treedefs of two
+    *different* classes registered that way compare equal when their static values are equal
+    (``HAffine(H)`` and ``DAlembert(J)``; two potentials with equal parameters), though their
+    hashes differ. ``jax.jit``'s cache then returns one class's compiled program for the other
+    whenever their keys meet in a hash-table probe, which happens at random from one process
+    to the next: a silently wrong flow or force (docs/architecture.md, "The pytree
+    convention"; tests/test_contracts.py). A node registered with flatten functions compares
+    its class, as it should.
+    """
+
+    def flatten_with_keys(obj):
+        children = tuple((jax.tree_util.GetAttrKey(name), getattr(obj, name)) for name in data)
+        return children, tuple(getattr(obj, name) for name in meta)
+
+    def flatten(obj):
+        return tuple(getattr(obj, name) for name in data), tuple(getattr(obj, name)
+                                                                 for name in meta)
+
+    def unflatten(aux, children):
+        return cls(**dict(zip(meta, aux, strict=True)), **dict(zip(data, children, strict=True)))
+
+    jax.tree_util.register_pytree_with_keys(cls, flatten_with_keys, unflatten, flatten)
+    return cls
 
 
 __all__ = ["dataclass", "field", "initialize", "is_static", "static_field"]
