@@ -4,6 +4,7 @@ tunes for the command line and the workers."""
 
 from __future__ import annotations
 
+import functools
 import os
 import subprocess
 import sys
@@ -59,6 +60,37 @@ def test_callback_is_pure_callback_under_jit_and_vmap(vmap_method):
         for x, y in zip(got, want, strict=True):
             assert x.shape == y.shape and np.array_equal(x, y)
     assert _host.CALLBACK_NAME in str(jax.make_jaxpr(ours)(a, b))
+
+
+def test_callback_outside_jit_calls_the_function_and_compiles_nothing():
+    """Outside jit, _host.callback calls the host function at once (read-only NumPy operands,
+    the results of the compiled call bit for bit) and compiles nothing: compiling a one-call
+    program each time never hit the cache, the function being a new partial at every call."""
+    from jax._src import monitoring
+
+    rng = np.random.default_rng(4)
+    a, b = jnp.asarray(rng.standard_normal((3, 4))), jnp.asarray(rng.standard_normal(4))
+
+    def call(a, b):
+        return _host.callback(functools.partial(_kernel), _shapes(a), a, b)
+
+    compiled = jax.jit(call)(a, b)
+    call(a, b)  # the first call may compile the results' conversion, once
+    compiles = []
+
+    def listen(event, duration, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    monitoring.register_event_duration_secs_listener(listen)
+    try:
+        for _ in range(3):
+            eager = call(a, b)
+    finally:
+        monitoring.unregister_event_duration_listener(listen)
+    assert compiles == []
+    for x, y in zip(eager, compiled, strict=True):
+        assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y)
 
 
 # 16 arrays of 2 MiB allocated, touched and freed, four times over: the page faults of each round

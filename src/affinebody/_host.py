@@ -194,8 +194,13 @@ def _callback_abstract(*args, function, result_avals, vmap_method):
     return result_avals
 
 
-def _callback_impl(*args, **params):  # outside jit: compile the one call
-    return jax.jit(functools.partial(_CALLBACK.bind, **params))(*args)
+def _callback_impl(*args, function, result_avals, vmap_method):
+    """Outside jit: the host function called at once on NumPy views of the operands, as the
+    compiled call gives it them (compiling a one-call program instead cost a compilation per
+    call: the function, a new partial each time, is part of the cache key)."""
+    out = function(*(np.asarray(a) for a in args))
+    return [jnp.asarray(o, dtype=aval.dtype).reshape(aval.shape)
+            for o, aval in zip(out, result_avals, strict=True)]
 
 
 def _callback_lowering(ctx, *args, function, result_avals, vmap_method):
