@@ -3,7 +3,8 @@ the compiled loop, updated after every drift, reallocated after an overflow, and
 the all-pairs motion to round-off: periodic 3D systems with the demo's affine pair potential
 (cut-off on r), bodies that stretch under a cut-off on the affine distance D of eq. (75)
 (the reach grows), a capacity too small for the run (reallocation), runs chained through
-``trajectory.neighbors``, and energy conservation unchanged."""
+``trajectory.neighbors``, energy conservation unchanged, and the path a GPU runs (JAX kernels,
+no host round trip) against the CPU's host kernels."""
 
 import functools
 
@@ -158,3 +159,41 @@ def test_neighbour_lists_refuse_what_they_cannot_serve():
     other = nb.allocate(BOX, state.x, state.phi, 1.0, "r", SKIN)  # a cut-off too short
     with pytest.raises(ValueError, match="does not fit"):
         run(system, state, DT, 10, neighbors=other)
+
+
+def test_the_accelerator_path_gives_the_host_kernels_motion(monkeypatch):
+    """What a GPU runs (the JAX pair kernel and list build, the exact af-is drift in JAX, tiny
+    matrix products written elementwise: no host round trip in the loop) is the motion the CPU
+    host kernels give (the fused Numba pair kernel, list build and drift), to round-off: the
+    same run of the periodic system with an af-is drift, once each way."""
+    import jax
+
+    from affinebody import _host, _linalg, pair_kernels
+
+    system, state = periodic_system()
+    system = system.replace(kinetic=kin.KineticEnergy(
+        kin.DAlembertTranslational(1.0), kin.AffineIsotropic(0.3, 0.05, 0.02)))
+    monkeypatch.setattr(kin, "HOST_DRIFT_MIN_BODIES", 1)  # 64 bodies take the host drift too
+    calls = []
+    host_callback = _host.callback
+    monkeypatch.setattr(_host, "callback", lambda f, *a, **k: calls.append(f) or host_callback(
+        f, *a, **k))
+    lists = nb.allocate(BOX, state.x, state.phi, R_CUT, "r", SKIN, capacity_factor=3.0)
+    observers = ("energy", "potential_energy")
+    host = run(system, state, DT, 60, every=EVERY, observers=observers, neighbors=lists)
+    assert len(calls) >= 3  # pair kernel, list build, drift: traced into the loop
+    # the accelerator path on this CPU, compiled afresh (the jit caches key on neither switch)
+    monkeypatch.setattr(_host, "in_use", lambda: False)
+    monkeypatch.setattr(pair_kernels, "_host_in_use", lambda: False)
+    monkeypatch.setattr(_linalg, "fused_products", lambda: True)
+    jax.clear_caches()
+    calls.clear()
+    try:
+        accelerator = run(system, state, DT, 60, every=EVERY, observers=observers,
+                          neighbors=lists)
+    finally:
+        jax.clear_caches()  # nothing compiled with the switches flipped outlives this test
+    assert calls == []
+    assert host.neighbor_rebuilds >= 1 and accelerator.neighbor_rebuilds == host.neighbor_rebuilds
+    assert_same_motion(accelerator, host, atol=1e-11)
+    assert np.max(np.abs(np.asarray(host.final_state.phi - state.phi))) > 1e-2  # real motion
