@@ -128,6 +128,21 @@ def test_no_private_name_is_imported_across_modules():
     assert not wrong, "\n".join(wrong)
 
 
+def test_pytree_classes_are_registered_by_the_one_pytree_convention():
+    """Only ``_pytree`` registers pytree nodes, and never through
+    ``jax.tree_util.register_dataclass``, whose treedefs of different classes compare equal
+    under jaxlib 0.10.1 (docs/architecture.md, "The pytree convention")."""
+    wrong = []
+    for name, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            called = node.func if isinstance(node, ast.Call) else None
+            label = getattr(called, "attr", getattr(called, "id", ""))
+            if label == "register_dataclass" or (
+                    label.startswith("register_pytree") and name != "affinebody._pytree"):
+                wrong.append(f"{name}:{node.lineno} calls {label}")
+    assert not wrong, "\n".join(wrong)
+
+
 def test_the_import_graph_has_no_cycle():
     graph: dict[str, set[str]] = {m: set() for m in MODULES}
     for source, target, _, _ in internal_edges():
