@@ -4,8 +4,9 @@ compiled with the geometry and the chain rule, affinebody._host_kernels.pair_exp
 - the generated partial derivatives equal jax.grad of the expression at random points, for
   an expression that calls every whitelisted function, and at the kinks of abs, min and max
   (JAX's conventions);
-- energies and generalised forces over a neighbour list equal the host path with XLA's f
-  between two callbacks (the same f as a Python function), for n = 2 and 3, f in r, D, det,
+- energies and generalised forces over a neighbour list, and the energy and virial of the
+  barostat's pass, equal the host path with XLA's f between two callbacks (the same f as a
+  Python function; the virial also the JAX kernel's), for n = 2 and 3, f in r, D, det,
   K_a, M_a (asymmetric: both orders, M'_a and 1/det), cut-offs on r (periodic box) and on D
   (free space), and the all-pairs autodiff with the cut-off on D.
 
@@ -112,6 +113,16 @@ def test_fused_kernel_equals_the_two_callback_path(case):
     # the energy alone (observables): the fused kernel without the chain rule
     alone = jax.jit(lambda a, b: fused.energy(a, b, nbrs))(x, phi)
     assert float(alone) == pytest.approx(float(reference[0]), rel=1e-12)
+    # the barostat's pass, energy and virial: the fused virial kernel, the two-callback path
+    # and the JAX kernel (chunked: no host kernel)
+    virial = jax.jit(pk.pair_virial, static_argnums=(0, 1), static_argnames=("chunk", "energy"))
+    e, w = virial(fused, fused.space, *args, energy=True)
+    e_plain, w_plain = virial(plain, plain.space, *args, energy=True)
+    e_jax, w_jax = virial(fused, fused.space, *args, chunk=64, energy=True)
+    assert np.max(np.abs(np.asarray(w))) > 1e-2  # pairs in range: a non-trivial virial
+    for energy, other in ((e_plain, w_plain), (e_jax, w_jax)):
+        assert float(e) == pytest.approx(float(energy), rel=1e-12)
+        np.testing.assert_allclose(np.asarray(w), np.asarray(other), rtol=1e-11, atol=1e-12)
 
 
 def test_fused_kernel_with_a_cut_off_on_D_equals_all_pairs():

@@ -405,9 +405,11 @@ def fused_on_host(pot, n: int) -> bool:
 def _fused_kernel(n: int, source: str):
     """The compiled fused kernel: the pair kernels of dimension n with ``source`` appended
     (cached on disk under a hash of the whole text, :func:`affinebody._host.specialized`):
-    ``fused`` (the pair loop) and ``merge_finish`` (the parts' sums and the chain rule)."""
+    ``fused`` (the pair loop), ``merge_finish`` (the parts' sums and the chain rule) and
+    ``fused_virial`` (the pair loop of the energy and the virial)."""
     kernels = _host.specialized("pair", extra=source, N=n)
-    return types.SimpleNamespace(fused=kernels._fused, merge_finish=kernels._merge_finish)
+    return types.SimpleNamespace(fused=kernels._fused, merge_finish=kernels._merge_finish,
+                                 fused_virial=kernels._fused_virial)
 
 
 def host_threads() -> int:
@@ -574,6 +576,28 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, x, phi, binv, de
     return energy, g_x, g_phi
 
 
+def _host_fused_virial(g: _HostGeometry, source: str, x, phi, binv, det, i, j, count, h,
+                       h_inv):
+    """(E, W) of the list's first ``count`` pairs with the fused kernel: the energy and the
+    virial W [n, n] of :func:`pair_virial`, in :data:`affinebody._host.PARTS` fixed parts
+    added in part order (the same bits on any thread count). One callback for the list."""
+    kernels = _fused_kernel(g.n, source)
+    valid = min(int(count), i.shape[0])
+    i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
+    x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
+    w = np.zeros((_host.PARTS, g.n, g.n))
+
+    def pairs(k, lo, hi):
+        return kernels.fused_virial(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges,
+                                    w[k])
+
+    energy, total = np.zeros(()), np.zeros((g.n, g.n))
+    for k, e in enumerate(_in_parts(pairs, valid)):  # a fixed order
+        energy += e
+        total += w[k]
+    return energy, total
+
+
 def _host_chunk(capacity: int) -> int:
     """Pairs per host-kernel pass for a list of ``capacity`` pairs (a function of the
     capacity only, so the summation order, hence every bit, is the same on every run)."""
@@ -590,13 +614,14 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     term, or a family that writes its f as one), one callback over
     the whole list runs the fused kernel instead (f and its partials compiled with the
     geometry and the chain rule, :func:`_fused_source`, then the chain rule through B and
-    det phi, :func:`_host_fused`); the virial pass keeps the two callbacks. No JAX
+    det phi, :func:`_host_fused`), and the virial pass the fused virial kernel
+    (:func:`_host_fused_virial`). No JAX
     runs inside a callback (that could wait on the thread that called it).
     ``gradients=False``: the energy alone (no chain rule, no second callback). ``cell``: the
     current cell of a box that a barostat deforms (an operand of the kernels: one
     compilation serves every box), or None. ``virial=True``: (E, W), the energy and the
-    virial W [n, n] of :func:`pair_virial` instead (a third kernel after the geometry and f's
-    partials)."""
+    virial W [n, n] of :func:`pair_virial` instead (the fused virial kernel where f is a
+    config expression, else a third kernel after the geometry and f's partials)."""
     _require_cutoff(pot)
     bodies, n = x.shape
     g = _HostGeometry.of(pot, space, n, moving=cell is not None)
@@ -606,7 +631,11 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
         h, h_inv = cell, linalg.inv(cell)
     binv, det = linalg.inv(phi), linalg.det(phi)
     f64 = lambda shape: jax.ShapeDtypeStruct(shape, x.dtype)  # noqa: E731
-    fused = None if virial else _fused_source(pot, n)
+    fused = _fused_source(pot, n)
+    if fused is not None and virial:  # the energy and virial in one callback
+        return _host.callback(
+            partial(_host_fused_virial, g, fused), (f64(()), f64((n, n))),
+            x, phi, binv, det, i, j, count, h, h_inv, vmap_method="sequential")
     if fused is not None:  # f is a config expression: one callback does it all
         return _host.callback(
             partial(_host_fused, g, fused, gradients),

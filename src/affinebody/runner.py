@@ -144,9 +144,10 @@ def host_kernels_do_the_threading(config: Config) -> bool:
     (:mod:`affinebody._host`, which split it over the cores on threads of their own): pair
     forces over a neighbour list, every pair term through the fused kernel (a config
     expression, or a family that gives its f as one:
-    :func:`affinebody.pair_kernels.fused_on_host`), no barostat (its virial pass evaluates f
-    in XLA). Any other run leaves XLA work it spreads over the cores itself: the all-pairs
-    sums, an f that XLA evaluates between two host calls (a Python f, harmonic-invariants)."""
+    :func:`affinebody.pair_kernels.fused_on_host`), no barostat (kept out since its virial pass
+    evaluated f in XLA; that pass is fused now, the rule for it not measured again). Any
+    other run leaves XLA work it spreads over the cores itself: the all-pairs sums, an f that
+    XLA evaluates between two host calls (a Python f, harmonic-invariants)."""
     if config.barostat is not None:
         return False
     terms = [build_potential_entry(e, k, config) for k, e in enumerate(config.potential)]
