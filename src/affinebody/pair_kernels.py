@@ -405,11 +405,10 @@ def fused_on_host(pot, n: int) -> bool:
 def _fused_kernel(n: int, source: str):
     """The compiled fused kernel: the pair kernels of dimension n with ``source`` appended
     (cached on disk under a hash of the whole text, :func:`affinebody._host.specialized`):
-    ``fused`` (the pair loop), ``merge_finish`` (the parts' sums and the chain rule) and
-    ``fused_virial`` (the pair loop of the energy and the virial)."""
+    ``fused`` (the pair loop: the energy, and its gradients or its virial) and
+    ``merge_finish`` (the parts' sums and the chain rule)."""
     kernels = _host.specialized("pair", extra=source, N=n)
-    return types.SimpleNamespace(fused=kernels._fused, merge_finish=kernels._merge_finish,
-                                 fused_virial=kernels._fused_virial)
+    return types.SimpleNamespace(fused=kernels._fused, merge_finish=kernels._merge_finish)
 
 
 def host_threads() -> int:
@@ -561,9 +560,11 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, x, phi, binv, de
     gx, gphi, gb = (np.zeros((parts, rows, *shape)) for shape in ((n,), (n, n), (n, n)))
     gdet = np.zeros((parts, rows))
 
+    unused = np.zeros((n, n))
+
     def pairs(k, lo, hi):
         return kernels.fused(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges,
-                             gradients, gx[k], gphi[k], gb[k], gdet[k])
+                             gradients, False, gx[k], gphi[k], gb[k], gdet[k], unused)
 
     energy = np.zeros(())
     for e in _in_parts(pairs, valid):  # a fixed order: the same on any thread count
@@ -586,10 +587,11 @@ def _host_fused_virial(g: _HostGeometry, source: str, x, phi, binv, det, i, j, c
     i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
     x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
     w = np.zeros((_host.PARTS, g.n, g.n))
+    unused = (np.zeros((1, g.n)), np.zeros((1, g.n, g.n)), np.zeros((1, g.n, g.n)), np.zeros(1))
 
     def pairs(k, lo, hi):
-        return kernels.fused_virial(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges,
-                                    w[k])
+        return kernels.fused(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges, False,
+                             True, *unused, w[k])
 
     energy, total = np.zeros(()), np.zeros((g.n, g.n))
     for k, e in enumerate(_in_parts(pairs, valid)):  # a fixed order

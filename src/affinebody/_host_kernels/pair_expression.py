@@ -10,9 +10,8 @@ expression): ``_f`` (f and its partials, :func:`affinebody.expressions.derivativ
 its variable, the quintic switch and its derivative, the average over both orders of an
 asymmetric pair with det -> 1/det and M_a -> M'_a) and ``_fused``, which runs blocks of
 :data:`BLOCK` pairs through ``_geometry`` -> ``_pair_energies`` -> ``_scatter`` (the scalars
-of a block stay in a few kB of scratch arrays), and ``_fused_virial``, the same blocks through
-``_geometry`` -> ``_pair_energies`` -> ``_virial`` (the energy and the virial of the barostat's
-pass).
+of a block stay in a few kB of scratch arrays), or, for the barostat's pass, through
+``_geometry`` -> ``_pair_energies`` -> ``_virial`` (the energy and the virial).
 
 Pairs at or beyond the cut-off are skipped: their energy and partials are 0, as the
 ``jnp.where`` masks of ``energy_from_scalars`` give them.
@@ -27,10 +26,12 @@ BLOCK = 256
 
 _FUSED = '''
 @_jit
-def _fused(start, stop, i, j, x, phi, binv, det, mode, h, h_inv, edges, gradients,
-           gx, gphi, gb, gdet):
+def _fused(start, stop, i, j, x, phi, binv, det, mode, h, h_inv, edges, gradients, virial,
+           gx, gphi, gb, gdet, w_out):
     """Energy of pairs start..stop-1 (cut-off and switch included); with ``gradients``
-    their closed-form derivatives summed per body into gx, gphi, gb, gdet (as _scatter)."""
+    their closed-form derivatives summed per body into gx, gphi, gb, gdet (as _scatter); with
+    ``virial`` their configurational virial -sum u (dV/du)^T added into w_out (as _virial,
+    from the partials df/dr and df/dD: the other pair scalars do not depend on u)."""
     # the scalars r, D, det, K, M, M' of a block and their partials (rows of scratch arrays)
     plain = np.zeros((2, 3, BLOCK))
     powers = np.zeros((2, 3, BLOCK, max(1, K_POWERS, M_POWERS)))
@@ -49,28 +50,9 @@ def _fused(start, stop, i, j, x, phi, binv, det, mode, h, h_inv, edges, gradient
             _scatter(lo, hi, i, j, x, phi, binv, det, mode, h, h_inv, edges, g_r, g_d,
                      g_det, g_k, g_m, g_ms, NEED_R, NEED_D, NEED_DET, K_POWERS, M_POWERS,
                      SWAPPED, gx, gphi, gb, gdet)
-    return energy
-
-
-@_jit
-def _fused_virial(start, stop, i, j, x, phi, binv, det, mode, h, h_inv, edges, w_out):
-    """Energy of pairs start..stop-1 (cut-off and switch included), and their configurational
-    virial -sum u (dV/du)^T added into w_out (_virial, from the block's partials df/dr and
-    df/dD: the other pair scalars do not depend on u)."""
-    plain = np.zeros((2, 3, BLOCK))
-    powers = np.zeros((2, 3, BLOCK, max(1, K_POWERS, M_POWERS)))
-    s_r, s_d, s_det = plain[0, 0], plain[0, 1], plain[0, 2]
-    g_r, g_d, g_det = plain[1, 0], plain[1, 1], plain[1, 2]
-    s_k, s_m, s_ms = powers[0, 0], powers[0, 1], powers[0, 2]
-    g_k, g_m, g_ms = powers[1, 0], powers[1, 1], powers[1, 2]
-    energy = 0.0
-    for lo in range(start, stop, BLOCK):
-        hi = min(lo + BLOCK, stop)
-        _geometry(lo, hi, i, j, x, phi, binv, det, mode, h, h_inv, edges, NEED_R, NEED_D,
-                  NEED_DET, K_POWERS, M_POWERS, SWAPPED, s_r, s_d, s_det, s_k, s_m, s_ms)
-        energy += _pair_energies(hi - lo, s_r, s_d, s_det, s_k, s_m, s_ms,
-                                 g_r, g_d, g_det, g_k, g_m, g_ms)
-        _virial(lo, hi, i, j, x, binv, mode, h, h_inv, edges, g_r, g_d, NEED_R, NEED_D, w_out)
+        if virial:
+            _virial(lo, hi, i, j, x, binv, mode, h, h_inv, edges, g_r, g_d, NEED_R, NEED_D,
+                    w_out)
     return energy
 '''
 
