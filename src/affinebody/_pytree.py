@@ -97,13 +97,15 @@ def _register(cls: type, data: tuple[str, ...], meta: tuple[str, ...]) -> type:
     its class, as it should.
     """
 
-    def flatten_with_keys(obj):
-        children = tuple((jax.tree_util.GetAttrKey(name), getattr(obj, name)) for name in data)
-        return children, tuple(getattr(obj, name) for name in meta)
+    keys = tuple(jax.tree_util.GetAttrKey(name) for name in data)
 
     def flatten(obj):
-        return tuple(getattr(obj, name) for name in data), tuple(getattr(obj, name)
-                                                                 for name in meta)
+        return (tuple(getattr(obj, name) for name in data),
+                tuple(getattr(obj, name) for name in meta))
+
+    def flatten_with_keys(obj):
+        children, aux = flatten(obj)
+        return tuple(zip(keys, children, strict=True)), aux
 
     def unflatten(aux, children):
         return cls(**dict(zip(meta, aux, strict=True)), **dict(zip(data, children, strict=True)))

@@ -543,61 +543,41 @@ def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
     return total
 
 
-def _host_fused(g: _HostGeometry, source: str, gradients: bool, x, phi, binv, det, i, j,
-                count, h, h_inv):
+def _host_fused(g: _HostGeometry, source: str, what: str, x, phi, binv, det, i, j, count, h,
+                h_inv):
     """The fused kernel over the list's first ``count`` pairs, in :data:`affinebody._host.PARTS`
-    fixed parts with per-body sums each: the energy and, with ``gradients``, (dV/dx,
-    dV/dphi), the parts' sums added in part order and the chain rule through B = phi^-1 and
-    det phi applied per body (``_merge_finish``, in parts of the bodies). One callback for
+    fixed parts, each with sums of its own added in part order (the same bits on any thread
+    count). ``what``: "energy" (E), "gradients" (E, dV/dx, dV/dphi: per-body sums, then the
+    chain rule through B = phi^-1 and det phi per body, ``_merge_finish`` in parts of the
+    bodies) or "virial" (E, W: the virial [n, n] of :func:`pair_virial`). One callback for
     the whole list: no pair scalars are held, so no chunks."""
     kernels = _fused_kernel(g.n, source)
     valid = min(int(count), i.shape[0])  # an overflowed list counts pairs it could not hold
     i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
     x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
     bodies, n = x.shape
+    gradients, virial = what == "gradients", what == "virial"
     rows = bodies if gradients else 1  # the kernel adds nothing to the sums without gradients
     parts = _host.PARTS
     gx, gphi, gb = (np.zeros((parts, rows, *shape)) for shape in ((n,), (n, n), (n, n)))
-    gdet = np.zeros((parts, rows))
-
-    unused = np.zeros((n, n))
+    gdet, w = np.zeros((parts, rows)), np.zeros((parts, n, n))
 
     def pairs(k, lo, hi):
         return kernels.fused(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges,
-                             gradients, False, gx[k], gphi[k], gb[k], gdet[k], unused)
+                             gradients, virial, gx[k], gphi[k], gb[k], gdet[k], w[k])
 
-    energy = np.zeros(())
-    for e in _in_parts(pairs, valid):  # a fixed order: the same on any thread count
+    energy, total = np.zeros(()), np.zeros((n, n))
+    for k, e in enumerate(_in_parts(pairs, valid)):  # a fixed order
         energy += e
+        total += w[k]
+    if virial:
+        return energy, total
     if not gradients:
         return energy
     g_x, g_phi = np.empty_like(x), np.empty_like(phi)
     _in_parts(lambda _, lo, hi: kernels.merge_finish(lo, hi, gx, gphi, gb, gdet, binv, det,
                                                      g_x, g_phi), bodies)
     return energy, g_x, g_phi
-
-
-def _host_fused_virial(g: _HostGeometry, source: str, x, phi, binv, det, i, j, count, h,
-                       h_inv):
-    """(E, W) of the list's first ``count`` pairs with the fused kernel: the energy and the
-    virial W [n, n] of :func:`pair_virial`, in :data:`affinebody._host.PARTS` fixed parts
-    added in part order (the same bits on any thread count). One callback for the list."""
-    kernels = _fused_kernel(g.n, source)
-    valid = min(int(count), i.shape[0])
-    i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
-    x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
-    w = np.zeros((_host.PARTS, g.n, g.n))
-    unused = (np.zeros((1, g.n)), np.zeros((1, g.n, g.n)), np.zeros((1, g.n, g.n)), np.zeros(1))
-
-    def pairs(k, lo, hi):
-        return kernels.fused(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges, False,
-                             True, *unused, w[k])
-
-    energy, total = np.zeros(()), np.zeros((g.n, g.n))
-    for k, e in enumerate(_in_parts(pairs, valid)):  # a fixed order
-        energy += e
-        total += w[k]
-    return energy, total
 
 
 def _host_chunk(capacity: int) -> int:
@@ -616,8 +596,7 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     term, or a family that writes its f as one), one callback over
     the whole list runs the fused kernel instead (f and its partials compiled with the
     geometry and the chain rule, :func:`_fused_source`, then the chain rule through B and
-    det phi, :func:`_host_fused`), and the virial pass the fused virial kernel
-    (:func:`_host_fused_virial`). No JAX
+    det phi, :func:`_host_fused`), the virial pass too. No JAX
     runs inside a callback (that could wait on the thread that called it).
     ``gradients=False``: the energy alone (no chain rule, no second callback). ``cell``: the
     current cell of a box that a barostat deforms (an operand of the kernels: one
@@ -634,15 +613,12 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     binv, det = linalg.inv(phi), linalg.det(phi)
     f64 = lambda shape: jax.ShapeDtypeStruct(shape, x.dtype)  # noqa: E731
     fused = _fused_source(pot, n)
-    if fused is not None and virial:  # the energy and virial in one callback
-        return _host.callback(
-            partial(_host_fused_virial, g, fused), (f64(()), f64((n, n))),
-            x, phi, binv, det, i, j, count, h, h_inv, vmap_method="sequential")
     if fused is not None:  # f is a config expression: one callback does it all
-        return _host.callback(
-            partial(_host_fused, g, fused, gradients),
-            (f64(()), f64(x.shape), f64(phi.shape)) if gradients else f64(()),
-            x, phi, binv, det, i, j, count, h, h_inv, vmap_method="sequential")
+        what, shapes = (("virial", (f64(()), f64((n, n)))) if virial else
+                        ("gradients", (f64(()), f64(x.shape), f64(phi.shape))) if gradients
+                        else ("energy", f64(())))
+        return _host.callback(partial(_host_fused, g, fused, what), shapes,
+                              x, phi, binv, det, i, j, count, h, h_inv, vmap_method="sequential")
     capacity = i.shape[0]
     chunk = _host_chunk(capacity)
     chunks = -(-capacity // chunk)
