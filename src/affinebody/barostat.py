@@ -30,6 +30,13 @@ where the Ito drift div(M) of the mobility M = (kT beta_T / (V tau)) J J^T (J: d
 makes the target stationary; it is computed by automatic differentiation of M (at most 6 x 6).
 A non-hydrostatic P0 drives the mean stress to P0; the ensemble is exact for a hydrostatic P0.
 
+Moves every few steps: with ``interval`` = m > 1 the box moves only after the steps k
+(counted from the start of the run) with (k + 1) % m == 0, by one Euler-Maruyama step of
+length m dt: the same equations in the same physical time, their discretisation coarser (as
+GROMACS's nstpcouple). The steps in between are constant-volume steps that reuse the last
+kick's forces, so an NPT step costs little more than an NVT one when m is about 10; the
+barostat's relaxation time tau should stay many times m dt.
+
 Random numbers: the noise of step k (counted from the start of the run, resumed runs
 included) comes from :func:`step_key` (``fold_in`` of the seed, of the barostat's own stream
 :data:`STREAM` and of k), so a run resumed from its checkpoint repeats the uninterrupted one
@@ -74,13 +81,15 @@ class StochasticCellRescaling:
     """c-rescale barostat (module docstring): target ``pressure`` P0 ([n, n]; a scalar means
     P0 Id), time constant ``tau``, isothermal ``compressibility`` beta_T (only sets the
     relaxation time, not the sampled distribution), temperature kT of the noise, ``coupling``
-    "isotropic" or "anisotropic"."""
+    "isotropic" or "anisotropic"; ``interval``: steps between two moves, each of length
+    ``interval`` dt (GROMACS's nstpcouple; module docstring, "Moves every few steps")."""
 
     pressure: tuple[tuple[float, ...], ...]
     tau: float
     compressibility: float
     temperature: float
     coupling: str = "isotropic"
+    interval: int = 1
 
     def __post_init__(self):
         for name in ("tau", "compressibility", "temperature"):
@@ -92,6 +101,10 @@ class StochasticCellRescaling:
         if self.coupling not in COUPLINGS:
             raise ValueError(f"barostat.coupling must be one of {', '.join(COUPLINGS)} "
                              f"(got {self.coupling!r})")
+        if isinstance(self.interval, bool) or int(self.interval) != self.interval \
+                or self.interval < 1:
+            raise ValueError(f"barostat.interval must be a positive whole number of steps "
+                             f"(got {self.interval!r})")
 
     @property
     def target(self) -> np.ndarray:
@@ -152,11 +165,11 @@ class StochasticCellRescaling:
 
 
 def c_rescale(pressure, n: int, *, tau: float, compressibility: float, temperature: float,
-              coupling: str = "isotropic") -> StochasticCellRescaling:
+              coupling: str = "isotropic", interval: int = 1) -> StochasticCellRescaling:
     """The barostat of a ``[barostat]`` table: ``pressure`` a number (P0 Id) or an n x n
     tensor; ValueError (one line) for a value out of range."""
     return StochasticCellRescaling(_target(pressure, n), float(tau), float(compressibility),
-                                   float(temperature), coupling)
+                                   float(temperature), coupling, interval)
 
 
 @dataclass(frozen=True)
@@ -236,6 +249,7 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
         return values
 
     carries = getattr(method, "carries_forces", False)
+    interval = barostat.interval
 
     def one_step(carry, _):
         (old_state, old_cell, old_nbrs, k, failed, overflowed, narrow, lost, exchanged,
@@ -243,24 +257,45 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
         key_thermo, key_baro = jax.random.split(step_key(seed, k))
         boxed = system.replace(cell=old_cell)
         if not carries:
-            state, nbrs = method.step(boxed, old_state, dt), None
+            state, tracked, forces = method.step(boxed, old_state, dt), None, old_forces
         else:  # the forces after the last move, carried (first same as last)
-            state, tracked, _ = method.advance(boxed, old_state, old_forces, dt, spec, old_nbrs)
-            nbrs = None if spec is None else tracked.neighbors
-        kinetic = boxed.kinetic_energy(state)
+            state, tracked, forces = method.advance(boxed, old_state, old_forces, dt, spec,
+                                                    old_nbrs)
         heat = jnp.zeros((), dtype=state.x.dtype)
         if thermostat is not None:  # the kinetic energy it puts in: the heat
+            before = boxed.kinetic_energy(state)
             state = thermostat(boxed, state, key_thermo, dt)
-            before, kinetic = kinetic, boxed.kinetic_energy(state)
-            heat = kinetic - before
-        state, cell, potential = barostat.move(system, state, old_cell, space, key_baro, dt,
-                                               nbrs, energy=True)
-        before = kinetic + potential + p0 * linalg.det(old_cell)  # H + P0 V before the move
+            heat = boxed.kinetic_energy(state) - before
+
+        def move(state, tracked, forces):
+            nbrs = None if spec is None else tracked.neighbors
+            kinetic = boxed.kinetic_energy(state)
+            state, cell, potential = barostat.move(system, state, old_cell, space, key_baro,
+                                                   interval * dt, nbrs, energy=True)
+            before = kinetic + potential + p0 * linalg.det(old_cell)  # H + P0 V before
+            if spec is not None:  # the list follows the box (rebuilt when it may miss a pair)
+                tracked = update_neighbors(spec, tracked, state, cell)
+                nbrs = tracked.neighbors
+            # the move's work: the exact change of H + P0 V it made (the list, valid for the
+            # moved state in the new cell unless the step is not kept); the same pass gives
+            # the forces that the next step starts with
+            energy, forces = system.replace(cell=cell).energy_and_forces(state, nbrs)
+            work = (boxed.kinetic_energy(state) + energy + p0 * linalg.det(cell)) - before
+            return state, cell, tracked, forces, work
+
+        def stay(state, tracked, forces):  # a constant-volume step: its last kick's forces
+            return state, old_cell, tracked, forces, jnp.zeros_like(heat)
+
+        if interval == 1:
+            state, cell, tracked, forces, work = move(state, tracked, forces)
+        else:  # a move after the steps k with (k + 1) % interval == 0 (module docstring)
+            state, cell, tracked, forces, work = lax.cond(
+                (k + 1) % interval == 0, move, stay, state, tracked, forces)
         ok = jnp.all(jnp.diagonal(cell) > 0) & jnp.all(jnp.isfinite(cell))
         for leaf in jax.tree.leaves(state):
             ok &= jnp.all(jnp.isfinite(leaf))
-        if spec is not None:  # the list follows the box (rebuilt when it may miss a pair)
-            tracked = update_neighbors(spec, tracked, state, cell)
+        nbrs = None
+        if spec is not None:
             nbrs = tracked.neighbors
             fits = nb.fits_box(spec, state.phi, cell)  # else the list cannot be rebuilt
             narrow = narrow | (~fits & ok & (failed < 0))
@@ -270,11 +305,6 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
             lost = jax.tree.map(lambda old, new: jnp.where(over, new, old), lost, seen)
             overflowed = overflowed | over
             ok &= ~over
-        # the move's work: the exact change of H + P0 V it made (the list, valid for the
-        # moved state in the new cell unless the step is not kept); the same pass gives the
-        # forces that the next step starts with
-        energy, forces = system.replace(cell=cell).energy_and_forces(state, nbrs)
-        work = (boxed.kinetic_energy(state) + energy + p0 * linalg.det(cell)) - before
         failed = jnp.where((failed < 0) & ~ok, k + 1, failed)
         keep = lambda old, new: jnp.where(failed < 0, new, old)  # noqa: E731
         state, cell = jax.tree.map(keep, old_state, state), keep(old_cell, cell)

@@ -263,6 +263,10 @@ class BarostatSection(_Section):
     temperature: float | None = Field(None, description="kT of the barostat's noise (the "
                                                       "temperature of the ensemble); default: "
                                                       "thermostat.temperature")
+    interval: int = Field(1, ge=1, description="steps between two moves of the box, each "
+                                               "of length interval * dt (as GROMACS's "
+                                               "nstpcouple; about 10 makes an NPT step cost "
+                                               "little more than an NVT one)")
 
 
 class Config(_Section):
@@ -859,6 +863,10 @@ def check_barostat(config: Config) -> None:
         raise ConfigError("barostat needs a periodic box: set system.box")
     for name in ("tau", "compressibility"):
         _positive(getattr(b, name), f"barostat.{name}")
+    if b.interval * config.run.dt > b.tau:
+        raise ConfigError(f"barostat.interval * run.dt must not exceed barostat.tau (one move "
+                          f"of the box spans interval * dt; got {b.interval} * {config.run.dt} "
+                          f"> {b.tau}): lower barostat.interval or raise barostat.tau")
     thermostat = config.thermostat
     if b.temperature is None and thermostat is None:
         raise ConfigError("barostat.temperature is required without a [thermostat] (give kT, "
