@@ -381,15 +381,17 @@ temperature = 0.3
 def test_xla_gets_one_thread_only_where_the_host_kernels_do_all_the_parallel_work():
     """The rule of ``runner.host_kernels_do_the_threading``: a list and every pair term through
     the fused host kernel (config expressions and the Morse family); a pair term whose f XLA
-    evaluates between two host calls (harmonic-invariants), all pairs, or a barostat (its
-    virial pass) leave XLA its threads."""
+    evaluates between two host calls (harmonic-invariants) or all pairs leave XLA its
+    threads; a barostat does not (its virial pass runs the fused kernel too)."""
     from affinebody.runner import host_kernels_do_the_threading as decides
 
     config = lambda mode, text: check_config(parse_config(crystal(mode, text), "c.toml"))  # noqa: E731
     assert decides(config("on", CRYSTAL))  # morse and an expression
     assert not decides(config("on", CRYSTAL.replace("[initial]", HARMONIC + "[initial]")))
     assert not decides(config("off", CRYSTAL))  # all pairs, in XLA
-    assert not decides(config("on", CRYSTAL.replace("[initial]", BAROSTAT + "[initial]")))
+    assert decides(config("on", CRYSTAL.replace("[initial]", BAROSTAT + "[initial]")))
+    assert not decides(config("on", CRYSTAL.replace("[initial]", HARMONIC + BAROSTAT
+                                                    + "[initial]")))
 
 
 def test_prepare_process_gives_xla_one_thread_where_the_host_kernels_take_every_core(

@@ -144,12 +144,11 @@ def host_kernels_do_the_threading(config: Config) -> bool:
     (:mod:`affinebody._host`, which split it over the cores on threads of their own): pair
     forces over a neighbour list, every pair term through the fused kernel (a config
     expression, or a family that gives its f as one:
-    :func:`affinebody.pair_kernels.fused_on_host`), no barostat (kept out since its virial pass
-    evaluated f in XLA; that pass is fused now, the rule for it not measured again). Any
-    other run leaves XLA work it spreads over the cores itself: the all-pairs sums, an f that
-    XLA evaluates between two host calls (a Python f, harmonic-invariants)."""
-    if config.barostat is not None:
-        return False
+    :func:`affinebody.pair_kernels.fused_on_host`; a barostat's virial pass runs the fused
+    kernel too, and NPT runs measured faster with XLA's one thread: README, "Constant
+    pressure vs constant volume"). Any other run leaves XLA work it spreads over the cores
+    itself: the all-pairs sums, an f that XLA evaluates between two host calls (a Python f,
+    harmonic-invariants)."""
     terms = [build_potential_entry(e, k, config) for k, e in enumerate(config.potential)]
     return uses_neighbor_list(config, terms) and all(
         pair_kernels.fused_on_host(term, config.n) for term in terms
@@ -404,7 +403,7 @@ def constant_pressure(config: Config, thermostat):
     try:
         baro = barostat.c_rescale(b.pressure, config.n, tau=b.tau,
                                   compressibility=b.compressibility, temperature=temperature,
-                                  coupling=b.coupling)
+                                  coupling=b.coupling, interval=b.interval)
     except ValueError as err:
         raise ConfigError(str(err)) from None
     return baro, None if thermostat is None else partial(thermostat_hook, thermostat)
