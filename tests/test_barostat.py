@@ -234,26 +234,80 @@ def test_barostat_config_errors_are_one_line():
         SweepSpec.from_config(check_config(parse_config(NPT_CONFIG)))
 
 
+#: 16 bodies in 2D squeezed from spacing 1.2 to about 0.85 by the barostat: the neighbour list's
+#: cells outgrow the box in the first steps and are reallocated (a coarser grid)
+SQUEEZED_CRYSTAL = """
+[system]
+n = 2
+bodies = 16
+box = [4.8, 4.8]
+[body]
+mass = 1.0
+inertia = [[1.0, 0.0], [0.0, 1.0]]
+[kinetic]
+translational = "dalembert"
+internal = "dalembert"
+[[potential]]
+kind = "pair"
+expr = "(1 - exp(-3*(r - 1)))**2 - 1"
+r_cut = 1.3
+[[potential]]
+kind = "one-body"
+expr = "5*(det - 1)**2 + 0.5*(trG - 2)**2"
+[initial]
+generator = "lattice"
+spacing = 1.2
+phi_noise = 0.02
+[run]
+dt = 0.005
+steps = 200
+every = 25
+checkpoint = 50
+seed = 1
+neighbor_list = "on"
+neighbor_skin = 0.1
+[thermostat]
+kind = "langevin"
+temperature = 0.1
+friction = 1.0
+seed = 2
+[barostat]
+pressure = 2.0
+tau = 0.2
+compressibility = 0.2
+interval = 3
+"""
+
+
 def test_npt_run_with_a_neighbour_list_resumes_bit_for_bit(tmp_path):
     """The list follows the box and is rebuilt from the state and the cell at checkpoints, so
     a resumed run repeats the uninterrupted one (its agreement with all pairs:
     tests/test_npt_neighbors.py). The box moves every 3 steps, counted from the start of the
-    run: the cut at step 50 falls between two moves."""
-    from affinebody.config import check_config, parse_config, uses_neighbor_list
+    run: the cut at step 100 falls between two moves. The list was reallocated for the
+    shrinking box before the cut: its sizes go through the checkpoints (and into the resumed
+    run), so neither run compiles its loop for other sizes again (twice in all: the first
+    list and the reallocated one; the sizes of the config's list at every checkpoint, as
+    before, made it five)."""
+    from affinebody.checkpoint import checkpoint_path, load_checkpoint
+    from affinebody.config import build, check_config, parse_config, uses_neighbor_list
     from affinebody.h5md import read_trajectory
+    from affinebody.neighbors import sizes
     from affinebody.runner import run_simulation
 
-    text = (NPT_CONFIG.replace("seed = 11", 'seed = 11\nneighbor_list = "on"\nneighbor_skin = 0.1')
-            .replace('coupling = "anisotropic"', 'coupling = "isotropic"\ninterval = 3')
-            .replace("steps = 400", "steps = 100").replace("checkpoint = 200", "checkpoint = 50")
-            .replace("every = 50", "every = 25"))
-    config = check_config(parse_config(text))
+    config = check_config(parse_config(SQUEEZED_CRYSTAL))
     assert uses_neighbor_list(config)
+    first_sizes = sizes(build(config).neighbors[0])
+    compiled = barostat._npt_jit._cache_size()
     run_simulation(config, tmp_path / "whole.h5")
-    run_simulation(config, tmp_path / "resumed.h5", steps=50)
+    assert barostat._npt_jit._cache_size() - compiled <= 2
+    run_simulation(config, tmp_path / "resumed.h5", steps=100)
+    kept = load_checkpoint(checkpoint_path(tmp_path / "resumed.h5")).neighbor_sizes
+    assert tuple(kept["grid"]) != first_sizes["grid"]  # reallocated before the cut
+    compiled = barostat._npt_jit._cache_size()
     run_simulation(config, tmp_path / "resumed.h5", resume=True)
+    assert barostat._npt_jit._cache_size() == compiled  # the whole run's programs
     whole, resumed = (read_trajectory(tmp_path / f"{k}.h5") for k in ("whole", "resumed"))
-    assert whole.frames == 5 and np.ptp(whole.boxes[:, 0]) > 1e-3  # the box moved
+    assert whole.frames == 9 and whole.boxes[-1, 0] < 0.75 * whole.boxes[0, 0]  # squeezed
     for name in ("x", "phi", "p", "pi", "boxes"):
         np.testing.assert_array_equal(getattr(resumed, name), getattr(whole, name))
     for name, value in whole.observables.items():

@@ -1,7 +1,8 @@
 """Atomic checkpoints of a running simulation, for ``affinebody run --resume``.
 
 A checkpoint holds the exact float64 state (x, phi, p, pi) at a step, the step itself, the
-number of frames written up to it, the heat a thermostat put in up to it, and a hash of the
+number of frames written up to it, the heat a thermostat put in up to it, the sizes of the
+neighbour list in use (capacities and cell grid, which reallocations grow), and a hash of the
 configuration that produced it. It is written to a temporary file in the same folder, fsync'ed
 and then renamed over the previous checkpoint (``os.replace`` is atomic on POSIX), so a run
 killed at any moment leaves either the old or the new checkpoint, never a half-written one.
@@ -23,6 +24,8 @@ import numpy as np
 from affinebody.state import State
 
 FORMAT_VERSION = 1
+#: the prefix of the neighbour-list sizes' entries in the file
+_SIZES = "neighbor_sizes."
 
 
 class CheckpointError(ValueError):
@@ -41,6 +44,10 @@ class Checkpoint:
     cell: np.ndarray | None = None
     #: heat put in by a thermostat up to ``step`` (0 for NVE runs)
     heat: float = 0.0
+    #: the sizes of the run's neighbour list at ``step`` (``neighbors.sizes``: capacities and
+    #: grid, grown by reallocations), from which the run and its resumption rebuild the list
+    #: there (None: no list, or a checkpoint written before they were kept)
+    neighbor_sizes: dict | None = None
 
 
 def checkpoint_path(output: str | Path) -> Path:
@@ -67,6 +74,8 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
         **({} if checkpoint.cell is None else {"cell": np.asarray(checkpoint.cell,
                                                                    dtype=np.float64)}),
         heat=np.float64(checkpoint.heat),
+        **{f"{_SIZES}{name}": np.asarray(value)
+           for name, value in (checkpoint.neighbor_sizes or {}).items()},
     )
     descriptor, temporary = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
@@ -111,6 +120,8 @@ def load_checkpoint(path: str | Path, config_hash: str | None = None) -> Checkpo
                 state=State(*(np.array(data[k]) for k in ("x", "phi", "p", "pi"))),
                 cell=np.array(data["cell"]) if "cell" in data else None,
                 heat=float(data["heat"]) if "heat" in data else 0.0,
+                neighbor_sizes={k[len(_SIZES):]: np.array(data[k]) for k in data.files
+                                if k.startswith(_SIZES)} or None,
             )
     except CheckpointError:
         raise

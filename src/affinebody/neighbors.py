@@ -50,6 +50,7 @@ that property (clamping moves cell indices by no more than the positions differ)
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -591,6 +592,32 @@ def reallocate(spec: NeighborSpec, x, phi, *, flags: int, pairs: int,
                         box_headroom=box_headroom)
 
 
+#: The fields of a :class:`NeighborSpec` that allocation chooses (the others come from the
+#: system: space, cut-off, variable, skin, bodies): what a checkpoint keeps of a run's list.
+SIZE_FIELDS = ("capacity", "cell_capacity", "grid", "max_radius", "origin", "cell_size")
+
+
+def sizes(spec: NeighborSpec) -> dict:
+    """The :data:`SIZE_FIELDS` of ``spec`` that are set (plain ints, floats and tuples)."""
+    return {name: getattr(spec, name) for name in SIZE_FIELDS
+            if getattr(spec, name) is not None}
+
+
+def resized(spec: NeighborSpec, values: dict) -> NeighborSpec:
+    """``spec`` with the sizes ``values`` (as :func:`sizes` gives them, or read back from a
+    file as arrays), the rest of it kept."""
+    def exact(name, value):
+        if name in ("capacity", "cell_capacity"):
+            return int(value)
+        if name == "max_radius":
+            return float(value)
+        kind = int if name == "grid" else float
+        return tuple(kind(v) for v in np.asarray(value).ravel())
+
+    return dataclasses.replace(spec, **{name: exact(name, values[name]) for name in SIZE_FIELDS
+                                        if name in values})
+
+
 def list_at(base: NeighborSpec, x, phi, cell=None) -> tuple[NeighborSpec, NeighborList]:
     """A list for (x, phi) with ``base``'s capacities, or :func:`reallocate`'s when they do
     not hold it: a function of ``base`` and the configuration alone (checkpoints, resume);
@@ -638,7 +665,8 @@ def pairs_of(neighbors: NeighborList) -> np.ndarray:
 
 
 __all__ = [
-    "BOX_HEADROOM", "candidates_per_chunk", "NeighborList", "NeighborSpec",
+    "BOX_HEADROOM", "SIZE_FIELDS", "candidates_per_chunk", "resized", "sizes", "NeighborList",
+    "NeighborSpec",
     "largest_singular_values", "spatial_reach", "cell_table", "perpendicular_widths", "build",
     "build_jax", "build_jit", "needs_rebuild", "fits_box", "update", "NeighborListOverflow",
     "check", "allocate", "MAX_REALLOCATIONS_IN_A_ROW", "reallocate", "list_at",

@@ -27,7 +27,6 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import partial
 from importlib import resources
 from pathlib import Path
 
@@ -220,6 +219,7 @@ def run_simulation(
     if built.neighbor_list:
         parameters["neighbor_skin"] = config.run.neighbor_skin
         base_spec = built.neighbors[0]
+    resumed_spec = base_spec  # the list sizes a resumed run starts from
     writer_args = dict(mass=built.inertia.mass, radius=built.inertia.radius, n=config.n,
                        box=config.system.box, parameters=parameters,
                        units=config.system.units, pressure=records_pressure(config),
@@ -243,6 +243,8 @@ def run_simulation(
         temporary.replace(output)
         writer.path = output
         start, state, heat = checkpoint.step, checkpoint.state, checkpoint.heat
+        if base_spec is not None and checkpoint.neighbor_sizes is not None:
+            resumed_spec = nb.resized(base_spec, checkpoint.neighbor_sizes)
         initial_energy = float(energies[0])
         max_error = float(np.max(relative_error(energies, initial_energy)))
         last_energy = float(energies[-1])
@@ -275,9 +277,11 @@ def run_simulation(
             if base_spec is not None and step == 0:
                 lists = built.neighbors  # allocated for the initial state (= list_at's)
             elif base_spec is not None and (step == start or step % interval == 0):
+                # rebuilt from the state alone (a resumed run rebuilds the same), at the sizes
+                # in use: those grown by a reallocation are kept (no new shapes to compile)
                 with phases("neighbour lists"):
-                    lists = nb.list_at(base_spec, state.x, state.phi,
-                                       None if npt is None else npt.cell)
+                    lists = nb.list_at(resumed_spec if lists is None else lists[0], state.x,
+                                       state.phi, None if npt is None else npt.cell)
             end = min((step // chunk + 1) * chunk, total)
             pieces = [(end - step - (end - step) % every, every)] if end - step >= every else []
             if (end - step) % every:
@@ -323,10 +327,10 @@ def run_simulation(
                 step += length
             if step % interval == 0 or step == total:
                 with phases("output"):
-                    save_checkpoint(ckpt_file, Checkpoint(step, state, writer.frames,
-                                                          config_hash,
-                                                          None if npt is None else npt.cell,
-                                                          heat))
+                    save_checkpoint(ckpt_file, Checkpoint(
+                        step, state, writer.frames, config_hash,
+                        None if npt is None else npt.cell, heat,
+                        None if lists is None else nb.sizes(lists[0])))
             if progress is not None:
                 progress(step, total, float(relative_error(np.asarray([last_energy]),
                                                              initial_energy)[0]))
@@ -406,7 +410,7 @@ def constant_pressure(config: Config, thermostat):
                                   coupling=b.coupling, interval=b.interval)
     except ValueError as err:
         raise ConfigError(str(err)) from None
-    return baro, None if thermostat is None else partial(thermostat_hook, thermostat)
+    return baro, None if thermostat is None else ThermostatHook(thermostat)
 
 
 def thermostat_hook(thermostat, system, state, key, dt):
@@ -415,6 +419,18 @@ def thermostat_hook(thermostat, system, state, key, dt):
 
     noise = thermostats.factors(system, state)
     return thermostats.thermostat_step(system, thermostat, state, dt, key, noise)[0]
+
+
+@dataclass(frozen=True)
+class ThermostatHook:
+    """:func:`thermostat_hook` of one thermostat, as a value: hooks of equal thermostats are
+    equal, so runs of one config in one process share their compiled NPT loop (a static
+    argument), where a new ``functools.partial`` per run would compile it again."""
+
+    thermostat: object
+
+    def __call__(self, system, state, key, dt):
+        return thermostat_hook(self.thermostat, system, state, key, dt)
 
 
 def _stop_message(report, offset: int, dt: float, labels, frames: int, output: Path) -> str:
@@ -436,6 +452,6 @@ def demo_config_text() -> str:
 
 __all__ = [
     "CHUNK_TARGET_STEPS", "SimulationStopped", "RunSummary", "chunk_steps", "run_simulation",
-    "constant_pressure", "thermostat_hook", "demo_config_text", "host_kernels_do_the_threading",
-    "prepare_process",
+    "constant_pressure", "thermostat_hook", "ThermostatHook", "demo_config_text",
+    "host_kernels_do_the_threading", "prepare_process",
 ]

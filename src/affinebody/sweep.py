@@ -731,7 +731,7 @@ def thermal_sample(system, state, dt, seed, temperature, pressure=None, *, steps
     driver's :func:`~affinebody.simulate.watched_step` with ``method`` composed with the
     thermostat (``integrators.Thermostatted``, its seed replaced by ``seed``). NPT: blocks of
     ``every`` steps of the NPT driver (:func:`affinebody.barostat.advance` with the
-    thermostat's O step of ``affinebody run``, :func:`affinebody.runner.thermostat_hook`,
+    thermostat's O step of ``affinebody run``, :class:`affinebody.runner.ThermostatHook`,
     keys from ``seed``). Observables are measured after every ``every`` steps; those after more than
     ``equilibration`` steps are summed (shifted by their initial values). A failing step
     freezes the sample: ``code`` is then its :class:`~affinebody.simulate.Stop` (or
@@ -747,7 +747,7 @@ def thermal_sample(system, state, dt, seed, temperature, pressure=None, *, steps
     from affinebody import barostat as baro_module
     from affinebody import pressure as pm
     from affinebody.integrators import Thermostatted
-    from affinebody.runner import thermostat_hook
+    from affinebody.runner import ThermostatHook
     from affinebody.simulate import NAMED_OBSERVABLES, initial_forces, watched_step
 
     dtype = state.x.dtype
@@ -757,7 +757,7 @@ def thermal_sample(system, state, dt, seed, temperature, pressure=None, *, steps
     if barostat is not None:
         barostat = dc.replace(barostat, pressure=pressure, temperature=temperature)
         p0 = jnp.trace(pressure) / state.n
-        hook = functools.partial(thermostat_hook, thermostat)
+        hook = ThermostatHook(thermostat)
 
     def scalars(values, pressure, volume):
         """(E, U, T_tr, T_int, P, V, E + P0 V) from the driver's observables."""

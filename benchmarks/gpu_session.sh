@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# The GPU figures of README ("GPU") in one prepared run, for a session that is lent a GPU
+# machine for a few minutes: the same `affinebody run` as benchmarks/run_scale.py at 10^5 and
+# 10^6 bodies, and the parts of a step at 10^6 (benchmarks/step_phases.py).
+#
+#   benchmarks/gpu_session.sh fetch   # here, once: the wheels the GPU image lacks, into .whl/
+#   benchmarks/gpu_session.sh run     # there (carry .whl): prints and writes $OUT/*.txt
+#
+# The workplace's CUDA image (Python 3.12) has JAX with CUDA, h5py, numba, matplotlib, rich and
+# click, not pydantic: `fetch` downloads pydantic and its three dependencies at the versions of
+# this checkout's .venv into .whl/ (ignored through .git/info/exclude). `run` installs them
+# under /tmp/site and runs the project from src/ (no pip install: the image's JAX may be newer
+# than pyproject's pin, and its CUDA build is the one to measure). About 4 minutes on an H100
+# after the machine's start.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+
+case "${1:-}" in
+fetch)
+    grep -qx "/.whl/" .git/info/exclude 2>/dev/null || echo "/.whl/" >> .git/info/exclude
+    versions=$(.venv/bin/python - <<'EOF'
+from importlib.metadata import version
+print(" ".join(f"{name}=={version(name)}" for name in
+               ("pydantic", "pydantic-core", "annotated-types", "typing-inspection")))
+EOF
+    ) || exit 1
+    # shellcheck disable=SC2086
+    python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
+        --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
+        --platform manylinux2014_x86_64 -d .whl $versions && ls .whl
+    ;;
+run)
+    OUT=${OUT:-/tmp/gpu_session}
+    mkdir -p "$OUT"
+    if ls .whl/*.whl > /dev/null 2>&1; then
+        python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+            --target /tmp/site .whl/*.whl || exit 1
+        export PYTHONPATH=/tmp/site
+    fi
+    export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+    { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+      python3 -c "import jax; print('jax', jax.__version__, jax.devices())"; } 2>&1 \
+        | tee "$OUT/device.txt"
+    python3 benchmarks/run_scale.py --bodies 100000 --steps 1000 2>&1 | tee "$OUT/scale_1e5.txt"
+    python3 benchmarks/run_scale.py --bodies 1000000 --steps 200 2>&1 | tee "$OUT/scale_1e6.txt"
+    python3 benchmarks/step_phases.py --bodies 1000000 2>&1 | tee "$OUT/phases_1e6.txt"
+    ;;
+*)
+    echo "usage: benchmarks/gpu_session.sh fetch|run" >&2
+    exit 2
+    ;;
+esac
