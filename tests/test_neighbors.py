@@ -147,6 +147,31 @@ def test_cell_and_reach_overflows_are_flagged():
         nb.check(grown)
 
 
+def test_a_reallocation_never_takes_back_the_list_radius():
+    """Capacities never shrink (``neighbors.reallocate``): the room a reach overflow gave the
+    cells (a larger ``max_radius``) stays through a later pair overflow, and each list is
+    exactly the pairs within reach + skin."""
+    rng = np.random.default_rng(5)
+    space = BOXES["orthorhombic"]
+    x, phi = system(rng, space)
+    spec, _ = nb.allocate(space, x, phi, 0.7, "D", 0.2)
+    stretched = 1.3 * phi  # the reach of a D cut-off grows with the bodies
+    grown = nb.build_jit(spec, x, stretched)
+    assert int(grown.overflow) & nb.REACH_OVERFLOW
+    wide, _ = nb.reallocate(spec, x, stretched, flags=int(grown.overflow),
+                            pairs=int(grown.count), reach=float(grown.reach))
+    assert wide.max_radius > spec.max_radius
+    squeezed = 0.5 * space.wrap(x)  # the bodies back to their shapes, crowded: more pairs
+    crowded = nb.build_jit(wide, squeezed, phi)
+    assert int(crowded.overflow) == nb.PAIR_OVERFLOW
+    spec3, fixed = nb.reallocate(wide, squeezed, phi, flags=int(crowded.overflow),
+                                 pairs=int(crowded.count), reach=float(crowded.reach))
+    assert spec3.max_radius == wide.max_radius and spec3.capacity > wide.capacity
+    radius = float(fixed.reach) + spec3.skin
+    assert int(fixed.overflow) == 0
+    assert pair_set(nb.pairs_of(fixed)) == pair_set(nb.brute_force_pairs(space, squeezed, radius))
+
+
 def test_allocate_refuses_a_radius_beyond_half_the_box():
     x = jnp.zeros((2, 3)).at[1, 0].set(1.0)
     with pytest.raises(ValueError, match="exceeds half the smallest perpendicular width"):

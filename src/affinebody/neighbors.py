@@ -77,6 +77,9 @@ _ACCELERATOR_CANDIDATES_PER_CHUNK = 1 << 24
 #: Relative room in the cells' widths of a list for a box that changes (``allocate(...,
 #: cell=...)``): the box may shrink by this factor before a reallocation gives new cells.
 BOX_HEADROOM = 0.1
+#: Relative growth of the list radius that a new list's cells allow, by cut-off variable: none
+#: for r, 1/4 for D, whose reach grows as bodies stretch (``allocate(reach_headroom=...)``).
+REACH_HEADROOM = {"r": 0.0, "D": 0.25}
 
 
 def candidates_per_chunk() -> int:
@@ -507,7 +510,7 @@ def allocate(
     if not (cutoff > 0 and skin >= 0):
         raise ValueError(f"neighbors needs cutoff > 0 and skin >= 0 (got {cutoff}, {skin})")
     if reach_headroom is None:
-        reach_headroom = 0.0 if variable == "r" else 0.25
+        reach_headroom = REACH_HEADROOM[variable]
     radius = float(spatial_reach(cutoff, variable, phi)) + skin
     now, room = space, 1.0
     if cell is not None:
@@ -562,22 +565,26 @@ def reallocate(spec: NeighborSpec, x, phi, *, flags: int, pairs: int,
 
     Capacities never shrink, so repeated reallocations make progress: the pair capacity grows
     to at least 3/2 of the pairs seen, the cell capacity doubles, and a reach that outgrew the
-    cells gets 5/4 of the room it needed as headroom (a new grid). Deterministic in its
-    arguments, so a resumed run rebuilds exactly the list of the uninterrupted one. Raises
-    ``NeighborListOverflow`` (or the space's ValueError for a reach beyond half the box) when
-    no list can be built. ``cell``: the current cell of a box that changes (the new grid is
-    one of it, with ``box_headroom`` as in :func:`allocate`), or None.
+    cells gets 5/4 of the room it needed as headroom (a new grid); the list's radius
+    (``max_radius``, which sets the cells) is never made smaller than it was, so a pair or
+    cell overflow after a reach overflow does not take back the room that one gave.
+    Deterministic in its arguments, so a resumed run rebuilds exactly the list of the
+    uninterrupted one. Raises ``NeighborListOverflow`` (or the space's ValueError for a reach
+    beyond half the box) when no list can be built. ``cell``: the current cell of a box that
+    changes (the new grid is one of it, with ``box_headroom`` as in :func:`allocate`), or
+    None.
     """
     x, phi = jnp.asarray(x), jnp.asarray(phi)
-    capacity, cell_capacity, headroom = spec.capacity, spec.cell_capacity, None
+    capacity, cell_capacity = spec.capacity, spec.cell_capacity
     if flags & PAIR_OVERFLOW:
         capacity = max(capacity, int(math.ceil(1.5 * pairs)))
     if flags & CELL_OVERFLOW:
         cell_capacity = 2 * cell_capacity
+    radius = float(spatial_reach(spec.cutoff, spec.variable, phi)) + spec.skin
+    headroom = max(REACH_HEADROOM[spec.variable], spec.max_radius / radius - 1.0)
     if flags & REACH_OVERFLOW:
-        radius = float(spatial_reach(spec.cutoff, spec.variable, phi)) + spec.skin
         needed = (spec.skin if reach is None else float(reach) + spec.skin) / radius
-        headroom = max(0.25, 1.25 * needed - 1.0)
+        headroom = max(headroom, 0.25, 1.25 * needed - 1.0)
     args = (spec.space, x, phi, spec.cutoff, spec.variable, spec.skin)
     try:  # one build at the grown capacities
         return allocate(*args, capacity=capacity, cell_capacity=cell_capacity,
@@ -665,8 +672,8 @@ def pairs_of(neighbors: NeighborList) -> np.ndarray:
 
 
 __all__ = [
-    "BOX_HEADROOM", "SIZE_FIELDS", "candidates_per_chunk", "resized", "sizes", "NeighborList",
-    "NeighborSpec",
+    "BOX_HEADROOM", "REACH_HEADROOM", "SIZE_FIELDS", "candidates_per_chunk", "resized", "sizes",
+    "NeighborList", "NeighborSpec",
     "largest_singular_values", "spatial_reach", "cell_table", "perpendicular_widths", "build",
     "build_jax", "build_jit", "needs_rebuild", "fits_box", "update", "NeighborListOverflow",
     "check", "allocate", "MAX_REALLOCATIONS_IN_A_ROW", "reallocate", "list_at",
