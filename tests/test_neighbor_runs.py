@@ -25,6 +25,7 @@ from affinebody.simulate import energy_error, run
 from affinebody.space import free_space, orthorhombic
 from affinebody.state import State
 from affinebody.system import HamiltonianSystem
+from tracking import compilations
 
 DEMO = "(1 - exp(-3*(r - 1)))**2 - 1 + 0.5*exp(-D**2/4)*(M1 - 3)**2"
 SIDE, SPACING, R_CUT, SKIN = 4, 1.3, 1.6, 0.2
@@ -100,16 +101,25 @@ def test_run_with_the_list_is_the_all_pairs_run_and_conserves_energy_as_well():
 
 
 def test_a_capacity_too_small_for_the_run_is_reallocated_transparently():
+    """... and the run compiles its loop once per list: the steps after a reallocation run
+    through the program of the run's length, so a run that goes on with the list it returned
+    (as ``affinebody run``'s next chunk does) compiles nothing."""
     system, state = periodic_system()
     probe_spec, probe = nb.allocate(BOX, state.x, state.phi, R_CUT, "r", SKIN)
     assert int(probe.count) == 3 * state.x.shape[0]  # nearest neighbours only, at the start
     # exactly the pairs of the start: the list overflows once the lattice melts
     tight = nb.allocate(BOX, state.x, state.phi, R_CUT, "r", SKIN, capacity=int(probe.count),
                         cell_capacity=probe_spec.cell_capacity)
-    trajectory = run(system, state, DT, STEPS, every=EVERY,
-                     observers=("energy", "potential_energy"), neighbors=tight)
-    assert trajectory.stop is None
-    assert trajectory.neighbor_reallocations >= 1
+    with compilations("_simulate") as compiled:
+        trajectory = run(system, state, DT, STEPS, every=EVERY,
+                         observers=("energy", "potential_energy"), neighbors=tight)
+        assert trajectory.stop is None
+        assert trajectory.neighbor_reallocations >= 1
+        assert len(compiled) <= 1 + trajectory.neighbor_reallocations  # one per list
+        more = run(system, trajectory.final_state, DT, STEPS, every=EVERY,
+                   observers=("energy", "potential_energy"), neighbors=trajectory.neighbors)
+    assert more.neighbor_reallocations == 0
+    assert len(compiled) <= 1 + trajectory.neighbor_reallocations  # nothing new
     spec, last = trajectory.neighbors
     assert spec.capacity > int(probe.count) and int(last.overflow) == 0
     assert int(last.count) > int(probe.count)  # more pairs in range than at the start

@@ -1,7 +1,11 @@
 """A compiled tracker of a run's energy and constraint residual, shared by the constrained and
-non-holonomic test files (each copy of a constrained H costs about a second to compile)."""
+non-holonomic test files (each copy of a constrained H costs about a second to compile), and a
+counter of a jitted function's compilations (the run drivers' tests)."""
 
 from __future__ import annotations
+
+import logging
+from contextlib import contextmanager
 
 import jax
 import jax.numpy as jnp
@@ -35,3 +39,25 @@ def energy_and_residual_tracker(system, step, residual):
         return final, emax, rmax, (e0, end)
 
     return evolve
+
+
+@contextmanager
+def compilations(function_name: str):
+    """The XLA compilations of the jitted function ``function_name`` inside the block: a list
+    (filled as they happen) of their lines in JAX's compile log (``jax.log_compiles``)."""
+    seen = []
+
+    class Catch(logging.Handler):
+        def emit(self, record):
+            message = record.getMessage()
+            if message.startswith(f"Compiling jit({function_name})"):
+                seen.append(message)
+
+    handler = Catch(level=logging.DEBUG)
+    logger = logging.getLogger("jax")
+    logger.addHandler(handler)
+    try:
+        with jax.log_compiles():
+            yield seen
+    finally:
+        logger.removeHandler(handler)

@@ -226,12 +226,14 @@ def step_key(seed: int, step):
     return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), STREAM), step)
 
 
-def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, method, barostat,
-         space,
-         thermostat, n_chunks, every, observers, spec):
+def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active=None, *,
+         method, barostat, space, thermostat, n_chunks, every, observers, spec):
     """The compiled NPT run; with a neighbour list (``spec`` not None) the carry holds the
     list, valid for the carried state in the carried cell, and a step whose list overflowed
-    is not kept (``lost``: what the reallocation must hold, as in ``simulate.run``)."""
+    is not kept (``lost``: what the reallocation must hold, as in ``simulate.run``).
+    ``active``: None, or how many of the ``n_chunks`` chunks to run (traced): a run that goes
+    on after a reallocation runs its remaining chunks through the program of the same
+    ``n_chunks``, compiled once for the new list, not once more for its shorter length."""
     p0 = jnp.trace(jnp.asarray(barostat.pressure)) / space.dimension  # may be traced (sweep)
 
     def enthalpy(state, cell, nbrs):
@@ -314,9 +316,18 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
         return (state, cell, nbrs, k + 1, failed, overflowed, narrow, lost, exchanged,
                 carried), None
 
-    def chunk(carry, _):
-        carry, _ = lax.scan(one_step, carry, None, length=every)
-        return carry, (carry[0], carry[1], measure(carry[0], carry[1], carry[2], carry[8]))
+    first = measure(state, cell, neighbors, exchanged)
+
+    def chunk(carry, c):
+        def ran(carry):
+            carry, _ = lax.scan(one_step, carry, None, length=every)
+            return carry, (carry[0], carry[1], measure(carry[0], carry[1], carry[2], carry[8]))
+
+        if active is None:
+            return ran(carry)
+        # chunks past ``active`` are skipped (their frames: fillers the caller drops)
+        return lax.cond(c < active, ran, lambda carry: (carry, (carry[0], carry[1], first)),
+                        carry)
 
     int0 = jnp.zeros((), dtype=jnp.int32)
     lost = (int0, int0, jnp.zeros((), dtype=state.x.dtype))
@@ -324,8 +335,7 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, *, met
     init = (state, cell, neighbors, first_step, -jnp.ones_like(first_step), no, no, lost,
             exchanged, system.replace(cell=cell).energy_and_forces(state, neighbors)[1])
     (_, _, last_list, _, failed, overflowed, narrow, lost, *_), (states, cells, values) = \
-        lax.scan(chunk, init, None, length=n_chunks)
-    first = measure(state, cell, neighbors, exchanged)
+        lax.scan(chunk, init, jnp.arange(n_chunks))
     join = lambda a, f: jnp.concatenate([a[None], f])  # noqa: E731
     return (jax.tree.map(join, state, states), join(cell, cells),
             jax.tree.map(join, first, values), failed, overflowed, narrow, lost, last_list)
@@ -437,15 +447,18 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
     segments = []  # (times, states, cells, values) of each compiled call, numpy
     start, in_a_row, failed = int(first_step), 0, -1
     end = int(first_step) + int(steps)
+    n_chunks = (end - start) // every  # of every call: a restart runs its last ones
     while True:
+        active = (end - start) // every
         states, cells, values, failed, overflowed, narrow, lost, last_list = _npt_jit(
             system, state, cell, jnp.asarray(start), int(seed), jnp.asarray(float(dt)), nbrs,
-            exchanged,
+            exchanged, jnp.asarray(active, dtype=jnp.int32),
             method=method, barostat=barostat, space=space, thermostat=thermostat,
-            n_chunks=(end - start) // every, every=every, observers=tuple(observers),
-            spec=spec)
-        part = (jax.tree.map(np.asarray, states), np.asarray(cells),
-                {k: np.asarray(v) for k, v in values.items()})
+            n_chunks=n_chunks, every=every, observers=tuple(observers), spec=spec)
+        frames = slice(0, active + 1)  # the frames of the chunks that ran
+        part = (jax.tree.map(lambda a, ran=frames: np.asarray(a)[ran], states),
+                np.asarray(cells)[frames],
+                {k: np.asarray(v)[frames] for k, v in values.items()})
         first = 0 if not segments else 1  # a restart's frame 0 is the last kept frame
         failed = int(failed)
         if not bool(overflowed):

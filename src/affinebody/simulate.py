@@ -229,12 +229,17 @@ def _thermostat_values(system, method, state, carried, neighbors) -> dict:
             "effective_energy": system.hamiltonian(state, neighbors) - carried.heat}
 
 
-def _simulate(system, state, dt, neighbors, start=(0, 0.0), *, n_chunks, every, method,
-              observers, spec):
+def _simulate(system, state, dt, neighbors, start=(0, 0.0), active=None, *, n_chunks, every,
+              method, observers, spec):
     """The compiled run. With a neighbour list (``spec`` not None) the carry holds the list,
     valid for the carried state; a step whose list overflowed is discarded like a non-finite
-    one (status _OVERFLOW), recording what the reallocation must hold in ``lost``."""
-    zero = jnp.asarray(0)
+    one (status _OVERFLOW), recording what the reallocation must hold in ``lost``.
+    ``active``: None, or how many of the ``n_chunks`` chunks to run (traced): a run that goes
+    on after a reallocation runs its remaining chunks through the program of the same
+    ``n_chunks``, compiled once for the new list, not once more for its shorter length."""
+    # not weakly typed: the step's int32 codes then promote to it, so the carry keeps its
+    # types through a chunk (as a skipped chunk returns it)
+    zero = jnp.zeros((), dtype=jnp.int64)
     step = watched_step(system, method, dt, spec, sign0=jnp.sign(linalg.det(state.phi)),
                         watch_det=system.group in OPEN_GROUPS)
 
@@ -256,23 +261,31 @@ def _simulate(system, state, dt, neighbors, start=(0, 0.0), *, n_chunks, every, 
             lost = jax.tree.map(lambda old, nw: jnp.where(first, nw, old), lost, seen)
         return (state, nbrs, forces, status, bad_step, bad_body, k + 1, rebuilds, lost), None
 
-    def chunk(carry, _):
-        carry, _ = lax.scan(one_step, carry, None, length=every)
-        state, nbrs, carried, status, bad_step = carry[:5]
-        k = carry[6]
-        done = jnp.where(status == _OK, k, bad_step - 1)
-        values = _evaluate(system, state, observers, nbrs)
-        values.update(_thermostat_values(system, method, state, carried, nbrs))
-        return carry, (state, values, done)
-
     flags_and_count = jnp.zeros((), dtype=jnp.int32)
     lost = (flags_and_count, flags_and_count, jnp.zeros((), dtype=state.x.dtype))
     forces = initial_forces(system, method, state, neighbors, *start)
-    init = (state, neighbors, forces, zero, zero, zero, zero, zero, lost)
-    carry, (frames, values, done) = lax.scan(chunk, init, None, length=n_chunks)
-    _, last_list, _, status, bad_step, bad_body, _, rebuilds, lost = carry
     first_values = _evaluate(system, state, observers, neighbors)
     first_values.update(_thermostat_values(system, method, state, forces, neighbors))
+
+    def chunk(carry, c):
+        def ran(carry):
+            carry, _ = lax.scan(one_step, carry, None, length=every)
+            state, nbrs, carried, status, bad_step = carry[:5]
+            k = carry[6]
+            done = jnp.where(status == _OK, k, bad_step - 1)
+            values = _evaluate(system, state, observers, nbrs)
+            values.update(_thermostat_values(system, method, state, carried, nbrs))
+            return carry, (state, values, done)
+
+        if active is None:
+            return ran(carry)
+        # chunks past ``active`` are skipped (their frames: fillers the caller drops)
+        return lax.cond(c < active, ran, lambda carry: (carry, (carry[0], first_values, zero)),
+                        carry)
+
+    init = (state, neighbors, forces, zero, zero, zero, zero, zero, lost)
+    carry, (frames, values, done) = lax.scan(chunk, init, jnp.arange(n_chunks))
+    _, last_list, _, status, bad_step, bad_body, _, rebuilds, lost = carry
     frames = jax.tree.map(lambda a, f: jnp.concatenate([a[None], f]), state, frames)
     values = jax.tree.map(lambda a, f: jnp.concatenate([a[None], f]), first_values, values)
     done = jnp.concatenate([zero[None], done])
@@ -292,11 +305,11 @@ def _is_array_pytree(obj) -> bool:
                for leaf in jax.tree.leaves(obj))
 
 
-def _compiled_call(system, state, dt, neighbors, start, **static):
+def _compiled_call(system, state, dt, neighbors, start, active, **static):
     if _is_array_pytree(system):
-        return _simulate_jit(system, state, dt, neighbors, start, **static)
+        return _simulate_jit(system, state, dt, neighbors, start, active, **static)
     # models that are not pytrees: close over them (compiles per call)
-    return jax.jit(partial(_simulate, system, **static))(state, dt, neighbors, start)
+    return jax.jit(partial(_simulate, system, **static))(state, dt, neighbors, start, active)
 
 
 # --------------------------------------------------------------------------------------------
@@ -444,11 +457,12 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
         frames, values, done, status, bad_step, bad_body, last_list, more, lost = _compiled_call(
             system, start_state, jnp.asarray(dt), nbrs,
             (jnp.asarray(int(first_step) + start * every, dtype=jnp.int64),
-             jnp.asarray(start_heat)),
-            n_chunks=n_chunks - start, every=every, method=method, observers=items, spec=spec)
-        frames = jax.tree.map(np.asarray, frames)
-        values = {k: np.asarray(v) for k, v in values.items()}
-        done = np.asarray(done) + start * every
+             jnp.asarray(start_heat)), jnp.asarray(n_chunks - start, dtype=jnp.int32),
+            n_chunks=n_chunks, every=every, method=method, observers=items, spec=spec)
+        ran = slice(0, n_chunks - start + 1)  # the frames of the chunks that ran
+        frames = jax.tree.map(lambda a, ran=ran: np.asarray(a)[ran], frames)
+        values = {k: np.asarray(v)[ran] for k, v in values.items()}
+        done = np.asarray(done)[ran] + start * every
         status, bad_step, bad_body = int(status), int(bad_step) + start * every, int(bad_body)
         rebuilds += int(more)
         first = 0 if not segments else 1  # a restart's frame 0 is the previous segment's last
