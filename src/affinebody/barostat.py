@@ -59,6 +59,7 @@ from affinebody import neighbors as nb
 from affinebody import pressure as pressure_module
 from affinebody.integrators import get_integrator
 from affinebody.integrators.splitting import update_neighbors
+from affinebody.simulate import scan_chunks
 from affinebody.space import Space, as_space
 from affinebody.state import State
 
@@ -318,16 +319,9 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
 
     first = measure(state, cell, neighbors, exchanged)
 
-    def chunk(carry, c):
-        def ran(carry):
-            carry, _ = lax.scan(one_step, carry, None, length=every)
-            return carry, (carry[0], carry[1], measure(carry[0], carry[1], carry[2], carry[8]))
-
-        if active is None:
-            return ran(carry)
-        # chunks past ``active`` are skipped (their frames: fillers the caller drops)
-        return lax.cond(c < active, ran, lambda carry: (carry, (carry[0], carry[1], first)),
-                        carry)
+    def chunk(carry):
+        carry, _ = lax.scan(one_step, carry, None, length=every)
+        return carry, (carry[0], carry[1], measure(carry[0], carry[1], carry[2], carry[8]))
 
     int0 = jnp.zeros((), dtype=jnp.int32)
     lost = (int0, int0, jnp.zeros((), dtype=state.x.dtype))
@@ -335,7 +329,8 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
     init = (state, cell, neighbors, first_step, -jnp.ones_like(first_step), no, no, lost,
             exchanged, system.replace(cell=cell).energy_and_forces(state, neighbors)[1])
     (_, _, last_list, _, failed, overflowed, narrow, lost, *_), (states, cells, values) = \
-        lax.scan(chunk, init, jnp.arange(n_chunks))
+        scan_chunks(chunk, lambda carry: (carry, (carry[0], carry[1], first)), init, n_chunks,
+                    active)
     join = lambda a, f: jnp.concatenate([a[None], f])  # noqa: E731
     return (jax.tree.map(join, state, states), join(cell, cells),
             jax.tree.map(join, first, values), failed, overflowed, narrow, lost, last_list)
@@ -455,10 +450,8 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
             exchanged, jnp.asarray(active, dtype=jnp.int32),
             method=method, barostat=barostat, space=space, thermostat=thermostat,
             n_chunks=n_chunks, every=every, observers=tuple(observers), spec=spec)
-        frames = slice(0, active + 1)  # the frames of the chunks that ran
-        part = (jax.tree.map(lambda a, ran=frames: np.asarray(a)[ran], states),
-                np.asarray(cells)[frames],
-                {k: np.asarray(v)[frames] for k, v in values.items()})
+        part = jax.tree.map(lambda a, ran=active + 1: np.asarray(a)[:ran],  # chunks that ran
+                            (states, cells, values))
         first = 0 if not segments else 1  # a restart's frame 0 is the last kept frame
         failed = int(failed)
         if not bool(overflowed):

@@ -267,29 +267,34 @@ def _simulate(system, state, dt, neighbors, start=(0, 0.0), active=None, *, n_ch
     first_values = _evaluate(system, state, observers, neighbors)
     first_values.update(_thermostat_values(system, method, state, forces, neighbors))
 
-    def chunk(carry, c):
-        def ran(carry):
-            carry, _ = lax.scan(one_step, carry, None, length=every)
-            state, nbrs, carried, status, bad_step = carry[:5]
-            k = carry[6]
-            done = jnp.where(status == _OK, k, bad_step - 1)
-            values = _evaluate(system, state, observers, nbrs)
-            values.update(_thermostat_values(system, method, state, carried, nbrs))
-            return carry, (state, values, done)
-
-        if active is None:
-            return ran(carry)
-        # chunks past ``active`` are skipped (their frames: fillers the caller drops)
-        return lax.cond(c < active, ran, lambda carry: (carry, (carry[0], first_values, zero)),
-                        carry)
+    def chunk(carry):
+        carry, _ = lax.scan(one_step, carry, None, length=every)
+        state, nbrs, carried, status, bad_step = carry[:5]
+        k = carry[6]
+        done = jnp.where(status == _OK, k, bad_step - 1)
+        values = _evaluate(system, state, observers, nbrs)
+        values.update(_thermostat_values(system, method, state, carried, nbrs))
+        return carry, (state, values, done)
 
     init = (state, neighbors, forces, zero, zero, zero, zero, zero, lost)
-    carry, (frames, values, done) = lax.scan(chunk, init, jnp.arange(n_chunks))
+    carry, (frames, values, done) = scan_chunks(
+        chunk, lambda carry: (carry, (carry[0], first_values, zero)), init, n_chunks, active)
     _, last_list, _, status, bad_step, bad_body, _, rebuilds, lost = carry
     frames = jax.tree.map(lambda a, f: jnp.concatenate([a[None], f]), state, frames)
     values = jax.tree.map(lambda a, f: jnp.concatenate([a[None], f]), first_values, values)
     done = jnp.concatenate([zero[None], done])
     return frames, values, done, status, bad_step, bad_body, last_list, rebuilds, lost
+
+
+def scan_chunks(chunk, skipped, init, n_chunks: int, active=None):
+    """``lax.scan`` of ``chunk`` (carry -> (carry, frame)) over ``n_chunks`` chunks of a run;
+    with ``active`` (traced) only the first ``active`` run, the others are ``skipped`` (carry
+    -> (carry, a filler frame of the same shapes), which the caller drops): a run that goes on
+    after a reallocation of its list thus keeps the compiled length of the run."""
+    if active is None:
+        return lax.scan(lambda carry, _: chunk(carry), init, None, length=n_chunks)
+    return lax.scan(lambda carry, c: lax.cond(c < active, chunk, skipped, carry), init,
+                    jnp.arange(n_chunks))
 
 
 _simulate_jit = jax.jit(
@@ -459,10 +464,9 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
             (jnp.asarray(int(first_step) + start * every, dtype=jnp.int64),
              jnp.asarray(start_heat)), jnp.asarray(n_chunks - start, dtype=jnp.int32),
             n_chunks=n_chunks, every=every, method=method, observers=items, spec=spec)
-        ran = slice(0, n_chunks - start + 1)  # the frames of the chunks that ran
-        frames = jax.tree.map(lambda a, ran=ran: np.asarray(a)[ran], frames)
-        values = {k: np.asarray(v)[ran] for k, v in values.items()}
-        done = np.asarray(done)[ran] + start * every
+        frames, values, done = jax.tree.map(  # the frames of the chunks that ran
+            lambda a, ran=n_chunks - start + 1: np.asarray(a)[:ran], (frames, values, done))
+        done = done + start * every
         status, bad_step, bad_body = int(status), int(bad_step) + start * every, int(bad_body)
         rebuilds += int(more)
         first = 0 if not segments else 1  # a restart's frame 0 is the previous segment's last
@@ -559,5 +563,5 @@ def energy_error(trajectory: Trajectory, key: str = "energy") -> np.ndarray:
 
 __all__: Sequence[str] = (
     "IntegrationStopped", "NAMED_OBSERVABLES", "Stop", "StopReport", "Trajectory", "Watched",
-    "energy_error", "initial_forces", "relative_error", "run", "watched_step",
+    "energy_error", "initial_forces", "relative_error", "run", "scan_chunks", "watched_step",
 )
