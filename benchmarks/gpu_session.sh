@@ -10,8 +10,8 @@
 # click, not pydantic: `fetch` downloads pydantic and its three dependencies at the versions of
 # this checkout's .venv into .whl/ (ignored through .git/info/exclude). `run` installs them
 # under /tmp/site and runs the project from src/ (no pip install: the image's JAX may be newer
-# than pyproject's pin, and its CUDA build is the one to measure). About 4 minutes on an H100
-# after the machine's start.
+# than pyproject's pin, and its CUDA build is the one to measure). About 3 minutes on an H200
+# after the machine's start (2026-11-27; it ran there as written).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 

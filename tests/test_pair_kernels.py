@@ -127,6 +127,24 @@ def test_list_forces_equal_all_pairs_forces_host_and_jax(case):
         assert np.max(np.abs(charge)) <= 1e-11 * np.max(np.abs(reference[2]))
 
 
+@pytest.mark.parametrize("case", ["all-variables-3d", "all-variables-2d"])
+def test_jax_kernel_in_its_gpu_form_equals_all_pairs(monkeypatch, case):
+    """On a GPU the JAX kernel's 3x3 products are written elementwise (_linalg.fused_products),
+    with the per-pair chain rule through phi^-1 and det phi; forced here on the CPU, it must
+    give the all-pairs autodiff forces like the batched-dot form above (every scalar: r, D,
+    det, K_a, M_a in both orders)."""
+    from affinebody import _linalg
+
+    monkeypatch.setattr(_linalg, "fused_products", lambda: True)
+    potential, n = CASES[case]
+    x, phi = configuration(np.random.default_rng(11), n, potential.space)
+    _, nbrs = list_for(potential, x, phi)
+    # a new function object: traced now, with the elementwise products
+    kernel = jax.jit(lambda x, phi, i, j, count: pk.energy_and_gradients(
+        potential, potential.space, x, phi, i, j, count, 64))
+    assert_same(kernel(x, phi, nbrs.i, nbrs.j, nbrs.count), all_pairs(potential, x, phi))
+
+
 @pytest.mark.parametrize("case", ["material-affine-arrays-3d", "demo-3d"])
 def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch, case):
     """Chunks of pairs (per-body sums carried between callbacks) give the all-pairs forces,

@@ -23,10 +23,15 @@ K_a = Tr(G^a)               with W = sum_a a (df/dK_a) G^(a-1):
                             df/dphi_K = phi_L W, df/dphi_L = phi_K W^T                      (28)
 ==========================  ====================================================================
 
-Contributions are summed per body (dV/dx, dV/dphi direct, dV/dB, dV/d det), and the per-body
-chain rule through B = phi^-1 and det phi finishes once per body:
+The chain rule through B = phi^-1 and det phi,
 
-    dV/dphi = (dV/dphi)_direct - B^T (dV/dB) B^T + (dV/d det) det(phi) B^T.
+    dV/dphi = (dV/dphi)_direct - B^T (dV/dB) B^T + (dV/d det) det(phi) B^T,
+
+is applied once per body by the host kernel (contributions summed per body first: dV/dx,
+dV/dphi direct, dV/dB, dV/d det) and per pair by the JAX kernel, where it simplifies
+(:func:`_chunk_contributions`) and each pair then adds one row of n + n^2 numbers to each of its
+bodies (one scatter per side: on a GPU the float64 atomic adds of four narrower scatters per
+side cost 24 of 59 ms at 10^6 bodies, docs/performance.md).
 
 Two implementations of the same formulas, same interface
 ``energy_and_gradients(pot, space, x, phi, i, j, count) -> (E, dV/dx, dV/dphi)``, and the
@@ -163,9 +168,27 @@ def _finish(phi, binv, det, g_phi, g_binv, g_det):
 # JAX kernel
 
 
+def _mm_t(a: jax.Array, b: jax.Array) -> jax.Array:
+    """(a b)^T = b^T a^T over the last two axes, written so that no transposed copy of a
+    product is stored (on a GPU a separate transpose is one more pass over the pairs)."""
+    return _mm(jnp.swapaxes(b, -1, -2), jnp.swapaxes(a, -1, -2))
+
+
 def _chunk_contributions(pot, space: Space, n, x, phi, binv, det, i, j, valid, cell=None):
-    """Energy and per-pair gradient pieces for one chunk of pairs (``cell``: the current cell
-    of a box a barostat deforms, or None)."""
+    """Energy of one chunk of pairs and, per pair, dV/du [P, n] and the whole dV_KL/dphi_K,
+    dV_KL/dphi_L [P, n, n], the chain rule through B = phi^-1 and det phi applied per pair
+    (``cell``: the current cell of a box that a barostat deforms, or None).
+
+    With dphi_K -= B_K^T (dV/dB_K) B_K^T and += (dV/d det phi_K) det(phi_K) B_K^T, the
+    derivatives of the module docstring's table become, per scalar q (c_q = df/dq):
+
+    - D (75): dphi_K -= c (B_K^T a_K) a_K^T with c = c_D / (2D) (as B_K^T a_K u^T B_K^T), the
+      same with L;
+    - det (79): dphi_L += c_det det B_L^T, dphi_K -= c_det det B_K^T;
+    - M_a (30), Y = W B_K: dphi_L += Y^T, dphi_K -= (Gamma Y)^T (as B_K^T (phi_L W)^T B_K^T);
+      M'_a the same with K and L exchanged;
+    - K_a (28): dphi_K += phi_L W, dphi_L += phi_K W^T (no B involved).
+    """
     plain, k_powers, m_powers, swapped = _requirements(pot, n)
     u = space.displacement(x[i], x[j], cell)
     phi_k, phi_l, b_k, b_l = phi[i], phi[j], binv[i], binv[j]
@@ -193,36 +216,36 @@ def _chunk_contributions(pot, space: Space, n, x, phi, binv, det, i, j, valid, c
     base = {key: jnp.where(valid.reshape(valid.shape + (1,) * (v.ndim - 1)), v, pad[key])
             for key, v in base.items()}
     energies, partials = _scalar_values_and_partials(pot, n)(base)
-    zeros_m = jnp.zeros_like(phi_k)
     g_u = jnp.zeros_like(u)
-    g_bk, g_bl, g_phik, g_phil = zeros_m, zeros_m, zeros_m, zeros_m
-    g_detk = g_detl = jnp.zeros_like(r2)
+    d_phik = d_phil = jnp.zeros_like(phi_k)
     if "r" in plain:
         r = base["r"]
         g_u = g_u + (partials["r"] / jnp.where(r > 0, r, 1.0) * (r > 0))[:, None] * u
     if "D" in plain:
         dist = base["D"]
         c = partials["D"] / jnp.where(dist > 0, 2.0 * dist, 1.0) * (dist > 0)
-        g_u = g_u + c[:, None] * (jnp.einsum("pji,pj->pi", b_k, a_k)
-                                  + jnp.einsum("pji,pj->pi", b_l, a_l))
-        g_bk = g_bk + c[:, None, None] * a_k[:, :, None] * u[:, None, :]
-        g_bl = g_bl + c[:, None, None] * a_l[:, :, None] * u[:, None, :]
+        v_k = jnp.einsum("pji,pj->pi", b_k, a_k)
+        v_l = jnp.einsum("pji,pj->pi", b_l, a_l)
+        g_u = g_u + c[:, None] * (v_k + v_l)
+        d_phik = d_phik - c[:, None, None] * v_k[:, :, None] * a_k[:, None, :]
+        d_phil = d_phil - c[:, None, None] * v_l[:, :, None] * a_l[:, None, :]
     if "det" in plain:
-        g_detl = partials["det"] / det[i]
-        g_detk = -partials["det"] * base["det"] / det[i]
+        c = (partials["det"] * base["det"])[:, None, None]
+        d_phil = d_phil + c * jnp.swapaxes(b_l, -1, -2)
+        d_phik = d_phik - c * jnp.swapaxes(b_k, -1, -2)
     if k_powers:
         w = _weighted(k_mats, partials["K"])
-        g_phik = g_phik + _mm(phi_l, w)
-        g_phil = g_phil + _mm(phi_k, jnp.swapaxes(w, -1, -2))
+        d_phik = d_phik + _mm(phi_l, w)
+        d_phil = d_phil + _mm(phi_k, jnp.swapaxes(w, -1, -2))
     if m_powers:
-        w = _weighted(m_mats, partials["M"])
-        g_bk = g_bk + jnp.swapaxes(_mm(phi_l, w), -1, -2)
-        g_phil = g_phil + jnp.swapaxes(_mm(w, b_k), -1, -2)
+        y = _mm(_weighted(m_mats, partials["M"]), b_k)
+        d_phil = d_phil + jnp.swapaxes(y, -1, -2)
+        d_phik = d_phik - _mm_t(gamma, y)
         if swapped:
-            w = _weighted(ms_mats, partials["Ms"])
-            g_bl = g_bl + jnp.swapaxes(_mm(phi_k, w), -1, -2)
-            g_phik = g_phik + jnp.swapaxes(_mm(w, b_l), -1, -2)
-    return jnp.sum(energies), (g_u, g_phik, g_phil, g_bk, g_bl, g_detk, g_detl)
+            y = _mm(_weighted(ms_mats, partials["Ms"]), b_l)
+            d_phik = d_phik + jnp.swapaxes(y, -1, -2)
+            d_phil = d_phil - _mm_t(gamma_s, y)
+    return jnp.sum(energies), (g_u, d_phik, d_phil)
 
 
 def _pair_chunks(i, j, chunk: int):
@@ -257,29 +280,32 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | No
     """(E, dV/dx [N, n], dV/dphi [N, n, n]) of ``pot`` summed over the pairs (i[p], j[p]),
     p < count (JAX; jit with ``pot``, ``space``, ``chunk`` static). Pairs beyond ``count`` are
     padding. Memory: one chunk of pairs at a time (default :func:`pair_chunk`). ``cell``: the
-    current cell of a box that a barostat deforms (``space`` its reference), or None."""
+    current cell of a box that a barostat deforms (``space`` its reference), or None.
+
+    Each pair's whole contribution (dV/dx and dV/dphi, :func:`_chunk_contributions`) goes to
+    each of its bodies as one row of n + n^2 numbers, in one scatter-add per side: on a GPU
+    the float64 atomic adds of the scatters are a large part of the time, and one wide row
+    per pair costs less than the same numbers in several narrower scatters."""
     bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
 
     def step(carry, block):
-        energy, g_x, g_phi, g_b, g_det = carry
+        energy, total = carry
         ii, jj, idx = block
         ii, jj, valid = _valid_pairs(ii, jj, idx, count, bodies)
-        e, (g_u, g_phik, g_phil, g_bk, g_bl, g_detk, g_detl) = _chunk_contributions(
-            pot, space, n, x, phi, binv, det, ii, jj, valid, cell)
+        e, (g_u, d_phik, d_phil) = _chunk_contributions(pot, space, n, x, phi, binv, det, ii,
+                                                        jj, valid, cell)
+        rows = g_u.shape[0]
+        side_k = jnp.concatenate([g_u, d_phik.reshape(rows, n * n)], axis=1)
+        side_l = jnp.concatenate([-g_u, d_phil.reshape(rows, n * n)], axis=1)
         # padding pairs add nothing: their index is out of range and dropped (sending them to
         # one body instead serialises millions of atomic adds on a GPU)
         ii, jj = jnp.where(valid, ii, bodies), jnp.where(valid, jj, bodies)
-        add = lambda total, index, value: total.at[index].add(value, mode="drop")  # noqa: E731
-        g_x = add(add(g_x, ii, g_u), jj, -g_u)
-        g_phi = add(add(g_phi, ii, g_phik), jj, g_phil)
-        g_b = add(add(g_b, ii, g_bk), jj, g_bl)
-        g_det = add(add(g_det, ii, g_detk), jj, g_detl)
-        return (energy + e, g_x, g_phi, g_b, g_det), None
+        total = total.at[ii].add(side_k, mode="drop").at[jj].add(side_l, mode="drop")
+        return (energy + e, total), None
 
-    init = (jnp.zeros(()), jnp.zeros_like(x), jnp.zeros_like(phi), jnp.zeros_like(phi),
-            jnp.zeros(bodies))
-    (energy, g_x, g_phi, g_b, g_det), _ = lax.scan(step, init, (i_all, j_all, index))
-    return energy, g_x, _finish(phi, binv, det, g_phi, g_b, g_det)
+    init = (jnp.zeros((), x.dtype), jnp.zeros((bodies, n + n * n), x.dtype))
+    (energy, total), _ = lax.scan(step, init, (i_all, j_all, index))
+    return energy, total[:, :n], total[:, n:].reshape(phi.shape)
 
 
 energy_and_gradients_jit = jax.jit(energy_and_gradients, static_argnums=(0, 1, 7))
