@@ -17,6 +17,11 @@ reported apart):
   host kernels' callbacks in it (pair forces, drift; wall time of the callbacks, summed):
   the rest of a step runs in XLA on one thread.
 
+``--npt``: the same system under the barostat of ``run_scale.py --npt`` (a move every step),
+and instead of ``step`` and ``loop``, ``npt loop``: the compiled NPT loop
+(``barostat.advance``, what ``affinebody run`` compiles with a ``[barostat]``) over
+``--loop-steps`` steps, per step (median of seven runs after a warm-up).
+
 ``--pair-chunks`` and ``--candidate-chunks`` time the forces and the build at other pass sizes
 of the JAX kernels (how ``pair_kernels.ACCELERATOR_PAIR_CHUNK`` and
 ``neighbors._ACCELERATOR_CANDIDATES_PER_CHUNK`` were chosen on a GPU).
@@ -63,6 +68,8 @@ def main() -> None:
                         help="log2 of list-build pass sizes to compare")
     parser.add_argument("--loop-steps", type=int, default=200,
                         help="steps of the simulate.run loop timed (0: skip it)")
+    parser.add_argument("--npt", action="store_true",
+                        help="the barostat's system and its NPT loop")
     args = parser.parse_args()
 
     import jax
@@ -77,7 +84,7 @@ def main() -> None:
 
     side = round(args.bodies ** (1 / 3))
     with tempfile.TemporaryDirectory() as tmp:
-        config = load_config(write_config(Path(tmp), side, steps=10, every=10))
+        config = load_config(write_config(Path(tmp), side, steps=10, every=10, npt=args.npt))
     prepare_process(config)  # the process as `affinebody run` sets it up
     _host.keep_freed_memory()
     start = time.perf_counter()
@@ -115,9 +122,35 @@ def main() -> None:
     def step(s, f):
         return method.advance(system, s, f, config.run.dt, spec, lst)
 
+    if args.npt:  # the list of a barostat's run follows a cell: its loop instead
+        if args.loop_steps:
+            npt_loop(config, system, state, built.neighbors, args.loop_steps)
+        return
     report("step (kick, drift, list, forces)", *timed(step, state, f0))
     if args.loop_steps:
         loop(system, state, config.run.dt, built.neighbors, args.loop_steps)
+
+
+def npt_loop(config, system, state, neighbors, steps: int) -> None:
+    """Per step of the compiled NPT loop (``barostat.advance``) over ``steps`` steps."""
+    import jax
+    import jax.numpy as jnp
+
+    from affinebody import barostat
+    from affinebody import neighbors as nb
+    from affinebody.integrators import get_integrator
+    from affinebody.runner import constant_pressure
+
+    spec, _ = neighbors
+    cell = jnp.asarray(spec.space.matrix)
+    spec, lst = nb.list_at(spec, state.x, state.phi, cell)
+    method = get_integrator(config.run.integrator)
+    run = jax.jit(lambda s, lst: barostat.advance(
+        system, s, cell, jnp.asarray(0), 1, config.run.dt, lst, steps=steps, method=method,
+        barostat=constant_pressure(config, None)[0], space=spec.space, spec=spec)[0])
+    first, median = timed(run, state, lst, repeats=7)
+    print(f"  npt loop: barostat.advance, {steps} steps: {median / steps * 1e3:.2f} ms per "
+          f"step (first call {first:.2f} s)", flush=True)
 
 
 def loop(system, state, dt, neighbors, steps: int) -> None:

@@ -417,6 +417,31 @@ def test_carrying_the_forces_from_step_to_step_gives_the_same_steps():
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-15)
 
 
+@pytest.mark.parametrize("name", ["strang", "yoshida4"])
+def test_a_force_pass_with_more_gives_the_same_step_and_its_last_extra(name):
+    """Splitting.advance(force_pass=f): f's forces drive the step as system.forces' do (one
+    stage for Strang, a scan over stages for Yoshida), and the extra returned is that of the
+    last evaluation, at the new configuration (a barostat takes its virial from it)."""
+    system, state = _fsal_system()
+    method = get_integrator(name)
+    potential = jax.jit(system.potential_energy)
+
+    def force_pass(system, s, neighbors):
+        return system.forces(s, neighbors), (system.potential_energy(s), s.x[0])
+
+    plain = jax.jit(lambda s, f: method.advance(system, s, f, 0.01))
+    more = jax.jit(lambda s, f: method.advance(system, s, f, 0.01, force_pass=force_pass))
+    forces = jax.jit(system.forces)(state)
+    new, _, new_forces = plain(state, forces)
+    same, tracked, same_forces, (energy, x0) = more(state, forces)
+    assert tracked is None
+    for a, b in zip((*same, *same_forces), (*new, *new_forces), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-15)
+    assert np.max(np.abs(np.asarray(new.x - state.x))) > 1e-4  # the step moved the bodies
+    np.testing.assert_allclose(float(energy), float(potential(new)), rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(x0), np.asarray(new.x[0]), rtol=1e-13)
+
+
 def _fsal_system():
     from affinebody.kinetic import AffineIsotropic, DAlembertTranslational, KineticEnergy
     from affinebody.potentials import Dilatation, PairPotential, total_potential

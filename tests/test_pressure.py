@@ -146,3 +146,49 @@ def test_the_virial_pass_also_gives_the_potential_energy():
     e, _ = pair_kernels.pair_virial(pair, space, state.x, state.phi, i, j, i.shape[0],
                                     chunk=7, energy=True)
     np.testing.assert_allclose(float(e), float(pair.energy(state.x, state.phi)), rtol=1e-12)
+
+
+@pytest.mark.parametrize("kernel", ["host", "jax"])
+@pytest.mark.parametrize("form", ["python", "expression"])
+def test_forces_and_virial_from_one_pass_equal_those_of_their_own_passes(monkeypatch, kernel,
+                                                                         form):
+    """pressure.energy_forces_virial (what an NPT step's last force evaluation computes, so
+    that the barostat's move needs no pass of its own) gives the energy and forces of
+    system.energy_and_forces and the virial of pressure.virial, over a list in a traced cell,
+    with the host kernel (a Python f: two callbacks; a config expression: the fused kernel)
+    and the JAX one; and a barostat move fed these (V, W) is the move that measures them."""
+    from affinebody import pair_kernels
+    from affinebody.barostat import StochasticCellRescaling
+
+    if kernel == "jax":
+        monkeypatch.setattr(pair_kernels, "host_kernel_in_use", lambda: False)
+    system, state, space, pair = setup(3, "triclinic", seed=4)
+    if form == "expression":
+        pair = PairPotential.from_expression("exp(-D**2)*(1 + 0.3*K1) + 0.5/r**2", 3,
+                                             cutoff=Cutoff(R_CUT, 1.1), box=space)
+        system = system.replace(potential=total_potential([pair, Dilatation(0.7)]))
+    cell = jnp.asarray(space.matrix) * 1.02  # a barostat's box, as a traced cell
+    boxed = system.replace(cell=cell)
+    _, lst = nb.allocate(space, state.x, state.phi, R_CUT, "r", 0.1, cell=cell)
+
+    @jax.jit
+    def both(boxed, state, lst):
+        return (pressure.energy_forces_virial(boxed, state, space, lst),
+                boxed.energy_and_forces(state, lst), pressure.virial(boxed, state, space, lst))
+
+    (e, (gx, gphi), w), (e_ref, (gx_ref, gphi_ref)), w_ref = both(boxed, state, lst)
+    assert np.max(np.abs(np.asarray(w_ref))) > 0.1 and np.max(np.abs(gx_ref)) > 0.1
+    np.testing.assert_allclose(float(e), float(e_ref), rtol=1e-13)
+    for a, b in ((gx, gx_ref), (gphi, gphi_ref), (w, w_ref)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0,
+                                   atol=1e-12 * np.max(np.abs(np.asarray(b))))
+    barostat = StochasticCellRescaling(tuple(map(tuple, 0.3 * np.eye(3))), tau=1.0,
+                                       compressibility=0.5,
+                                       temperature=0.2)
+    key = jax.random.key(5)
+    fed = barostat.move(boxed, state, cell, space, key, 0.01, lst, energy=True,
+                        measured=(e, w))
+    own = barostat.move(boxed, state, cell, space, key, 0.01, lst, energy=True)
+    for a, b in zip(jax.tree.leaves(fed), jax.tree.leaves(own), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-13)
+    assert float(jnp.linalg.det(fed[1])) != float(jnp.linalg.det(cell))  # the box moved

@@ -112,15 +112,21 @@ class StochasticCellRescaling:
         return np.asarray(self.pressure)
 
     def move(self, system, state: State, cell, space: Space, key, dt, neighbors=None,
-             energy: bool = False):
+             energy: bool = False, measured=None):
         """(state, cell) after one barostat move of length ``dt`` (module docstring);
         ``neighbors``: None (the virial over all pairs) or a list valid for ``state`` in
         ``cell``. With ``energy``: (state, cell, V), V the potential energy of ``state`` in
-        ``cell`` before the move (from the pass that computes the virial)."""
+        ``cell`` before the move (from the pass that computes the virial). ``measured``: None,
+        or (V, W) of ``state`` in ``cell`` already known (``pressure.energy_forces_virial``
+        in the step's last force evaluation): then no pass over the pairs here."""
         n = cell.shape[-1]
-        potential, p_inst = pressure_module.pressure_tensor(
-            system.replace(cell=cell), state, space, neighbors, energy=True)
         volume = linalg.det(cell)
+        if measured is None:
+            potential, p_inst = pressure_module.pressure_tensor(
+                system.replace(cell=cell), state, space, neighbors, energy=True)
+        else:
+            potential, w = measured
+            p_inst = (pressure_module.kinetic_tensor(system, state) + w) / volume
         rate = self.compressibility / self.tau
         diffusion = self.temperature * rate / volume
         if self.coupling == "isotropic":
@@ -253,14 +259,27 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
 
     carries = getattr(method, "carries_forces", False)
     interval = barostat.interval
+    # a box moving every step after a list step: the virial and energy the move needs come
+    # from the step's last force pass over the pairs (pressure.energy_forces_virial), not
+    # from one of their own; the state is that of the pass (a thermostat after the step
+    # changes momenta only)
+    one_pass = carries and interval == 1 and spec is not None
+
+    def force_pass(boxed, state, nbrs):
+        energy, forces, w = pressure_module.energy_forces_virial(boxed, state, space, nbrs)
+        return forces, (energy, w)
 
     def one_step(carry, _):
         (old_state, old_cell, old_nbrs, k, failed, overflowed, narrow, lost, exchanged,
          old_forces) = carry
         key_thermo, key_baro = jax.random.split(step_key(seed, k))
         boxed = system.replace(cell=old_cell)
+        measured = None
         if not carries:
             state, tracked, forces = method.step(boxed, old_state, dt), None, old_forces
+        elif one_pass:  # the move's (V, W) from the step's last force evaluation
+            state, tracked, forces, measured = method.advance(
+                boxed, old_state, old_forces, dt, spec, old_nbrs, force_pass=force_pass)
         else:  # the forces after the last move, carried (first same as last)
             state, tracked, forces = method.advance(boxed, old_state, old_forces, dt, spec,
                                                     old_nbrs)
@@ -274,7 +293,8 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
             nbrs = None if spec is None else tracked.neighbors
             kinetic = boxed.kinetic_energy(state)
             state, cell, potential = barostat.move(system, state, old_cell, space, key_baro,
-                                                   interval * dt, nbrs, energy=True)
+                                                   interval * dt, nbrs, energy=True,
+                                                   measured=measured)
             before = kinetic + potential + p0 * linalg.det(old_cell)  # H + P0 V before
             if spec is not None:  # the list follows the box (rebuilt when it may miss a pair)
                 tracked = update_neighbors(spec, tracked, state, cell)

@@ -276,11 +276,12 @@ def _valid_pairs(ii, jj, idx, count, bodies: int):
 
 
 def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | None = None,
-                         cell=None):
+                         cell=None, virial: bool = False):
     """(E, dV/dx [N, n], dV/dphi [N, n, n]) of ``pot`` summed over the pairs (i[p], j[p]),
-    p < count (JAX; jit with ``pot``, ``space``, ``chunk`` static). Pairs beyond ``count`` are
-    padding. Memory: one chunk of pairs at a time (default :func:`pair_chunk`). ``cell``: the
-    current cell of a box that a barostat deforms (``space`` its reference), or None.
+    p < count (JAX; jit with ``pot``, ``space``, ``chunk`` static), and with ``virial`` the
+    virial W [n, n] of :func:`pair_virial` from the same pass, fourth. Pairs beyond ``count``
+    are padding. Memory: one chunk of pairs at a time (default :func:`pair_chunk`). ``cell``:
+    the current cell of a box that a barostat deforms (``space`` its reference), or None.
 
     Each pair's whole contribution (dV/dx and dV/dphi, :func:`_chunk_contributions`) goes to
     each of its bodies as one row of n + n^2 numbers, in one scatter-add per side: on a GPU
@@ -289,11 +290,13 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | No
     bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
 
     def step(carry, block):
-        energy, total = carry
+        energy, total, w = carry
         ii, jj, idx = block
         ii, jj, valid = _valid_pairs(ii, jj, idx, count, bodies)
         e, (g_u, d_phik, d_phil) = _chunk_contributions(pot, space, n, x, phi, binv, det, ii,
                                                         jj, valid, cell)
+        if virial:
+            w = w - _pair_virial_sum(space, x, ii, jj, valid, g_u, cell)
         rows = g_u.shape[0]
         side_k = jnp.concatenate([g_u, d_phik.reshape(rows, n * n)], axis=1)
         side_l = jnp.concatenate([-g_u, d_phil.reshape(rows, n * n)], axis=1)
@@ -301,11 +304,19 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | No
         # one body instead serialises millions of atomic adds on a GPU)
         ii, jj = jnp.where(valid, ii, bodies), jnp.where(valid, jj, bodies)
         total = total.at[ii].add(side_k, mode="drop").at[jj].add(side_l, mode="drop")
-        return (energy + e, total), None
+        return (energy + e, total, w), None
 
-    init = (jnp.zeros((), x.dtype), jnp.zeros((bodies, n + n * n), x.dtype))
-    (energy, total), _ = lax.scan(step, init, (i_all, j_all, index))
-    return energy, total[:, :n], total[:, n:].reshape(phi.shape)
+    init = (jnp.zeros((), x.dtype), jnp.zeros((bodies, n + n * n), x.dtype),
+            jnp.zeros((n, n), x.dtype))
+    (energy, total, w), _ = lax.scan(step, init, (i_all, j_all, index))
+    out = (energy, total[:, :n], total[:, n:].reshape(phi.shape))
+    return out + (w,) if virial else out
+
+
+def _pair_virial_sum(space: Space, x, i, j, valid, g_u, cell):
+    """sum_p u_p (dV_p/du)^T over the valid pairs of a chunk (minus the virial's part)."""
+    u = space.displacement(x[i], x[j], cell)
+    return jnp.einsum("pa,pb->ab", u, jnp.where(valid[:, None], g_u, 0.0))
 
 
 energy_and_gradients_jit = jax.jit(energy_and_gradients, static_argnums=(0, 1, 7))
@@ -326,7 +337,8 @@ def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int | 
     host kernel computes it (:func:`pair_sum`'s choice), else the JAX kernel."""
     if chunk is None and host_kernel_in_use():
         _require_cutoff(pot)
-        e, w = _host_pair_sum(pot, space, x, phi, i, j, count, cell=cell, virial=True)
+        e, w = _host_pair_sum(pot, space, x, phi, i, j, count, gradients=False, cell=cell,
+                              virial=True)
         return (e, w) if energy else w
     bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
 
@@ -336,9 +348,7 @@ def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int | 
         ii, jj, valid = _valid_pairs(ii, jj, idx, count, bodies)
         part, (g_u, *_) = _chunk_contributions(pot, space, n, x, phi, binv, det, ii, jj,
                                                valid, cell)
-        u = space.displacement(x[ii], x[jj], cell)
-        g_u = jnp.where(valid[:, None], g_u, 0.0)
-        return (e + part, total - jnp.einsum("pa,pb->ab", u, g_u)), None
+        return (e + part, total - _pair_virial_sum(space, x, ii, jj, valid, g_u, cell)), None
 
     zero = (jnp.zeros((), dtype=x.dtype), jnp.zeros((n, n), dtype=x.dtype))
     (e, total), _ = lax.scan(step, zero, (i_all, j_all, index))
@@ -569,20 +579,19 @@ def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
     return total
 
 
-def _host_fused(g: _HostGeometry, source: str, what: str, x, phi, binv, det, i, j, count, h,
-                h_inv):
+def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x, phi, binv, det,
+                i, j, count, h, h_inv):
     """The fused kernel over the list's first ``count`` pairs, in :data:`affinebody._host.PARTS`
     fixed parts, each with sums of its own added in part order (the same bits on any thread
-    count). ``what``: "energy" (E), "gradients" (E, dV/dx, dV/dphi: per-body sums, then the
-    chain rule through B = phi^-1 and det phi per body, ``_merge_finish`` in parts of the
-    bodies) or "virial" (E, W: the virial [n, n] of :func:`pair_virial`). One callback for
-    the whole list: no pair scalars are held, so no chunks."""
+    count). Returns (E,), then dV/dx, dV/dphi with ``gradients`` (per-body sums, then the chain
+    rule through B = phi^-1 and det phi per body, ``_merge_finish`` in parts of the bodies),
+    then the virial W [n, n] of :func:`pair_virial` with ``virial``: all from the same pass.
+    One callback for the whole list: no pair scalars are held, so no chunks."""
     kernels = _fused_kernel(g.n, source)
     valid = min(int(count), i.shape[0])  # an overflowed list counts pairs it could not hold
     i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
     x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
     bodies, n = x.shape
-    gradients, virial = what == "gradients", what == "virial"
     rows = bodies if gradients else 1  # the kernel adds nothing to the sums without gradients
     parts = _host.PARTS
     gx, gphi, gb = (np.zeros((parts, rows, *shape)) for shape in ((n,), (n, n), (n, n)))
@@ -596,14 +605,15 @@ def _host_fused(g: _HostGeometry, source: str, what: str, x, phi, binv, det, i, 
     for k, e in enumerate(_in_parts(pairs, valid)):  # a fixed order
         energy += e
         total += w[k]
+    out = (energy,)
+    if gradients:
+        g_x, g_phi = np.empty_like(x), np.empty_like(phi)
+        _in_parts(lambda _, lo, hi: kernels.merge_finish(lo, hi, gx, gphi, gb, gdet, binv, det,
+                                                         g_x, g_phi), bodies)
+        out += (g_x, g_phi)
     if virial:
-        return energy, total
-    if not gradients:
-        return energy
-    g_x, g_phi = np.empty_like(x), np.empty_like(phi)
-    _in_parts(lambda _, lo, hi: kernels.merge_finish(lo, hi, gx, gphi, gb, gdet, binv, det,
-                                                     g_x, g_phi), bodies)
-    return energy, g_x, g_phi
+        out += (total,)
+    return out
 
 
 def _host_chunk(capacity: int) -> int:
@@ -624,11 +634,11 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     geometry and the chain rule, :func:`_fused_source`, then the chain rule through B and
     det phi, :func:`_host_fused`), the virial pass too. No JAX
     runs inside a callback (that could wait on the thread that called it).
-    ``gradients=False``: the energy alone (no chain rule, no second callback). ``cell``: the
-    current cell of a box that a barostat deforms (an operand of the kernels: one
-    compilation serves every box), or None. ``virial=True``: (E, W), the energy and the
-    virial W [n, n] of :func:`pair_virial` instead (the fused virial kernel where f is a
-    config expression, else a third kernel after the geometry and f's partials)."""
+    Returns E, then dV/dx, dV/dphi with ``gradients`` (else no chain rule, no second
+    callback), then the virial W [n, n] of :func:`pair_virial` with ``virial`` (the same
+    fused pass where f is a config expression, else a third kernel after the geometry and
+    f's partials): E alone when neither. ``cell``: the current cell of a box that a barostat
+    deforms (an operand of the kernels: one compilation serves every box), or None."""
     _require_cutoff(pot)
     bodies, n = x.shape
     g = _HostGeometry.of(pot, space, n, moving=cell is not None)
@@ -640,11 +650,11 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     f64 = lambda shape: jax.ShapeDtypeStruct(shape, x.dtype)  # noqa: E731
     fused = _fused_source(pot, n)
     if fused is not None:  # f is a config expression: one callback does it all
-        what, shapes = (("virial", (f64(()), f64((n, n)))) if virial else
-                        ("gradients", (f64(()), f64(x.shape), f64(phi.shape))) if gradients
-                        else ("energy", f64(())))
-        return _host.callback(partial(_host_fused, g, fused, what), shapes,
-                              x, phi, binv, det, i, j, count, h, h_inv, vmap_method="sequential")
+        shapes = ((f64(()),) + ((f64(x.shape), f64(phi.shape)) if gradients else ())
+                  + ((f64((n, n)),) if virial else ()))
+        out = _host.callback(partial(_host_fused, g, fused, gradients, virial), shapes,
+                             x, phi, binv, det, i, j, count, h, h_inv, vmap_method="sequential")
+        return tuple(out) if len(shapes) > 1 else out[0]
     capacity = i.shape[0]
     chunk = _host_chunk(capacity)
     chunks = -(-capacity // chunk)
@@ -658,7 +668,7 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     rows = jnp.arange(chunk)
 
     def step(carry, k):
-        energy, sums = carry
+        energy, w, sums = carry
         lo = k * chunk
         ii = lax.dynamic_slice(i_all, (lo,), (chunk,))
         jj = lax.dynamic_slice(j_all, (lo,), (chunk,))
@@ -667,29 +677,30 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
                                     det, ii, jj, valid, h, h_inv, vmap_method="sequential")
         base = dict(zip(columns, scalars, strict=True))  # padding rows: beyond the cut-off
         inside = rows < valid
-        if not gradients:
+        if not (gradients or virial):
             energies = pot.energy_from_scalars(base, n)
-            return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
+            return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), w, sums), None
         energies, partials = partials_of(base)
+        partials = tuple(partials[key] for key in columns)
         if virial:
-            w = _host.callback(
-                partial(_host_virial, g), f64((n, n)), x, binv, ii, jj, valid,
-                tuple(partials[key] for key in columns), h, h_inv, vmap_method="sequential")
-            return ((energy[0] + jnp.sum(jnp.where(inside, energies, 0.0)), energy[1] + w),
-                    sums), None
-        sums = _host.callback(
-            partial(_host_scatter, g), sum_shapes, sums, x, phi, binv, det, ii, jj, valid,
-            tuple(partials[key] for key in columns), h, h_inv, vmap_method="sequential")
-        return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), sums), None
+            w = w + _host.callback(partial(_host_virial, g), f64((n, n)), x, binv, ii, jj,
+                                   valid, partials, h, h_inv, vmap_method="sequential")
+        if gradients:
+            sums = _host.callback(
+                partial(_host_scatter, g), sum_shapes, sums, x, phi, binv, det, ii, jj, valid,
+                partials, h, h_inv, vmap_method="sequential")
+        return (energy + jnp.sum(jnp.where(inside, energies, 0.0)), w, sums), None
 
-    init = ((jnp.zeros((), x.dtype), jnp.zeros((n, n), x.dtype)) if virial
-            else jnp.zeros((), x.dtype),
+    init = (jnp.zeros((), x.dtype), jnp.zeros((n, n), x.dtype),
             (jnp.zeros_like(x), jnp.zeros_like(phi), jnp.zeros_like(phi),
              jnp.zeros((bodies,), x.dtype)))
-    (energy, (g_x, g_phi, g_b, g_det)), _ = lax.scan(step, init, jnp.arange(chunks))
-    if not gradients or virial:
-        return energy
-    return energy, g_x, _finish(phi, binv, det, g_phi, g_b, g_det)
+    (energy, w, (g_x, g_phi, g_b, g_det)), _ = lax.scan(step, init, jnp.arange(chunks))
+    out = (energy,)
+    if gradients:
+        out += (g_x, _finish(phi, binv, det, g_phi, g_b, g_det))
+    if virial:
+        out += (w,)
+    return out if len(out) > 1 else energy
 
 
 def energy_and_gradients_host(pot, space: Space, x, phi, i, j, count, cell=None):
@@ -711,14 +722,16 @@ def host_kernel_in_use() -> bool:
     return _host_in_use()
 
 
-def pair_sum(pot, space: Space, x, phi, i, j, count, cell=None):
+def pair_sum(pot, space: Space, x, phi, i, j, count, cell=None, virial: bool = False):
     """(E, dV/dx, dV/dphi) over the list's pairs, with the kernel for the backend: the
     compiled host kernel on a CPU (when Numba is installed), the JAX kernel otherwise (a GPU:
     no host round trip). Both are tested against all-pairs autodiff. ``cell``: the current
-    cell of a box that a barostat deforms (``space`` its reference), or None."""
+    cell of a box that a barostat deforms (``space`` its reference), or None. ``virial``:
+    (E, dV/dx, dV/dphi, W), the virial of :func:`pair_virial` from the same pass (what a
+    barostat's move needs after the step's force evaluation)."""
     if host_kernel_in_use():
-        return _host_pair_sum(pot, space, x, phi, i, j, count, cell=cell)
-    return energy_and_gradients(pot, space, x, phi, i, j, count, cell=cell)
+        return _host_pair_sum(pot, space, x, phi, i, j, count, cell=cell, virial=virial)
+    return energy_and_gradients(pot, space, x, phi, i, j, count, cell=cell, virial=virial)
 
 
 __all__ = [

@@ -21,7 +21,8 @@ degrees of freedom the ensemble integrates over at every volume, as molecular or
 
 The virial of pair terms is computed by :func:`affinebody.pair_kernels.pair_virial` from the
 same per-pair gradient dV_KL/du that the forces of a neighbour-list run use, over the run's
-neighbour list (O(N)) or over all pairs.
+neighbour list (O(N)) or over all pairs; :func:`energy_forces_virial` gives it with the energy
+and the forces from one pass over a list (an NPT step's force evaluation before a move).
 """
 
 from __future__ import annotations
@@ -73,6 +74,25 @@ def check_space(system, space: Space) -> Space:
     return space
 
 
+def _pairs(x, neighbors):
+    """(i, j, count) of a list, or of all N(N-1)/2 pairs without one."""
+    if neighbors is None:
+        i, j = (jnp.asarray(a, dtype=jnp.int32) for a in np.triu_indices(x.shape[0], 1))
+        return i, j, i.shape[0]
+    return neighbors.i, neighbors.j, jnp.minimum(neighbors.count, neighbors.i.shape[0])
+
+
+def _one_body(term, x, phi, forces: bool):
+    """(V, dV/dx, dV/dphi or None) of a term that is not a pair term (one-body terms and any
+    other energy of x, phi)."""
+    if forces:
+        e, (gx, gphi) = jax.value_and_grad(lambda y, f: jnp.sum(term.energy(y, f)),
+                                           argnums=(0, 1))(x, phi)
+        return e, gx, gphi
+    e, gx = jax.value_and_grad(lambda y: jnp.sum(term.energy(y, phi)))(x)
+    return e, gx, None
+
+
 def virial(system, state, space: Space, neighbors=None, energy: bool = False):
     """W = -dV/d(eps) [n, n] of one system (x [N, n]); see the module docstring. With
     ``energy``: (V, W), the potential energy from the same pass over the pairs.
@@ -88,20 +108,41 @@ def virial(system, state, space: Space, neighbors=None, energy: bool = False):
     potential = jnp.zeros((), dtype=x.dtype)
     for term in _terms(system.potential):
         if isinstance(term, PairTerm):
-            if neighbors is None:
-                i, j = (jnp.asarray(a, dtype=jnp.int32) for a in np.triu_indices(x.shape[0], 1))
-                count = i.shape[0]
-            else:
-                i, j = neighbors.i, neighbors.j
-                count = jnp.minimum(neighbors.count, neighbors.i.shape[0])
             if x.shape[0] > 1:
-                e, w = pair_kernels.pair_virial(term, space, x, phi, i, j, count, system.cell,
-                                                energy=True)
+                e, w = pair_kernels.pair_virial(term, space, x, phi, *_pairs(x, neighbors),
+                                                system.cell, energy=True)
                 total, potential = total + w, potential + e
         else:  # one-body terms (and any other energy of x): W = -sum_K x_K (dV/dx_K)^T
-            e, g = jax.value_and_grad(lambda y, t=term: jnp.sum(t.energy(y, phi)))(x)
+            e, g, _ = _one_body(term, x, phi, forces=False)
             total, potential = total - jnp.einsum("ka,kb->ab", x, g), potential + e
     return (potential, total) if energy else total
+
+
+def energy_forces_virial(system, state, space: Space, neighbors):
+    """(V, (dV/dx, dV/dphi), W) of one system from one pass over the list's pairs
+    (``pair_kernels.pair_sum`` with ``virial``): the forces of ``system.energy_and_forces`` and
+    the W of :func:`virial`, so that a barostat move right after a step's force evaluation
+    needs no pass of its own. ``neighbors``: a list valid for ``state`` (in ``system.cell``
+    when set) that covers the pair cut-off."""
+    space = check_space(system, space)
+    x, phi = state.x, state.phi
+    n = x.shape[-1]
+    potential = jnp.zeros((), dtype=x.dtype)
+    gx, gphi = jnp.zeros_like(x), jnp.zeros_like(phi)
+    total = jnp.zeros((n, n), dtype=x.dtype)
+    for term in _terms(system.potential):
+        if isinstance(term, PairTerm):
+            if x.shape[0] > 1:
+                e, tx, tphi, w = pair_kernels.pair_sum(term, space, x, phi,
+                                                       *_pairs(x, neighbors), system.cell,
+                                                       virial=True)
+            else:
+                continue
+        else:
+            e, tx, tphi = _one_body(term, x, phi, forces=True)
+            w = -jnp.einsum("ka,kb->ab", x, tx)
+        potential, gx, gphi, total = potential + e, gx + tx, gphi + tphi, total + w
+    return potential, (gx, gphi), total
 
 
 def pressure_tensor(system, state, space: Space, neighbors=None, energy: bool = False):
@@ -137,6 +178,6 @@ def scalar_pressure(tensor: jax.Array) -> jax.Array:
 
 
 __all__ = [
-    "Observer", "check_space", "kinetic_tensor", "pressure_tensor", "scalar_pressure",
-    "virial", "volume",
+    "Observer", "check_space", "energy_forces_virial", "kinetic_tensor", "pressure_tensor",
+    "scalar_pressure", "virial", "volume",
 ]

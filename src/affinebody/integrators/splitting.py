@@ -88,7 +88,7 @@ class Splitting(AbstractIntegrator):
         return state, tracked
 
     def advance(self, system: HamiltonianSystem, state: State, forces, h, spec=None,
-                neighbors=None, middle=None) -> tuple[State, NeighborStep | None, tuple]:
+                neighbors=None, middle=None, force_pass=None):
         """One step from ``state`` whose forces (``system.forces``) are ``forces``, returning
         (new state, :class:`NeighborStep` or None, forces at the new state).
 
@@ -102,6 +102,11 @@ class Splitting(AbstractIntegrator):
         done in the middle of the middle drift, D(d h/2) O D(d h/2): with Strang this is
         BAOAB, K(h/2) D(h/2) O(h) D(h/2) K(h/2) (Leimkuhler and Matthews 2013), and every
         composition stays symmetric.
+
+        force_pass: None, or f(system, state, neighbors) -> (forces, extra) evaluating the
+        forces in place of ``system.forces`` with more from the same pass (a barostat takes
+        the virial, ``pressure.energy_forces_virial``); the step then returns (new state,
+        NeighborStep or None, forces, extra), extra that of the last evaluation.
         """
         self.check(system)
         kicks = self.kicks
@@ -110,9 +115,10 @@ class Splitting(AbstractIntegrator):
         if spec is not None:
             zero = jnp.zeros((), dtype=jnp.int32)
             tracked = NeighborStep(neighbors, zero, zero, neighbors.count, neighbors.reach)
+        evaluate = force_pass or (lambda system, s, nbrs: (system.forces(s, nbrs), ()))
 
         def stage(carry, coefficients, inner=None):
-            s, tracked, _ = carry
+            s, tracked, _, _ = carry
             d, c = coefficients
             if inner is None:
                 s = system.drift(s, d * h)
@@ -122,8 +128,8 @@ class Splitting(AbstractIntegrator):
             if spec is not None:
                 tracked = update_neighbors(spec, tracked, s, system.cell)
                 current = tracked.neighbors
-            f = system.forces(s, current)
-            return (system.kick(s, c * h, forces=f), tracked, f), None
+            f, extra = evaluate(system, s, current)
+            return (system.kick(s, c * h, forces=f), tracked, f, extra), None
 
         def stages(carry, first, last):
             if last - first == 1:
@@ -134,14 +140,20 @@ class Splitting(AbstractIntegrator):
                 return lax.scan(stage, carry, coefficients)[0]
             return carry
 
-        carry = (state, tracked, forces)
+        extra = ()
+        if force_pass is not None:  # its zero (a scan over stages carries it), by its shape
+            extra = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(
+                lambda: force_pass(system, state, None if spec is None else neighbors)[1]))
+        carry = (state, tracked, forces, extra)
         m = len(self.drifts)
         if middle is None:
-            return stages(carry, 0, m)
-        mid = m // 2
-        carry = stages(carry, 0, mid)
-        carry = stage(carry, (self.drifts[mid], kicks[mid + 1]), middle)[0]
-        return stages(carry, mid + 1, m)
+            carry = stages(carry, 0, m)
+        else:
+            mid = m // 2
+            carry = stages(carry, 0, mid)
+            carry = stage(carry, (self.drifts[mid], kicks[mid + 1]), middle)[0]
+            carry = stages(carry, mid + 1, m)
+        return carry if force_pass is not None else carry[:3]
 
 
 class NeighborStep(NamedTuple):
