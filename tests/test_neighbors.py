@@ -128,6 +128,32 @@ def test_pair_overflow_is_flagged_and_reallocation_fixes_it():
     assert int(fixed.count) > spec.capacity
 
 
+@pytest.mark.parametrize("layout", ["crystal", "cluster"])
+def test_allocated_capacity_is_the_uniform_floor_or_the_pairs_found(monkeypatch, layout):
+    """In a periodic box the capacity is capacity_factor x max(pairs found, pairs of a uniform
+    fluid at this density): a crystal (fewer pairs than the fluid) gets the fluid's, from one
+    build at that capacity; a cluster (more) the count of its own pairs, after a second build.
+    Either list is the brute-force set of pairs in range."""
+    space = orthorhombic((6.0, 6.0, 6.0))
+    if layout == "crystal":
+        x = np.stack(np.meshgrid(*[np.arange(6.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    else:  # all bodies within a third of the box
+        x = np.random.default_rng(8).uniform(0.0, 2.0, size=(216, 3))
+    x, phi = jnp.asarray(x), jnp.broadcast_to(jnp.eye(3), (216, 3, 3))
+    radius = 1.5 + 0.2
+    floor = nb.uniform_pair_count(space, 216, radius)
+    found = len(nb.brute_force_pairs(space, x, radius))
+    assert (found <= floor) == (layout == "crystal")
+    builds = []
+    build = nb.build_jit
+    monkeypatch.setattr(nb, "build_jit", lambda *a: builds.append(a[0]) or build(*a))
+    spec, lst = nb.allocate(space, x, phi, 1.5, "r", 0.2)
+    assert len(builds) == (1 if layout == "crystal" else 2)
+    assert spec.capacity == max(64, int(np.ceil(max(found, floor) * 1.25)))
+    assert int(lst.count) == found and int(lst.overflow) == 0
+    assert pair_set(nb.pairs_of(lst)) == pair_set(nb.brute_force_pairs(space, x, radius))
+
+
 def test_cell_and_reach_overflows_are_flagged():
     rng = np.random.default_rng(4)
     space = BOXES["orthorhombic"]

@@ -541,15 +541,22 @@ def allocate(
     occupancy = int(np.bincount(flat, minlength=int(np.prod(grid))).max())
     if cell_capacity is None:
         cell_capacity = int(math.ceil(occupancy * cell_factor)) + 1
+    sized = lambda capacity: NeighborSpec(  # noqa: E731
+        space, float(cutoff), variable, float(skin), bodies, capacity, cell_capacity, grid,
+        max_radius, origin, size)
     if capacity is None:
-        probe = NeighborSpec(space, float(cutoff), variable, float(skin), bodies, 1,
-                             cell_capacity, grid, max_radius, origin, size)
-        count = int(build_jit(probe, x, phi, cell).count)
-        if space.periodic:  # a crystal that melts fills its shells: room for a uniform fluid
-            count = max(count, uniform_pair_count(now, bodies, radius))
+        # a crystal that melts fills its shells: room for a uniform fluid at least (periodic)
+        floor = uniform_pair_count(now, bodies, radius) if space.periodic else 0
+        if floor:  # first at the floor: one build, unless more pairs are found than that
+            spec = sized(max(64, int(math.ceil(floor * capacity_factor))))
+            first = build_jit(spec, x, phi, cell)
+            if int(first.count) <= floor:
+                return spec, check(first)
+            count = int(first.count)
+        else:  # free space: count the pairs first (a list of capacity 1 overflows, counting)
+            count = int(build_jit(sized(1), x, phi, cell).count)
         capacity = max(64, int(math.ceil(count * capacity_factor)))
-    spec = NeighborSpec(space, float(cutoff), variable, float(skin), bodies, capacity,
-                        cell_capacity, grid, max_radius, origin, size)
+    spec = sized(capacity)
     return spec, check(build_jit(spec, x, phi, cell))
 
 

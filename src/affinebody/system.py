@@ -49,7 +49,7 @@ from affinebody import _pytree as pytree
 from affinebody import constraints, nonholonomic
 from affinebody._checks import as_matrix, as_vector, is_concrete, transpose
 from affinebody.constraints import CONSTRAINED_GROUPS
-from affinebody.groups import CONFIGURATION_SPACES, is_member, project_algebra
+from affinebody.groups import CONFIGURATION_SPACES, is_member_jit, project_algebra
 from affinebody.state import State
 
 #: Configuration spaces a HamiltonianSystem accepts (the one list: groups.CONFIGURATION_SPACES).
@@ -277,7 +277,7 @@ class HamiltonianSystem:
             )
         state = State(x, phi, p, pi)
         if is_concrete(phi):
-            member = np.asarray(is_member(phi, self.group, tol=1e-9))
+            member = np.asarray(is_member_jit(phi, group=self.group, tol=1e-9))
             if not np.all(member):
                 body = int(np.argwhere(~np.atleast_1d(member))[0][-1])
                 raise ValueError(
@@ -303,7 +303,7 @@ class HamiltonianSystem:
                 continue
             out = term.flow(probe, 0.37)
             sh = out.pi @ out.phi
-            stays = bool(np.all(np.asarray(is_member(out.phi, g, tol=1e-9))))
+            stays = bool(np.all(np.asarray(is_member_jit(out.phi, group=g, tol=1e-9))))
             in_algebra = bool(np.max(np.abs(np.asarray(sh - project_algebra(sh, g)))) < 1e-9)
             fixed_phi = bool(np.max(np.abs(np.asarray(out.phi - phi))) == 0.0)
             if not stays or not (in_algebra or fixed_phi):
