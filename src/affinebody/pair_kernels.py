@@ -54,6 +54,9 @@ product runs both, one per backend (:func:`pair_sum` chooses):
 
 :func:`neighbor_energy` wraps :func:`pair_sum` as a ``jax.custom_vjp`` energy, so ``jax.grad``
 of a potential evaluated with a neighbour list uses these closed forms, whichever kernel runs.
+``pair_sum(..., virial=True)`` also returns the virial W = -sum u (dV/du)^T of
+:func:`pair_virial` from the same pass (an NPT step's last force evaluation,
+``pressure.energy_forces_virial``).
 """
 
 from __future__ import annotations
