@@ -22,12 +22,18 @@ and instead of ``step`` and ``loop``, ``npt loop``: the compiled NPT loop
 (``barostat.advance``, what ``affinebody run`` compiles with a ``[barostat]``) over
 ``--loop-steps`` steps, per step (median of seven runs after a warm-up).
 
+``--against FILE``: ``forces`` again with the JAX pair kernel of another version of
+``pair_kernels.py`` (``git show REV:src/affinebody/pair_kernels.py > FILE``) in place of the
+product's, in the same process: an A/B of a kernel change on a GPU (where the product runs
+that kernel; on a CPU it runs the host kernel, so force it with ``--jax-kernel``).
+
 ``--pair-chunks`` and ``--candidate-chunks`` time the forces and the build at other pass sizes
 of the JAX kernels (how ``pair_kernels.ACCELERATOR_PAIR_CHUNK`` and
 ``neighbors._ACCELERATOR_CANDIDATES_PER_CHUNK`` were chosen on a GPU).
 
     .venv/bin/python benchmarks/step_phases.py --bodies 4096
     python benchmarks/step_phases.py --bodies 1000000 --pair-chunks 18 20 22 24   # on a GPU
+    python benchmarks/step_phases.py --bodies 1000000 --loop-steps 0 --against /tmp/pk_old.py
 """
 
 from __future__ import annotations
@@ -68,6 +74,10 @@ def main() -> None:
                         help="log2 of list-build pass sizes to compare")
     parser.add_argument("--loop-steps", type=int, default=200,
                         help="steps of the simulate.run loop timed (0: skip it)")
+    parser.add_argument("--against", help="another pair_kernels.py whose JAX kernel to time "
+                        "in the forces beside the product's")
+    parser.add_argument("--jax-kernel", action="store_true",
+                        help="the JAX pair kernel on a CPU too (as on a GPU)")
     parser.add_argument("--npt", action="store_true",
                         help="the barostat's system and its NPT loop")
     args = parser.parse_args()
@@ -100,8 +110,24 @@ def main() -> None:
     def report(name, first, median):
         print(f"  {name:<34} {median * 1e3:10.3f} ms   (first call {first:.2f} s)", flush=True)
 
+    if args.jax_kernel:
+        pk.host_kernel_in_use = lambda: False
     forces = jax.jit(system.forces)
     report("forces", *timed(forces, state, lst))
+    if args.against:
+        import importlib.util
+
+        spec_of = importlib.util.spec_from_file_location("other_pair_kernels", args.against)
+        other = importlib.util.module_from_spec(spec_of)
+        spec_of.loader.exec_module(other)
+        product = pk.energy_and_gradients
+        # the forces only (no virial): an older kernel may not take the argument
+        pk.energy_and_gradients = lambda *a, virial=False, **k: other.energy_and_gradients(*a,
+                                                                                         **k)
+        # a new function object, so that jit traces again with the other kernel
+        report(f"forces, {Path(args.against).name}",
+               *timed(jax.jit(lambda s, nbrs: system.forces(s, nbrs)), state, lst))
+        pk.energy_and_gradients = product
     for log2 in args.pair_chunks:
         pk.ACCELERATOR_PAIR_CHUNK = pk.PAIR_CHUNK = 1 << log2
         # a new function object, so that jit traces again with the new pass size
