@@ -11,7 +11,8 @@
 # this checkout's .venv into .whl/ (ignored through .git/info/exclude). `run` installs them
 # under /tmp/site and runs the project from src/ (no pip install: the image's JAX may be newer
 # than pyproject's pin, and its CUDA build is the one to measure). About 3 minutes on an H200
-# after the machine's start (2026-11-27; it ran there as written).
+# after the machine's start (2026-11-27, before the first command below was added; about one
+# more minute expected for it).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 
@@ -41,6 +42,10 @@ run)
     { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
       python3 -c "import jax; print('jax', jax.__version__, jax.devices())"; } 2>&1 \
         | tee "$OUT/device.txt"
+    # first the A/B of the JAX pair kernel's two programs (Triton, the default on a GPU, and
+    # XLA) with their forces compared: a failing Triton compile shows here, in a minute
+    python3 benchmarks/step_phases.py --bodies 1000000 --loop-steps 0 --pair-program xla 2>&1 \
+        | tee "$OUT/programs_1e6.txt"
     python3 benchmarks/run_scale.py --bodies 100000 --steps 1000 2>&1 | tee "$OUT/scale_1e5.txt"
     python3 benchmarks/run_scale.py --bodies 1000000 --steps 200 2>&1 | tee "$OUT/scale_1e6.txt"
     python3 benchmarks/step_phases.py --bodies 1000000 2>&1 | tee "$OUT/phases_1e6.txt"

@@ -27,6 +27,10 @@ and instead of ``step`` and ``loop``, ``npt loop``: the compiled NPT loop
 product's, in the same process: an A/B of a kernel change on a GPU (where the product runs
 that kernel; on a CPU it runs the host kernel, so force it with ``--jax-kernel``).
 
+``--pair-program NAME``: ``forces`` again with the JAX pair kernel's passes over pairs run by
+program NAME (``pair_kernels.pair_program``: ``xla`` or, on a GPU, ``triton``) instead of the
+backend's default, in the same process: an A/B of the product's two programs on a GPU.
+
 ``--pair-chunks`` and ``--candidate-chunks`` time the forces and the build at other pass sizes
 of the JAX kernels (how ``pair_kernels.ACCELERATOR_PAIR_CHUNK`` and
 ``neighbors._ACCELERATOR_CANDIDATES_PER_CHUNK`` were chosen on a GPU).
@@ -34,6 +38,7 @@ of the JAX kernels (how ``pair_kernels.ACCELERATOR_PAIR_CHUNK`` and
     .venv/bin/python benchmarks/step_phases.py --bodies 4096
     python benchmarks/step_phases.py --bodies 1000000 --pair-chunks 18 20 22 24   # on a GPU
     python benchmarks/step_phases.py --bodies 1000000 --loop-steps 0 --against /tmp/pk_old.py
+    python benchmarks/step_phases.py --bodies 1000000 --loop-steps 0 --pair-program xla  # GPU
 """
 
 from __future__ import annotations
@@ -76,6 +81,8 @@ def main() -> None:
                         help="steps of the simulate.run loop timed (0: skip it)")
     parser.add_argument("--against", help="another pair_kernels.py whose JAX kernel to time "
                         "in the forces beside the product's")
+    parser.add_argument("--pair-program", help="time the forces again with this program "
+                        "of the JAX kernel (xla, triton, triton-interpret)")
     parser.add_argument("--jax-kernel", action="store_true",
                         help="the JAX pair kernel on a CPU too (as on a GPU)")
     parser.add_argument("--npt", action="store_true",
@@ -128,6 +135,16 @@ def main() -> None:
         report(f"forces, {Path(args.against).name}",
                *timed(jax.jit(lambda s, nbrs: system.forces(s, nbrs)), state, lst))
         pk.energy_and_gradients = product
+    if args.pair_program:
+        default = pk.pair_program
+        pk.pair_program = lambda: args.pair_program
+        other = jax.jit(lambda s, nbrs: system.forces(s, nbrs))
+        report(f"forces, pair program {args.pair_program}", *timed(other, state, lst))
+        pk.pair_program = default
+        # the two programs compute the same forces: their largest difference, relative
+        difference = max(float(jax.numpy.max(abs(a - b)) / jax.numpy.max(abs(a)))
+                         for a, b in zip(forces(state, lst), other(state, lst), strict=True))
+        print(f"  {'(largest difference, relative)':<34} {difference:10.1e}", flush=True)
     for log2 in args.pair_chunks:
         pk.ACCELERATOR_PAIR_CHUNK = pk.PAIR_CHUNK = 1 << log2
         # a new function object, so that jit traces again with the new pass size

@@ -145,6 +145,52 @@ def test_jax_kernel_in_its_gpu_form_equals_all_pairs(monkeypatch, case):
     assert_same(kernel(x, phi, nbrs.i, nbrs.j, nbrs.count), all_pairs(potential, x, phi))
 
 
+@pytest.mark.parametrize("case", ["all-variables-3d", "all-variables-2d",
+                                  "lennard-jones-in-D-free-3d"])
+def test_triton_kernels_of_the_gpu_equal_all_pairs_in_the_pallas_interpreter(case):
+    """On a GPU the JAX kernel's passes over pairs are the Pallas (Triton) kernels of
+    affinebody._pair_triton (pair_program "triton"); the same kernels in Pallas' interpreter
+    must give the all-pairs autodiff energy and forces, and from the same pass the virial of
+    the XLA program (every scalar in both orders; a cut-off on D in free space; chunks of 64
+    pairs, each padded to the kernels' block of 128)."""
+    potential, n = CASES[case]
+    x, phi = configuration(np.random.default_rng(11), n, potential.space)
+    _, nbrs = list_for(potential, x, phi)
+    args = (potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count, 64)
+    assert int(nbrs.count) > 2 * 64 and 64 % pk._pair_triton.BLOCK
+    *result, virial = pk.energy_and_gradients_jit(*args, virial=True,
+                                                  program="triton-interpret")
+    assert_same(result, all_pairs(potential, x, phi))
+    reference = pk.pair_virial(*args[:7], chunk=64)  # the XLA program's
+    np.testing.assert_allclose(virial, reference, rtol=0,
+                               atol=1e-12 * float(jnp.max(jnp.abs(reference))))
+
+
+def test_triton_kernels_lower_to_triton_for_a_cuda_gpu():
+    """Without a GPU, the kernels still go through Pallas' Triton lowering for CUDA (jax.export
+    for the "cuda" platform): every operation they use has a Triton form, and a chunk of the
+    JAX kernel is XLA around two Triton calls (scalars, then rows)."""
+    from jax import export
+
+    potential, n = CASES["all-variables-3d"]  # every scalar: the kernels' every operation
+    plain, k_powers, m_powers, swapped = pk._requirements(potential, n)
+    layout = pk._pair_triton.Layout(n, plain, k_powers, m_powers, swapped)
+    padding = tuple(pk.padding_value(name, n, 1.5) for name, _ in layout.scalars)
+    pairs, bodies = 1024, 50
+
+    def chunk(u, i, j, valid, table):
+        return pk._pair_triton.chunk_rows(layout, pk._scalar_values_and_partials(potential, n),
+                                          padding, u, i, j, valid, table)
+
+    shapes = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in (
+        ((pairs, n), jnp.float64), ((pairs,), jnp.int32), ((pairs,), jnp.int32),
+        ((pairs,), bool), ((bodies * layout.columns,), jnp.float64))]
+    triton = "__gpu$xla.gpu.triton"
+    exported = export.export(jax.jit(chunk), platforms=["cuda"], disabled_checks=[
+        export.DisabledSafetyCheck.custom_call(triton)])(*shapes)
+    assert exported.mlir_module().count(f"custom_call @{triton}(") == 2
+
+
 @pytest.mark.parametrize("case", ["material-affine-arrays-3d", "demo-3d"])
 def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch, case):
     """Chunks of pairs (per-body sums carried between callbacks) give the all-pairs forces,

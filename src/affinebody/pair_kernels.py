@@ -72,6 +72,7 @@ import numpy as np
 from jax import lax
 
 from affinebody import _linalg as linalg
+from affinebody import _pair_triton
 from affinebody.expressions import CompiledExpression
 from affinebody.space import Space
 
@@ -278,8 +279,24 @@ def _valid_pairs(ii, jj, idx, count, bodies: int):
     return (jnp.where(valid, ii, 0), jnp.where(valid, jj, jnp.minimum(1, bodies - 1)), valid)
 
 
+def pair_program() -> str:
+    """How :func:`energy_and_gradients` runs its passes over pairs by default: ``"triton"`` on
+    a GPU (the Pallas kernels of :mod:`affinebody._pair_triton`), ``"xla"`` elsewhere."""
+    return "triton" if jax.default_backend() == "gpu" else "xla"
+
+
+def _triton_chunk(pot, space: Space, n, x, bodies, i, j, valid, cell, interpret: bool):
+    """(E, g_u, side_K, side_L) of a chunk from the Triton kernels (``bodies``: their table)."""
+    plain, k_powers, m_powers, swapped = _requirements(pot, n)
+    layout = _pair_triton.Layout(n, plain, k_powers, m_powers, swapped)
+    padding = tuple(padding_value(name, n, pot.cutoff.r_cut) for name, _ in layout.scalars)
+    u = space.displacement(x[i], x[j], cell)
+    return _pair_triton.chunk_rows(layout, _scalar_values_and_partials(pot, n), padding, u, i,
+                                   j, valid, bodies, interpret)
+
+
 def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | None = None,
-                         cell=None, virial: bool = False):
+                         cell=None, virial: bool = False, program: str | None = None):
     """(E, dV/dx [N, n], dV/dphi [N, n, n]) of ``pot`` summed over the pairs (i[p], j[p]),
     p < count (JAX; jit with ``pot``, ``space``, ``chunk`` static), and with ``virial`` the
     virial W [n, n] of :func:`pair_virial` from the same pass, fourth. Pairs beyond ``count``
@@ -289,20 +306,31 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | No
     Each pair's whole contribution (dV/dx and dV/dphi, :func:`_chunk_contributions`) goes to
     each of its bodies as one row of n + n^2 numbers, in one scatter-add per side: on a GPU
     the float64 atomic adds of the scatters are a large part of the time, and one wide row
-    per pair costs less than the same numbers in several narrower scatters."""
+    per pair costs less than the same numbers in several narrower scatters.
+
+    ``program``: how the rows are computed: ``"xla"`` (:func:`_chunk_contributions` as XLA
+    fuses it; differentiable), ``"triton"`` (the same formulas as the two Pallas kernels of
+    :mod:`affinebody._pair_triton`; a GPU only), ``"triton-interpret"`` (those kernels in
+    Pallas' interpreter: tests on a CPU) or None (:func:`pair_program`)."""
     bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
+    program = pair_program() if program is None else program
+    table = _pair_triton.table(phi, binv, det) if program != "xla" else None
 
     def step(carry, block):
         energy, total, w = carry
         ii, jj, idx = block
         ii, jj, valid = _valid_pairs(ii, jj, idx, count, bodies)
-        e, (g_u, d_phik, d_phil) = _chunk_contributions(pot, space, n, x, phi, binv, det, ii,
-                                                        jj, valid, cell)
+        if program == "xla":
+            e, (g_u, d_phik, d_phil) = _chunk_contributions(pot, space, n, x, phi, binv, det,
+                                                            ii, jj, valid, cell)
+            rows = g_u.shape[0]
+            side_k = jnp.concatenate([g_u, d_phik.reshape(rows, n * n)], axis=1)
+            side_l = jnp.concatenate([-g_u, d_phil.reshape(rows, n * n)], axis=1)
+        else:
+            e, g_u, side_k, side_l = _triton_chunk(pot, space, n, x, table, ii, jj, valid, cell,
+                                                   interpret=program == "triton-interpret")
         if virial:
             w = w - _pair_virial_sum(space, x, ii, jj, valid, g_u, cell)
-        rows = g_u.shape[0]
-        side_k = jnp.concatenate([g_u, d_phik.reshape(rows, n * n)], axis=1)
-        side_l = jnp.concatenate([-g_u, d_phil.reshape(rows, n * n)], axis=1)
         # padding pairs add nothing: their index is out of range and dropped (sending them to
         # one body instead serialises millions of atomic adds on a GPU)
         ii, jj = jnp.where(valid, ii, bodies), jnp.where(valid, jj, bodies)
@@ -322,7 +350,8 @@ def _pair_virial_sum(space: Space, x, i, j, valid, g_u, cell):
     return jnp.einsum("pa,pb->ab", u, jnp.where(valid[:, None], g_u, 0.0))
 
 
-energy_and_gradients_jit = jax.jit(energy_and_gradients, static_argnums=(0, 1, 7))
+energy_and_gradients_jit = jax.jit(energy_and_gradients, static_argnums=(0, 1, 7),
+                                   static_argnames=("virial", "program"))
 
 
 def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int | None = None,

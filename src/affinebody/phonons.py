@@ -607,7 +607,10 @@ def _pair_derivatives(terms, xa, xb, pa, pb, algebra):
         x, phi = configuration(q)
         gx, gphi = 0.0, 0.0
         for term in terms:
-            _, tx, tphi = energy_and_gradients(term, free, x, phi, first, second, bonds_count)
+            # program "xla": differentiated below (jax.jvp), which the GPU's Pallas kernels
+            # are not written for
+            _, tx, tphi = energy_and_gradients(term, free, x, phi, first, second, bonds_count,
+                                               program="xla")
             gx, gphi = gx + tx, gphi + tphi
         return jax.vjp(configuration, q)[1]((gx, gphi))[0]
 

@@ -1,0 +1,312 @@
+"""The JAX pair kernel's passes over pairs on a GPU as two hand-written Pallas (Triton) kernels:
+the formulas of :func:`affinebody.pair_kernels._chunk_contributions` (docs/performance.md,
+"Pair kernels (`affinebody.pair_kernels`)"), each pair kept in registers from its gathers to
+its results (``pair_kernels.pair_program`` "triton").
+
+XLA compiles the per-pair arithmetic of a chunk as about a dozen fused loops, each storing its
+per-pair results in GPU memory for the next; here one loop per stage. For a chunk of P pairs,
+with u = x_K - x_L (minimum image) from XLA:
+
+1. :func:`_scalars_kernel`: gather phi, B = phi^-1 and det phi of both bodies and write the
+   scalars f needs (r, D, det Gamma, K_a, M_a, M'_a, in the order of
+   :func:`affinebody.pair_kernels.scalar_columns`; a padding pair gets
+   :func:`affinebody.pair_kernels.padding_value`);
+2. XLA: f and its partials from those scalars (``jax.vjp`` of ``PairTerm.energy_from_scalars``,
+   elementwise, one fused loop), so that any pair potential, a user's callable included, runs;
+3. :func:`_rows_kernel`: gather the bodies again, apply the per-pair chain rule of
+   ``_chunk_contributions`` and write each pair's two rows of n + n^2 numbers (dV/dx, dV/dphi
+   for body K and for body L), which XLA then adds to the bodies (one scatter per side).
+
+Triton wants power-of-two block shapes, so a matrix is not a [P, n, n] block but n^2 vectors
+of :data:`BLOCK` pairs (lists of lists), and every array a kernel reads or writes is one flat
+vector indexed by hand: the bodies' table (:func:`table`) as ``body * C + column``, u and the
+rows pair by pair (``pair * width + column``, the layout XLA's scatter reads), the scalars and
+partials scalar by scalar (``q * P + pair``, the layout of XLA's elementwise loop).
+
+On a CPU the same kernels run in Pallas' interpreter (``interpret=True``): that is how the
+tests check them against all-pairs autodiff, and they check that the kernels go through
+Pallas' Triton lowering for CUDA; the product runs them on a GPU only.
+"""
+
+from __future__ import annotations
+
+import functools
+import operator
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.experimental import pallas as pl
+
+#: Pairs per program of the kernels (a power of two, as Triton wants).
+BLOCK = 128
+#: Warps per program: with BLOCK = 128 one pair per thread.
+WARPS = 4
+
+
+class Layout(NamedTuple):
+    """What the kernels compute for one pair term in dimension n (static): the plain scalars
+    among r, D, det, the powers k of K_a (28) and m of M_a (30), whether M'_a (swapped order)
+    is needed."""
+
+    n: int
+    plain: frozenset
+    k_powers: int
+    m_powers: int
+    swapped: bool
+
+    @property
+    def scalars(self) -> tuple[tuple[str, int], ...]:
+        """(name, a) of each scalar row, in the order of ``pair_kernels.scalar_columns``."""
+        rows = [(name, 0) for name in sorted(self.plain)]
+        for name, powers in (("K", self.k_powers), ("M", self.m_powers),
+                             ("Ms", self.m_powers if self.swapped else 0)):
+            rows += [(name, a) for a in range(powers)]
+        return tuple(rows)
+
+    @property
+    def columns(self) -> int:
+        """Columns of the bodies' table: phi (n^2), B = phi^-1 (n^2), det phi."""
+        return 2 * self.n * self.n + 1
+
+
+def table(phi: jax.Array, binv: jax.Array, det: jax.Array) -> jax.Array:
+    """The bodies' table [N * C] the kernels gather from: per body phi and B (row-major), det."""
+    bodies, n = phi.shape[0], phi.shape[-1]
+    return jnp.concatenate([phi.reshape(bodies, n * n), binv.reshape(bodies, n * n),
+                            det[:, None]], axis=1).reshape(-1)
+
+
+# --------------------------------------------------------------------------------------------
+# n x n matrices as lists of lists of [BLOCK] vectors
+
+
+def _sum(terms):
+    return functools.reduce(operator.add, terms)
+
+
+def _mm(a, b):
+    n = len(a)
+    return [[_sum(a[i][k] * b[k][j] for k in range(n)) for j in range(n)] for i in range(n)]
+
+
+def _t(a):
+    return [list(row) for row in zip(*a, strict=True)]
+
+
+def _add(a, b):
+    return [[p + q for p, q in zip(row_a, row_b, strict=True)]
+            for row_a, row_b in zip(a, b, strict=True)]
+
+
+def _scaled(c, a):
+    return [[c * v for v in row] for row in a]
+
+
+def _powers_and_traces(m, powers: int):
+    """m^0..m^(powers-1) (m^0, the identity, as None) and Tr(m^a), a = 1..powers."""
+    n = len(m)
+    mats, traces = [None], [_sum(m[i][i] for i in range(n))]
+    for _ in range(1, powers):
+        mats.append(m if mats[-1] is None else _mm(mats[-1], m))
+        traces.append(_sum(mats[-1][i][k] * m[k][i] for i in range(n) for k in range(n)))
+    return mats, traces
+
+
+def _weighted(mats, partials, n):
+    """W = sum_a (a + 1) (df/dq_a) m^a over a = 0..powers-1 (m^0 = Id)."""
+    zero = 0.0 * partials[0]
+    w = [[partials[0] if i == j else zero for j in range(n)] for i in range(n)]
+    for a in range(1, len(mats)):
+        w = _add(w, _scaled((a + 1) * partials[a], mats[a]))
+    return w
+
+
+def _matvec(a, v):
+    return [_sum(a[i][k] * v[k] for k in range(len(v))) for i in range(len(a))]
+
+
+def _tmatvec(a, v):
+    """a^T v."""
+    return [_sum(a[k][i] * v[k] for k in range(len(v))) for i in range(len(a))]
+
+
+# --------------------------------------------------------------------------------------------
+# the kernels
+
+
+def _pair_of_bodies(layout: Layout, pairs: int, u_ref, i_ref, j_ref, valid_ref, t_ref):
+    """This program's BLOCK pairs: offset, valid mask, u and phi, B, det of both bodies."""
+    n, columns = layout.n, layout.columns
+    start = pl.program_id(0) * BLOCK
+    here = pl.ds(start, BLOCK)
+    valid = valid_ref[here] != 0
+    lanes = start + jnp.arange(BLOCK, dtype=jnp.int32)
+    u = [u_ref[lanes * n + a] for a in range(n)]
+
+    def body(index):
+        base = index * columns
+
+        def matrix(offset):
+            return [[t_ref[base + (offset + r * n + c)] for c in range(n)] for r in range(n)]
+
+        return matrix(0), matrix(n * n), t_ref[base + 2 * n * n]
+
+    return start, lanes, valid, u, body(i_ref[here]), body(j_ref[here])
+
+
+def _scalar_values(layout: Layout, u, k, l):
+    """The scalars of one block and what the chain rule reuses: a_K = B_K u, a_L = B_L u."""
+    (phi_k, b_k, det_k), (phi_l, b_l, det_l) = k, l
+    values, kept = {}, {}
+    if "r" in layout.plain:
+        r2 = _sum(c * c for c in u)
+        values[("r", 0)] = jnp.where(r2 > 0, jnp.sqrt(jnp.where(r2 > 0, r2, 1.0)), 0.0)
+    if "D" in layout.plain:
+        a_k, a_l = _matvec(b_k, u), _matvec(b_l, u)
+        d2 = 0.5 * (_sum(c * c for c in a_k) + _sum(c * c for c in a_l))
+        values[("D", 0)] = jnp.where(d2 > 0, jnp.sqrt(jnp.where(d2 > 0, d2, 1.0)), 0.0)
+        kept["a"] = a_k, a_l
+    if "det" in layout.plain:
+        values[("det", 0)] = det_l / det_k
+    for name, left, right, powers in (("K", _t(phi_k), phi_l, layout.k_powers),
+                                      ("M", b_k, phi_l, layout.m_powers),
+                                      ("Ms", b_l, phi_k, layout.m_powers * layout.swapped)):
+        if powers:
+            m = _mm(left, right)
+            mats, traces = _powers_and_traces(m, powers)
+            kept[name] = m, mats
+            for a, trace in enumerate(traces):
+                values[(name, a)] = trace
+    return values, kept
+
+
+def _scalars_kernel(layout: Layout, pairs: int, padding: tuple, u_ref, i_ref, j_ref,
+                    valid_ref, t_ref, s_ref):
+    start, _, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref,
+                                               valid_ref, t_ref)
+    values, _ = _scalar_values(layout, u, k, l)
+    for q, key in enumerate(layout.scalars):
+        s_ref[pl.ds(q * pairs + start, BLOCK)] = jnp.where(valid, values[key], padding[q])
+
+
+def _rows_kernel(layout: Layout, pairs: int, u_ref, i_ref, j_ref, valid_ref, t_ref, s_ref,
+                 p_ref, out_k_ref, out_l_ref):
+    n = layout.n
+    start, lanes, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref,
+                                                   valid_ref, t_ref)
+    (phi_k, b_k, _), (phi_l, b_l, _) = k, l
+    _, kept = _scalar_values(layout, u, k, l)
+    row = {key: q for q, key in enumerate(layout.scalars)}
+
+    def scalar(key):
+        return s_ref[pl.ds(row[key] * pairs + start, BLOCK)]
+
+    def partial(key):
+        return p_ref[pl.ds(row[key] * pairs + start, BLOCK)]
+
+    zero = 0.0 * u[0]
+    g_u = [zero] * n
+    d_k = [[zero] * n for _ in range(n)]
+    d_l = [[zero] * n for _ in range(n)]
+    if "r" in layout.plain:
+        r = scalar(("r", 0))
+        c = jnp.where(r > 0, partial(("r", 0)) / jnp.where(r > 0, r, 1.0), 0.0)
+        g_u = [g + c * v for g, v in zip(g_u, u, strict=True)]
+    if "D" in layout.plain:
+        a_k, a_l = kept["a"]
+        dist = scalar(("D", 0))
+        c = jnp.where(dist > 0, partial(("D", 0)) / jnp.where(dist > 0, 2.0 * dist, 1.0), 0.0)
+        v_k, v_l = _tmatvec(b_k, a_k), _tmatvec(b_l, a_l)
+        g_u = [g + c * (p + q) for g, p, q in zip(g_u, v_k, v_l, strict=True)]
+        d_k = _add(d_k, [[-c * v_k[a] * a_k[b] for b in range(n)] for a in range(n)])
+        d_l = _add(d_l, [[-c * v_l[a] * a_l[b] for b in range(n)] for a in range(n)])
+    if "det" in layout.plain:
+        c = partial(("det", 0)) * scalar(("det", 0))
+        d_l = _add(d_l, _scaled(c, _t(b_l)))
+        d_k = _add(d_k, _scaled(-c, _t(b_k)))
+    if layout.k_powers:
+        _, mats = kept["K"]
+        w = _weighted(mats, [partial(("K", a)) for a in range(layout.k_powers)], n)
+        d_k = _add(d_k, _mm(phi_l, w))
+        d_l = _add(d_l, _mm(phi_k, _t(w)))
+    if layout.m_powers:
+        gamma, mats = kept["M"]
+        y = _mm(_weighted(mats, [partial(("M", a)) for a in range(layout.m_powers)], n), b_k)
+        d_l = _add(d_l, _t(y))
+        d_k = _add(d_k, _scaled(-1.0, _t(_mm(gamma, y))))
+        if layout.swapped:
+            gamma, mats = kept["Ms"]
+            y = _mm(_weighted(mats, [partial(("Ms", a)) for a in range(layout.m_powers)], n), b_l)
+            d_k = _add(d_k, _t(y))
+            d_l = _add(d_l, _scaled(-1.0, _t(_mm(gamma, y))))
+    side_k = g_u + [d_k[a][b] for a in range(n) for b in range(n)]
+    side_l = [-g for g in g_u] + [d_l[a][b] for a in range(n) for b in range(n)]
+    width = n + n * n
+    for q, (vk, vl) in enumerate(zip(side_k, side_l, strict=True)):
+        out_k_ref[lanes * width + q] = jnp.where(valid, vk, 0.0)
+        out_l_ref[lanes * width + q] = jnp.where(valid, vl, 0.0)
+
+
+# --------------------------------------------------------------------------------------------
+# the chunk
+
+
+@functools.cache
+def _calls(layout: Layout, pairs: int, padding: tuple, interpret: bool):
+    """The two pallas_calls for chunks of ``pairs`` pairs (a multiple of BLOCK)."""
+    scalars, n = len(layout.scalars), layout.n
+    params = dict(grid=(pairs // BLOCK,), interpret=interpret,
+                  compiler_params=None if interpret else _triton_params())
+    f64 = jnp.float64
+    first = pl.pallas_call(
+        functools.partial(_scalars_kernel, layout, pairs, padding),
+        out_shape=jax.ShapeDtypeStruct((scalars * pairs,), f64),
+        name="affinebody_pair_scalars", **params)
+    second = pl.pallas_call(
+        functools.partial(_rows_kernel, layout, pairs),
+        out_shape=(jax.ShapeDtypeStruct(((n + n * n) * pairs,), f64),) * 2,
+        name="affinebody_pair_rows", **params)
+    return first, second
+
+
+def _triton_params():
+    from jax.experimental.pallas import triton as plt
+
+    return plt.CompilerParams(num_warps=WARPS, num_stages=1)
+
+
+def chunk_rows(layout: Layout, values_and_partials, padding: tuple, u, i, j, valid, bodies,
+               interpret: bool = False):
+    """Energy of a chunk of pairs and its rows: (E, g_u [P, n], side_K [P, n + n^2],
+    side_L [P, n + n^2]), each side's row being (dV/dx, dV/dphi) of that pair for that body.
+
+    ``layout``: what to compute (:class:`Layout`); ``values_and_partials``: base -> (energies
+    [P], partials), f and its partials in XLA; ``padding``: each scalar's value for a padding
+    pair; ``u`` [P, n]; ``i``, ``j`` [P] int32; ``valid`` [P] bool; ``bodies``: the table of
+    :func:`table`; ``interpret``: run in Pallas' interpreter (CPU tests)."""
+    pairs, n = u.shape
+    size = -(-pairs // BLOCK) * BLOCK
+    if size != pairs:
+        extra = size - pairs
+        u = jnp.concatenate([u, jnp.zeros((extra, n), u.dtype)])
+        i, j = (jnp.concatenate([a, jnp.zeros(extra, a.dtype)]) for a in (i, j))
+        valid = jnp.concatenate([valid, jnp.zeros(extra, bool)])
+    first, second = _calls(layout, size, padding, interpret)
+    args = (u.reshape(-1), i.astype(jnp.int32), j.astype(jnp.int32), valid.astype(jnp.int32),
+            bodies)
+    s = first(*args)
+    rows = s.reshape(len(layout.scalars), size)
+    base = {}
+    for q, (name, _) in enumerate(layout.scalars):
+        base.setdefault(name, []).append(rows[q])
+    base = {name: vs[0] if name in ("r", "D", "det") else jnp.stack(vs, axis=-1)
+            for name, vs in base.items()}
+    energies, partials = values_and_partials(base)
+    names = dict.fromkeys(name for name, _ in layout.scalars)  # in the scalars' order
+    flat = jnp.concatenate([partials[name].T.reshape(-1) for name in names])
+    side_k, side_l = second(*args, s, flat)
+    side_k = side_k.reshape(size, n + n * n)[:pairs]
+    side_l = side_l.reshape(size, n + n * n)[:pairs]
+    return jnp.sum(energies), side_k[:, :n], side_k, side_l
+
