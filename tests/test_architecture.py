@@ -18,8 +18,8 @@ PACKAGE = SRC / "affinebody"
 
 #: Layer of each module (a package prefix covers its submodules; the longest prefix wins).
 LAYERS = {
-    "core": ("_checks", "_linalg", "_host", "_host_kernels", "_xla", "_pytree", "state", "space",
-             "expressions"),
+    "core": ("_checks", "_linalg", "_host", "_host_kernels", "_pair_triton", "_xla", "_pytree",
+             "state", "space", "expressions"),
     "kinematics": ("groups", "polar", "deformation", "mutual", "velocities", "momenta",
                    "inertia", "actions", "brackets", "observables"),
     "models": ("kinetic", "potentials", "pair_kernels", "neighbors"),

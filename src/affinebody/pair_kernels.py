@@ -50,7 +50,9 @@ product runs both, one per backend (:func:`pair_sum` chooses):
   the process may use, so results do not depend on the core count;
 - :func:`energy_and_gradients` in JAX (jit, CPU or GPU; chunks of pairs in a ``lax.scan`` so
   memory stays linear in N): the path on a GPU (no host round trip inside the loop) and where
-  Numba is missing.
+  Numba is missing. Its per-pair arithmetic is :func:`_chunk_contributions` as XLA fuses it, or
+  on a GPU the same formulas as two hand-written Pallas (Triton) kernels
+  (:mod:`affinebody._pair_triton`; :func:`pair_program`).
 
 :func:`neighbor_energy` wraps :func:`pair_sum` as a ``jax.custom_vjp`` energy, so ``jax.grad``
 of a potential evaluated with a neighbour list uses these closed forms, whichever kernel runs.
@@ -769,5 +771,5 @@ def pair_sum(pot, space: Space, x, phi, i, j, count, cell=None, virial: bool = F
 __all__ = [
     "ACCELERATOR_PAIR_CHUNK", "PAIR_CHUNK", "energy_and_gradients", "energy_and_gradients_host",
     "fused_on_host", "host_kernel_in_use", "host_threads", "neighbor_energy", "padding_value",
-    "pair_chunk", "pair_sum", "pair_virial", "scalar_columns",
+    "pair_chunk", "pair_program", "pair_sum", "pair_virial", "scalar_columns",
 ]
