@@ -393,8 +393,8 @@ def pair_virial(pot, space: Space, x, phi, i, j, count, cell=None, chunk: int | 
 def _energy_over_pairs(pot, space, x, phi, i, j, count, cell):
     if host_kernel_in_use():  # the energy alone: no chain rule (observables, checks)
         return _host_pair_sum(pot, space, x, phi, i, j, count, gradients=False, cell=cell)
-    # XLA drops the gradients
-    return energy_and_gradients(pot, space, x, phi, i, j, count, cell=cell)[0]
+    # the XLA program, whose gradients XLA drops (the Triton kernels would compute them)
+    return energy_and_gradients(pot, space, x, phi, i, j, count, cell=cell, program="xla")[0]
 
 
 def _energy_over_pairs_fwd(pot, space, x, phi, i, j, count, cell):
