@@ -13,7 +13,8 @@ with u = x_K - x_L (minimum image) from XLA:
    :func:`affinebody.pair_kernels.padding_value`);
 2. XLA: f and its partials from those scalars (``jax.vjp`` of ``PairTerm.energy_from_scalars``,
    elementwise, one fused loop), so that any pair potential, a user's callable included, runs;
-3. :func:`_rows_kernel`: gather the bodies again, apply the per-pair chain rule of
+3. :func:`_rows_kernel`: gather the bodies again (and compute the scalars again: cheaper than
+   loading them), read the partials, apply the per-pair chain rule of
    ``_chunk_contributions`` and write each pair's two rows of n + n^2 numbers (dV/dx, dV/dphi
    for body K and for body L), which XLA then adds to the bodies (one scatter per side).
 
@@ -190,17 +191,15 @@ def _scalars_kernel(layout: Layout, pairs: int, padding: tuple, u_ref, i_ref, j_
         s_ref[pl.ds(q * pairs + start, BLOCK)] = jnp.where(valid, values[key], padding[q])
 
 
-def _rows_kernel(layout: Layout, pairs: int, u_ref, i_ref, j_ref, valid_ref, t_ref, s_ref,
-                 p_ref, out_k_ref, out_l_ref):
+def _rows_kernel(layout: Layout, pairs: int, u_ref, i_ref, j_ref, valid_ref, t_ref, p_ref,
+                 out_k_ref, out_l_ref):
     n = layout.n
     start, lanes, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref,
                                                    valid_ref, t_ref)
     (phi_k, b_k, _), (phi_l, b_l, _) = k, l
-    _, kept = _scalar_values(layout, u, k, l)
+    values, kept = _scalar_values(layout, u, k, l)  # computed again: cheaper than loaded
     row = {key: q for q, key in enumerate(layout.scalars)}
-
-    def scalar(key):
-        return s_ref[pl.ds(row[key] * pairs + start, BLOCK)]
+    scalar = values.__getitem__
 
     def partial(key):
         return p_ref[pl.ds(row[key] * pairs + start, BLOCK)]
@@ -305,7 +304,7 @@ def chunk_rows(layout: Layout, values_and_partials, padding: tuple, u, i, j, val
     energies, partials = values_and_partials(base)
     names = dict.fromkeys(name for name, _ in layout.scalars)  # in the scalars' order
     flat = jnp.concatenate([partials[name].T.reshape(-1) for name in names])
-    side_k, side_l = second(*args, s, flat)
+    side_k, side_l = second(*args, flat)
     side_k = side_k.reshape(size, n + n * n)[:pairs]
     side_l = side_l.reshape(size, n + n * n)[:pairs]
     return jnp.sum(energies), side_k[:, :n], side_k, side_l
