@@ -81,8 +81,8 @@ def main() -> None:
                         help="steps of the simulate.run loop timed (0: skip it)")
     parser.add_argument("--against", help="another pair_kernels.py whose JAX kernel to time "
                         "in the forces beside the product's")
-    parser.add_argument("--pair-program", help="time the forces again with this program "
-                        "of the JAX kernel (xla, triton, triton-interpret)")
+    parser.add_argument("--pair-program", help="time the forces again with this program of "
+                        "the JAX kernel (one of pair_kernels.PAIR_PROGRAMS)")
     parser.add_argument("--jax-kernel", action="store_true",
                         help="the JAX pair kernel on a CPU too (as on a GPU)")
     parser.add_argument("--npt", action="store_true",

@@ -189,6 +189,10 @@ def test_triton_kernels_lower_to_triton_for_a_cuda_gpu():
     exported = export.export(jax.jit(chunk), platforms=["cuda"], disabled_checks=[
         export.DisabledSafetyCheck.custom_call(triton)])(*shapes)
     assert exported.mlir_module().count(f"custom_call @{triton}(") == 2
+    x, phi = configuration(np.random.default_rng(5), n, potential.space)
+    with pytest.raises(ValueError, match="pair program 'cuda': expected one of xla, triton"):
+        pk.energy_and_gradients(potential, potential.space, x, phi, jnp.zeros(1, int),
+                                jnp.ones(1, int), 1, program="cuda")
 
 
 @pytest.mark.parametrize("case", ["material-affine-arrays-3d", "demo-3d"])

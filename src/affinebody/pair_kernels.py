@@ -281,6 +281,10 @@ def _valid_pairs(ii, jj, idx, count, bodies: int):
     return (jnp.where(valid, ii, 0), jnp.where(valid, jj, jnp.minimum(1, bodies - 1)), valid)
 
 
+#: How :func:`energy_and_gradients` may compute the rows of a chunk of pairs (its ``program``).
+PAIR_PROGRAMS = ("xla", "triton", "triton-interpret")
+
+
 def pair_program() -> str:
     """How :func:`energy_and_gradients` runs its passes over pairs by default: ``"triton"`` on
     a GPU (the Pallas kernels of :mod:`affinebody._pair_triton`), ``"xla"`` elsewhere."""
@@ -316,6 +320,8 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | No
     Pallas' interpreter: tests on a CPU) or None (:func:`pair_program`)."""
     bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
     program = pair_program() if program is None else program
+    if program not in PAIR_PROGRAMS:
+        raise ValueError(f"pair program {program!r}: expected one of {', '.join(PAIR_PROGRAMS)}")
     table = _pair_triton.table(phi, binv, det) if program != "xla" else None
 
     def step(carry, block):
@@ -769,7 +775,8 @@ def pair_sum(pot, space: Space, x, phi, i, j, count, cell=None, virial: bool = F
 
 
 __all__ = [
-    "ACCELERATOR_PAIR_CHUNK", "PAIR_CHUNK", "energy_and_gradients", "energy_and_gradients_host",
-    "fused_on_host", "host_kernel_in_use", "host_threads", "neighbor_energy", "padding_value",
-    "pair_chunk", "pair_program", "pair_sum", "pair_virial", "scalar_columns",
+    "ACCELERATOR_PAIR_CHUNK", "PAIR_CHUNK", "PAIR_PROGRAMS", "energy_and_gradients",
+    "energy_and_gradients_host", "fused_on_host", "host_kernel_in_use", "host_threads",
+    "neighbor_energy", "padding_value", "pair_chunk", "pair_program", "pair_sum", "pair_virial",
+    "scalar_columns",
 ]
