@@ -44,8 +44,8 @@ run)
         | tee "$OUT/device.txt"
     # first the A/B of the JAX pair kernel's two programs (Triton, the default on a GPU, and
     # XLA) with their forces compared: a failing Triton compile shows here, in a minute
-    python3 benchmarks/step_phases.py --bodies 1000000 --loop-steps 0 --pair-program xla 2>&1 \
-        | tee "$OUT/programs_1e6.txt"
+    python3 benchmarks/step_phases.py --bodies 1000000 --loop-steps 0 --pair-program xla \
+        --triton-blocks 64 256 2>&1 | tee "$OUT/programs_1e6.txt"
     python3 benchmarks/run_scale.py --bodies 100000 --steps 1000 2>&1 | tee "$OUT/scale_1e5.txt"
     python3 benchmarks/run_scale.py --bodies 1000000 --steps 200 2>&1 | tee "$OUT/scale_1e6.txt"
     python3 benchmarks/step_phases.py --bodies 1000000 2>&1 | tee "$OUT/phases_1e6.txt"

@@ -31,6 +31,10 @@ that kernel; on a CPU it runs the host kernel, so force it with ``--jax-kernel``
 program NAME (``pair_kernels.pair_program``: ``xla`` or, on a GPU, ``triton``) instead of the
 backend's default, in the same process: an A/B of the product's two programs on a GPU.
 
+``--triton-blocks B ...``: ``forces`` again with the Triton program at B pairs per program of
+its kernels (``_pair_triton.BLOCK``, one pair per thread: B / 32 warps), on a GPU (on a CPU in
+Pallas' interpreter, a smoke test only): how ``BLOCK`` is to be chosen there.
+
 ``--pair-chunks`` and ``--candidate-chunks`` time the forces and the build at other pass sizes
 of the JAX kernels (how ``pair_kernels.ACCELERATOR_PAIR_CHUNK`` and
 ``neighbors._ACCELERATOR_CANDIDATES_PER_CHUNK`` were chosen on a GPU).
@@ -83,6 +87,8 @@ def main() -> None:
                         "in the forces beside the product's")
     parser.add_argument("--pair-program", help="time the forces again with this program of "
                         "the JAX kernel (one of pair_kernels.PAIR_PROGRAMS)")
+    parser.add_argument("--triton-blocks", type=int, nargs="*", default=[],
+                        help="pairs per program of the Triton kernels to compare")
     parser.add_argument("--jax-kernel", action="store_true",
                         help="the JAX pair kernel on a CPU too (as on a GPU)")
     parser.add_argument("--npt", action="store_true",
@@ -145,6 +151,19 @@ def main() -> None:
         difference = max(float(jax.numpy.max(abs(a - b)) / jax.numpy.max(abs(a)))
                          for a, b in zip(forces(state, lst), other(state, lst), strict=True))
         print(f"  {'(largest difference, relative)':<34} {difference:10.1e}", flush=True)
+    if args.triton_blocks:
+        from affinebody import _pair_triton
+
+        default = pk.pair_program, _pair_triton.BLOCK, _pair_triton.WARPS
+        program = "triton" if jax.default_backend() == "gpu" else "triton-interpret"
+        pk.pair_program = lambda: program
+        for block in args.triton_blocks:
+            _pair_triton.BLOCK, _pair_triton.WARPS = block, max(1, block // 32)
+            _pair_triton._calls.cache_clear()  # kernels of the new block
+            report(f"forces, Triton block {block}",
+                   *timed(jax.jit(lambda s, nbrs: system.forces(s, nbrs)), state, lst))
+        pk.pair_program, _pair_triton.BLOCK, _pair_triton.WARPS = default
+        _pair_triton._calls.cache_clear()
     for log2 in args.pair_chunks:
         pk.ACCELERATOR_PAIR_CHUNK = pk.PAIR_CHUNK = 1 << log2
         # a new function object, so that jit traces again with the new pass size
