@@ -127,6 +127,14 @@ def main() -> None:
         pk.host_kernel_in_use = lambda: False
     forces = jax.jit(system.forces)
     report("forces", *timed(forces, state, lst))
+
+    def forces_again(label):
+        """``forces`` timed again under a patch of the kernels: a new function object, so
+        that jit traces it anew with the patch."""
+        again = jax.jit(lambda s, nbrs: system.forces(s, nbrs))
+        report(label, *timed(again, state, lst))
+        return again
+
     if args.against:
         import importlib.util
 
@@ -137,15 +145,12 @@ def main() -> None:
         # the forces only (no virial): an older kernel may not take the argument
         pk.energy_and_gradients = lambda *a, virial=False, **k: other.energy_and_gradients(*a,
                                                                                          **k)
-        # a new function object, so that jit traces again with the other kernel
-        report(f"forces, {Path(args.against).name}",
-               *timed(jax.jit(lambda s, nbrs: system.forces(s, nbrs)), state, lst))
+        forces_again(f"forces, {Path(args.against).name}")
         pk.energy_and_gradients = product
     if args.pair_program:
         default = pk.pair_program
         pk.pair_program = lambda: args.pair_program
-        other = jax.jit(lambda s, nbrs: system.forces(s, nbrs))
-        report(f"forces, pair program {args.pair_program}", *timed(other, state, lst))
+        other = forces_again(f"forces, pair program {args.pair_program}")
         pk.pair_program = default
         # the two programs compute the same forces: their largest difference, relative
         difference = max(float(jax.numpy.max(abs(a - b)) / jax.numpy.max(abs(a)))
@@ -160,15 +165,12 @@ def main() -> None:
         for block in args.triton_blocks:
             _pair_triton.BLOCK, _pair_triton.WARPS = block, max(1, block // 32)
             _pair_triton._calls.cache_clear()  # kernels of the new block
-            report(f"forces, Triton block {block}",
-                   *timed(jax.jit(lambda s, nbrs: system.forces(s, nbrs)), state, lst))
+            forces_again(f"forces, Triton block {block}")
         pk.pair_program, _pair_triton.BLOCK, _pair_triton.WARPS = default
         _pair_triton._calls.cache_clear()
     for log2 in args.pair_chunks:
         pk.ACCELERATOR_PAIR_CHUNK = pk.PAIR_CHUNK = 1 << log2
-        # a new function object, so that jit traces again with the new pass size
-        report(f"forces, pair pass 2^{log2}",
-               *timed(jax.jit(lambda s, nbrs: system.forces(s, nbrs)), state, lst))
+        forces_again(f"forces, pair pass 2^{log2}")
     build_jit = jax.jit(nb.build, static_argnums=0)
     report("list build", *timed(build_jit, spec, state.x, state.phi))
     for log2 in args.candidate_chunks:

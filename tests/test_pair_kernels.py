@@ -173,9 +173,7 @@ def test_triton_kernels_lower_to_triton_for_a_cuda_gpu():
     from jax import export
 
     potential, n = CASES["all-variables-3d"]  # every scalar: the kernels' every operation
-    plain, k_powers, m_powers, swapped = pk._requirements(potential, n)
-    layout = pk._pair_triton.Layout(n, plain, k_powers, m_powers, swapped)
-    padding = tuple(pk.padding_value(name, n, 1.5) for name, _ in layout.scalars)
+    layout, padding = pk._triton_layout(potential, n)
     pairs, bodies = 1024, 50
 
     def chunk(u, i, j, valid, table):

@@ -1,6 +1,6 @@
 """The JAX pair kernel's passes over pairs on a GPU as two hand-written Pallas (Triton) kernels:
 the formulas of :func:`affinebody.pair_kernels._chunk_contributions` (docs/performance.md,
-"Pair kernels (`affinebody.pair_kernels`)"), each pair kept in registers from its gathers to
+"Pair kernels (`affinebody.pair_kernels`)"), each one loop over the pairs that stores only
 its results (``pair_kernels.pair_program`` "triton").
 
 XLA compiles the per-pair arithmetic of a chunk as about a dozen fused loops, each storing its
@@ -48,22 +48,15 @@ WARPS = 4
 class Layout(NamedTuple):
     """What the kernels compute for one pair term in dimension n (static): the plain scalars
     among r, D, det, the powers k of K_a (28) and m of M_a (30), whether M'_a (swapped order)
-    is needed."""
+    is needed, and ``scalars``: (name, a) of each scalar row, a = 0 for r, D, det, in the order
+    of the ``base`` of ``PairTerm.energy_from_scalars`` (``pair_kernels.scalar_columns``)."""
 
     n: int
     plain: frozenset
     k_powers: int
     m_powers: int
     swapped: bool
-
-    @property
-    def scalars(self) -> tuple[tuple[str, int], ...]:
-        """(name, a) of each scalar row, in the order of ``pair_kernels.scalar_columns``."""
-        rows = [(name, 0) for name in sorted(self.plain)]
-        for name, powers in (("K", self.k_powers), ("M", self.m_powers),
-                             ("Ms", self.m_powers if self.swapped else 0)):
-            rows += [(name, a) for a in range(powers)]
-        return tuple(rows)
+    scalars: tuple[tuple[str, int], ...]
 
     @property
     def columns(self) -> int:
@@ -275,15 +268,15 @@ def _triton_params():
     return plt.CompilerParams(num_warps=WARPS, num_stages=1)
 
 
-def chunk_rows(layout: Layout, values_and_partials, padding: tuple, u, i, j, valid, bodies,
-               interpret: bool = False):
+def chunk_rows(layout: Layout, values_and_partials, padding: tuple, u, i, j, valid,
+               body_table, interpret: bool = False):
     """Energy of a chunk of pairs and its rows: (E, g_u [P, n], side_K [P, n + n^2],
     side_L [P, n + n^2]), each side's row being (dV/dx, dV/dphi) of that pair for that body.
 
     ``layout``: what to compute (:class:`Layout`); ``values_and_partials``: base -> (energies
     [P], partials), f and its partials in XLA; ``padding``: each scalar's value for a padding
-    pair; ``u`` [P, n]; ``i``, ``j`` [P] int32; ``valid`` [P] bool; ``bodies``: the table of
-    :func:`table`; ``interpret``: run in Pallas' interpreter (CPU tests)."""
+    pair; ``u`` [P, n]; ``i``, ``j`` [P] int32; ``valid`` [P] bool; ``body_table``: the
+    bodies' :func:`table`; ``interpret``: run in Pallas' interpreter (CPU tests)."""
     pairs, n = u.shape
     size = -(-pairs // BLOCK) * BLOCK
     if size != pairs:
@@ -293,13 +286,13 @@ def chunk_rows(layout: Layout, values_and_partials, padding: tuple, u, i, j, val
         valid = jnp.concatenate([valid, jnp.zeros(extra, bool)])
     first, second = _calls(layout, size, padding, interpret)
     args = (u.reshape(-1), i.astype(jnp.int32), j.astype(jnp.int32), valid.astype(jnp.int32),
-            bodies)
+            body_table)
     s = first(*args)
     rows = s.reshape(len(layout.scalars), size)
     base = {}
     for q, (name, _) in enumerate(layout.scalars):
         base.setdefault(name, []).append(rows[q])
-    base = {name: vs[0] if name in ("r", "D", "det") else jnp.stack(vs, axis=-1)
+    base = {name: vs[0] if name in layout.plain else jnp.stack(vs, axis=-1)
             for name, vs in base.items()}
     energies, partials = values_and_partials(base)
     names = dict.fromkeys(name for name, _ in layout.scalars)  # in the scalars' order

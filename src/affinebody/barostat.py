@@ -120,13 +120,9 @@ class StochasticCellRescaling:
         or (V, W) of ``state`` in ``cell`` already known (``pressure.energy_forces_virial``
         in the step's last force evaluation): then no pass over the pairs here."""
         n = cell.shape[-1]
+        potential, p_inst = pressure_module.pressure_tensor(
+            system.replace(cell=cell), state, space, neighbors, energy=True, measured=measured)
         volume = linalg.det(cell)
-        if measured is None:
-            potential, p_inst = pressure_module.pressure_tensor(
-                system.replace(cell=cell), state, space, neighbors, energy=True)
-        else:
-            potential, w = measured
-            p_inst = (pressure_module.kinetic_tensor(system, state) + w) / volume
         rate = self.compressibility / self.tau
         diffusion = self.temperature * rate / volume
         if self.coupling == "isotropic":

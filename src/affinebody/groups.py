@@ -107,12 +107,12 @@ def is_member(phi, group: str, tol: float = 1e-10) -> jax.Array:
     return metric_ok
 
 
-
 #: :func:`is_member` compiled as one program (``group`` and ``tol`` static): what eager checks
 #: of whole states call (``HamiltonianSystem.check``). Op by op, each of its few dozen array
 #: operations is compiled and dispatched on its own: 1.6 s against 0.7 s in a new process at
 #: 4096 bodies.
 is_member_jit = jax.jit(is_member, static_argnames=("group", "tol"))
+
 
 def project(phi, group: str) -> jax.Array:
     """Project phi onto ``group``.

@@ -291,14 +291,22 @@ def pair_program() -> str:
     return "triton" if jax.default_backend() == "gpu" else "xla"
 
 
-def _triton_chunk(pot, space: Space, n, x, bodies, i, j, valid, cell, interpret: bool):
-    """(E, g_u, side_K, side_L) of a chunk from the Triton kernels (``bodies``: their table)."""
-    plain, k_powers, m_powers, swapped = _requirements(pot, n)
-    layout = _pair_triton.Layout(n, plain, k_powers, m_powers, swapped)
-    padding = tuple(padding_value(name, n, pot.cutoff.r_cut) for name, _ in layout.scalars)
+def _triton_layout(pot, n: int):
+    """The :class:`_pair_triton.Layout` of ``pot`` in dimension n and each scalar's value for
+    a padding pair (:func:`padding_value`)."""
+    requirements = _requirements(pot, n)
+    scalars = tuple((name, a) for name, shape in scalar_columns(*requirements, rows=1).items()
+                    for a in range(shape[1] if len(shape) == 2 else 1))
+    padding = tuple(padding_value(name, n, pot.cutoff.r_cut) for name, _ in scalars)
+    return _pair_triton.Layout(n, *requirements, scalars), padding
+
+
+def _triton_chunk(pot, space: Space, n, x, table, i, j, valid, cell, interpret: bool):
+    """(E, g_u, side_K, side_L) of a chunk from the Triton kernels (``table``: the bodies')."""
+    layout, padding = _triton_layout(pot, n)
     u = space.displacement(x[i], x[j], cell)
     return _pair_triton.chunk_rows(layout, _scalar_values_and_partials(pot, n), padding, u, i,
-                                   j, valid, bodies, interpret)
+                                   j, valid, table, interpret)
 
 
 def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | None = None,

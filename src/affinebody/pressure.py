@@ -132,12 +132,10 @@ def energy_forces_virial(system, state, space: Space, neighbors):
     total = jnp.zeros((n, n), dtype=x.dtype)
     for term in _terms(system.potential):
         if isinstance(term, PairTerm):
-            if x.shape[0] > 1:
-                e, tx, tphi, w = pair_kernels.pair_sum(term, space, x, phi,
-                                                       *_pairs(x, neighbors), system.cell,
-                                                       virial=True)
-            else:
+            if x.shape[0] < 2:
                 continue
+            e, tx, tphi, w = pair_kernels.pair_sum(term, space, x, phi, *_pairs(x, neighbors),
+                                                   system.cell, virial=True)
         else:
             e, tx, tphi = _one_body(term, x, phi, forces=True)
             w = -jnp.einsum("ka,kb->ab", x, tx)
@@ -145,11 +143,15 @@ def energy_forces_virial(system, state, space: Space, neighbors):
     return potential, (gx, gphi), total
 
 
-def pressure_tensor(system, state, space: Space, neighbors=None, energy: bool = False):
+def pressure_tensor(system, state, space: Space, neighbors=None, energy: bool = False,
+                    measured=None):
     """P = (sum_K v_K p_K^T + W) / V [n, n] (module docstring); ``neighbors`` as in
-    :func:`virial`; with ``energy``: (V, P), the potential energy from the same pass."""
+    :func:`virial`; with ``energy``: (V, P), the potential energy from the same pass.
+    ``measured``: None, or (V, W) of ``state`` already known (:func:`energy_forces_virial`
+    in a step's last force evaluation): then no pass over the pairs here."""
     v = volume(space, system.cell)
-    potential, w = virial(system, state, space, neighbors, energy=True)
+    potential, w = (virial(system, state, space, neighbors, energy=True) if measured is None
+                    else measured)
     p = (kinetic_tensor(system, state) + w) / v
     return (potential, p) if energy else p
 
