@@ -37,7 +37,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.experimental import pallas as pl
 
 #: Pairs per program of the kernels (a power of two, as Triton wants).
 BLOCK = 128
@@ -129,8 +128,17 @@ def _tmatvec(a, v):
 # the kernels
 
 
+def _pallas():
+    """``jax.experimental.pallas``, imported when a kernel is first built: its import takes
+    about 0.3 s, which every process (the CLI's start-up) would pay otherwise."""
+    from jax.experimental import pallas
+
+    return pallas
+
+
 def _pair_of_bodies(layout: Layout, pairs: int, u_ref, i_ref, j_ref, valid_ref, t_ref):
     """This program's BLOCK pairs: offset, valid mask, u and phi, B, det of both bodies."""
+    pl = _pallas()
     n, columns = layout.n, layout.columns
     start = pl.program_id(0) * BLOCK
     here = pl.ds(start, BLOCK)
@@ -180,6 +188,7 @@ def _scalars_kernel(layout: Layout, pairs: int, padding: tuple, u_ref, i_ref, j_
     start, _, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref,
                                                valid_ref, t_ref)
     values, _ = _scalar_values(layout, u, k, l)
+    pl = _pallas()
     for q, key in enumerate(layout.scalars):
         s_ref[pl.ds(q * pairs + start, BLOCK)] = jnp.where(valid, values[key], padding[q])
 
@@ -195,7 +204,7 @@ def _rows_kernel(layout: Layout, pairs: int, u_ref, i_ref, j_ref, valid_ref, t_r
     scalar = values.__getitem__
 
     def partial(key):
-        return p_ref[pl.ds(row[key] * pairs + start, BLOCK)]
+        return p_ref[_pallas().ds(row[key] * pairs + start, BLOCK)]
 
     zero = 0.0 * u[0]
     g_u = [zero] * n
@@ -251,6 +260,7 @@ def _calls(layout: Layout, pairs: int, padding: tuple, interpret: bool):
     params = dict(grid=(pairs // BLOCK,), interpret=interpret,
                   compiler_params=None if interpret else _triton_params())
     f64 = jnp.float64
+    pl = _pallas()
     first = pl.pallas_call(
         functools.partial(_scalars_kernel, layout, pairs, padding),
         out_shape=jax.ShapeDtypeStruct((scalars * pairs,), f64),
