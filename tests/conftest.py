@@ -42,7 +42,10 @@ os.environ["XLA_FLAGS"] = with_flags(os.environ.get("XLA_FLAGS", ""), SUITE_XLA_
 # workers and every command-line process the tests start (they inherit the environment)
 # reuse what another compiled (the same small programs, a CLI run's set-up) instead of
 # compiling it again. Four CLI-heavy files: 92-111 s against 103-118 s (side by side, two
-# pairs). Executables with host callbacks are not cached by JAX; nothing else changes.
+# pairs). Executables with host callbacks are not cached by JAX; nothing else changes. JAX
+# writes an entry without a lock (its locking cache scans the folder at every write): a read
+# racing the write of the same entry fails its decompression, which JAX turns into a warning
+# and a compilation.
 _CACHE = "JAX_COMPILATION_CACHE_DIR"
 if "PYTEST_XDIST_WORKER" not in os.environ and _CACHE not in os.environ:
     import tempfile
