@@ -13,10 +13,11 @@ with u = x_K - x_L (minimum image) from XLA:
    :func:`affinebody.pair_kernels.padding_value`);
 2. XLA: f and its partials from those scalars (``jax.vjp`` of ``PairTerm.energy_from_scalars``,
    elementwise, one fused loop), so that any pair potential, a user's callable included, runs;
-3. :func:`_rows_kernel`: gather the bodies again (and compute the scalars again: cheaper than
-   loading them), read the partials, apply the per-pair chain rule of
-   ``_chunk_contributions`` and write each pair's two rows of n + n^2 numbers (dV/dx, dV/dphi
-   for body K and for body L), which XLA then adds to the bodies (one scatter per side).
+3. :func:`_rows_kernel`: gather the bodies again (and compute the scalars again instead of
+   loading them: one input fewer; not yet timed against loading on a GPU), read the
+   partials, apply the per-pair chain rule of ``_chunk_contributions`` and write each
+   pair's two rows of n + n^2 numbers (dV/dx, dV/dphi for body K and for body L), which XLA
+   then adds to the bodies (one scatter per side).
 
 Triton wants power-of-two block shapes, so a matrix is not a [P, n, n] block but n^2 vectors
 of :data:`BLOCK` pairs (lists of lists), and every array a kernel reads or writes is one flat
@@ -199,12 +200,15 @@ def _rows_kernel(layout: Layout, pairs: int, u_ref, i_ref, j_ref, valid_ref, t_r
     start, lanes, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref,
                                                    valid_ref, t_ref)
     (phi_k, b_k, _), (phi_l, b_l, _) = k, l
-    values, kept = _scalar_values(layout, u, k, l)  # computed again: cheaper than loaded
+    # computed again, not loaded: a few flops per scalar against a read of memory (which is
+    # faster is for a GPU run to show; the kernels are not yet timed on one)
+    values, kept = _scalar_values(layout, u, k, l)
     row = {key: q for q, key in enumerate(layout.scalars)}
     scalar = values.__getitem__
+    pl = _pallas()
 
     def partial(key):
-        return p_ref[_pallas().ds(row[key] * pairs + start, BLOCK)]
+        return p_ref[pl.ds(row[key] * pairs + start, BLOCK)]
 
     zero = 0.0 * u[0]
     g_u = [zero] * n
