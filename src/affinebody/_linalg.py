@@ -33,10 +33,28 @@ project). For n > 3 they fall back to ``jnp.linalg``.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
 CLOSED_FORM_MAX_N = 3
+
+
+def _compiled(f):
+    """``f`` compiled as one program per input shape and dtype (``jax.jit``).
+
+    Called on concrete arrays (set-up code, checks, tests) the unrolled elimination would
+    otherwise run op by op, each of its dozens of operations compiled and dispatched on its
+    own; inside a traced function the call is inlined as before. Arguments become arrays
+    first, so lists and NumPy arrays are accepted as they were."""
+    jitted = jax.jit(f)
+
+    @functools.wraps(f)
+    def call(*arrays):
+        return jitted(*(jnp.asarray(x) for x in arrays))
+
+    return call
 
 
 def fused_products() -> bool:
@@ -102,6 +120,7 @@ def _pivoted_solve(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.stack(x, -2)
 
 
+@_compiled
 def det(a) -> jax.Array:
     """det(a) [...] of a [..., n, n]: the product of the pivots of :func:`_eliminate` and the
     sign of its row permutation (n <= 3), accurate to a few cond(a) * eps."""
@@ -118,6 +137,7 @@ def det(a) -> jax.Array:
     return out
 
 
+@_compiled
 def slogdet(a) -> tuple[jax.Array, jax.Array]:
     """(sign, log|det a|) of a [..., n, n], as ``jnp.linalg.slogdet`` (sign 0, log -inf when
     det a = 0)."""
@@ -129,6 +149,7 @@ def slogdet(a) -> tuple[jax.Array, jax.Array]:
     return jnp.sign(d), jnp.log(jnp.abs(d))
 
 
+@_compiled
 def inv(a) -> jax.Array:
     """a^-1 [..., n, n] of a [..., n, n] (pivoted elimination against Id for n <= 3)."""
     a = _square(a)
@@ -140,6 +161,7 @@ def inv(a) -> jax.Array:
     return _pivoted_solve(a, jnp.eye(n, dtype=a.dtype))
 
 
+@_compiled
 def solve(a, b) -> jax.Array:
     """x with a x = b, as ``jnp.linalg.solve``: a [..., n, n]; b a vector [n] (x [..., n]) or a
     stack of matrices [..., n, k] (x [..., n, k]), leading axes broadcast against a's. Solve a
@@ -183,6 +205,7 @@ THETA13 = 5.371920351148152
 MAX_SQUARINGS = 20
 
 
+@_compiled
 def expm(a) -> jax.Array:
     """Matrix exponential, batched, without LAPACK for n <= 3 (for n > 3:
     ``jax.scipy.linalg.expm``).
