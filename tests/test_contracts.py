@@ -18,6 +18,7 @@ import pytest
 
 from affinebody import config, constraints, runner, simulate
 from affinebody import kinetic as K
+from affinebody._pytree import is_array_pytree
 from affinebody.groups import expm, is_member, project_algebra
 from affinebody.potentials import (
     POTENTIALS,
@@ -54,7 +55,7 @@ def test_demo_system_is_an_array_pytree_and_two_runs_compile_once(demo):
     """The run driver passes the system as a traced argument of one cached jit only when it is
     an array pytree (hashable treedef: the potential is static; array leaves: the inertia)."""
     system, state = demo.system, demo.state
-    assert simulate._is_array_pytree(system)
+    assert is_array_pytree(system)
     assert system.potential is not None
     assert len(jax.tree.leaves(system)) == len(jax.tree.leaves(system.kinetic)) > 0
     before = simulate._simulate_jit._cache_size()

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
+import numpy as np
 
 _STATIC = "static"
 _CONVERTER = "converter"
@@ -114,4 +115,34 @@ def _register(cls: type, data: tuple[str, ...], meta: tuple[str, ...]) -> type:
     return cls
 
 
-__all__ = ["dataclass", "field", "initialize", "is_static", "static_field"]
+def is_array_pytree(obj) -> bool:
+    """True when ``obj`` can be an argument of a jitted function: a pytree with a hashable
+    structure whose leaves are all arrays or numbers (the project's models; a user's model of
+    another kind is closed over or called op by op instead)."""
+    try:
+        hash(jax.tree.structure(obj))
+    except TypeError:
+        return False
+    return all(isinstance(leaf, jax.Array | np.ndarray | np.generic | float | int)
+               for leaf in jax.tree.leaves(obj))
+
+
+def compiled_for_models(fn: Callable) -> Callable:
+    """``fn(model, *args)`` compiled once per model structure and argument shapes
+    (``jax.jit``, the model an argument) when ``model`` is an array pytree
+    (:func:`is_array_pytree`), else ``fn`` itself, op by op.
+
+    For functions that set-up code and checks call on concrete arrays: compiled, their few
+    dozen operations are one program instead of one compilation and dispatch each; inside a
+    traced function the call is inlined."""
+    jitted = jax.jit(fn)
+
+    def call(model, *args):
+        return (jitted if is_array_pytree(model) else fn)(model, *args)
+
+    call.__doc__, call.__name__, call.__wrapped__ = fn.__doc__, fn.__name__, fn
+    return call
+
+
+__all__ = ["compiled_for_models", "dataclass", "field", "initialize", "is_array_pytree",
+           "is_static", "static_field"]

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -308,9 +309,18 @@ class CompiledExpression:
         if missing:
             raise TypeError(f"{self.field}: missing values for {missing}")
         env = {name: jnp.asarray(value, dtype=jnp.float64) for name, value in values.items()}
-        result = self._evaluate(env)
-        shape = jnp.broadcast_shapes(*(v.shape for v in env.values())) if env else ()
-        return jnp.broadcast_to(result, jnp.broadcast_shapes(shape, jnp.shape(result)))
+        return _broadcast_value(self, env)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _broadcast_value(expression: CompiledExpression, env: _Env) -> jax.Array:
+    """The value of ``expression`` over the broadcast shape of its variables and of itself:
+    one compiled program per expression (equal expressions share it, being equal static
+    arguments) and shapes, so that a call on concrete arrays (a quantum potential on its grid,
+    a config check) is not compiled and dispatched operation by operation."""
+    result = expression._evaluate(env)
+    shape = jnp.broadcast_shapes(*(v.shape for v in env.values())) if env else ()
+    return jnp.broadcast_to(result, jnp.broadcast_shapes(shape, jnp.shape(result)))
 
 
 def compile_expression(

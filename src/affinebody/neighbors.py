@@ -127,6 +127,7 @@ class NeighborSpec:
 # reach
 
 
+@jax.jit
 def largest_singular_values(phi: jax.Array) -> jax.Array:
     """s_max(phi_K) = sqrt(largest eigenvalue of G = phi^T phi), shape [..., N].
 

@@ -33,6 +33,7 @@ from affinebody import _linalg as linalg
 from affinebody import neighbors as nb
 from affinebody import observables as obs
 from affinebody import thermostats as th
+from affinebody._pytree import is_array_pytree
 from affinebody.integrators import get_integrator
 from affinebody.state import State
 from affinebody.system import OPEN_GROUPS, HamiltonianSystem
@@ -301,17 +302,8 @@ _simulate_jit = jax.jit(
     _simulate, static_argnames=("n_chunks", "every", "method", "observers", "spec"))
 
 
-def _is_array_pytree(obj) -> bool:
-    try:
-        hash(jax.tree.structure(obj))
-    except TypeError:
-        return False
-    return all(isinstance(leaf, jax.Array | np.ndarray | np.generic | float | int)
-               for leaf in jax.tree.leaves(obj))
-
-
 def _compiled_call(system, state, dt, neighbors, start, active, **static):
-    if _is_array_pytree(system):
+    if is_array_pytree(system):
         return _simulate_jit(system, state, dt, neighbors, start, active, **static)
     # models that are not pytrees: close over them (compiles per call)
     return jax.jit(partial(_simulate, system, **static))(state, dt, neighbors, start, active)

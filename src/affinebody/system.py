@@ -286,7 +286,7 @@ class HamiltonianSystem:
                 )
             if self.constrained:
                 self._check_drifts_preserve_group(phi.shape[-1])
-        return self.constrain(state)
+        return _constrain(self, state)
 
     def _check_drifts_preserve_group(self, n: int) -> None:
         """Refuse kinetic terms with no constrained drift (unknown types: a numeric probe)."""
@@ -317,6 +317,10 @@ class HamiltonianSystem:
         """A copy with some fields changed."""
         return dataclasses.replace(self, **changes)
 
+
+#: :meth:`HamiltonianSystem.constrain` as one program (what ``check`` calls on a concrete state:
+#: the Newton solve of the non-holonomic projection op by op compiled each of its operations).
+_constrain = pytree.compiled_for_models(HamiltonianSystem.constrain)
 
 
 __all__ = [

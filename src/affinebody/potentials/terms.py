@@ -447,6 +447,11 @@ def generalized_forces(potential, x, phi) -> tuple[jax.Array, jax.Array]:
     which are independent systems). The momentum equations are dp/dt = -dV/dx and
     dpi/dt = -(dV/dphi)^T in the paper's placement of pi (docs/theory/conventions.md)."""
     x, phi = _coordinates(x, phi)
+    return _negative_gradient(potential, x, phi)
+
+
+@pytree.compiled_for_models
+def _negative_gradient(potential, x, phi):
     gx, gphi = jax.grad(lambda a, b: jnp.sum(potential.energy(a, b)), argnums=(0, 1))(x, phi)
     return -gx, -gphi
 
