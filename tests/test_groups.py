@@ -271,6 +271,42 @@ def test_logm_of_rotation_and_of_spd_matrix(data):
     assert_close(logm(spd), np.stack([scipy.linalg.logm(m).real for m in spd]), 1e-9)
 
 
+def _conditioned_matrices(n: int, rng) -> np.ndarray:
+    """Matrices [K, n, n] across every conditioning: well conditioned, sheared to cond 10^k
+    (k = 1 .. 17, past what float64 resolves), singular, zero, scaled by 1e+-150, not finite."""
+    mats = [np.eye(n) + 0.2 * rng.standard_normal((n, n)) for _ in range(4)]
+    for k in range(1, 18):
+        q1, _ = np.linalg.qr(rng.standard_normal((n, n)))
+        q2, _ = np.linalg.qr(rng.standard_normal((n, n)))
+        mats.append(q1 @ np.diag(np.logspace(0.0, -k, n)) @ q2)
+    rank_one = np.outer(rng.standard_normal(n), rng.standard_normal(n))
+    mats += [rank_one, np.zeros((n, n)), 1e150 * mats[0], 1e-150 * mats[1]]
+    for bad in (np.nan, np.inf):
+        m = mats[0].copy()
+        m[0, -1] = bad
+        mats.append(m)
+    return np.stack(mats)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_invertibility_screen_decides_as_the_singular_values(n):
+    """is_invertible on JAX arrays (a determinant bound first, singular values only when a
+    matrix of the batch is not clearly invertible) agrees, matrix by matrix, with the
+    criterion from the singular values (NumPy's SVD): on a batch across every conditioning,
+    on each matrix alone (where the bound decides the clear ones) and under vmap."""
+    from affinebody._checks import SINGULAR_RTOL, is_invertible, reciprocal_condition
+
+    mats = _conditioned_matrices(n, np.random.default_rng(n))
+    with np.errstate(all="ignore"):
+        expected = reciprocal_condition(mats) > SINGULAR_RTOL
+    assert expected.any() and not expected.all()
+    np.testing.assert_array_equal(np.asarray(is_invertible(jnp.asarray(mats))), expected)
+    alone = jax.jit(is_invertible)
+    np.testing.assert_array_equal([bool(alone(jnp.asarray(m))) for m in mats], expected)
+    np.testing.assert_array_equal(np.asarray(jax.vmap(is_invertible)(jnp.asarray(mats))),
+                                  expected)
+
+
 def test_gl_plus_membership_is_membership_not_conditioning():
     """An isochoric shear phi = expm(t S), S symmetric traceless (det phi = 1), is in GL+ at
     any condition number float64 resolves (here 1e10, two small singular values, n = 3), and
