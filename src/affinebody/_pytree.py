@@ -15,6 +15,7 @@ that writes to a frozen instance (:func:`initialize`, for values derived from se
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -137,10 +138,10 @@ def compiled_for_models(fn: Callable) -> Callable:
     traced function the call is inlined."""
     jitted = jax.jit(fn)
 
+    @functools.wraps(fn)
     def call(model, *args):
         return (jitted if is_array_pytree(model) else fn)(model, *args)
 
-    call.__doc__, call.__name__, call.__wrapped__ = fn.__doc__, fn.__name__, fn
     return call
 
 

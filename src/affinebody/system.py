@@ -318,8 +318,8 @@ class HamiltonianSystem:
         return dataclasses.replace(self, **changes)
 
 
-#: :meth:`HamiltonianSystem.constrain` as one program (what ``check`` calls on a concrete state:
-#: the Newton solve of the non-holonomic projection op by op compiled each of its operations).
+#: :meth:`HamiltonianSystem.constrain` as one program, for ``check`` on a concrete state (op by
+#: op, the Newton solve of the non-holonomic projection compiled each of its operations apart).
 _constrain = pytree.compiled_for_models(HamiltonianSystem.constrain)
 
 
