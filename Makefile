@@ -21,9 +21,12 @@ demo: $(STAMP)
 	$(BIN)/affinebody demo
 
 # One BLAS thread per worker (small matrices: threading only adds contention); xdist uses the
-# cores, one test file per worker at a time so jit caches and module fixtures are not duplicated.
+# cores, one test file per worker at a time so jit caches and module fixtures are not duplicated,
+# the longest files first (tests/conftest.py, LONGEST_FIRST: xdist keeps that order only with
+# --no-loadscope-reorder).
 test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) \
+		--dist loadfile --no-loadscope-reorder
 
 # The documentation site (docs/, Sphinx + MyST): every page read afresh (-E) and every tutorial
 # executed (a broken example fails the build), warnings are errors; HTML in docs/_build/html.

@@ -92,24 +92,27 @@ settings.register_profile(
 settings.register_profile("ci", parent=settings.get_profile("default"), derandomize=True)
 settings.load_profile("ci" if os.environ.get("CI") else "default")
 
-#: Test files that take longest (seconds of test time, largest first; measured one file per
-#: process on one core of the 2-core machine, 2026-11-25: nonholonomic 57, constraints 37,
-#: kinetic 30, barostat 28, integrators 26, potentials 24, crash_safety 24, sweep 24, linalg 19,
-#: cli_neighbor_list 18, quantum_operators 18, quantum_orientations3 18, thermostats 17,
-#: pair_kernels 17, quantum_limits 16, quantum_transitions 15, phonons 14, neighbor_runs 13,
-#: quantum_evolution3 13, contracts 13, npt_neighbors 12, studies 12, quantum_densities 12,
-#: quantum_n3 11, quantum_evolution 11; every other file 10 s or less). ``make test``
-#: distributes whole files over two workers (--dist loadfile) in collection order; starting
-#: with the longest files keeps a long file from starting last while the other worker idles
-#: (longest-processing-time-first). Files not listed keep their order.
-LONGEST_FIRST = ("test_nonholonomic", "test_constraints", "test_kinetic", "test_barostat",
-                 "test_integrators", "test_potentials", "test_crash_safety", "test_sweep",
-                 "test_linalg", "test_cli_neighbor_list", "test_quantum_operators",
-                 "test_quantum_orientations3", "test_thermostats", "test_pair_kernels",
-                 "test_quantum_limits", "test_quantum_transitions", "test_phonons",
-                 "test_neighbor_runs", "test_quantum_evolution3", "test_contracts",
-                 "test_npt_neighbors", "test_studies", "test_quantum_densities",
-                 "test_quantum_n3", "test_quantum_evolution")
+#: Test files that take longest (seconds in ``make test``, largest first; measured per worker
+#: on the 2-core machine, 2026-11-28: nonholonomic 60, integrators 51, constraints 51, kinetic
+#: 49, pair_kernels 47, neighbor_runs 44, sweep 43, quantum_evolution3 42,
+#: quantum_orientations3 40, barostat 38, crash_safety 38, potentials 37, quantum_operators 36,
+#: quantum_transitions 36, quantum_limits 36, quantum_densities 32, cli_neighbor_list 30,
+#: thermostats 30, groups 28, quantum_n3 27, quantum_evolution 24, cli_sim 24, brackets 24,
+#: linalg 23, quantum_completeness 22, pressure 21, quantum_n3_certified 20, phonons 20;
+#: every other file 18 s or less). ``make test`` distributes whole files over two workers
+#: (--dist loadfile) in collection order (--no-loadscope-reorder: pytest-xdist would otherwise
+#: order the files by their number of tests, which put test_nonholonomic sixth from last);
+#: starting with the longest files keeps a long file from starting last while the other worker
+#: idles (longest-processing-time-first). Files not listed keep their order.
+LONGEST_FIRST = ("test_nonholonomic", "test_integrators", "test_constraints", "test_kinetic",
+                 "test_pair_kernels", "test_neighbor_runs", "test_sweep",
+                 "test_quantum_evolution3", "test_quantum_orientations3", "test_barostat",
+                 "test_crash_safety", "test_potentials", "test_quantum_operators",
+                 "test_quantum_transitions", "test_quantum_limits", "test_quantum_densities",
+                 "test_cli_neighbor_list", "test_thermostats", "test_groups", "test_quantum_n3",
+                 "test_quantum_evolution", "test_cli_sim", "test_brackets", "test_linalg",
+                 "test_quantum_completeness", "test_pressure", "test_quantum_n3_certified",
+                 "test_phonons")
 
 
 @pytest.fixture(autouse=True, scope="session")
