@@ -212,25 +212,38 @@ class ScalarBasis3:
         return [(p2, g2 / scale), (e3, g3 / scale), (p4, g4 / scale)]
 
     def evaluate(self, Q: np.ndarray, with_gradient: bool = False):
-        Q = np.asarray(Q, float)
-        gens = self._generators(Q, self.scale)
-        r2 = np.sum(Q * Q, axis=-1) / self.scale**2
-        f0 = np.exp(-0.5 * r2) / self.norm0
-        vals = [f0]
-        grads = [(-Q / self.scale**2) * f0[..., None]]
-        for parent, gen, coeffs, norm in self.recipe:
-            g, dg = gens[gen]
-            v = g * vals[parent]
-            d = dg * vals[parent][..., None] + g[..., None] * grads[parent]
-            for i, c in coeffs:
-                v = v - c * vals[i]
-                d = d - c * grads[i]
-            vals.append(v / norm)
-            grads.append(d / norm)
-        values = np.stack(vals, axis=-1)
+        """Values [..., K] of the basis at points ``Q`` [..., 3]; with ``with_gradient`` also
+        their gradients [..., 3, K] (replaying :attr:`recipe`)."""
+        values, grads = self._replay(np.asarray(Q, float), with_gradient)
+        lead, K = np.shape(Q)[:-1], len(values)
         if with_gradient:
-            return values, np.stack(grads, axis=-1)
-        return values
+            return (values.T.reshape(lead + (K,)),
+                    grads.transpose(2, 1, 0).reshape(lead + (3, K)))
+        return values.T.reshape(lead + (K,))
+
+    def _replay(self, Q: np.ndarray, with_gradient: bool):
+        """Values [K, P] and gradients [K, 3, P] (None without ``with_gradient``) at the points
+        ``Q`` [..., 3] flattened to [P, 3], one row per function: each step subtracts its
+        coefficients times the rows before it as one matrix-vector product."""
+        Q = Q.reshape(-1, 3)
+        points, K = len(Q), len(self.recipe) + 1
+        gens = self._generators(Q, self.scale)
+        values = np.empty((K, points))
+        values[0] = np.exp(-0.5 * np.sum(Q * Q, axis=-1) / self.scale**2) / self.norm0
+        grads = None
+        if with_gradient:
+            grads = np.empty((K, 3, points))
+            grads[0] = (-Q.T / self.scale**2) * values[0]
+        for j, (parent, gen, coeffs, norm) in enumerate(self.recipe, start=1):
+            g, dg = gens[gen]
+            c = np.zeros(j)
+            for i, ci in coeffs:
+                c[i] = ci
+            values[j] = (g * values[parent] - c @ values[:j]) / norm
+            if with_gradient:
+                d = dg.T * values[parent] + g * grads[parent]
+                grads[j] = (d - (c @ grads[:j].reshape(j, -1)).reshape(3, points)) / norm
+        return values, grads
 
     @classmethod
     def build(cls, degree: int, scale: float, quad: ChamberQuadrature) -> ScalarBasis3:
@@ -239,34 +252,31 @@ class ScalarBasis3:
         r2 = np.sum(Q * Q, axis=-1) / scale**2
         f0 = np.exp(-0.5 * r2)
         norm0 = math.sqrt(float(np.sum(w * f0 * f0)))
-        vals = [f0 / norm0]
-        exps = [(0, 0, 0)]
-        parity = [1]
-        recipe = []
         monomials = sorted(
             ((i, j, k) for i in range(degree // 2 + 1) for j in range(degree // 3 + 1)
              for k in range(degree // 4 + 1) if 2 * i + 3 * j + 4 * k <= degree and (i, j, k)
              != (0, 0, 0)),
             key=lambda e: (2 * e[0] + 3 * e[1] + 4 * e[2], e[1], e[2]))
+        vals = np.empty((len(monomials) + 1, len(Q)))  # row k: the k-th orthonormal function
+        vals[0] = f0 / norm0
+        parity = [1]
+        recipe = []
         index = {(0, 0, 0): 0}
-        for mono in monomials:
+        for k, mono in enumerate(monomials, start=1):
             gen = next(a for a in range(3) if mono[a] > 0)
             parent_mono = tuple(e - (a == gen) for a, e in enumerate(mono))
             parent = index[parent_mono]
             v = gens[gen][0] * vals[parent]
-            coeffs: dict[int, float] = {}
+            coeffs = np.zeros(k)
             for _ in range(2):  # classical Gram-Schmidt, twice
-                basis = np.stack(vals, axis=1)
-                c = basis.T @ (w * v)
-                v = v - basis @ c
-                for i, ci in enumerate(c):
-                    coeffs[i] = coeffs.get(i, 0.0) + float(ci)
+                c = vals[:k] @ (w * v)
+                v = v - c @ vals[:k]
+                coeffs += c
             norm = math.sqrt(float(np.sum(w * v * v)))
-            index[mono] = len(vals)
-            vals.append(v / norm)
-            exps.append(mono)
+            index[mono] = k
+            vals[k] = v / norm
             parity.append((-1) ** mono[1])
-            recipe.append((parent, gen, tuple(coeffs.items()), norm))
+            recipe.append((parent, gen, tuple(enumerate(coeffs.tolist())), norm))
         return cls(degree, scale, tuple(recipe), np.array(parity), norm0)
 
 
@@ -279,11 +289,13 @@ def scalar3_block(potential: Potential, hbar: float, inertia: float, degree: int
     quad = quad or ChamberQuadrature.build(scale * (8.0 + 0.75 * math.sqrt(degree + 1)),
                                            n_rho=40 + 2 * degree, n_angle=16 + degree)
     basis = ScalarBasis3.build(degree, scale, quad)
-    F, dF = basis.evaluate(quad.nodes, with_gradient=True)
+    F, dF = basis._replay(quad.nodes, with_gradient=True)  # [K, P], [K, 3, P]
     w = quad.weights
     V = np.asarray(potential(quad.nodes), float)
-    H = F.T @ ((w * V)[:, None] * F)
-    H += (hbar**2 / (2 * inertia)) * np.einsum("pai,p,paj->ij", dF, w, dF, optimize=True)
+    H = F @ (F * (w * V)).T
+    # sum_p w_p grad f_i . grad f_j as one product of [K, 3P] matrices
+    H += (hbar**2 / (2 * inertia)) * (dF.reshape(len(dF), -1)
+                                      @ (dF * w).reshape(len(dF), -1).T)
     return 0.5 * (H + H.T), Basis("scalar3", (basis,))
 
 
