@@ -187,8 +187,9 @@ class ScalarBasis3:
     """Weyl-invariant polynomials of degree <= ``degree`` times e^{-|Q|^2/2b^2}, orthonormal
     under prod (Q_a^2 - Q_b^2) dQ on the chamber (Arnoldi on a quadrature grid).
 
-    ``recipe[j] = (parent, generator, coefficients, norm)``: phi_j = (g phi_parent -
-    sum_i c_i phi_i) / norm, replayable at any points. ``parity`` of phi_j under Q_3 -> -Q_3
+    ``recipe[j - 1] = (parent, generator, c, norm)``: phi_j = (g phi_parent -
+    sum_{i < j} c_i phi_i) / norm with ``c`` [j] the Gram-Schmidt coefficients over every
+    earlier function, replayable at any points. ``parity`` of phi_j under Q_3 -> -Q_3
     (phi -> -phi) is (-1)^(power of e3).
     """
 
@@ -236,13 +237,10 @@ class ScalarBasis3:
             grads[0] = (-Q.T / self.scale**2) * values[0]
         for j, (parent, gen, coeffs, norm) in enumerate(self.recipe, start=1):
             g, dg = gens[gen]
-            c = np.zeros(j)
-            for i, ci in coeffs:
-                c[i] = ci
-            values[j] = (g * values[parent] - c @ values[:j]) / norm
+            values[j] = (g * values[parent] - coeffs @ values[:j]) / norm
             if with_gradient:
                 d = dg.T * values[parent] + g * grads[parent]
-                grads[j] = (d - (c @ grads[:j].reshape(j, -1)).reshape(3, points)) / norm
+                grads[j] = (d - (coeffs @ grads[:j].reshape(j, -1)).reshape(3, points)) / norm
         return values, grads
 
     @classmethod
@@ -276,7 +274,7 @@ class ScalarBasis3:
             index[mono] = k
             vals[k] = v / norm
             parity.append((-1) ** mono[1])
-            recipe.append((parent, gen, tuple(enumerate(coeffs.tolist())), norm))
+            recipe.append((parent, gen, coeffs, norm))
         return cls(degree, scale, tuple(recipe), np.array(parity), norm0)
 
 
