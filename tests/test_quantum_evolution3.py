@@ -204,6 +204,34 @@ def test_survival_lines_at_level_spacings(evolutions):
         assert min(abs(line - w) for weight, w in pairs if weight > 0.01 * pairs[0][0]) < np.pi / T
 
 
+def test_results_do_not_depend_on_the_eigenvectors_chosen_in_a_degenerate_level(evolutions):
+    """The anharmonic potential depends on Tr G = |phi|^2 only (SO(9)-invariant), so the sector
+    has exactly degenerate levels. Rotating each level's eigenvectors by a random orthogonal
+    matrix (another basis of the same eigenspace) changes no output: not the survival
+    probability or the means, and not the packet's energy_error either (its per-state error
+    estimates are one per level: bases.level_errors; index-paired estimates moved it by 1e-5
+    relative here)."""
+    from dataclasses import replace
+
+    hbar = 0.5
+    sector, ev = evolutions["anharmonic", hbar]
+    E = sector.energies
+    apart = np.diff(E) > Settings().merge * np.maximum(1.0, np.abs(E[1:]))
+    starts = np.flatnonzero(np.r_[True, apart])
+    ends = np.r_[starts[1:], len(E)]
+    assert max(ends - starts) > 1  # the test needs a degenerate level
+    rng = np.random.default_rng(7)
+    vectors = sector.vectors.copy()
+    for a, b in zip(starts, ends, strict=True):
+        rotation, _ = np.linalg.qr(rng.normal(size=(b - a, b - a)))
+        vectors[:, a:b] = vectors[:, a:b] @ rotation
+        assert np.all(sector.errors[a:b] == sector.errors[a])
+    turned = evolve3(replace(sector, vectors=vectors), Q0, P0, np.sqrt(hbar / 2), TIMES, hbar)
+    assert turned.energy_error == pytest.approx(ev.energy_error, rel=1e-12)
+    assert np.allclose(turned.survival, ev.survival, rtol=0, atol=1e-12)
+    assert np.allclose(turned.mean["trG"], ev.mean["trG"], rtol=1e-12)
+
+
 CONFIG3 = f"""
 [system]
 n = 3

@@ -192,7 +192,24 @@ def solve_block(build: Callable[[int, float], tuple[np.ndarray, Basis]], size: i
     err = np.full(len(E), np.inf)
     k = min(len(Es), len(Ew))
     err[:k] = np.maximum(np.abs(E[:k] - Es[:k]), np.abs(E[:k] - Ew[:k]))
-    return E, vec, err, basis
+    return E, vec, level_errors(E, err, settings), basis
+
+
+def level_errors(E: np.ndarray, err: np.ndarray, settings: Settings) -> np.ndarray:
+    """``err`` with each state's estimate replaced by the largest over its degenerate level
+    (ascending energies, consecutive ones within settings.merge * max(1, |E|), the rule of
+    :func:`affinebody.quantum.levels.merge_levels`).
+
+    The estimates pair the states with the check bases' levels by index, which a degenerate
+    level's eigenvectors (any orthonormal basis of its eigenspace, as LAPACK happens to return
+    it) do not determine; a sum weighted by |c_n|^2 over such states (the packet's
+    ``energy_error`` of the evolve command) would depend on that choice, one estimate per level
+    does not."""
+    if len(E) < 2:
+        return err
+    apart = np.diff(E) > settings.merge * np.maximum(1.0, np.abs(E[1:]))
+    starts = np.flatnonzero(np.r_[True, apart])
+    return np.repeat(np.maximum.reduceat(err, starts), np.diff(np.r_[starts, len(E)]))
 
 def variational_parameters(energy: Callable[[np.ndarray], float], start: np.ndarray
                            ) -> np.ndarray:
@@ -206,5 +223,5 @@ def variational_parameters(energy: Callable[[np.ndarray], float], start: np.ndar
 __all__ = [
     "gauss_basis", "laguerre_jacobi", "hermite_jacobi", "Radial2D", "Hermite1D", "Basis",
     "sqrt_x_over_sinh", "inv_x2_minus_inv_sinh2", "sqrt_x_over_sinh_derivative_ratio",
-    "dense_lowest", "solve_block", "variational_parameters"
+    "dense_lowest", "solve_block", "level_errors", "variational_parameters"
 ]
