@@ -29,12 +29,19 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 # test_cli_sim on one core each, side by side and swapped: 175 s against 196 s, twice).
 # The command line keeps XLA's default, which its two cores use (the demo is no faster
 # with one part).
+# The fusion-emitter flag is the product's FAST_COMPILATION, which jaxlib >= 0.11 no longer
+# knows (XLA aborts the process on an unknown flag): it is added only where flags_known().
+from affinebody._xla import (  # noqa: E402  (imports no JAX)
+    FAST_COMPILATION,
+    flags_known,
+    pin_to_one_cpu,
+    with_flags,
+)
+
 SUITE_XLA_FLAGS = ("--xla_backend_optimization_level=0",
                    "--xla_llvm_disable_expensive_passes=true",
-                   "--xla_cpu_use_fusion_emitters=false",
+                   *(FAST_COMPILATION if flags_known() else ()),
                    "--xla_cpu_parallel_codegen_split_count=1")
-
-from affinebody._xla import pin_to_one_cpu, with_flags  # noqa: E402  (imports no JAX)
 
 os.environ["XLA_FLAGS"] = with_flags(os.environ.get("XLA_FLAGS", ""), SUITE_XLA_FLAGS)
 
