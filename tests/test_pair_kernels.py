@@ -168,9 +168,11 @@ def test_triton_kernels_of_the_gpu_equal_all_pairs_in_the_pallas_interpreter(cas
 
 def test_triton_kernels_lower_to_triton_for_a_cuda_gpu():
     """Without a GPU, the kernels still go through Pallas' Triton lowering for CUDA (jax.export
-    for the "cuda" platform): every operation they use has a Triton form, and a chunk of the
-    JAX kernel is XLA around two Triton calls (scalars, then rows)."""
+    for the "cuda" platform, an H100 named as the target device: JAX 0.12 asks for one where
+    no GPU is present): every operation they use has a Triton form, and a chunk of the JAX
+    kernel is XLA around two Triton calls (scalars, then rows)."""
     from jax import export
+    from jax.sharding import AbstractDevice, AbstractMesh, use_abstract_mesh
 
     potential, n = CASES["all-variables-3d"]  # every scalar: the kernels' every operation
     layout, padding = pk._triton_layout(potential, n)
@@ -184,8 +186,10 @@ def test_triton_kernels_lower_to_triton_for_a_cuda_gpu():
         ((pairs, n), jnp.float64), ((pairs,), jnp.int32), ((pairs,), jnp.int32),
         ((pairs,), bool), ((bodies * layout.columns,), jnp.float64))]
     triton = "__gpu$xla.gpu.triton"
-    exported = export.export(jax.jit(chunk), platforms=["cuda"], disabled_checks=[
-        export.DisabledSafetyCheck.custom_call(triton)])(*shapes)
+    h100 = AbstractDevice(device_kind="NVIDIA H100", num_cores=None, platform="gpu")
+    with use_abstract_mesh(AbstractMesh((1,), ("bodies",), abstract_device=h100)):
+        exported = export.export(jax.jit(chunk), platforms=["cuda"], disabled_checks=[
+            export.DisabledSafetyCheck.custom_call(triton)])(*shapes)
     assert exported.mlir_module().count(f"custom_call @{triton}(") == 2
     x, phi = configuration(np.random.default_rng(5), n, potential.space)
     with pytest.raises(ValueError, match="pair program 'cuda': expected one of xla, triton"):
