@@ -24,7 +24,8 @@ eigenpairs (E_n, a_n) of the sector, c_n = <a_n|psi_0> and
 exactly, for any t (no time step). ``captured`` = sum |c_n|^2 is the part of the packet the
 eigenstates of the basis hold (1 up to the basis' resolution; a packet that the basis does not
 hold is refused); ``energy_error`` = sum |c_n|^2 err_n / captured weighs the error estimates of
-the eigenvalues (nested and widened check bases) with the packet's populations: the accuracy of
+the eigenvalues (nested and widened check bases; one per degenerate level,
+:func:`affinebody.quantum.bases.level_errors`) with the packet's populations: the accuracy of
 the propagated phases (a state beyond the check bases counts with its full energy). The
 Fourier transform of S has its lines at the differences (E_m - E_n)/hbar.
 """
