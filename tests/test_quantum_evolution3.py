@@ -16,7 +16,7 @@ import pytest
 from affinebody.config import build, parse_config
 from affinebody.quantum.evolution import spectrum_lines
 from affinebody.quantum.evolution3 import evolve3, scalar_sector3
-from affinebody.quantum.levels import Settings
+from affinebody.quantum.levels import Settings, level_starts
 from affinebody.simulate import run
 
 Q0 = np.array([1.5, 0.9, 0.3])  # phi = diag(Q0), pi = diag(P0)
@@ -216,8 +216,7 @@ def test_results_do_not_depend_on_the_eigenvectors_chosen_in_a_degenerate_level(
     hbar = 0.5
     sector, ev = evolutions["anharmonic", hbar]
     E = sector.energies
-    apart = np.diff(E) > Settings().merge * np.maximum(1.0, np.abs(E[1:]))
-    starts = np.flatnonzero(np.r_[True, apart])
+    starts = level_starts(E, Settings().merge)
     ends = np.r_[starts[1:], len(E)]
     assert max(ends - starts) > 1  # the test needs a degenerate level
     rng = np.random.default_rng(7)

@@ -210,24 +210,20 @@ def _callback_lowering(ctx, *args, function, result_avals, vmap_method):
     return result
 
 
-#: The batch dimension of an operand that vmap does not map: None (JAX 0.10 exports it as
-#: ``batching.not_mapped``, JAX 0.12 no longer does).
-_NOT_MAPPED = getattr(batching, "not_mapped", None)
-
-
 def _callback_batched(args, dims, *, function, result_avals, vmap_method):
+    # d is None: vmap does not map that operand (batching.not_mapped of JAX 0.10, gone in 0.12)
     size = next(a.shape[d] for a, d in zip(args, dims, strict=True)
-                if d is not _NOT_MAPPED)
-    front = [a if d is _NOT_MAPPED else jnp.moveaxis(a, d, 0)
+                if d is not None)
+    front = [a if d is None else jnp.moveaxis(a, d, 0)
              for a, d in zip(args, dims, strict=True)]
     if vmap_method == "broadcast_all":
-        full = [jnp.broadcast_to(a, (size, *a.shape)) if d is _NOT_MAPPED else a
+        full = [jnp.broadcast_to(a, (size, *a.shape)) if d is None else a
                 for a, d in zip(front, dims, strict=True)]
         batched = tuple(jax.core.ShapedArray((size, *a.shape), a.dtype) for a in result_avals)
         out = _CALLBACK.bind(*full, function=function, result_avals=batched,
                              vmap_method=vmap_method)
     elif vmap_method == "sequential":
-        mapped = [k for k, d in enumerate(dims) if d is not _NOT_MAPPED]
+        mapped = [k for k, d in enumerate(dims) if d is not None]
 
         def one(slices):
             operands = list(front)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import linalg, optimize, special
 
-from affinebody.quantum.levels import Settings
+from affinebody.quantum.levels import Settings, level_starts
 
 
 # ------------------------------------------------------------------ one-dimensional bases
@@ -197,18 +197,16 @@ def solve_block(build: Callable[[int, float], tuple[np.ndarray, Basis]], size: i
 
 def level_errors(E: np.ndarray, err: np.ndarray, settings: Settings) -> np.ndarray:
     """``err`` with each state's estimate replaced by the largest over its degenerate level
-    (ascending energies, consecutive ones within settings.merge * max(1, |E|), the rule of
-    :func:`affinebody.quantum.levels.merge_levels`).
+    (ascending energies E joined into levels by :func:`affinebody.quantum.levels.level_starts`).
 
     The estimates pair the states with the check bases' levels by index, which a degenerate
     level's eigenvectors (any orthonormal basis of its eigenspace, as LAPACK happens to return
     it) do not determine; a sum weighted by |c_n|^2 over such states (the packet's
     ``energy_error`` of the evolve command) would depend on that choice, one estimate per level
     does not."""
-    if len(E) < 2:
+    if len(E) == 0:
         return err
-    apart = np.diff(E) > settings.merge * np.maximum(1.0, np.abs(E[1:]))
-    starts = np.flatnonzero(np.r_[True, apart])
+    starts = level_starts(E, settings.merge)
     return np.repeat(np.maximum.reduceat(err, starts), np.diff(np.r_[starts, len(E)]))
 
 def variational_parameters(energy: Callable[[np.ndarray], float], start: np.ndarray

@@ -199,14 +199,31 @@ def is_converged(E: float, err: float, settings: Settings) -> bool:
     return bool(err <= settings.tolerance * max(1.0, abs(E)) and err <= 1e-2 * abs(E) + 1e-12)
 
 
+def same_level(E: float, level_energy: float, merge: float) -> bool:
+    """Whether a state of energy E belongs to the degenerate level of energy ``level_energy``
+    (its first, lowest state's): |E - level_energy| <= merge * max(1, |E|), with
+    ``merge`` = :attr:`Settings.merge`. The one rule that joins states into levels."""
+    return abs(E - level_energy) <= merge * max(1.0, abs(E))
+
+
+def level_starts(energies: np.ndarray, merge: float) -> np.ndarray:
+    """Indices at which a new degenerate level begins in ascending ``energies``
+    (:func:`same_level`)."""
+    starts: list[int] = []
+    for k, E in enumerate(energies):
+        if not starts or not same_level(E, energies[starts[-1]], merge):
+            starts.append(k)
+    return np.array(starts, dtype=int)
+
+
 def merge_levels(entries: list[tuple[float, float, tuple[Sector, ...], tuple, int]],
                  settings: Settings) -> list[Level]:
     """Levels (ascending) from entries (energy, error, sectors, block key, index): energies
-    closer than settings.merge * max(1, |E|) are one degenerate level listing every sector."""
+    of one level (:func:`same_level`) are one degenerate level listing every sector."""
     entries = sorted(entries, key=lambda e: e[0])
     levels: list[Level] = []
     for E, err, sectors, key, idx in entries:
-        if levels and abs(E - levels[-1].energy) <= settings.merge * max(1.0, abs(E)):
+        if levels and same_level(E, levels[-1].energy, settings.merge):
             last = levels[-1]
             levels[-1] = Level(last.energy, last.multiplicity + state_count(sectors),
                                last.sectors + sectors, max(last.error, err), last.block,
@@ -300,6 +317,6 @@ class LevelCollector:
 
 __all__ = [
     "Potential", "MODELS", "Sector", "state_count", "Level", "Block", "Spectrum", "Settings",
-    "AffineInertia", "is_converged", "merge_levels", "kth_energy",
+    "AffineInertia", "is_converged", "same_level", "level_starts", "merge_levels", "kth_energy",
     "truncate_levels", "eigen_parity", "LevelCollector"
 ]

@@ -58,7 +58,7 @@ from affinebody.quantum import tensor_operators3 as tops
 from affinebody.quantum.channels3 import ChamberQuadrature, haar3_grid
 from affinebody.quantum.densities import joint_density, measure
 from affinebody.quantum.intervals import invariant_names, invariant_values
-from affinebody.quantum.levels import Level, Sector, Settings, Spectrum
+from affinebody.quantum.levels import Level, Sector, Settings, Spectrum, same_level
 
 #: angular grid per angle (n = 2): the least, the most, and the samples of the bandwidth probe
 ANGLES = 16
@@ -211,7 +211,6 @@ def level_components(spectrum: Spectrum, level: Level, merge: float | None = Non
     level's): the level's states. Their state count must be the level's multiplicity.
     ``sector``: only the blocks holding it (their states of that sector must be the level's)."""
     merge = Settings().merge if merge is None else merge
-    tol = merge * max(1.0, abs(level.energy))
     out = []
     for key, block in spectrum.blocks.items():
         if sector is not None and sector not in block.sectors:
@@ -219,7 +218,7 @@ def level_components(spectrum: Spectrum, level: Level, merge: float | None = Non
         for i, E in enumerate(block.energies):
             # the merged entries of the level (an unconverged candidate at the same energy has
             # an error estimate above the level's, the largest of its entries)
-            if abs(E - level.energy) <= tol and block.errors[i] <= level.error:
+            if same_level(E, level.energy, merge) and block.errors[i] <= level.error:
                 one = Level(float(E), 1, block.sectors, float(block.errors[i]), key, i)
                 out.append(Component(block.sectors, joint_density(spectrum, one),
                                      angular_frame(key, block.sectors[0])
