@@ -59,6 +59,83 @@ def test_ideal_gas_follows_the_isobaric_law(coupling, interval):
         assert np.all(trajectory.cells[:, 0, 1] == 0) and np.all(trajectory.cells[:, 1, 0] == 0)
 
 
+@pytest.mark.parametrize("coupling,dt", [("isotropic", 0.1), ("anisotropic", 0.04)])
+def test_the_metropolis_test_makes_coarse_moves_sample_the_isobaric_law(coupling, dt):
+    """Moves of 10x (isotropic) and 4x the length of the test above, rate * dt = 0.2 and 0.08:
+    the plain Euler-Maruyama move leaves the isobaric law (the isotropic box blows up once,
+    the anisotropic one collapses an edge and the run stops), while with the
+    Metropolis-Hastings test the ideal gas has <V> = (N + 1) kT / P0 within the statistical
+    error alone (the particle part is exact here: free drift, exact Ornstein-Uhlenbeck
+    momenta). The same seed and the compiled loop of the test above for the plain move."""
+    system, state, space = ideal_gas()
+    expected = (N + 1) * KT / P0
+    runs = {}
+    for metropolis in (False, True):
+        baro = barostat.StochasticCellRescaling(((P0, 0.0), (0.0, P0)), tau=0.5,
+                                                compressibility=1.0, temperature=KT,
+                                                coupling=coupling, metropolis=metropolis)
+        runs[metropolis] = barostat.run(system, state, space, baro, dt, 40_000, seed=3,
+                                        every=10, thermostat=langevin_momenta)
+    tested = runs[True]
+    assert tested.failed_step is None
+    volume = tested.observables["volume"][400:]
+    blocks = volume[: len(volume) // 20 * 20].reshape(20, -1).mean(axis=1)
+    error = blocks.std(ddof=1) / np.sqrt(len(blocks))
+    assert abs(volume.mean() - expected) < 4 * error, (volume.mean(), error)
+    assert 4 * error < 0.2 * KT / P0, error
+    rejected = tested.observables["rejected_moves"]
+    assert rejected[0] == 0 and np.all(rejected <= 10)  # counted over each frame's 10 moves
+    assert 0.02 < rejected.sum() / 40_000 < 0.3
+    plain = runs[False]
+    assert "rejected_moves" not in plain.observables
+    plain_volume = plain.observables["volume"][400:]
+    assert plain.failed_step is not None or abs(plain_volume.mean() - expected) > 40 * error
+
+
+def test_log_proposal_is_the_density_of_the_drawn_move():
+    """``propose`` draws the new cell from a Gaussian whose log density ``log_proposal``
+    gives: for the triclinic coupling, in the cell's moving entries q = (h11, h12, h22) the
+    move is q + (d delta H)[q] with d delta = drift + noise, so q' ~ N(mean, s^2 J J^T), J the
+    linear map noise -> (noise H)[q] (by automatic differentiation here, scipy's normal
+    density); isotropic: eps' - eps = ln det mu ~ N((beta_T/tau)(P - P0) dt, 2 kT beta_T dt /
+    (V tau)). A wrong Jacobian or variance would bias the Metropolis test."""
+    from scipy.stats import multivariate_normal, norm
+
+    from affinebody import pressure
+    from affinebody.space import triclinic
+
+    system, state, _ = ideal_gas()
+    h = jnp.asarray([[2.1, 0.4], [0.0, 1.7]])
+    space = triclinic(np.asarray(h))
+    rows, cols = np.nonzero(np.triu(np.ones((2, 2))))
+    dt, rate, kt = 0.03, 1.3 / 0.7, 0.9
+    for coupling in ("anisotropic", "isotropic"):
+        baro = barostat.StochasticCellRescaling(((0.4, 0.1), (0.1, 0.6)), tau=0.7,
+                                                compressibility=1.3, temperature=kt,
+                                                coupling=coupling, metropolis=True)
+        p_inst = pressure.pressure_tensor(system.replace(cell=h), state, space)
+        for seed in range(3):
+            moved, new_cell, _, logq = baro.propose(system, state, h, space,
+                                                    jax.random.PRNGKey(seed), dt)
+            mu = np.asarray(new_cell) @ np.linalg.inv(np.asarray(h))
+            np.testing.assert_allclose(moved.x, state.x @ mu.T, rtol=1e-12)
+            np.testing.assert_allclose(logq, baro.log_proposal(h, p_inst, mu, space, dt),
+                                       rtol=1e-12)
+            s = np.sqrt(2 * kt * rate / np.linalg.det(h) * dt)
+            if coupling == "isotropic":
+                mean = rate * (np.trace(p_inst) - 1.0) / 2 * dt
+                exact = norm.logpdf(np.log(np.linalg.det(mu)), mean, s)
+            else:
+                drift = np.asarray(baro._drift(h, p_inst, space, dt)[0])
+                noise_to_q = jax.jacfwd(
+                    lambda d: (jnp.zeros((2, 2)).at[rows, cols].set(d) @ h)[rows, cols])
+                jac = np.asarray(noise_to_q(jnp.zeros(3)))
+                mean = np.asarray(h)[rows, cols] + (drift @ np.asarray(h))[rows, cols]
+                exact = multivariate_normal.logpdf(np.asarray(new_cell)[rows, cols], mean,
+                                                   s * s * jac @ jac.T)
+            np.testing.assert_allclose(logq, exact, rtol=1e-10)
+
+
 def test_a_move_every_interval_steps_spans_interval_dt():
     """Bodies at rest and no forces: P = 0, so each move is the deterministic
     d eps = -(beta_T / tau) P0 (its length) up to a noise of kT = 1e-30. With interval = 4
@@ -235,7 +312,7 @@ def test_barostat_config_errors_are_one_line():
         SweepSpec.from_config(check_config(parse_config(NPT_CONFIG)))
 
 
-#: 16 bodies in 2D squeezed from spacing 1.2 to about 0.85 by the barostat: the neighbour list's
+#: 16 bodies in 2D squeezed from spacing 1.2 to about 0.9 by the barostat: the neighbour list's
 #: cells outgrow the box in the first steps and are reallocated (a coarser grid)
 SQUEEZED_CRYSTAL = """
 [system]
@@ -290,30 +367,40 @@ def test_npt_run_with_a_neighbour_list_resumes_bit_for_bit(tmp_path):
     (and into the resumed run), so neither run compiles its loop for other sizes or lengths
     again: twice in all, the first list and the reallocated one (three when the rest of the
     chunk had a program of its own, more when every checkpoint took the config's list's
-    sizes)."""
+    sizes). The moves pass a Metropolis test (``metropolis = true``): a move whose list
+    overflowed is kept unjudged, reallocated and judged when run again, and the file counts
+    the rejected moves, as many in the resumed run as in the whole one."""
     from affinebody.checkpoint import checkpoint_path, load_checkpoint
     from affinebody.config import build, check_config, parse_config, uses_neighbor_list
     from affinebody.h5md import read_trajectory
     from affinebody.neighbors import sizes
     from affinebody.runner import run_simulation
 
-    config = check_config(parse_config(SQUEEZED_CRYSTAL))
+    config = check_config(parse_config(SQUEEZED_CRYSTAL + "metropolis = true\n"))
     assert uses_neighbor_list(config)
     first_sizes = sizes(build(config).neighbors[0])
     with compilations("_npt") as compiled:
-        run_simulation(config, tmp_path / "whole.h5")
+        whole_run = run_simulation(config, tmp_path / "whole.h5")
         assert len(compiled) <= 2
-        run_simulation(config, tmp_path / "resumed.h5", steps=100)
+        first_part = run_simulation(config, tmp_path / "resumed.h5", steps=100)
         kept = load_checkpoint(checkpoint_path(tmp_path / "resumed.h5")).neighbor_sizes
         assert tuple(kept["grid"]) != first_sizes["grid"]  # reallocated before the cut
-        run_simulation(config, tmp_path / "resumed.h5", resume=True)
+        second_part = run_simulation(config, tmp_path / "resumed.h5", resume=True)
     assert len(compiled) <= 2  # the whole run's programs
+    # moves after steps 3, 6, ..., 198: 66, of which 33 before the cut at step 100
+    rejected, moves = whole_run.barostat_moves
+    assert moves == 66 and (first_part.barostat_moves[1], second_part.barostat_moves[1]) == (
+        33, 33)
+    assert first_part.barostat_moves[0] + second_part.barostat_moves[0] == rejected
+    assert any(line.startswith(f"barostat: {rejected} of 66 moves rejected")
+               for line in whole_run.lines())
     whole, resumed = (read_trajectory(tmp_path / f"{k}.h5") for k in ("whole", "resumed"))
-    assert whole.frames == 21 and whole.boxes[-1, 0] < 0.75 * whole.boxes[0, 0]  # squeezed
+    assert whole.frames == 21 and whole.boxes[-1, 0] < 0.8 * whole.boxes[0, 0]  # squeezed
     for name in ("x", "phi", "p", "pi", "boxes"):
         np.testing.assert_array_equal(getattr(resumed, name), getattr(whole, name))
     for name, value in whole.observables.items():
         np.testing.assert_array_equal(resumed.observables[name], value)
+    assert whole.observables["rejected_moves"].sum() == rejected
 
 
 def test_npt_effective_energy_drifts_by_the_integrator_error_only():

@@ -118,7 +118,11 @@ def test_a_kept_list_holds_every_pair_in_range_while_the_box_and_the_bodies_move
     assert bool(_needs_rebuild(spec, lists, x @ (0.8 * jnp.eye(3)), phi, squeezed))
 
 
-def test_npt_run_with_a_list_repeats_the_all_pairs_run_while_the_box_shrinks():
+@pytest.mark.parametrize("metropolis", [False, True])
+def test_npt_run_with_a_list_repeats_the_all_pairs_run_while_the_box_shrinks(metropolis):
+    """With the Metropolis test the moved state's energy and virial come from the list's
+    pass (``pressure.energy_forces_virial``), without it from all pairs: the same moves
+    accepted, the same motion."""
     n = 2
     space = triclinic([[4.0, 0.5], [0.0, 3.8]])
     rng = np.random.default_rng(1)
@@ -131,7 +135,8 @@ def test_npt_run_with_a_list_repeats_the_all_pairs_run_while_the_box_shrinks():
                                              DAlembert(0.5 * np.eye(n))), pair)
     state = State(jnp.asarray(x), jnp.asarray(np.eye(n) + 0.05 * rng.normal(size=(bodies, n, n))),
                   jnp.asarray(0.5 * rng.normal(size=(bodies, n))), jnp.zeros((bodies, n, n)))
-    b = barostat.c_rescale(20.0, n, tau=1.0, compressibility=1.0, temperature=0.1)
+    b = barostat.c_rescale(20.0, n, tau=1.0, compressibility=1.0, temperature=0.1,
+                           metropolis=metropolis)
     lists = nb.allocate(space, state.x, state.phi, 1.2, "r", 0.05, cell=space.matrix)
     args = (system, state, space, b, 0.005, 30)
     ref = barostat.run(*args, seed=3, every=10)
@@ -145,3 +150,7 @@ def test_npt_run_with_a_list_repeats_the_all_pairs_run_while_the_box_shrinks():
                   (run.cells, ref.cells), (run.observables["pressure"],
                                             ref.observables["pressure"])):
         np.testing.assert_allclose(a, b_, rtol=0, atol=1e-11 * np.max(np.abs(b_)))
+    if metropolis:
+        np.testing.assert_array_equal(run.observables["rejected_moves"],
+                                      ref.observables["rejected_moves"])
+        assert ref.observables["rejected_moves"].sum() > 0

@@ -37,6 +37,15 @@ GROMACS's nstpcouple). The steps in between are constant-volume steps that reuse
 kick's forces, so an NPT step costs little more than an NVT one when m is about 10; the
 barostat's relaxation time tau should stay many times m dt.
 
+Metropolis test: with ``metropolis`` each move is a proposal, accepted with probability
+min(1, exp(-work/kT) J q(reverse)/q(forward)) (Metropolis-adjusted Langevin for the cell):
+work the change of H + P0 V the move makes (the map (x, p, H) -> (mu x, mu^-T p, mu H) keeps
+the phase-space volume of (x, p)), J = V'/V for the isotropic move in eps = ln V (1 in the
+cell entries of the anisotropic one), q the Gaussian densities of :meth:`log_proposal`, the
+reverse move mu^-1 drawn at the moved state. The target is then stationary at any move
+length; a rejected move changes nothing (docs/pressure.md, "The barostat: stochastic cell
+rescaling").
+
 Random numbers: the noise of step k (counted from the start of the run, resumed runs
 included) comes from :func:`step_key` (``fold_in`` of the seed, of the barostat's own stream
 :data:`STREAM` and of k), so a run resumed from its checkpoint repeats the uninterrupted one
@@ -83,7 +92,9 @@ class StochasticCellRescaling:
     P0 Id), time constant ``tau``, isothermal ``compressibility`` beta_T (only sets the
     relaxation time, not the sampled distribution), temperature kT of the noise, ``coupling``
     "isotropic" or "anisotropic"; ``interval``: steps between two moves, each of length
-    ``interval`` dt (GROMACS's nstpcouple; module docstring, "Moves every few steps")."""
+    ``interval`` dt (GROMACS's nstpcouple; module docstring, "Moves every few steps");
+    ``metropolis``: accept or reject each move by a Metropolis-Hastings test, which makes the
+    sampled ensemble exact at any move length (module docstring, "Metropolis test")."""
 
     pressure: tuple[tuple[float, ...], ...]
     tau: float
@@ -91,6 +102,7 @@ class StochasticCellRescaling:
     temperature: float
     coupling: str = "isotropic"
     interval: int = 1
+    metropolis: bool = False
 
     def __post_init__(self):
         for name in ("tau", "compressibility", "temperature"):
@@ -106,6 +118,9 @@ class StochasticCellRescaling:
                 or self.interval < 1:
             raise ValueError(f"barostat.interval must be a positive whole number of steps "
                              f"(got {self.interval!r})")
+        if not isinstance(self.metropolis, bool):
+            raise ValueError(f"barostat.metropolis must be true or false "
+                             f"(got {self.metropolis!r})")
 
     @property
     def target(self) -> np.ndarray:
@@ -113,32 +128,84 @@ class StochasticCellRescaling:
 
     def move(self, system, state: State, cell, space: Space, key, dt, neighbors=None,
              energy: bool = False, measured=None):
-        """(state, cell) after one barostat move of length ``dt`` (module docstring);
+        """(state, cell) after one barostat move of length ``dt`` (module docstring), the
+        move always made (no Metropolis test: :meth:`propose` and :meth:`log_acceptance`);
         ``neighbors``: None (the virial over all pairs) or a list valid for ``state`` in
         ``cell``. With ``energy``: (state, cell, V), V the potential energy of ``state`` in
         ``cell`` before the move (from the pass that computes the virial). ``measured``: None,
         or (V, W) of ``state`` in ``cell`` already known (``pressure.energy_forces_virial``
         in the step's last force evaluation): then no pass over the pairs here."""
+        state, new_cell, potential, _ = self.propose(system, state, cell, space, key, dt,
+                                                     neighbors, measured)
+        return (state, new_cell, potential) if energy else (state, new_cell)
+
+    def propose(self, system, state: State, cell, space: Space, key, dt, neighbors=None,
+                measured=None):
+        """One move of length ``dt`` from ``state`` in ``cell`` (module docstring):
+        (moved state, new cell, V before, log q), V the potential energy of ``state`` in
+        ``cell`` and log q the log density of drawing this move (:meth:`log_proposal`), for
+        the Metropolis test of :meth:`log_acceptance`. ``neighbors``, ``measured``: as in
+        :meth:`move`."""
         n = cell.shape[-1]
         potential, p_inst = pressure_module.pressure_tensor(
             system.replace(cell=cell), state, space, neighbors, energy=True, measured=measured)
-        volume = linalg.det(cell)
-        rate = self.compressibility / self.tau
-        diffusion = self.temperature * rate / volume
+        drift, scale = self._drift(cell, p_inst, space, dt)
         if self.coupling == "isotropic":
-            drift = rate * (jnp.trace(p_inst) - jnp.trace(jnp.asarray(self.pressure))) / n
-            d_eps = drift * dt + jnp.sqrt(2.0 * diffusion * dt) * jax.random.normal(key)
+            d_eps = drift + scale * jax.random.normal(key)
             mu = jnp.exp(d_eps / n) * jnp.eye(n)
         else:
-            mask = self._moving(space)
-            stress = rate * (p_inst - jnp.asarray(self.pressure)).T
-            noise = jax.random.normal(key, (n, n)) * jnp.sqrt(2.0 * diffusion * dt)
-            d_delta = mask * (stress * dt + noise) + self._ito_drift(cell, mask) * dt
-            mu = jnp.eye(n) + d_delta
+            mu = jnp.eye(n) + drift + self._moving(space) * scale * jax.random.normal(key, (n, n))
         new_cell = mu @ cell
         mu_inv_t = linalg.inv(mu).T
         state = state._replace(x=state.x @ mu.T, p=state.p @ mu_inv_t.T)
-        return (state, new_cell, potential) if energy else (state, new_cell)
+        return state, new_cell, potential, self.log_proposal(cell, p_inst, mu, space, dt)
+
+    def _drift(self, cell, p_inst, space: Space, dt):
+        """(mean, standard deviation) of a move of length ``dt`` from ``cell`` at the
+        instantaneous pressure ``p_inst``: of d eps (isotropic) or of the strain d delta
+        [n, n] (anisotropic, the Ito drift included; the deviation of each moving entry)."""
+        n = cell.shape[-1]
+        rate = self.compressibility / self.tau
+        diffusion = self.temperature * rate / linalg.det(cell)
+        scale = jnp.sqrt(2.0 * diffusion * dt)
+        if self.coupling == "isotropic":
+            return rate * (jnp.trace(p_inst) - jnp.trace(jnp.asarray(self.pressure))) / n * dt, \
+                scale
+        mask = self._moving(space)
+        stress = rate * (p_inst - jnp.asarray(self.pressure)).T
+        return mask * stress * dt + self._ito_drift(cell, mask) * dt, scale
+
+    def log_proposal(self, cell, p_inst, mu, space: Space, dt):
+        """log of the density of the move H -> mu H from ``cell`` at the instantaneous pressure
+        ``p_inst`` in the coordinates whose Lebesgue measure the target carries times
+        exp(-(H + P0 V)/kT) (module docstring, "Metropolis test"): eps = ln V (isotropic), the
+        moving entries of the cell (anisotropic; the Jacobian of delta -> delta H is the
+        product of h_bb over the moving entries (a, b))."""
+        drift, scale = self._drift(cell, p_inst, space, dt)
+        if self.coupling == "isotropic":
+            noise, moving, jacobian = (jnp.log(linalg.det(mu)) - drift)[None], 1, 0.0
+        else:
+            mask = self._moving(space)
+            rows, cols = np.nonzero(mask)
+            noise = (mu - jnp.eye(mu.shape[-1]) - drift)[rows, cols]
+            moving = len(rows)
+            jacobian = jnp.sum(jnp.log(jnp.abs(jnp.diagonal(cell)[cols])))
+        return (-0.5 * jnp.sum((noise / scale) ** 2) - moving * jnp.log(scale)
+                - 0.5 * moving * np.log(2 * np.pi) - jacobian)
+
+    def log_acceptance(self, work, cell, new_cell, p_after, forward, space: Space, dt):
+        """log of the Metropolis-Hastings acceptance probability (before min(0, .)) of a move
+        ``cell`` -> ``new_cell`` (= mu cell) that changed H + P0 V by ``work``, drawn with log
+        density ``forward`` (:meth:`propose`), ``p_after`` the instantaneous pressure after
+        it: the target's ratio exp(-work/kT) (times V'/V in eps = ln V,
+        isotropic) and the ratio of the reverse move's density (mu^-1 from ``new_cell``) to
+        the forward one's."""
+        mu = new_cell @ linalg.inv(cell)
+        reverse = self.log_proposal(new_cell, p_after, linalg.inv(mu), space, dt)
+        log_target = -work / self.temperature
+        if self.coupling == "isotropic":
+            log_target = log_target + jnp.log(linalg.det(new_cell) / linalg.det(cell))
+        return log_target + reverse - forward
 
     @staticmethod
     def _moving(space: Space) -> np.ndarray:
@@ -168,11 +235,12 @@ class StochasticCellRescaling:
 
 
 def c_rescale(pressure, n: int, *, tau: float, compressibility: float, temperature: float,
-              coupling: str = "isotropic", interval: int = 1) -> StochasticCellRescaling:
+              coupling: str = "isotropic", interval: int = 1,
+              metropolis: bool = False) -> StochasticCellRescaling:
     """The barostat of a ``[barostat]`` table: ``pressure`` a number (P0 Id) or an n x n
     tensor; ValueError (one line) for a value out of range."""
     return StochasticCellRescaling(_target(pressure, n), float(tau), float(compressibility),
-                                   float(temperature), coupling, interval)
+                                   float(temperature), coupling, interval, metropolis)
 
 
 @dataclass(frozen=True)
@@ -243,7 +311,7 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
         """H + P0 V in ``cell`` (P0 = Tr P0 / n)."""
         return system.replace(cell=cell).hamiltonian(state, nbrs) + p0 * linalg.det(cell)
 
-    def measure(state, cell, nbrs, exchanged):
+    def measure(state, cell, nbrs, exchanged, rejections):
         boxed = system.replace(cell=cell)
         extra = () if spec is None else (nbrs,)
         values = {name: f(boxed, state, *extra) for name, f in observers}
@@ -251,6 +319,8 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
         values["volume"] = linalg.det(cell)
         values["heat"], values["work"] = exchanged
         values["effective_energy"] = enthalpy(state, cell, nbrs) - exchanged[0] - exchanged[1]
+        if barostat.metropolis:
+            values["rejected_moves"] = rejections
         return values
 
     carries = getattr(method, "carries_forces", False)
@@ -267,7 +337,7 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
 
     def one_step(carry, _):
         (old_state, old_cell, old_nbrs, k, failed, overflowed, narrow, lost, exchanged,
-         old_forces) = carry
+         old_forces, rejections) = carry
         key_thermo, key_baro = jax.random.split(step_key(seed, k))
         boxed = system.replace(cell=old_cell)
         measured = None
@@ -288,27 +358,51 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
         def move(state, tracked, forces):
             nbrs = None if spec is None else tracked.neighbors
             kinetic = boxed.kinetic_energy(state)
-            state, cell, potential = barostat.move(system, state, old_cell, space, key_baro,
-                                                   interval * dt, nbrs, energy=True,
-                                                   measured=measured)
+            key_move, key_test = (jax.random.split(key_baro) if barostat.metropolis
+                                  else (key_baro, None))
+            moved, cell, potential, forward = barostat.propose(
+                system, state, old_cell, space, key_move, interval * dt, nbrs, measured)
             before = kinetic + potential + p0 * linalg.det(old_cell)  # H + P0 V before
+            moved_tracked = tracked
             if spec is not None:  # the list follows the box (rebuilt when it may miss a pair)
-                tracked = update_neighbors(spec, tracked, state, cell)
-                nbrs = tracked.neighbors
+                moved_tracked = update_neighbors(spec, tracked, moved, cell)
+                nbrs = moved_tracked.neighbors
             # the move's work: the exact change of H + P0 V it made (the list, valid for the
             # moved state in the new cell unless the step is not kept); the same pass gives
-            # the forces that the next step starts with
-            energy, forces = system.replace(cell=cell).energy_and_forces(state, nbrs)
-            work = (boxed.kinetic_energy(state) + energy + p0 * linalg.det(cell)) - before
-            return state, cell, tracked, forces, work
+            # the forces that the next step starts with (and, to test the move, the virial)
+            moved_boxed = system.replace(cell=cell)
+            if barostat.metropolis and spec is not None:
+                energy, moved_forces, w = pressure_module.energy_forces_virial(
+                    moved_boxed, moved, space, nbrs)
+            else:
+                energy, moved_forces = moved_boxed.energy_and_forces(moved, nbrs)
+                if barostat.metropolis:  # all pairs: the virial's own pass
+                    w = pressure_module.virial(moved_boxed, moved, space)
+            work = (boxed.kinetic_energy(moved) + energy + p0 * linalg.det(cell)) - before
+            if not barostat.metropolis:
+                return moved, cell, moved_tracked, moved_forces, work, int0
+            p_after = (pressure_module.kinetic_tensor(moved_boxed, moved) + w) / linalg.det(cell)
+            log_alpha = barostat.log_acceptance(work, old_cell, cell, p_after, forward, space,
+                                                interval * dt)
+            in_support = jnp.all(jnp.diagonal(cell) > 0) & jnp.all(jnp.isfinite(cell))
+            accept = in_support & (jnp.log(jax.random.uniform(key_test)) < log_alpha)
+            if spec is not None:  # a list that misses pairs cannot judge the move: kept, so
+                # that the run reallocates (overflow) or stops (box too narrow) as without
+                unjudged = (moved_tracked.overflow != 0) | ~nb.fits_box(spec, moved.phi, cell)
+                accept |= in_support & unjudged
+            pick = lambda new, old: jax.tree.map(  # noqa: E731
+                lambda a, b: jnp.where(accept, a, b), new, old)
+            return (pick(moved, state), pick(cell, old_cell), pick(moved_tracked, tracked),
+                    pick(moved_forces, forces), jnp.where(accept, work, 0.0),
+                    (~accept).astype(jnp.int32))
 
         def stay(state, tracked, forces):  # a constant-volume step: its last kick's forces
-            return state, old_cell, tracked, forces, jnp.zeros_like(heat)
+            return state, old_cell, tracked, forces, jnp.zeros_like(heat), int0
 
         if interval == 1:
-            state, cell, tracked, forces, work = move(state, tracked, forces)
+            state, cell, tracked, forces, work, rejected = move(state, tracked, forces)
         else:  # a move after the steps k with (k + 1) % interval == 0 (module docstring)
-            state, cell, tracked, forces, work = lax.cond(
+            state, cell, tracked, forces, work, rejected = lax.cond(
                 (k + 1) % interval == 0, move, stay, state, tracked, forces)
         ok = jnp.all(jnp.diagonal(cell) > 0) & jnp.all(jnp.isfinite(cell))
         for leaf in jax.tree.leaves(state):
@@ -330,20 +424,21 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
         nbrs = jax.tree.map(keep, old_nbrs, nbrs)
         exchanged = jax.tree.map(keep, exchanged, (exchanged[0] + heat, exchanged[1] + work))
         carried = jax.tree.map(keep, old_forces, forces)
+        rejections = keep(rejections, rejections + rejected)
         return (state, cell, nbrs, k + 1, failed, overflowed, narrow, lost, exchanged,
-                carried), None
-
-    first = measure(state, cell, neighbors, exchanged)
-
-    def chunk(carry):
-        carry, _ = lax.scan(one_step, carry, None, length=every)
-        return carry, (carry[0], carry[1], measure(carry[0], carry[1], carry[2], carry[8]))
+                carried, rejections), None
 
     int0 = jnp.zeros((), dtype=jnp.int32)
+    first = measure(state, cell, neighbors, exchanged, int0)
+
+    def chunk(carry):  # the rejected moves are counted from frame to frame
+        carry, _ = lax.scan(one_step, carry[:-1] + (int0,), None, length=every)
+        return carry, (carry[0], carry[1], measure(*carry[:3], carry[8], carry[10]))
+
     lost = (int0, int0, jnp.zeros((), dtype=state.x.dtype))
     no = jnp.asarray(False)
     init = (state, cell, neighbors, first_step, -jnp.ones_like(first_step), no, no, lost,
-            exchanged, system.replace(cell=cell).energy_and_forces(state, neighbors)[1])
+            exchanged, system.replace(cell=cell).energy_and_forces(state, neighbors)[1], int0)
     (_, _, last_list, _, failed, overflowed, narrow, lost, *_), (states, cells, values) = \
         scan_chunks(chunk, lambda carry: (carry, (carry[0], carry[1], first)), init, n_chunks,
                     active)

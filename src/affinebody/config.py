@@ -269,6 +269,9 @@ class BarostatSection(_Section):
                                                "of length interval * dt (as GROMACS's "
                                                "nstpcouple; about 10 makes an NPT step cost "
                                                "little more than an NVT one)")
+    metropolis: bool = Field(False, description="accept or reject each move by a "
+                                                 "Metropolis-Hastings test: the ensemble "
+                                                 "exact at any interval * dt (docs/pressure.md)")
 
 
 class Config(_Section):

@@ -22,6 +22,8 @@ The layout is a public contract::
                                           2 T_tr / (N n) and 2 T_int / (N d), d the internal
                                           momentum degrees of freedom per body (thermostats.py)
     /observables/effective_energy/...     value [T]   thermostatted runs: H minus the heat
+    /observables/rejected_moves/...       value [T]   barostat.metropolis runs: the barostat
+                                          moves rejected since the previous frame
     /parameters/{config, seed, version, dt, steps, config_hash}
     /parameters/frames_committed  [1] int64: frames whose every element is on disk
     /h5md/modules/units                   attrs version=[1, 0], system="reduced" | "gromacs"
@@ -107,6 +109,9 @@ OBSERVABLES = {
 PERIODIC_OBSERVABLES = {"pressure": 2, "volume": 0}
 #: Observables written by thermostatted runs only: H minus the heat the thermostat put in.
 THERMOSTAT_OBSERVABLES = {"effective_energy": 0}
+#: Observables of runs whose barostat tests its moves (``barostat.metropolis``): the moves
+#: rejected since the previous frame.
+BAROSTAT_TEST_OBSERVABLES = {"rejected_moves": 0}
 #: File observables recorded under another name by the run driver
 #: (``simulate.NAMED_OBSERVABLES``); the others have the same name in both.
 DRIVER_NAMES = {"total_energy": "energy"}
@@ -373,7 +378,8 @@ class H5MDWriter:
 
     Use as a context manager. ``append`` writes a block of frames and flushes them to disk.
     ``pressure``: the file also holds :data:`PERIODIC_OBSERVABLES` (a periodic ``box``);
-    ``thermostat``: :data:`THERMOSTAT_OBSERVABLES`.
+    ``thermostat``: :data:`THERMOSTAT_OBSERVABLES`; ``barostat_test``:
+    :data:`BAROSTAT_TEST_OBSERVABLES`.
     ``parameters`` are stored under /parameters (strings and numbers only). ``units`` names
     the unit system (a key of :data:`UNIT_SYSTEMS`).
     """
@@ -391,6 +397,7 @@ class H5MDWriter:
         units: str = "reduced",
         pressure: bool = False,
         thermostat: bool = False,
+        barostat_test: bool = False,
     ):
         self.path = Path(path)
         if units not in UNIT_SYSTEMS:
@@ -403,9 +410,11 @@ class H5MDWriter:
         if pressure and box is None:
             raise ValueError("pressure and volume are observables of a periodic box: give box")
         #: the observables this file holds (with ``pressure``: PERIODIC_OBSERVABLES too, with
-        #: ``thermostat``: THERMOSTAT_OBSERVABLES)
+        #: ``thermostat``: THERMOSTAT_OBSERVABLES, with ``barostat_test``:
+        #: BAROSTAT_TEST_OBSERVABLES)
         self.observables = dict(OBSERVABLES, **(PERIODIC_OBSERVABLES if pressure else {}),
-                                **(THERMOSTAT_OBSERVABLES if thermostat else {}))
+                                **(THERMOSTAT_OBSERVABLES if thermostat else {}),
+                                **(BAROSTAT_TEST_OBSERVABLES if barostat_test else {}))
         mass = np.asarray(mass, dtype=np.float64)
         bodies = mass.shape[0]
         self.n, self.bodies = int(n), int(bodies)
@@ -593,7 +602,8 @@ def copy_frames_from_file(path: str | Path, writer: H5MDWriter, through_step: in
 __all__ = [
     "H5MD_VERSION", "MODULE_NAME", "MODULE_VERSION", "PARTICLE_GROUP", "COMMITTED",
     "UNITS_MODULE_VERSION", "ELEMENT_UNITS", "STATE_ELEMENTS", "OBSERVABLES",
-    "PERIODIC_OBSERVABLES", "THERMOSTAT_OBSERVABLES", "DRIVER_NAMES", "TrajectoryFileError",
+    "PERIODIC_OBSERVABLES", "THERMOSTAT_OBSERVABLES", "BAROSTAT_TEST_OBSERVABLES",
+    "DRIVER_NAMES", "TrajectoryFileError",
     "NoRoomError", "METADATA_MARGIN", "room_for", "open_h5", "Trajectory", "read_trajectory",
     "open_trajectory", "fixed_string", "H5MDWriter", "copy_frames_from_file"
 ]

@@ -90,6 +90,8 @@ class RunSummary:
     bodies: int = 0
     phases: dict = field(default_factory=dict)
     compile_seconds: float = 0.0
+    #: (moves rejected, moves made) by a barostat that tests its moves (barostat.metropolis)
+    barostat_moves: tuple[int, int] | None = None
 
     @property
     def integrate_seconds(self) -> float:
@@ -113,7 +115,9 @@ class RunSummary:
             f"{rate * self.bodies:.3g} body-steps/s)",
             f"energy {self.initial_energy:.12g} -> {self.final_energy:.12g}, "
             f"max relative error {self.max_relative_energy_error:.3e}",
-        ]
+        ] + ([] if self.barostat_moves is None else [
+            f"barostat: {self.barostat_moves[0]} of {self.barostat_moves[1]} moves rejected "
+            f"({self.barostat_moves[0] / max(self.barostat_moves[1], 1):.1%})"])
 
     def phase_lines(self) -> list[str]:
         """One line per phase (``affinebody run --verbose``)."""
@@ -223,7 +227,8 @@ def run_simulation(
     writer_args = dict(mass=built.inertia.mass, radius=built.inertia.radius, n=config.n,
                        box=config.system.box, parameters=parameters,
                        units=config.system.units, pressure=records_pressure(config),
-                       thermostat=_tracks_heat(config, built))
+                       thermostat=_tracks_heat(config, built),
+                       barostat_test=config.barostat is not None and config.barostat.metropolis)
     if resume:
         checkpoint = load_checkpoint(ckpt_file, config_hash)
         if checkpoint.step > total:
@@ -268,6 +273,7 @@ def run_simulation(
         observers.update((name, pressure.Observer(name, space))
                          for name in PERIODIC_OBSERVABLES)
     npt = None if config.barostat is None else _NPT(config, built)
+    rejected = 0  # barostat moves rejected by their Metropolis test in this run
     if npt is not None and resume:
         npt.cell = checkpoint.cell
     if progress is not None:
@@ -315,6 +321,8 @@ def run_simulation(
                         {k: np.asarray(v)[first:] for k, v in trajectory.observables.items()},
                         None if boxes is None else boxes[first:],
                     )
+                if "rejected_moves" in trajectory.observables:
+                    rejected += int(np.sum(trajectory.observables["rejected_moves"][first:]))
                 max_error = max(max_error, float(np.max(relative_error(energy, initial_energy))))
                 last_energy = float(energy[-1])
                 if stop is not None:
@@ -337,7 +345,10 @@ def run_simulation(
         frames = writer.frames
     return RunSummary(output, start, total, frames, time.perf_counter() - started,
                       initial_energy, last_energy, max_error, bodies=config.bodies_count,
-                      phases=phases.seconds, compile_seconds=compiling.seconds)
+                      phases=phases.seconds, compile_seconds=compiling.seconds,
+                      barostat_moves=None if npt is None or not npt.barostat.metropolis else (
+                          rejected, step // npt.barostat.interval
+                          - start // npt.barostat.interval))
 
 
 def _tracks_heat(config: Config, built) -> bool:
@@ -407,7 +418,8 @@ def constant_pressure(config: Config, thermostat):
     try:
         baro = barostat.c_rescale(b.pressure, config.n, tau=b.tau,
                                   compressibility=b.compressibility, temperature=temperature,
-                                  coupling=b.coupling, interval=b.interval)
+                                  coupling=b.coupling, interval=b.interval,
+                                  metropolis=b.metropolis)
     except ValueError as err:
         raise ConfigError(str(err)) from None
     return baro, None if thermostat is None else ThermostatHook(thermostat)
