@@ -7,6 +7,8 @@ integration of Hamilton's equations derived by autodiff of ``term.hamiltonian``.
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -269,6 +271,14 @@ def test_positive_definite_region_of_73_74(cls, n):
         assert metric_eigenvalues(cls(*outside), n).min() < 0
         with pytest.raises(ValueError, match=message):
             cls(*outside).check(n)
+    # The region is a cone: the same answers at 1e308 times the values, where I + A, I - A
+    # and I + A + nB overflow float64 (the check scales them; no overflow warning either)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for message, inside, outside in region_cases(n):
+            cls(*(1e308 * v for v in inside)).check(n)
+            with pytest.raises(ValueError, match=message):
+                cls(*(1e308 * v for v in outside)).check(n)
     # On the three subspaces the metric is I + A (sym. traceless), I - A (skew), I + A + nB.
     i_, a_, b_ = 1.0, 0.3, 0.2
     phi = jnp.eye(n)[None]

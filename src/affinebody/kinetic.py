@@ -705,8 +705,13 @@ class _IsotropicAffineFamily:
         if not all(is_concrete(v) for v in self._iab()):
             return
         i, a, b = (np.asarray(v) for v in self._iab())
+        # the signs of the sums, computed on the values scaled by the largest of them (the
+        # sums of values near the float64 limit would overflow to inf)
+        scale = np.maximum(np.maximum(np.abs(i), np.abs(a)), np.abs(b))
+        scale = np.where(scale > 0, scale, 1.0)
+        si, sa, sb = i / scale, a / scale, b / scale
         if n == 1:
-            ok = i + a + b > 0
+            ok = si + sa + sb > 0
             if not np.all(ok):
                 raise ValueError(
                     f"kinetic.I + kinetic.A + kinetic.B must be > 0 for {model} to be positive "
@@ -714,15 +719,15 @@ class _IsotropicAffineFamily:
                 )
             return
         for ok, what in (
-            (i + a > 0, "kinetic.I + kinetic.A must be > 0"),
-            (i - a > 0, "kinetic.I must be > kinetic.A"),
+            (si + sa > 0, "kinetic.I + kinetic.A must be > 0"),
+            (si - sa > 0, "kinetic.I must be > kinetic.A"),
         ):
             if not np.all(ok):
                 raise ValueError(
                     f"{what} for {model} to be positive definite {_first_bad(ok, I=i, A=a)}"
                 )
         if n is not None:
-            ok = i + a + n * b > 0
+            ok = si + sa + n * sb > 0
             if not np.all(ok):
                 raise ValueError(
                     f"kinetic.I + kinetic.A + n kinetic.B must be > 0 (n = {n}) for {model} to be "
