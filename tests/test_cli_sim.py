@@ -282,3 +282,25 @@ def test_progress_says_compiling_first_and_the_summary_keeps_compilation_apart(f
     assert f"compiling {summary.compile_seconds:.2f} s" in line
     assert f"integrating {summary.integrate_seconds:.2f} s" in line
     assert summary.steps_per_second == pytest.approx(6000 / summary.integrate_seconds)
+
+
+def test_help_lists_the_commands_as_click_would_without_importing_them(monkeypatch):
+    """``affinebody --help`` lists the lazily imported commands from ``cli.SUMMARIES``: the
+    same text, at any terminal width, as click's own listing made from the commands (their
+    help, imported), and in a fresh process it imports neither JAX nor any command module
+    (it took seconds when it did)."""
+    import affinebody.cli as cli
+
+    widths = (50, 80, 200)  # 200: no command's first sentence is shortened
+    lazy = [CliRunner().invoke(cli.main, ["--help"], terminal_width=w).output for w in widths]
+    monkeypatch.setattr(cli._LazyGroup, "format_commands", click.Group.format_commands)
+    eager = [CliRunner().invoke(cli.main, ["--help"], terminal_width=w).output for w in widths]
+    assert lazy == eager
+    assert set(cli.SUMMARIES) == set(cli.COMMANDS)
+    probe = ("import sys; from click.testing import CliRunner; from affinebody.cli import main; "
+             "assert CliRunner().invoke(main, ['--help']).exit_code == 0; "
+             "print(sorted(m for m in sys.modules if m == 'jax' or m.startswith("
+             "('affinebody.cli.', 'affinebody.quantum'))))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.strip() == "[]", out

@@ -15,7 +15,6 @@ import importlib
 import click
 
 from affinebody import __version__
-from affinebody._checks import enable_x64
 from affinebody._xla import compile_faster
 
 #: Subcommand -> "module:attribute" of its click command, imported when the command is used
@@ -35,12 +34,51 @@ COMMANDS = {
     "phonons": "affinebody.cli.phonons:phonons_command",
 }
 
+#: Subcommand -> the first sentence of its help, which ``affinebody --help`` lists without
+#: importing the command (that would import JAX and every command module: seconds);
+#: tests/test_cli_sim.py checks that the listing is the one click makes from the commands.
+SUMMARIES = {
+    "run": "Integrate the system of CONFIG.toml and write an H5MD trajectory.",
+    "demo": "Run the built-in example: a small 2D crystal of affine bodies; write H5MD, PNG "
+            "and XYZ.",
+    "plot": "Plot energy, momentum maps, deformation invariants, volumes and (n = 2) the "
+            "bodies.",
+    "export": "Export a trajectory as extended XYZ with ellipsoid shapes and orientations.",
+    "validate": "Check a config file without running it.",
+    "sweep": "Run an ensemble / parameter sweep of CONFIG.toml ([sweep] table) on Dask.",
+    "spectrum": "Lowest energy levels of the quantum affine body described by CONFIG.",
+    "density": "Exact marginal densities of q (or Q), det phi, Tr G and orientations for one "
+               "state; with --orientation, --superpose or --temperature the densities of the "
+               "orientations of the principal axes of C and G and of the components of G "
+               "(orientation.json, .npz, .png).",
+    "transitions": "Reduced transition strengths of an operator from one level of CONFIG to "
+                   "every level.",
+    "evolve": "Time evolution of a wave packet of the body of CONFIG (n = 2, 3).",
+    "phonons": "Dispersion relations of the crystal of CONFIG_PATH's periodic box: the n "
+               "acoustic and the internal (affine) branches, DOS, sound speeds and elastic "
+               "constants.",
+}
+
 
 class _LazyGroup(click.Group):
-    """A click group whose subcommands of :data:`COMMANDS` are imported on first use."""
+    """A click group whose subcommands of :data:`COMMANDS` are imported on first use (and
+    listed by ``--help`` from :data:`SUMMARIES`)."""
 
     def list_commands(self, ctx):
         return sorted({*super().list_commands(ctx), *COMMANDS})
+
+    def format_commands(self, ctx, formatter):
+        """click's listing of the subcommands, the lazy ones' from :data:`SUMMARIES` (click
+        shortens them as it shortens a command's help)."""
+        rows = []
+        for name in self.list_commands(ctx):
+            command = (click.Command(name, help=SUMMARIES[name]) if name in COMMANDS
+                       else self.commands[name])
+            if not command.hidden:
+                rows.append((name, command))
+        limit = formatter.width - 6 - max(len(name) for name, _ in rows)
+        with formatter.section("Commands"):
+            formatter.write_dl([(name, c.get_short_help_str(limit)) for name, c in rows])
 
     def get_command(self, ctx, name):
         if name in COMMANDS:
@@ -59,10 +97,12 @@ def main() -> None:
 @main.command("kinematics-demo")
 def kinematics_demo() -> None:
     """Print a worked example of the kinematics of one affine body (paper §1)."""
-    enable_x64()
+    from affinebody._checks import enable_x64
     from affinebody.demo_kinematics import print_worked_example
+
+    enable_x64()
 
     print_worked_example()
 
 
-__all__ = ["COMMANDS", "main"]
+__all__ = ["COMMANDS", "SUMMARIES", "main"]
