@@ -466,8 +466,9 @@ def test_a_bound_pair_samples_the_exact_isobaric_volume_law(metropolis, dt):
 
     baro = barostat.c_rescale(p0, 2, tau=0.5, compressibility=1.0, temperature=kt,
                               metropolis=metropolis)
-    trajectory = barostat.run(system, state, space, baro, dt, 12_000, seed=1, every=10,
-                              thermostat=hook)
+    steps = int(round(600 / dt))  # the same span of time (the statistical error's measure)
+    trajectory = barostat.run(system, state, space, baro, dt, steps, seed=1,
+                              every=int(round(0.5 / dt)), thermostat=hook)
     assert trajectory.failed_step is None
     volume = trajectory.observables["volume"][60:]
     blocks = volume[: len(volume) // 20 * 20].reshape(20, -1).mean(axis=1)
