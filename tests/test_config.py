@@ -2,6 +2,7 @@
 bad field is refused with one line naming it (and an expression can never run code)."""
 
 import math
+import re
 import textwrap
 
 import numpy as np
@@ -349,3 +350,32 @@ def test_an_inertia_beyond_float64_is_refused_in_one_line():
     text = demo_config_text().replace("radius = 0.35", "radius = 1.5e154")
     with pytest.raises(ConfigError, match=r"body\.radius = 1\.5e\+154 .* beyond float64"):
         check_config(parse_config(text))
+
+
+KINETIC_OVERFLOW = (r"kinetic energy of the initial state is (inf|nan): lower "
+                    r"initial\.momentum_scale")
+
+
+@pytest.mark.parametrize("key,value,message", [
+    ("momentum_scale", "5.1e307", KINETIC_OVERFLOW),
+    ("phi_momentum_scale", "5.1e307", KINETIC_OVERFLOW),
+    ("phi_noise", "5.1e307", r"initial\.phi_noise = 5\.1e\+307 is too large"),
+    ("spacing", "1e308", r"generated positions are not finite in float64 \(spacing 1e\+308"),
+])
+def test_generated_states_beyond_float64_are_refused_in_one_line_naming_the_keys(key, value,
+                                                                                 message):
+    """Scales of the generator that put the state beyond float64 (found by the config fuzz
+    test: momenta, phi = exp(noise) or the positions of the third row of the 3 x 3 lattice
+    overflowed with a warning, and the error blamed bodies on top of each other or phi outside
+    the group): a config error naming the keys, without a warning."""
+    import warnings
+
+    from affinebody.runner import demo_config_text
+
+    text = demo_config_text()
+    assert f"\n{key} = " in text
+    text = re.sub(rf"\n{key} = [^\n]*", f"\n{key} = {value}", text)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ConfigError, match=message):
+            build(check_config(parse_config(text)))

@@ -972,7 +972,22 @@ def _lattice_shape(count: int, n: int) -> list[int]:
 
 
 def initial_configuration(config: Config) -> tuple[np.ndarray, np.ndarray]:
-    """(x [N, n], phi [N, n, n]) from ``[initial]``: explicit arrays, else the generator."""
+    """(x [N, n], phi [N, n, n]) from ``[initial]``: explicit arrays, else the generator;
+    ConfigError naming the generator's keys when they put x or phi beyond float64."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        x, phi = _generated_configuration(config)
+    i = config.initial
+    if i.x is None and not np.all(np.isfinite(x)):
+        raise ConfigError(f"initial: the generated positions are not finite in float64 (spacing "
+                          f"{i.spacing}, jitter {i.jitter}, extent {i.extent}): lower them")
+    if i.phi is None and not np.all(np.isfinite(phi)):
+        raise ConfigError(f"initial.phi_noise = {i.phi_noise} is too large: phi is the "
+                          f"exponential of the noise, beyond float64 (values of 0.01 to 0.3 are "
+                          f"usual)")
+    return x, phi
+
+
+def _generated_configuration(config: Config) -> tuple[np.ndarray, np.ndarray]:
     i, n, count = config.initial, config.n, config.bodies_count
     seed = config.run.seed if i.seed is None else i.seed
     origin = np.zeros(n) if i.origin is None else np.asarray(i.origin, dtype=np.float64)
@@ -1030,16 +1045,18 @@ def initial_state(config: Config, kinetic):
     elif i.velocity is not None:
         p = np.asarray(kinetic.translational.legendre(phi, np.asarray(i.velocity, np.float64)))
     else:
-        p = i.momentum_scale * _rng(seed, 3).standard_normal((count, n))
-        if i.zero_momentum and count > 1:
-            p = p - p.mean(axis=0)
+        with np.errstate(over="ignore", invalid="ignore"):  # too large: build says which key
+            p = i.momentum_scale * _rng(seed, 3).standard_normal((count, n))
+            if i.zero_momentum and count > 1:
+                p = p - p.mean(axis=0)
     if i.phi_momentum is not None:
         pi = np.asarray(i.phi_momentum, dtype=np.float64)
     elif i.phi_velocity is not None:
         xi = np.asarray(i.phi_velocity, dtype=np.float64)
         pi = np.asarray(kinetic.internal.legendre(phi, xi))
     else:
-        pi = i.phi_momentum_scale * _rng(seed, 4).standard_normal((count, n, n))
+        with np.errstate(over="ignore"):
+            pi = i.phi_momentum_scale * _rng(seed, 4).standard_normal((count, n, n))
     return State(x, phi, p, pi)
 
 
@@ -1102,6 +1119,11 @@ def build(config: Config) -> Built:
     energy = float(_hamiltonian(system, state, None if lists is None else lists[1]))
     lap("initial energy")
     if not math.isfinite(energy):
+        kinetic = float(np.sum(system.kinetic_energy(state)))
+        if not math.isfinite(kinetic):
+            raise ConfigError(f"initial: the kinetic energy of the initial state is {kinetic}: "
+                              f"lower initial.momentum_scale or initial.phi_momentum_scale (or "
+                              f"the momenta or velocities given)")
         raise ConfigError(f"initial: the energy of the initial state is {energy} (bodies on top "
                           f"of each other in a singular potential, or det phi = 0?)")
     return Built(system, state, inertia, neighbor_list, lists, timings,
