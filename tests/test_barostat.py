@@ -11,7 +11,7 @@ import pytest
 from affinebody import barostat
 from affinebody.integrators import get_integrator
 from affinebody.kinetic import DAlembert, DAlembertTranslational, KineticEnergy
-from affinebody.space import orthorhombic
+from affinebody.space import orthorhombic, triclinic
 from affinebody.state import State
 from affinebody.system import HamiltonianSystem
 from tracking import compilations
@@ -96,42 +96,50 @@ def test_log_proposal_is_the_density_of_the_drawn_move():
     """``propose`` draws the new cell from a Gaussian whose log density ``log_proposal``
     gives: for the triclinic coupling, in the cell's moving entries q = (h11, h12, h22) the
     move is q + (d delta H)[q] with d delta = drift + noise, so q' ~ N(mean, s^2 J J^T), J the
-    linear map noise -> (noise H)[q] (by automatic differentiation here, scipy's normal
-    density); isotropic: eps' - eps = ln det mu ~ N((beta_T/tau)(P - P0) dt, 2 kT beta_T dt /
-    (V tau)). A wrong Jacobian or variance would bias the Metropolis test."""
+    linear map noise -> (noise H)[q] (written out here, scipy's normal density; the drift
+    with the Ito drift of the test below); isotropic:
+    eps' - eps = ln det mu ~ N((beta_T/tau)(P - P0) dt, 2 kT beta_T dt / (V tau)), P of the
+    free bodies (unit masses) sum p p^T / V. A wrong Jacobian or variance would bias the
+    Metropolis test."""
     from scipy.stats import multivariate_normal, norm
 
-    from affinebody import pressure
-    from affinebody.space import triclinic
-
     system, state, _ = ideal_gas()
-    h = jnp.asarray([[2.1, 0.4], [0.0, 1.7]])
-    space = triclinic(np.asarray(h))
+    h = np.array([[2.1, 0.4], [0.0, 1.7]])
+    space = triclinic(h)
     rows, cols = np.nonzero(np.triu(np.ones((2, 2))))
+    unit = np.zeros((3, 2, 2))
+    unit[np.arange(3), rows, cols] = 1.0
+    jac = np.stack([(e @ h)[rows, cols] for e in unit], axis=1)  # noise entries -> q
+    p_inst = np.asarray(state.p).T @ np.asarray(state.p) / np.linalg.det(h)
     dt, rate, kt = 0.03, 1.3 / 0.7, 0.9
+    s = np.sqrt(2 * kt * rate / np.linalg.det(h) * dt)
     for coupling in ("anisotropic", "isotropic"):
         baro = barostat.StochasticCellRescaling(((0.4, 0.1), (0.1, 0.6)), tau=0.7,
                                                 compressibility=1.3, temperature=kt,
                                                 coupling=coupling, metropolis=True)
-        p_inst = pressure.pressure_tensor(system.replace(cell=h), state, space)
+
+        @jax.jit  # op by op, the Ito drift's nested jacfwd takes seconds
+        def draw(key, baro=baro):
+            moved, new_cell, _, logq = baro.propose(system, state, jnp.asarray(h), space, key,
+                                                    dt)
+            mu = new_cell @ jnp.linalg.inv(h)
+            return moved.x, new_cell, logq, baro.log_proposal(h, p_inst, mu, space, dt)
+
         for seed in range(3):
-            moved, new_cell, _, logq = baro.propose(system, state, h, space,
-                                                    jax.random.PRNGKey(seed), dt)
-            mu = np.asarray(new_cell) @ np.linalg.inv(np.asarray(h))
-            np.testing.assert_allclose(moved.x, state.x @ mu.T, rtol=1e-12)
-            np.testing.assert_allclose(logq, baro.log_proposal(h, p_inst, mu, space, dt),
-                                       rtol=1e-12)
-            s = np.sqrt(2 * kt * rate / np.linalg.det(h) * dt)
+            x, new_cell, logq, again = map(np.asarray, draw(jax.random.PRNGKey(seed)))
+            mu = new_cell @ np.linalg.inv(h)
+            np.testing.assert_allclose(x, state.x @ mu.T, rtol=1e-12)
+            np.testing.assert_allclose(logq, again, rtol=1e-12)
             if coupling == "isotropic":
                 mean = rate * (np.trace(p_inst) - 1.0) / 2 * dt
                 exact = norm.logpdf(np.log(np.linalg.det(mu)), mean, s)
-            else:
-                drift = np.asarray(baro._drift(h, p_inst, space, dt)[0])
-                noise_to_q = jax.jacfwd(
-                    lambda d: (jnp.zeros((2, 2)).at[rows, cols].set(d) @ h)[rows, cols])
-                jac = np.asarray(noise_to_q(jnp.zeros(3)))
-                mean = np.asarray(h)[rows, cols] + (drift @ np.asarray(h))[rows, cols]
-                exact = multivariate_normal.logpdf(np.asarray(new_cell)[rows, cols], mean,
+            else:  # the strain's drift: stress, and the Ito drift worked out by hand (below)
+                c = kt * rate
+                ito = np.array([[2 * c / h[1, 1], 2 * c * h[0, 1] / (h[0, 0] * h[1, 1])],
+                                [0.0, c / h[0, 0]]]) @ np.linalg.inv(h)
+                stress = np.triu(rate * (p_inst - np.array([[0.4, 0.1], [0.1, 0.6]])).T)
+                mean = h[rows, cols] + (((stress + ito) * dt) @ h)[rows, cols]
+                exact = multivariate_normal.logpdf(new_cell[rows, cols], mean,
                                                    s * s * jac @ jac.T)
             np.testing.assert_allclose(logq, exact, rtol=1e-10)
 
