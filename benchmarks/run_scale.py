@@ -33,12 +33,14 @@ interleaved), printing body-steps/s: a built-in family runs the same fused host 
 ``--npt``: the same lattice (``--side``, ``--steps``) at constant volume and under the
 stochastic cell-rescaling barostat (:data:`BAROSTAT`, isotropic; the neighbour list follows
 the box) moving the box every step and every 10 steps (``--barostat-interval``), all on all
-the cores, printing steps/s in the loop and their ratios to NVT.
+the cores, printing steps/s in the loop and their ratios to NVT; with ``--metropolis`` also
+each interval with the Metropolis test of the moves (``barostat.metropolis = true``).
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py            # vs LAMMPS, 2 cores
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py --repeat 3 # + the ratio's spread
     .venv/bin/python benchmarks/run_scale.py --memory 1000 10000 100000 1000000
     .venv/bin/python benchmarks/run_scale.py --npt --steps 200         # NPT vs NVT, 4096
+    .venv/bin/python benchmarks/run_scale.py --npt --steps 200 --metropolis  # + tested moves
     .venv/bin/python benchmarks/run_scale.py --faults --steps 1000     # page faults per step
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py --families --repeat 3
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py --repeat 3 --pool-of-cores
@@ -135,9 +137,12 @@ coupling = "isotropic"
 
 
 def write_config(folder: Path, side: int, steps: int, every: int, npt: bool = False,
-                 pair: str = PAIR, name: str = "lattice", interval: int = 1) -> Path:
-    path = folder / f"{name}{side}{f'-npt{interval}' if npt else ''}.toml"
-    barostat = BAROSTAT + (f"interval = {interval}\n" if interval != 1 else "")
+                 pair: str = PAIR, name: str = "lattice", interval: int = 1,
+                 metropolis: bool = False) -> Path:
+    tag = f"-npt{interval}{'-tested' if metropolis else ''}" if npt else ""
+    path = folder / f"{name}{side}{tag}.toml"
+    barostat = (BAROSTAT + (f"interval = {interval}\n" if interval != 1 else "")
+                + ("metropolis = true\n" if metropolis else ""))
     path.write_text(CONFIG.format(bodies=side**3, side=side, steps=steps, every=every,
                                   pair=pair) + (barostat if npt else ""))
     return path
@@ -287,23 +292,29 @@ def single(bodies: int, steps: int) -> None:
     print(result["text"])
 
 
-def npt_versus_nvt(side: int, steps: int, intervals: list[int]) -> None:
+def npt_versus_nvt(side: int, steps: int, intervals: list[int], metropolis: bool) -> None:
     cores = ",".join(map(str, sorted(os.sched_getaffinity(0))))
     threads = len(os.sched_getaffinity(0))
     rates = {}
+    runs = [(interval, tested) for interval in intervals
+            for tested in ((False, True) if metropolis else (False,))]
     with tempfile.TemporaryDirectory() as tmp:
-        for interval in [None, *intervals]:  # None: constant volume
+        for interval, tested in [(None, False), *runs]:  # None: constant volume
             config = write_config(Path(tmp), side, steps, every=steps // 2,
-                                  npt=interval is not None, interval=interval or 1)
-            rates[interval] = ours(config, Path(tmp) / f"{interval}.h5", cores, threads)
+                                  npt=interval is not None, interval=interval or 1,
+                                  metropolis=tested)
+            rates[interval, tested] = ours(config, Path(tmp) / f"{interval}{tested}.h5", cores,
+                                           threads)
+    nvt = rates[None, False]["rate"]
     print(f"affinebody run, {side**3} bodies, {steps} steps, {threads} cores, neighbour list on:")
     print("| ensemble | steps/s in the loop | whole command (s) | compile (s) | / NVT |")
     print("|---|---|---|---|---|")
-    for interval, r in rates.items():
+    for (interval, tested), r in rates.items():
         name = ("NVT (constant box)" if interval is None else
-                f"NPT (c-rescale, isotropic, barostat.interval = {interval})")
+                f"NPT (c-rescale, isotropic, barostat.interval = {interval}"
+                f"{', metropolis = true' if tested else ''})")
         print(f"| {name} | {r['rate'] / side**3:.3g} | {r['wall']:.1f} | {r['compile']:.1f} "
-              f"| {r['rate'] / rates[None]['rate']:.2f} |")
+              f"| {r['rate'] / nvt:.2f} |")
 
 
 def families(side: int, steps: int, repeat: int) -> None:
@@ -347,6 +358,8 @@ def main() -> None:
     parser.add_argument("--npt", action="store_true")
     parser.add_argument("--barostat-interval", type=int, nargs="+", default=[1, 10],
                         help="--npt: the barostat.interval values to run (default 1 10)")
+    parser.add_argument("--metropolis", action="store_true",
+                        help="--npt: also each interval with barostat.metropolis = true")
     parser.add_argument("--faults", action="store_true",
                         help="minor page faults per step of the loop (one core)")
     parser.add_argument("--repeat", type=int, default=1,
@@ -362,7 +375,7 @@ def main() -> None:
     if args.families:
         families(args.side, args.steps, args.repeat)
     elif args.npt:
-        npt_versus_nvt(args.side, args.steps, args.barostat_interval)
+        npt_versus_nvt(args.side, args.steps, args.barostat_interval, args.metropolis)
     elif args.faults:
         page_faults(args.side, args.steps)
     elif args.memory:

@@ -20,7 +20,8 @@ reported apart):
 ``--npt``: the same system under the barostat of ``run_scale.py --npt`` (a move every step),
 and instead of ``step`` and ``loop``, ``npt loop``: the compiled NPT loop
 (``barostat.advance``, what ``affinebody run`` compiles with a ``[barostat]``) over
-``--loop-steps`` steps, per step (median of seven runs after a warm-up).
+``--loop-steps`` steps, per step (median of seven runs after a warm-up); with
+``--metropolis`` the moves pass the Metropolis test (``barostat.metropolis = true``).
 
 ``--against FILE``: ``forces`` again with the JAX pair kernel of another version of
 ``pair_kernels.py`` (``git show REV:src/affinebody/pair_kernels.py > FILE``) in place of the
@@ -93,6 +94,8 @@ def main() -> None:
                         help="the JAX pair kernel on a CPU too (as on a GPU)")
     parser.add_argument("--npt", action="store_true",
                         help="the barostat's system and its NPT loop")
+    parser.add_argument("--metropolis", action="store_true",
+                        help="--npt: the barostat's moves pass the Metropolis test")
     args = parser.parse_args()
 
     import jax
@@ -107,7 +110,8 @@ def main() -> None:
 
     side = round(args.bodies ** (1 / 3))
     with tempfile.TemporaryDirectory() as tmp:
-        config = load_config(write_config(Path(tmp), side, steps=10, every=10, npt=args.npt))
+        config = load_config(write_config(Path(tmp), side, steps=10, every=10, npt=args.npt,
+                                          metropolis=args.metropolis))
     prepare_process(config)  # the process as `affinebody run` sets it up
     _host.keep_freed_memory()
     start = time.perf_counter()
