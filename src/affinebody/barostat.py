@@ -514,7 +514,8 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
     change of H + P0 V made by the barostat's moves (P0 = Tr P0 / n), each summed exactly
     step by step from ``heat`` and ``work`` (their values before ``first_step``), and the
     ``effective_energy`` H + P0 V - heat - work, whose drift is the error of the integrator
-    at fixed cell (docs/pressure.md).
+    at fixed cell (docs/pressure.md); with ``barostat.metropolis`` also ``rejected_moves``,
+    the moves rejected since the previous frame.
 
     space: the reference periodic box (that of the pair terms); cell: the box now (default
     ``space``'s cell); first_step: the index of the first step (keys: :func:`step_key`).
