@@ -13,6 +13,7 @@ allowance for the bias of a variance measured over a finite run, about 1/(effect
 measurements)).
 """
 
+import math
 import textwrap
 
 import pytest
@@ -106,6 +107,27 @@ def test_npt_sweep_follows_the_isobaric_ideal_gas_law():
         close(point, "heat_capacity", QUADRATIC + N + 1, allowance=0.05)
         close(point, "mean_translational_temperature", kt)
         close(point, "mean_internal_temperature", kt)
+        assert math.isnan(point["rejected_fraction"])  # plain moves: nothing to reject
+
+
+def test_npt_sweep_with_tested_moves_follows_the_law_at_moves_five_times_as_long():
+    """dt = 0.05: the volume relaxes at beta_T P / tau = 4 at P0 = 2, a move is 0.2 of that
+    time, and the plain moves' boxes run away (by hand: <V> = 30 +- 16 for 2.5); with the
+    Metropolis test the samples follow (N + 1) kT / P, and the sweep reports the fraction of
+    the moves rejected, larger where the moves are longer against the relaxation time."""
+    text = NPT.replace("dt = 0.01", "dt = 0.05").replace(
+        "compressibility = 1.0", "compressibility = 1.0\nmetropolis = true")
+    result = run_sweep(load(text), workers=0)
+    assert set(result.status.ravel()) == {"sampled"}
+    rejected = []
+    for point, pressure in zip(result.summary["points"], (0.5, 2.0), strict=True):
+        volume = (N + 1) * 1.0 / pressure
+        close(point, "mean_volume", volume)
+        assert point["mean_volume_error"] < 0.05 * volume
+        close(point, "mean_pressure", pressure)
+        rejected.append(point["rejected_fraction"])
+        assert point["rejected_fraction_error"] < 0.1 * point["rejected_fraction"]
+    assert 0.01 < rejected[0] < rejected[1] < 0.5, rejected
 
 
 def test_thermal_sweep_tables_are_checked_in_one_line():

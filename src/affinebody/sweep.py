@@ -64,7 +64,9 @@ Tr P / n (:mod:`affinebody.pressure`, kinetic part included) and the volume (per
 else NaN). Per sample (``samples.csv``, :data:`THERMAL_SCALARS`): the number of measurements,
 the time averages, the variances (1/m) of E and V, the heat capacity C = var(E)/kT^2 (NVT,
 C_V) or var(E + P0 V)/kT^2 (NPT, C_P, P0 = Tr P0 / n; k_B = 1), and in NPT the isothermal
-compressibility kappa_T = var(V)/(kT <V>). The classification columns (bounded, spreads,
+compressibility kappa_T = var(V)/(kT <V>); with ``barostat.metropolis`` the fraction of the
+barostat's moves after the equilibration that its Metropolis test rejected
+(``rejected_fraction``, NaN otherwise). The classification columns (bounded, spreads,
 energy errors) do not apply: a sample is ``sampled``, or ``failed`` with its reason (the
 driver's stops, a non-finite state or box under the barostat, a box narrower than twice the
 pair cut-off). ``summary.json`` holds, per point, the mean over its sampled samples of each
@@ -151,7 +153,7 @@ SCALARS = ("exit_time", "followed_time", "max_spread", "energy_error", "initial_
 THERMAL_SCALARS = ("followed_time", "measurements", "mean_total_energy", "var_total_energy",
                    "mean_potential_energy", "mean_translational_temperature",
                    "mean_internal_temperature", "mean_pressure", "mean_volume", "var_volume",
-                   "heat_capacity", "compressibility")
+                   "heat_capacity", "compressibility", "rejected_fraction")
 
 
 # --------------------------------------------------------------------------- specification
@@ -810,7 +812,7 @@ def thermal_sample(system, state, dt, seed, temperature, pressure=None, *, steps
             return (moved, jnp.where(first, w.stop, code), done + good, lost), None
 
         (moved, code, done, lost), _ = lax.scan(one, carry[:4], None, length=every)
-        return moved, code, done, lost, carry[4], measure(moved[0], moved[1])
+        return moved, code, done, lost, carry[4], measure(moved[0], moved[1]), int0
 
     def npt_block(carry, start):
         (state, nbrs, cell), code, done, lost, narrowest = carry
@@ -828,29 +830,38 @@ def thermal_sample(system, state, dt, seed, temperature, pressure=None, *, steps
         reciprocal = lambda c: jnp.max(jnp.linalg.norm(linalg.inv(c), axis=-1))  # noqa: E731
         narrowest = jnp.where(good & (reciprocal(new_cell) > reciprocal(narrowest)), new_cell,
                               narrowest)
+        rejected = values.get("rejected_moves", int0)  # by the Metropolis test, in this block
         values = scalars(values, pm.scalar_pressure(values["pressure"]), values["volume"])
-        return moved, jnp.where(first, stop, code), done, lost, narrowest, values
+        return moved, jnp.where(first, stop, code), done, lost, narrowest, values, rejected
 
     block = nvt_block if barostat is None else npt_block
     zero = jnp.zeros(7, dtype)
 
+    interval = 0 if barostat is None else barostat.interval
+
     def accumulate(carry, index):
         start = index * every
-        moved, code, done, lost, narrowest, values = block(carry[:5], start)
+        moved, code, done, lost, narrowest, values, rejected = block(carry[:5], start)
         counted = (code == _SAMPLED) & (start + every > equilibration)
         shifted = jnp.where(counted, values - reference, 0.0)
         count, total, squares = carry[5]
         sums = (count + counted, total + shifted, squares + shifted * shifted)
-        return (moved, code, done, lost, narrowest, sums), None
+        # the barostat's moves in the block: after the steps k with (k + 1) % interval == 0
+        made = 0 if barostat is None else (start + every) // interval - start // interval
+        moves = jax.tree.map(lambda a, b: a + jnp.where(counted, b, 0).astype(a.dtype),
+                             carry[6], (rejected, made))
+        return (moved, code, done, lost, narrowest, sums, moves), None
 
     init = (carry0, jnp.asarray(_SAMPLED), jnp.asarray(0), lost0, narrowest0,
-            (jnp.asarray(0), zero, zero))
-    (_, code, done, lost, narrowest, sums), _ = lax.scan(
+            (jnp.asarray(0), zero, zero), (int0, int0))
+    (_, code, done, lost, narrowest, sums, moves), _ = lax.scan(
         accumulate, init, jnp.arange(steps // every))
     return {"code": code, "steps_done": done, "measurements": sums[0], "reference": reference,
             "sums": sums[1], "squares": sums[2], "narrowest_cell": narrowest,
             "temperature": jnp.asarray(temperature, dtype),
             "npt": jnp.asarray(barostat is not None),
+            "tested_moves": jnp.asarray(barostat is not None and barostat.metropolis),
+            "rejected_moves": moves[0], "barostat_moves": moves[1],
             "overflow": lost[0], "most_pairs": lost[1], "largest_reach": lost[2]}
 
 
@@ -892,7 +903,8 @@ def _compiled_thermal_batch():
 def thermal_results(out: dict[str, np.ndarray], dt: float) -> dict[str, np.ndarray]:
     """The per-sample columns :data:`THERMAL_SCALARS` from the sums of
     :func:`thermal_sample` (host side): means, variances (1/m, of the m measurements),
-    C = var(E)/kT^2 (NVT) or var(E + P0 V)/kT^2 (NPT), kappa_T = var(V)/(kT <V>) (NPT)."""
+    C = var(E)/kT^2 (NVT) or var(E + P0 V)/kT^2 (NPT), kappa_T = var(V)/(kT <V>) (NPT), the
+    fraction of the barostat's moves rejected (NPT with its Metropolis test)."""
     m = out["measurements"].astype(float)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = out["reference"] + out["sums"] / m[:, None]
@@ -915,6 +927,9 @@ def thermal_results(out: dict[str, np.ndarray], dt: float) -> dict[str, np.ndarr
             "var_volume": column(var[:, 5]),
             "heat_capacity": column(var[:, 6] / kt**2),
             "compressibility": column(np.where(npt, var[:, 5] / (kt * mean[:, 5]), np.nan)),
+            "rejected_fraction": column(np.where(
+                out["tested_moves"] & (out["barostat_moves"] > 0),
+                out["rejected_moves"] / np.maximum(out["barostat_moves"], 1), np.nan)),
         }
 
 
