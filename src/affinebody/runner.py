@@ -115,7 +115,7 @@ class RunSummary:
             f"{rate * self.bodies:.3g} body-steps/s)",
             f"energy {self.initial_energy:.12g} -> {self.final_energy:.12g}, "
             f"max relative error {self.max_relative_energy_error:.3e}",
-        ] + ([] if self.barostat_moves is None else [
+        ] + ([] if not (self.barostat_moves and self.barostat_moves[1]) else [
             f"barostat: {self.barostat_moves[0]} of {self.barostat_moves[1]} moves rejected "
             f"({self.barostat_moves[0] / max(self.barostat_moves[1], 1):.1%})"])
 
