@@ -126,39 +126,36 @@ class StochasticCellRescaling:
     def target(self) -> np.ndarray:
         return np.asarray(self.pressure)
 
-    def move(self, system, state: State, cell, space: Space, key, dt, neighbors=None,
-             energy: bool = False, measured=None):
-        """(state, cell) after one barostat move of length ``dt`` (module docstring), the
-        move always made (no Metropolis test: :meth:`propose` and :meth:`log_acceptance`);
-        ``neighbors``: None (the virial over all pairs) or a list valid for ``state`` in
-        ``cell``. With ``energy``: (state, cell, V), V the potential energy of ``state`` in
-        ``cell`` before the move (from the pass that computes the virial). ``measured``: None,
-        or (V, W) of ``state`` in ``cell`` already known (``pressure.energy_forces_virial``
-        in the step's last force evaluation): then no pass over the pairs here."""
-        state, new_cell, potential, _ = self.propose(system, state, cell, space, key, dt,
-                                                     neighbors, measured)
-        return (state, new_cell, potential) if energy else (state, new_cell)
+    def moves(self, first_step: int, last_step: int):
+        """How many moves the steps first_step, ..., last_step - 1 make (one after each step k
+        with (k + 1) % interval == 0; module docstring, "Moves every few steps")."""
+        return last_step // self.interval - first_step // self.interval
 
     def propose(self, system, state: State, cell, space: Space, key, dt, neighbors=None,
                 measured=None):
         """One move of length ``dt`` from ``state`` in ``cell`` (module docstring):
         (moved state, new cell, V before, log q), V the potential energy of ``state`` in
-        ``cell`` and log q the log density of drawing this move (:meth:`log_proposal`), for
-        the Metropolis test of :meth:`log_acceptance`. ``neighbors``, ``measured``: as in
-        :meth:`move`."""
+        ``cell`` (from the pass that computes the virial) and log q the log density of drawing
+        this move (:meth:`log_proposal`), for the Metropolis test of :meth:`log_acceptance`.
+        ``neighbors``: None (the virial over all pairs) or a list valid for ``state`` in
+        ``cell``; ``measured``: None, or (V, W) of ``state`` in ``cell`` already known
+        (``pressure.energy_forces_virial`` in the step's last force evaluation): then no pass
+        over the pairs here."""
         n = cell.shape[-1]
         potential, p_inst = pressure_module.pressure_tensor(
             system.replace(cell=cell), state, space, neighbors, energy=True, measured=measured)
         drift, scale = self._drift(cell, p_inst, space, dt)
         if self.coupling == "isotropic":
-            d_eps = drift + scale * jax.random.normal(key)
-            mu = jnp.exp(d_eps / n) * jnp.eye(n)
+            z = jax.random.normal(key)
+            mu = jnp.exp((drift + scale * z) / n) * jnp.eye(n)
         else:
-            mu = jnp.eye(n) + drift + self._moving(space) * scale * jax.random.normal(key, (n, n))
+            mask = self._moving(space)
+            z = jax.random.normal(key, (n, n))[np.nonzero(mask)]
+            mu = jnp.eye(n) + drift + scale * (jnp.zeros((n, n)).at[np.nonzero(mask)].set(z))
         new_cell = mu @ cell
         mu_inv_t = linalg.inv(mu).T
         state = state._replace(x=state.x @ mu.T, p=state.p @ mu_inv_t.T)
-        return state, new_cell, potential, self.log_proposal(cell, p_inst, mu, space, dt)
+        return state, new_cell, potential, self._log_density(z, scale, cell, space)
 
     def _drift(self, cell, p_inst, space: Space, dt):
         """(mean, standard deviation) of a move of length ``dt`` from ``cell`` at the
@@ -175,23 +172,30 @@ class StochasticCellRescaling:
         stress = rate * (p_inst - jnp.asarray(self.pressure)).T
         return mask * stress * dt + self._ito_drift(cell, mask) * dt, scale
 
+    def _log_density(self, z, scale, cell, space: Space):
+        """log density of a move from ``cell`` whose standard normal draws are ``z`` (one per
+        moving entry; :meth:`log_proposal`): the Gaussian's in d eps or in the strain,
+        turned into a density in the cell's moving entries by the Jacobian of
+        delta -> delta H, the product of h_bb over the moving entries (a, b)."""
+        z = jnp.atleast_1d(z)
+        jacobian = 0.0
+        if self.coupling != "isotropic":
+            cols = np.nonzero(self._moving(space))[1]
+            jacobian = jnp.sum(jnp.log(jnp.abs(jnp.diagonal(cell)[cols])))
+        return (-0.5 * jnp.sum(z * z) - z.size * (jnp.log(scale) + 0.5 * np.log(2 * np.pi))
+                - jacobian)
+
     def log_proposal(self, cell, p_inst, mu, space: Space, dt):
         """log of the density of the move H -> mu H from ``cell`` at the instantaneous pressure
         ``p_inst`` in the coordinates whose Lebesgue measure the target carries times
         exp(-(H + P0 V)/kT) (module docstring, "Metropolis test"): eps = ln V (isotropic), the
-        moving entries of the cell (anisotropic; the Jacobian of delta -> delta H is the
-        product of h_bb over the moving entries (a, b))."""
+        moving entries of the cell (anisotropic)."""
         drift, scale = self._drift(cell, p_inst, space, dt)
         if self.coupling == "isotropic":
-            noise, moving, jacobian = (jnp.log(linalg.det(mu)) - drift)[None], 1, 0.0
+            z = (jnp.log(linalg.det(mu)) - drift) / scale
         else:
-            mask = self._moving(space)
-            rows, cols = np.nonzero(mask)
-            noise = (mu - jnp.eye(mu.shape[-1]) - drift)[rows, cols]
-            moving = len(rows)
-            jacobian = jnp.sum(jnp.log(jnp.abs(jnp.diagonal(cell)[cols])))
-        return (-0.5 * jnp.sum((noise / scale) ** 2) - moving * jnp.log(scale)
-                - 0.5 * moving * np.log(2 * np.pi) - jacobian)
+            z = (mu - jnp.eye(mu.shape[-1]) - drift)[np.nonzero(self._moving(space))] / scale
+        return self._log_density(z, scale, cell, space)
 
     def log_acceptance(self, work, cell, new_cell, p_after, forward, space: Space, dt):
         """log of the Metropolis-Hastings acceptance probability (before min(0, .)) of a move

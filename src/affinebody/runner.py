@@ -347,8 +347,7 @@ def run_simulation(
                       initial_energy, last_energy, max_error, bodies=config.bodies_count,
                       phases=phases.seconds, compile_seconds=compiling.seconds,
                       barostat_moves=None if npt is None or not npt.barostat.metropolis else (
-                          rejected, step // npt.barostat.interval
-                          - start // npt.barostat.interval))
+                          rejected, npt.barostat.moves(start, step)))
 
 
 def _tracks_heat(config: Config, built) -> bool:

@@ -837,8 +837,6 @@ def thermal_sample(system, state, dt, seed, temperature, pressure=None, *, steps
     block = nvt_block if barostat is None else npt_block
     zero = jnp.zeros(7, dtype)
 
-    interval = 0 if barostat is None else barostat.interval
-
     def accumulate(carry, index):
         start = index * every
         moved, code, done, lost, narrowest, values, rejected = block(carry[:5], start)
@@ -846,8 +844,7 @@ def thermal_sample(system, state, dt, seed, temperature, pressure=None, *, steps
         shifted = jnp.where(counted, values - reference, 0.0)
         count, total, squares = carry[5]
         sums = (count + counted, total + shifted, squares + shifted * shifted)
-        # the barostat's moves in the block: after the steps k with (k + 1) % interval == 0
-        made = 0 if barostat is None else (start + every) // interval - start // interval
+        made = 0 if barostat is None else barostat.moves(start, start + every)
         moves = jax.tree.map(lambda a, b: a + jnp.where(counted, b, 0).astype(a.dtype),
                              carry[6], (rejected, made))
         return (moved, code, done, lost, narrowest, sums, moves), None
