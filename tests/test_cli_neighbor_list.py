@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from affinebody import neighbors as nb
+from affinebody import pair_kernels
 from affinebody._checks import enable_x64
 from affinebody.checkpoint import checkpoint_path, load_checkpoint
 from affinebody.config import (
@@ -279,6 +280,9 @@ def test_verbose_run_prints_the_phases_and_the_rate_without_compilation(folder):
     for phase in ("load and validate", "set-up: neighbour list", "set-up: initial energy",
                   "integrate", "output"):
         assert phase in text, text
+    # and which kernel summed the pair forces: the backend's (the host kernel on a CPU)
+    kernel = "host kernel (Numba" if pair_kernels.host_kernel_in_use() else "JAX kernel"
+    assert f"pair forces: neighbour list, {kernel}" in text, text
     # the summary tells compiling and integrating apart; both are positive numbers
     line = next(s for s in text.splitlines() if s.startswith("20 steps in"))
     compiling = float(line.split("compiling ")[1].split(" s")[0])

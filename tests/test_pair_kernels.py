@@ -197,6 +197,50 @@ def test_triton_kernels_lower_to_triton_for_a_cuda_gpu():
                                 jnp.ones(1, int), 1, program="cuda")
 
 
+def test_a_gpu_where_the_triton_kernels_do_not_build_runs_the_xla_program(monkeypatch):
+    """On a GPU the default program is "triton" only where its kernels build
+    (pk.triton_builds, once per process and layout). Here the backend claims to be a GPU
+    while JAX's is the CPU, where Pallas' Triton kernels cannot be compiled: the forces must
+    still come, from the XLA program (bit for bit), with one warning that says so; the
+    probe itself passes for kernels that do run (the interpreter's, inside a trace as a run
+    calls it)."""
+    potential, n = CASES["morse-r-2d"]
+    x, phi = configuration(np.random.default_rng(3), n, potential.space)
+    _, nbrs = list_for(potential, x, phi)
+    args = (potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count, 64)
+    xla = pk.energy_and_gradients(*args, program="xla")
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.delenv(pk.PAIR_PROGRAM_VARIABLE, raising=False)
+    pk.triton_builds.cache_clear()
+    with pytest.warns(RuntimeWarning, match="Triton pair kernels do not build here .*XLA"):
+        result = pk.energy_and_gradients(*args)
+    for a, b in zip(result, xla, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert_same(result, all_pairs(potential, x, phi))
+    assert pk.pair_program(potential, n) == "xla"  # decided once: no second probe
+    assert pk.kernel_in_use(potential, n) == "JAX kernel, xla program"  # --verbose says so
+    layout, padding = pk._triton_layout(potential, n)
+    traced = jax.jit(lambda: jnp.asarray(pk.triton_builds(layout, padding,
+                                                          "triton-interpret")))
+    assert bool(traced())
+    pk.triton_builds.cache_clear()  # no CPU verdict left for a later test
+
+
+def test_the_pair_program_variable_chooses_the_program_or_says_what_is_wrong(monkeypatch):
+    potential, n = CASES["morse-r-2d"]
+    monkeypatch.setenv(pk.PAIR_PROGRAM_VARIABLE, "cuda")
+    with pytest.raises(ValueError, match="AFFINEBODY_PAIR_PROGRAM=cuda: expected xla or"):
+        pk.pair_program(potential, n)
+    monkeypatch.setenv(pk.PAIR_PROGRAM_VARIABLE, "triton")
+    with pytest.raises(ValueError, match="=triton needs a GPU .*here is cpu"):
+        pk.pair_program(potential, n)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert pk.pair_program(potential, n) == "triton"  # chosen: no probe
+    monkeypatch.setenv(pk.PAIR_PROGRAM_VARIABLE, "xla")
+    assert pk.pair_program(potential, n) == "xla"
+    assert pk.triton_builds.cache_info().currsize == 0
+
+
 @pytest.mark.parametrize("case", ["material-affine-arrays-3d", "demo-3d"])
 def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch, case):
     """Chunks of pairs (per-body sums carried between callbacks) give the all-pairs forces,

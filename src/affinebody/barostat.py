@@ -275,12 +275,10 @@ def first_narrow_frame(system, cells) -> int | None:
     """The first of ``cells`` [F, n, n] whose half smallest perpendicular width is below the
     largest pair cut-off of ``system`` (the minimum image stops being exact there: the box
     shrank too far), or None."""
-    from affinebody.potentials import PairTerm, TotalPotential
+    from affinebody.potentials import PairTerm, terms_of
 
-    potential = system.potential
-    terms = () if potential is None else (
-        potential.terms if isinstance(potential, TotalPotential) else (potential,))
-    cuts = [t.cutoff.r_cut for t in terms if isinstance(t, PairTerm) and t.cutoff is not None]
+    cuts = [t.cutoff.r_cut for t in terms_of(system.potential)
+            if isinstance(t, PairTerm) and t.cutoff is not None]
     if not cuts:
         return None
     if len(cells) == 0:

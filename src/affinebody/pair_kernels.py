@@ -285,10 +285,64 @@ def _valid_pairs(ii, jj, idx, count, bodies: int):
 PAIR_PROGRAMS = ("xla", "triton", "triton-interpret")
 
 
-def pair_program() -> str:
-    """How :func:`energy_and_gradients` runs its passes over pairs by default: ``"triton"`` on
-    a GPU (the Pallas kernels of :mod:`affinebody._pair_triton`), ``"xla"`` elsewhere."""
-    return "triton" if jax.default_backend() == "gpu" else "xla"
+#: The environment variable that chooses the program of :func:`pair_program` ("xla" or
+#: "triton"), e.g. to time both on a GPU or to skip the check of the Triton kernels.
+PAIR_PROGRAM_VARIABLE = "AFFINEBODY_PAIR_PROGRAM"
+
+
+def pair_program(pot=None, n: int | None = None) -> str:
+    """How :func:`energy_and_gradients` runs its passes over pairs by default: the program
+    named by ``$AFFINEBODY_PAIR_PROGRAM`` if set; else on a GPU ``"triton"`` (the Pallas
+    kernels of :mod:`affinebody._pair_triton`) when they build there for ``pot`` in dimension
+    n (:func:`triton_builds`; a warning and ``"xla"`` when they do not), ``"xla"`` elsewhere."""
+    import os
+
+    chosen = os.environ.get(PAIR_PROGRAM_VARIABLE, "").strip()
+    if chosen:
+        if chosen not in ("xla", "triton"):
+            raise ValueError(f"{PAIR_PROGRAM_VARIABLE}={chosen}: expected xla or triton")
+        if chosen == "triton" and jax.default_backend() != "gpu":
+            raise ValueError(f"{PAIR_PROGRAM_VARIABLE}=triton needs a GPU (JAX's backend here "
+                             f"is {jax.default_backend()}): unset it or set it to xla")
+        return chosen
+    if jax.default_backend() != "gpu":
+        return "xla"
+    return "triton" if pot is None or triton_builds(*_triton_layout(pot, n)) else "xla"
+
+
+@functools.cache
+def triton_builds(layout, padding: tuple, program: str = "triton") -> bool:
+    """Whether the Triton kernels of ``layout`` build and run on the default backend (once per
+    process and layout: one small chunk, compiled and run). A JAX whose Pallas has no Triton
+    backend, or an XLA whose Triton rejects a kernel, would otherwise stop every run on a
+    GPU; here it gives a warning, and the forces run as XLA programs (``"xla"``), which are
+    the same formulas. ``program``: ``"triton-interpret"`` checks the interpreter instead."""
+    import warnings
+
+    n, pairs = layout.n, _pair_triton.BLOCK
+    eye = np.eye(n).reshape(-1)
+    # two bodies at phi = Id, every pair (0, 1) at u = (1, ..., 1); numpy arrays, since this
+    # may be called while a run is traced (the kernels are compiled and run apart from it)
+    args = (np.ones((pairs, n)), np.zeros(pairs, np.int32), np.ones(pairs, np.int32),
+            np.ones(pairs, bool), np.tile(np.concatenate([eye, eye, [1.0]]), 2))
+
+    def chunk(u, i, j, valid, table):
+        return _pair_triton.chunk_rows(layout, lambda base: (
+            sum(jnp.sum(v, axis=tuple(range(1, v.ndim))) for v in base.values()),
+            {name: jnp.ones_like(v) for name, v in base.items()}),
+            padding, u, i, j, valid, table, interpret=program == "triton-interpret")
+
+    try:
+        compiled = jax.jit(chunk).lower(*args).compile()
+        jax.block_until_ready(compiled(*args))
+    except Exception as err:  # noqa: BLE001 - whatever stops them, the XLA programs run
+        first = (str(err).strip().splitlines() or [""])[0][:200]
+        warnings.warn(f"the Triton pair kernels do not build here ({type(err).__name__}: "
+                      f"{first}); the pair forces run as XLA programs instead (the same "
+                      f"formulas; {PAIR_PROGRAM_VARIABLE}=xla skips this check)",
+                      RuntimeWarning, stacklevel=2)
+        return False
+    return True
 
 
 def _triton_layout(pot, n: int):
@@ -327,7 +381,7 @@ def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | No
     :mod:`affinebody._pair_triton`; a GPU only), ``"triton-interpret"`` (those kernels in
     Pallas' interpreter: tests on a CPU) or None (:func:`pair_program`)."""
     bodies, n, binv, det, (i_all, j_all, index) = _pair_pass(pot, x, phi, i, j, chunk)
-    program = pair_program() if program is None else program
+    program = pair_program(pot, n) if program is None else program
     if program not in PAIR_PROGRAMS:
         raise ValueError(f"pair program {program!r}: expected one of {', '.join(PAIR_PROGRAMS)}")
     table = _pair_triton.table(phi, binv, det) if program != "xla" else None
@@ -770,6 +824,16 @@ def host_kernel_in_use() -> bool:
     return _host_in_use()
 
 
+def kernel_in_use(pot, n: int) -> str:
+    """Which kernel :func:`pair_sum` runs for ``pot`` in dimension n, in words (``affinebody
+    run --verbose``): the host kernel, or the JAX kernel with its :func:`pair_program`."""
+    if host_kernel_in_use():
+        f = ("f compiled into it" if fused_on_host(pot, n)
+             else "f in XLA between two callbacks")
+        return f"host kernel (Numba, {host_threads()} threads, {f})"
+    return f"JAX kernel, {pair_program(pot, n)} program"
+
+
 def pair_sum(pot, space: Space, x, phi, i, j, count, cell=None, virial: bool = False):
     """(E, dV/dx, dV/dphi) over the list's pairs, with the kernel for the backend: the
     compiled host kernel on a CPU (when Numba is installed), the JAX kernel otherwise (a GPU:
@@ -783,8 +847,10 @@ def pair_sum(pot, space: Space, x, phi, i, j, count, cell=None, virial: bool = F
 
 
 __all__ = [
-    "ACCELERATOR_PAIR_CHUNK", "PAIR_CHUNK", "PAIR_PROGRAMS", "energy_and_gradients",
+    "ACCELERATOR_PAIR_CHUNK", "PAIR_CHUNK", "PAIR_PROGRAMS", "PAIR_PROGRAM_VARIABLE",
+    "energy_and_gradients",
     "energy_and_gradients_host", "fused_on_host", "host_kernel_in_use", "host_threads",
+    "kernel_in_use",
     "neighbor_energy", "padding_value", "pair_chunk", "pair_program", "pair_sum", "pair_virial",
-    "scalar_columns",
+    "scalar_columns", "triton_builds",
 ]

@@ -71,7 +71,7 @@ from scipy.spatial import cKDTree
 
 from affinebody.groups import expm, lie_algebra, project_algebra
 from affinebody.pair_kernels import energy_and_gradients
-from affinebody.potentials import OneBodyTerm, PairTerm, TotalPotential
+from affinebody.potentials import OneBodyTerm, PairTerm, terms_of
 from affinebody.space import Space, as_space
 from affinebody.state import VelocityState
 
@@ -326,11 +326,8 @@ def tile(crystal: Crystal, xb, phib):
 
 def _terms(potential) -> tuple[list, list]:
     """(pair terms, one-body terms) of a potential; ValueError for what phonons cannot use."""
-    if potential is None:
-        return [], []
-    terms = potential.terms if isinstance(potential, TotalPotential) else (potential,)
     pairs, singles = [], []
-    for k, term in enumerate(terms):
+    for k, term in enumerate(terms_of(potential)):
         if "translation" not in term.symmetry:
             raise ValueError(f"potential.{k} ({type(term).__name__}) depends on the centres x "
                              f"and breaks translations: a crystal has no phonons in an external "
@@ -493,8 +490,7 @@ def relax_cell(crystal: Crystal, tolerance: float = 1e-10, max_steps: int = 4000
         box = scale[:, None] * crystal.box
         space = as_space(box)
         new_terms = []
-        for term in (system.potential.terms if isinstance(system.potential, TotalPotential)
-                     else (system.potential,)):
+        for term in terms_of(system.potential):
             if isinstance(term, PairTerm):
                 if term.cutoff.r_cut > space.max_cutoff * (1 + 1e-12):
                     raise ValueError(f"phonons: the relaxed box {box.tolist()} is too small for "

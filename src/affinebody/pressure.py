@@ -35,7 +35,7 @@ import numpy as np
 
 from affinebody import _linalg as linalg
 from affinebody import pair_kernels
-from affinebody.potentials import PairTerm, TotalPotential
+from affinebody.potentials import PairTerm, terms_of
 from affinebody.space import Space, as_space
 
 
@@ -55,18 +55,12 @@ def kinetic_tensor(system, state) -> jax.Array:
     return jnp.einsum("...ka,...kb->...ab", velocity, state.p)
 
 
-def _terms(potential):
-    if potential is None:
-        return ()
-    return potential.terms if isinstance(potential, TotalPotential) else (potential,)
-
-
 def check_space(system, space: Space) -> Space:
     """``space`` as a periodic Space that every pair term of ``system`` lives in (ValueError
     otherwise: the virial of a term in another box would not be this box's)."""
     space = as_space(space)
     volume(space)
-    for term in _terms(system.potential):
+    for term in terms_of(system.potential):
         if isinstance(term, PairTerm) and term.space != space:
             raise ValueError(
                 f"pressure: the pair term {type(term).__name__} lives in {term.space}, not in "
@@ -106,7 +100,7 @@ def virial(system, state, space: Space, neighbors=None, energy: bool = False):
     n = x.shape[-1]
     total = jnp.zeros((n, n), dtype=x.dtype)
     potential = jnp.zeros((), dtype=x.dtype)
-    for term in _terms(system.potential):
+    for term in terms_of(system.potential):
         if isinstance(term, PairTerm):
             if x.shape[0] > 1:
                 e, w = pair_kernels.pair_virial(term, space, x, phi, *_pairs(x, neighbors),
@@ -130,7 +124,7 @@ def energy_forces_virial(system, state, space: Space, neighbors):
     potential = jnp.zeros((), dtype=x.dtype)
     gx, gphi = jnp.zeros_like(x), jnp.zeros_like(phi)
     total = jnp.zeros((n, n), dtype=x.dtype)
-    for term in _terms(system.potential):
+    for term in terms_of(system.potential):
         if isinstance(term, PairTerm):
             if x.shape[0] < 2:
                 continue

@@ -55,7 +55,7 @@ from affinebody.h5md import (
     H5MDWriter,
     copy_frames_from_file,
 )
-from affinebody.potentials import PairTerm
+from affinebody.potentials import PairTerm, terms_of
 from affinebody.simulate import NAMED_OBSERVABLES, relative_error
 from affinebody.space import as_space
 from affinebody.state import State
@@ -92,6 +92,8 @@ class RunSummary:
     compile_seconds: float = 0.0
     #: (moves rejected, moves made) by a barostat that tests its moves (barostat.metropolis)
     barostat_moves: tuple[int, int] | None = None
+    #: how the pair forces were summed, in words (:func:`pair_forces`; "" without pair terms)
+    pair_forces: str = ""
 
     @property
     def integrate_seconds(self) -> float:
@@ -347,7 +349,21 @@ def run_simulation(
                       initial_energy, last_energy, max_error, bodies=config.bodies_count,
                       phases=phases.seconds, compile_seconds=compiling.seconds,
                       barostat_moves=None if npt is None or not npt.barostat.metropolis else (
-                          rejected, npt.barostat.moves(start, step)))
+                          rejected, npt.barostat.moves(start, step)),
+                      pair_forces=pair_forces(built.system, config.n, built.neighbor_list))
+
+
+def pair_forces(system, n: int, listed: bool) -> str:
+    """How a run sums the pair forces of ``system``, in words: over all pairs (autodiff of
+    the pair terms), or over the neighbour list with the kernel of
+    :func:`affinebody.pair_kernels.kernel_in_use`; "" without pair terms."""
+    pairs = [t for t in terms_of(system.potential) if isinstance(t, PairTerm)]
+    if not pairs:
+        return ""
+    if not listed:
+        return "all pairs (autodiff of the pair terms)"
+    kernels = dict.fromkeys(pair_kernels.kernel_in_use(t, n) for t in pairs)
+    return "neighbour list, " + "; ".join(kernels)
 
 
 def _tracks_heat(config: Config, built) -> bool:

@@ -116,6 +116,8 @@ def run(config_file, output, steps, resume, overwrite, quiet, verbose):
 
         device = jax.devices()[0]
         click.echo(f"device: {device.platform} {device.device_kind} (JAX {jax.__version__})")
+        if summary.pair_forces:
+            click.echo(f"pair forces: {summary.pair_forces}")
         if single_xla_thread:
             click.echo("threads: XLA's CPU client 1 (the host kernels split the work over the "
                        "cores)")

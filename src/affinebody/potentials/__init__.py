@@ -108,6 +108,7 @@ from affinebody.potentials.terms import (
     generalized_forces,
     neighbor_range,
     switching,
+    terms_of,
     total_potential,
 )
 from affinebody.potentials.variables import (
@@ -150,5 +151,6 @@ __all__ = [
     "pair_variable_names",
     "pair_variables",
     "switching",
+    "terms_of",
     "total_potential",
 ]

@@ -390,6 +390,14 @@ class TotalPotential:
         return frozenset(sym)
 
 
+def terms_of(potential) -> tuple[Any, ...]:
+    """The terms of ``potential``: those of a :class:`TotalPotential`, the potential itself
+    otherwise, none for None."""
+    if potential is None:
+        return ()
+    return potential.terms if isinstance(potential, TotalPotential) else (potential,)
+
+
 def total_potential(potentials: Iterable[Any]) -> TotalPotential:
     """The sum V = V^(1) + V^(2) (56) of the given potentials (nested sums are flattened)."""
     terms: list[Any] = []
@@ -459,6 +467,6 @@ def _negative_gradient(potential, x, phi):
 __all__ = [
     "AbstractPotentialTerm", "Cutoff", "NoNeighborRange", "OneBodyTerm", "PairTerm",
     "TotalPotential", "box_field", "cutoff_field", "generalized_forces", "neighbor_range",
-    "positive_parameter", "real_parameter", "real_tuple_parameter", "switching",
+    "positive_parameter", "real_parameter", "real_tuple_parameter", "switching", "terms_of",
     "total_potential",
 ]
