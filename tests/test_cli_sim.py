@@ -168,6 +168,33 @@ def test_a_blow_up_stops_with_step_body_and_cause_and_keeps_the_frames(folder):
     assert all(np.all(np.isfinite(a)) for a in traj.state)
 
 
+def test_a_warning_of_a_command_is_one_line_and_its_errors_keep_their_exit_codes():
+    """What a command warns (e.g. the GPU's Triton kernels not building, pair_kernels) reaches
+    stderr as one line "warning: ..." without the source line Python adds; the command
+    still completes, and an error after it is still its one line."""
+    import warnings
+
+    from affinebody.cli.common import EXIT_BAD_INPUT, one_line_errors
+
+    @click.command()
+    @click.option("--fail", is_flag=True)
+    @one_line_errors
+    def noisy(fail):
+        warnings.warn("first line of the warning\nsecond line", RuntimeWarning, stacklevel=1)
+        if fail:
+            raise ValueError("config error: x must be > 0")
+        click.echo("done")
+
+    result = CliRunner().invoke(noisy, [])
+    assert result.exit_code == 0 and result.stdout == "done\n"
+    assert result.stderr == "warning: first line of the warning\n"
+    result = CliRunner().invoke(noisy, ["--fail"])
+    assert result.exit_code == EXIT_BAD_INPUT
+    assert result.stderr.splitlines() == ["warning: first line of the warning",
+                                          "config error: x must be > 0"]
+    assert warnings.showwarning.__name__ != "_one_line_warning"  # restored after the command
+
+
 def test_plot_writes_nonempty_images(folder, reference):
     result = invoke("plot", reference, "-o", folder / "plots")
     assert result.exit_code == 0, result.stderr

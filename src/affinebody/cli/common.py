@@ -1,6 +1,7 @@
 """What every ``affinebody`` command shares: float64, and one policy for errors and exit codes.
 
-Bad input never gives a traceback: one line on stderr naming the field and the fix, and
+Bad input never gives a traceback: one line on stderr naming the field and the fix (a warning
+is one line too, ``warning: ...``), and
 
 - exit 1 (:data:`EXIT_BAD_INPUT`): a bad config, flag or file (``ValueError``, ``OSError``) and
   any unexpected error ("internal error: ...");
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import sys
+import warnings
 
 import click
 
@@ -28,14 +30,23 @@ def fail(message: str, code: int = EXIT_BAD_INPUT):
     sys.exit(code)
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+    """``warnings.showwarning`` of the commands: the warning's first line, on stderr."""
+    text = str(message).strip()
+    click.echo(f"warning: {text.splitlines()[0] if text else category.__name__}", err=True)
+
+
 def one_line_errors(command):
-    """Turn every exception of a command into one line on stderr and a non-zero exit."""
+    """Turn every exception of a command into one line on stderr and a non-zero exit, and
+    every warning into one line ``warning: ...`` on stderr (no source line)."""
     from affinebody.runner import SimulationStopped
 
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
         try:
-            return command(*args, **kwargs)
+            with warnings.catch_warnings():
+                warnings.showwarning = _one_line_warning
+                return command(*args, **kwargs)
         except SimulationStopped as err:
             fail(f"error: {err}", EXIT_STOPPED)
         except KeyboardInterrupt:
