@@ -11,8 +11,8 @@
 # this checkout's .venv into .whl/ (ignored through .git/info/exclude). `run` installs them
 # under /tmp/site and runs the project from src/ (no pip install: the image's JAX may be newer
 # than pyproject's pin, and its CUDA build is the one to measure). About 3 minutes on an H200
-# after the machine's start (2026-11-27, before the first command below was added; about one
-# more minute expected for it).
+# after the machine's start (2026-11-27, before the first command and the XLA A/B of
+# run_scale below were added; about two more minutes expected for them).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 
@@ -48,6 +48,9 @@ run)
         --triton-blocks 64 256 2>&1 | tee "$OUT/programs_1e6.txt"
     python3 benchmarks/run_scale.py --bodies 100000 --steps 1000 2>&1 | tee "$OUT/scale_1e5.txt"
     python3 benchmarks/run_scale.py --bodies 1000000 --steps 200 2>&1 | tee "$OUT/scale_1e6.txt"
+    # the same command with the XLA program of the pair forces: the whole-command A/B
+    AFFINEBODY_PAIR_PROGRAM=xla python3 benchmarks/run_scale.py --bodies 1000000 --steps 200 \
+        2>&1 | tee "$OUT/scale_1e6_xla.txt"
     python3 benchmarks/step_phases.py --bodies 1000000 2>&1 | tee "$OUT/phases_1e6.txt"
     ;;
 *)
