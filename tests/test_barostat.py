@@ -3,6 +3,8 @@ ensemble exp(-(H + P V)/kT) dV (isotropic, and the volume of the anisotropic ort
 coupling); the Ito drift of the triclinic coupling is the divergence worked out by hand; a
 run continued from its last frame repeats the uninterrupted one bit for bit."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -387,7 +389,8 @@ def test_npt_run_with_a_neighbour_list_resumes_bit_for_bit(tmp_path):
     config = check_config(parse_config(SQUEEZED_CRYSTAL + "metropolis = true\n"))
     assert uses_neighbor_list(config)
     first_sizes = sizes(build(config).neighbors[0])
-    with compilations("_npt") as compiled:
+    with compilations("_npt") as compiled, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         whole_run = run_simulation(config, tmp_path / "whole.h5")
         assert len(compiled) <= 2
         first_part = run_simulation(config, tmp_path / "resumed.h5", steps=100)
@@ -395,6 +398,8 @@ def test_npt_run_with_a_neighbour_list_resumes_bit_for_bit(tmp_path):
         assert tuple(kept["grid"]) != first_sizes["grid"]  # reallocated before the cut
         second_part = run_simulation(config, tmp_path / "resumed.h5", resume=True)
     assert len(compiled) <= 2  # the whole run's programs
+    # its moves are as long as the plain test's below, but tested: no warning about them
+    assert not [w for w in caught if "barostat moves" in str(w.message)]
     # moves after steps 3, 6, ..., 198: 66, of which 33 before the cut at step 100
     rejected, moves = whole_run.barostat_moves
     assert moves == 66 and (first_part.barostat_moves[1], second_part.barostat_moves[1]) == (
@@ -409,6 +414,82 @@ def test_npt_run_with_a_neighbour_list_resumes_bit_for_bit(tmp_path):
     for name, value in whole.observables.items():
         np.testing.assert_array_equal(resumed.observables[name], value)
     assert whole.observables["rejected_moves"].sum() == rejected
+
+
+def pressure_along_the_move(system, state, cell, mass=1.0):
+    """P(eps) = (2 T_c / n - dU/d eps) / V after the isotropic move by eps in ln V, from
+    autodiff of the all-pairs energy in the scaled cell (not the virial's code): the
+    independent reference of barostat.move_modulus (T_c the centres' kinetic energy)."""
+    n = cell.shape[-1]
+    cell = jnp.asarray(cell)
+
+    def energy(eps):
+        mu = jnp.exp(eps / n)
+        if system.potential is None:
+            return 0.0 * eps
+        return system.potential.energy(state.x * mu, state.phi, None, cell * mu)
+
+    def p_of(eps):
+        kinetic = jnp.sum(state.p**2) / mass * jnp.exp(-2 * eps / n)  # 2 T_c
+        return (kinetic / n - jax.grad(energy)(eps)) / (jnp.linalg.det(cell) * jnp.exp(eps))
+
+    return p_of
+
+
+def test_move_modulus_of_an_ideal_gas_is_one_plus_two_over_n_times_its_pressure():
+    """K = -dP/d ln V along the move x -> mu x, p -> p / mu, H -> mu H: P = 2 T / (n V) goes
+    as V^-(1 + 2/n). (A crystal's, against autodiff: the run test below.)"""
+    for n in (2, 3):
+        system, state, space = ideal_gas(n)
+        p = float(jnp.sum(state.p**2)) / (n * float(np.prod(np.diag(space.matrix))))
+        k = barostat.move_modulus(system, state, None, space)
+        assert k == pytest.approx((1 + 2 / n) * p, rel=1e-8)
+
+
+def test_long_plain_moves_get_a_warning_and_tested_ones_none():
+    baro = barostat.c_rescale(1.0, 2, tau=1.0, compressibility=0.1, temperature=1.0,
+                              interval=10)
+    assert barostat.move_length(baro, 20.0, 0.01) == pytest.approx(0.2)
+    assert barostat.long_move_warning(baro, 20.0, 0.01) is None  # below LONG_MOVE
+    message = barostat.long_move_warning(baro, 30.0, 0.01)
+    assert "about 0.3 of the volume's relaxation time" in message and "K = 30" in message
+    assert "var(V) about 1.2x" in message and "\n" not in message
+    assert "unstable" in barostat.long_move_warning(baro, 300.0, 0.01)
+    assert barostat.long_move_warning(baro, -5.0, 0.01) is None
+    tested = barostat.c_rescale(1.0, 2, tau=1.0, compressibility=0.1, temperature=1.0,
+                                interval=10, metropolis=True)
+    assert barostat.long_move_warning(tested, 300.0, 0.01) is None
+
+
+def test_a_run_with_long_plain_moves_warns_with_the_modulus_of_its_last_state(tmp_path):
+    """The squeezed crystal's moves of 3 dt are nearly two relaxation times long (K about
+    120 at P0 = 2): affinebody run says so once, after the run, with K of the last frame
+    (its state, box and list), which must be the modulus of the all-pairs autodiff pressure
+    of that frame read back from the file."""
+    import re
+
+    from affinebody.config import build, check_config, parse_config
+    from affinebody.h5md import read_trajectory
+    from affinebody.runner import run_simulation
+
+    config = check_config(parse_config(SQUEEZED_CRYSTAL.replace("steps = 200", "steps = 60")))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        run_simulation(config, tmp_path / "plain.h5")
+    said = [str(w.message) for w in caught if "barostat moves" in str(w.message)]
+    assert len(said) == 1
+    length, modulus = map(float, re.search(r"about ([\d.]+) of .* K = ([\d.]+)", said[0]).groups())
+    traj = read_trajectory(tmp_path / "plain.h5")
+    last = State(*(jnp.asarray(a[-1]) for a in traj.state))
+    system, cell = build(config).system, np.diag(traj.boxes[-1])
+    p_of = pressure_along_the_move(system, last, cell)
+    reference = -float(jax.jit(jax.grad(p_of))(0.0))
+    assert modulus == pytest.approx(reference, rel=5e-3)  # the message's 3 digits
+    space = system.potential.terms[0].space
+    assert barostat.move_modulus(system, last, cell, space) == pytest.approx(reference,
+                                                                             rel=1e-6)
+    assert length == pytest.approx(reference * 0.2 * 3 * 0.005 / 0.2, rel=0.05)
+    assert length > 1.0
 
 
 def test_npt_effective_energy_drifts_by_the_integrator_error_only():

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -287,6 +288,64 @@ def first_narrow_frame(system, cells) -> int | None:
         reciprocal = np.linalg.norm(np.linalg.inv(np.asarray(cells)), axis=-1)
         narrow = ~(0.5 / np.max(reciprocal, axis=-1) >= max(cuts) * (1 - 1e-12))
     return int(np.argmax(narrow)) if np.any(narrow) else None
+
+
+def move_modulus(system, state: State, cell, space, neighbors=None, step: float = 1e-5) -> float:
+    """K = -dP/d(ln V) along the isotropic move (x -> mu x, p -> mu^-T p, H -> mu H, phi and
+    pi fixed; module docstring) at ``state`` in ``cell``, P = Tr P_inst / n with its kinetic
+    part: the stiffness that the drift of a move feels, so the volume relaxes at the rate
+    beta_T K / tau (:func:`move_length`). The affine (instantaneous) bulk modulus, at least
+    the thermodynamic one kT <V> / var(V). Central difference in ln V (``step``);
+    ``neighbors``: None (all pairs) or the (spec, list) of ``state`` in ``cell``. One
+    configuration's value: in the NPT tutorial's crystal about 18 (+- 2 from frame to frame,
+    some frames far more) where kT <V> / var(V) gives 24."""
+    space = as_space(space)
+    state = jax.tree.map(jnp.asarray, state)
+    cell = jnp.asarray(space.matrix if cell is None else cell, dtype=state.x.dtype)
+    spec, lst = (None, None) if neighbors is None else neighbors
+    below, above = (float(_moved_pressure(system, state, cell, jnp.asarray(eps), lst,
+                                          space=space, spec=spec)) for eps in (-step, step))
+    return -(above - below) / (2.0 * step)
+
+
+@partial(jax.jit, static_argnames=("space", "spec"))
+def _moved_pressure(system, state, cell, eps, lst, *, space, spec):
+    """Tr P_inst / n after the isotropic move by ln V -> ln V + eps (:func:`move_modulus`)."""
+    n = space.dimension
+    mu = jnp.exp(eps / n)
+    moved = state._replace(x=state.x * mu, p=state.p / mu)
+    if spec is not None:  # rebuilt only if the scaled centres may miss a pair
+        lst = nb.update(spec, lst, moved.x, moved.phi, mu * cell)
+    p = pressure_module.pressure_tensor(system.replace(cell=mu * cell), moved, space, lst)
+    return jnp.trace(p) / n
+
+
+def move_length(barostat: StochasticCellRescaling, modulus: float, dt: float) -> float:
+    """beta_T K m dt / tau: a move's length (m = ``interval`` steps of ``dt``) in units of
+    the volume's relaxation time tau / (beta_T K), K from :func:`move_modulus`. The plain
+    moves' Euler-Maruyama error in the volume's fluctuations grows with it (about
+    1 / (1 - length / 2) in var(V) for a linear response; unstable past 2): docs/pressure.md."""
+    return barostat.compressibility * modulus * barostat.interval * dt / barostat.tau
+
+
+#: The move length (:func:`move_length`) above which a run with plain moves warns: var(V)
+#: about 1 / (1 - 0.25 / 2) = 1.14 times the ensemble's for a linear response.
+LONG_MOVE = 0.25
+
+
+def long_move_warning(barostat: StochasticCellRescaling, modulus: float, dt: float):
+    """The one-line warning of a run whose plain moves are long (:data:`LONG_MOVE`), or None
+    (tested moves are exact at any length; a modulus <= 0 gives no relaxation time)."""
+    length = move_length(barostat, modulus, dt)
+    if barostat.metropolis or not length > LONG_MOVE:
+        return None
+    effect = (f"the plain moves inflate the volume's fluctuations (var(V) about "
+              f"{1 / (1 - length / 2):.2g}x for a linear response) and the compressibility "
+              f"read off them" if length < 2 else "the plain moves are unstable past 2")
+    return (f"barostat moves are about {length:.2g} of the volume's relaxation time tau / "
+            f"(compressibility K), K = {modulus:.3g} the bulk modulus under a move at the "
+            f"last state: {effect}; set barostat.metropolis = true, or raise barostat.tau or "
+            f"lower barostat.interval")
 
 
 #: The barostat's own random stream (folded into the seed), apart from a thermostat's.
@@ -601,4 +660,5 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
 
 
 __all__ = ["COUPLINGS", "NPTTrajectory", "STREAM", "StochasticCellRescaling", "advance",
-           "c_rescale", "first_narrow_frame", "run", "step_key"]
+           "LONG_MOVE", "c_rescale", "first_narrow_frame", "long_move_warning", "move_length",
+           "move_modulus", "run", "step_key"]

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import resources
@@ -345,6 +346,12 @@ def run_simulation(
                 progress(step, total, float(relative_error(np.asarray([last_energy]),
                                                              initial_energy)[0]))
         frames = writer.frames
+    if npt is not None and not npt.barostat.metropolis and step > start:
+        with phases("checks"):  # are the plain moves short against the volume's relaxation?
+            modulus = barostat.move_modulus(npt.system, state, npt.cell, npt.space, lists)
+        warning = barostat.long_move_warning(npt.barostat, modulus, dt)
+        if warning:
+            warnings.warn(warning, RuntimeWarning, stacklevel=2)
     return RunSummary(output, start, total, frames, time.perf_counter() - started,
                       initial_energy, last_energy, max_error, bodies=config.bodies_count,
                       phases=phases.seconds, compile_seconds=compiling.seconds,
