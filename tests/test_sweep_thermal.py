@@ -15,6 +15,7 @@ measurements)).
 
 import math
 import textwrap
+import warnings
 
 import pytest
 
@@ -93,7 +94,9 @@ def test_nvt_sweep_samples_equipartition_and_the_exact_heat_capacity(tmp_path):
 
 
 def test_npt_sweep_follows_the_isobaric_ideal_gas_law():
-    result = run_sweep(load(NPT), workers=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # moves of at most 0.08 of the relaxation time
+        result = run_sweep(load(NPT), workers=0)
     assert result.summary["ensemble"] == "NPT"
     assert set(result.status.ravel()) == {"sampled"}
     kt = 1.0
@@ -108,6 +111,9 @@ def test_npt_sweep_follows_the_isobaric_ideal_gas_law():
         close(point, "mean_translational_temperature", kt)
         close(point, "mean_internal_temperature", kt)
         assert math.isnan(point["rejected_fraction"])  # plain moves: nothing to reject
+        # a move of dt: K = -dP/d ln V along it is (1 + 2/n) P_inst at the last state, whose
+        # mean over the samples is P (the barostat's measure dV), beta_T = 1, tau = 0.5
+        close(point, "move_length", (1 + 2 / n) * pressure * 0.01 / 0.5)
 
 
 def test_npt_sweep_with_tested_moves_follows_the_law_at_moves_five_times_as_long():
@@ -127,7 +133,17 @@ def test_npt_sweep_with_tested_moves_follows_the_law_at_moves_five_times_as_long
         close(point, "mean_pressure", pressure)
         rejected.append(point["rejected_fraction"])
         assert point["rejected_fraction_error"] < 0.1 * point["rejected_fraction"]
+        close(point, "move_length", (1 + 2 / n) * pressure * 0.05 / 0.5)
     assert 0.01 < rejected[0] < rejected[1] < 0.5, rejected
+
+
+def test_a_sweep_with_long_plain_moves_says_where_in_one_line():
+    from affinebody.sweep import long_moves_warning
+
+    assert long_moves_warning([0.02, 0.08, math.nan]) is None
+    message = long_moves_warning([0.1, 0.4, 1.3, math.nan])
+    assert "up to 1.3 of the volume's relaxation time" in message and "\n" not in message
+    assert "over 0.25 at 2 of 3 points" in message and "metropolis = true" in message
 
 
 def test_thermal_sweep_tables_are_checked_in_one_line():

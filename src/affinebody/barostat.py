@@ -303,21 +303,26 @@ def move_modulus(system, state: State, cell, space, neighbors=None, step: float 
     state = jax.tree.map(jnp.asarray, state)
     cell = jnp.asarray(space.matrix if cell is None else cell, dtype=state.x.dtype)
     spec, lst = (None, None) if neighbors is None else neighbors
-    below, above = (float(_moved_pressure(system, state, cell, jnp.asarray(eps), lst,
-                                          space=space, spec=spec)) for eps in (-step, step))
-    return -(above - below) / (2.0 * step)
+    return float(move_modulus_jit(system, state, cell, lst, space=space, spec=spec,
+                                  step=step))
 
 
-@partial(jax.jit, static_argnames=("space", "spec"))
-def _moved_pressure(system, state, cell, eps, lst, *, space, spec):
-    """Tr P_inst / n after the isotropic move by ln V -> ln V + eps (:func:`move_modulus`)."""
+@partial(jax.jit, static_argnames=("space", "spec", "step"))
+def move_modulus_jit(system, state: State, cell, lst, *, space: Space, spec, step: float = 1e-5):
+    """:func:`move_modulus` as a traceable function of arrays (``lst`` the list of ``spec``,
+    or None with ``spec`` None): what the samples of ``affinebody sweep`` compute."""
     n = space.dimension
-    mu = jnp.exp(eps / n)
-    moved = state._replace(x=state.x * mu, p=state.p / mu)
-    if spec is not None:  # rebuilt only if the scaled centres may miss a pair
-        lst = nb.update(spec, lst, moved.x, moved.phi, mu * cell)
-    p = pressure_module.pressure_tensor(system.replace(cell=mu * cell), moved, space, lst)
-    return jnp.trace(p) / n
+
+    def scalar_pressure(eps):
+        mu = jnp.exp(eps / n)
+        moved = state._replace(x=state.x * mu, p=state.p / mu)
+        nbrs = lst
+        if spec is not None:  # rebuilt only if the scaled centres may miss a pair
+            nbrs = nb.update(spec, lst, moved.x, moved.phi, mu * cell)
+        p = pressure_module.pressure_tensor(system.replace(cell=mu * cell), moved, space, nbrs)
+        return jnp.trace(p) / n
+
+    return -(scalar_pressure(step) - scalar_pressure(-step)) / (2.0 * step)
 
 
 def move_length(barostat: StochasticCellRescaling, modulus: float, dt: float) -> float:
@@ -661,4 +666,4 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
 
 __all__ = ["COUPLINGS", "NPTTrajectory", "STREAM", "StochasticCellRescaling", "advance",
            "LONG_MOVE", "c_rescale", "first_narrow_frame", "long_move_warning", "move_length",
-           "move_modulus", "run", "step_key"]
+           "move_modulus", "move_modulus_jit", "run", "step_key"]

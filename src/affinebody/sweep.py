@@ -66,7 +66,11 @@ the time averages, the variances (1/m) of E and V, the heat capacity C = var(E)/
 C_V) or var(E + P0 V)/kT^2 (NPT, C_P, P0 = Tr P0 / n; k_B = 1), and in NPT the isothermal
 compressibility kappa_T = var(V)/(kT <V>); with ``barostat.metropolis`` the fraction of the
 barostat's moves after the equilibration that its Metropolis test rejected
-(``rejected_fraction``, NaN otherwise). The classification columns (bounded, spreads,
+(``rejected_fraction``, NaN otherwise); in NPT ``move_length``, how long the barostat's moves
+were for the box at the sample's last state (``barostat.move_length`` of
+``barostat.move_modulus``: beta_T K interval dt / tau), and a sweep whose plain moves were
+longer than ``barostat.LONG_MOVE`` at some point warns (its var(V), compressibility and C_P are
+then too large). The classification columns (bounded, spreads,
 energy errors) do not apply: a sample is ``sampled``, or ``failed`` with its reason (the
 driver's stops, a non-finite state or box under the barostat, a box narrower than twice the
 pair cut-off). ``summary.json`` holds, per point, the mean over its sampled samples of each
@@ -109,6 +113,7 @@ import math
 import os
 import time
 import uuid
+import warnings
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -153,7 +158,7 @@ SCALARS = ("exit_time", "followed_time", "max_spread", "energy_error", "initial_
 THERMAL_SCALARS = ("followed_time", "measurements", "mean_total_energy", "var_total_energy",
                    "mean_potential_energy", "mean_translational_temperature",
                    "mean_internal_temperature", "mean_pressure", "mean_volume", "var_volume",
-                   "heat_capacity", "compressibility", "rejected_fraction")
+                   "heat_capacity", "compressibility", "rejected_fraction", "move_length")
 
 
 # --------------------------------------------------------------------------- specification
@@ -851,9 +856,15 @@ def thermal_sample(system, state, dt, seed, temperature, pressure=None, *, steps
 
     init = (carry0, jnp.asarray(_SAMPLED), jnp.asarray(0), lost0, narrowest0,
             (jnp.asarray(0), zero, zero), (int0, int0))
-    (_, code, done, lost, narrowest, sums, moves), _ = lax.scan(
+    (moved, code, done, lost, narrowest, sums, moves), _ = lax.scan(
         accumulate, init, jnp.arange(steps // every))
+    move_length = nan
+    if barostat is not None:  # how long the moves were for the box, at the last state
+        final, final_list, final_cell = moved
+        move_length = baro_module.move_length(barostat, baro_module.move_modulus_jit(
+            system, final, final_cell, final_list, space=space, spec=spec), dt)
     return {"code": code, "steps_done": done, "measurements": sums[0], "reference": reference,
+            "move_length": move_length,
             "sums": sums[1], "squares": sums[2], "narrowest_cell": narrowest,
             "temperature": jnp.asarray(temperature, dtype),
             "npt": jnp.asarray(barostat is not None),
@@ -927,6 +938,7 @@ def thermal_results(out: dict[str, np.ndarray], dt: float) -> dict[str, np.ndarr
             "rejected_fraction": column(np.where(
                 out["tested_moves"] & (out["barostat_moves"] > 0),
                 out["rejected_moves"] / np.maximum(out["barostat_moves"], 1), np.nan)),
+            "move_length": column(out["move_length"]),
         }
 
 
@@ -1153,6 +1165,23 @@ def summarize_thermal_point(point: ScanPoint, status: np.ndarray, failure: np.nd
     return out
 
 
+def long_moves_warning(lengths: Sequence[float]) -> str | None:
+    """The one-line warning of an NPT sweep with plain moves whose mean ``move_length`` at
+    some points (``lengths``, NaN where nothing was sampled) exceeds
+    :data:`affinebody.barostat.LONG_MOVE`, or None."""
+    from affinebody.barostat import LONG_MOVE
+
+    lengths = [x for x in lengths if np.isfinite(x)]
+    long = [x for x in lengths if x > LONG_MOVE]
+    if not long:
+        return None
+    return (f"barostat moves are up to {max(long):.2g} of the volume's relaxation time "
+            f"(move_length in samples.csv; over {LONG_MOVE} at {len(long)} of {len(lengths)} "
+            f"points): the plain moves inflate var(V) and with it compressibility and "
+            f"heat_capacity; set barostat.metropolis = true, or raise barostat.tau or lower "
+            f"barostat.interval")
+
+
 def run_sweep(
     config: Config,
     *,
@@ -1247,6 +1276,10 @@ def run_sweep(
         summaries.append(summarize_point(point, status[p], failure[p],
                                          {k: v[p] for k, v in data.items()}, spec.bound,
                                          float(horizons[p])))
+    if thermal and config.barostat is not None and not config.barostat.metropolis:
+        warning = long_moves_warning([p["move_length"] for p in summaries])
+        if warning:
+            warnings.warn(warning, RuntimeWarning, stacklevel=2)
     if thermal:
         summary = {
             "ensemble": "NVT" if config.barostat is None else "NPT",
@@ -1305,6 +1338,7 @@ def _write_samples_csv(path: Path, points, status, failure, data,
 
 __all__ = ("THERMAL_SCALARS", "SweepResult", "SweepSpec", "ScanPoint", "Task", "WORKER_ENV",
            "binomial_summary", "check_thermal", "dask_client", "draw_initial_state", "follow",
-           "make_tasks", "prepare_worker", "run_sweep", "run_task", "scan_points",
+           "long_moves_warning", "make_tasks", "prepare_worker", "run_sweep", "run_task",
+           "scan_points",
            "summarize_thermal_point", "thermal_results", "thermal_sample",
            "json_safe", "scan_values", "summarize_point")
