@@ -294,11 +294,11 @@ def move_modulus(system, state: State, cell, space, neighbors=None, step: float 
     """K = -dP/d(ln V) along the isotropic move (x -> mu x, p -> mu^-T p, H -> mu H, phi and
     pi fixed; module docstring) at ``state`` in ``cell``, P = Tr P_inst / n with its kinetic
     part: the stiffness that the drift of a move feels, so the volume relaxes at the rate
-    beta_T K / tau (:func:`move_length`). The affine (instantaneous) bulk modulus, at least
-    the thermodynamic one kT <V> / var(V). Central difference in ln V (``step``);
-    ``neighbors``: None (all pairs) or the (spec, list) of ``state`` in ``cell``. One
-    configuration's value: in the NPT tutorial's crystal about 18 (+- 2 from frame to frame,
-    some frames far more) where kT <V> / var(V) gives 24."""
+    beta_T K / tau (:func:`move_length`): the affine (instantaneous) bulk modulus of one
+    configuration, (1 + 2/n) P for an ideal gas; in the NPT tutorial's crystal 24.5 +- 2.8
+    from frame to frame, where kT <V> / var(V) gives 22-24 (docs/pressure.md). Central
+    difference in ln V (``step``); ``neighbors``: None (all pairs) or the (spec, list) of
+    ``state`` in ``cell``."""
     space = as_space(space)
     state = jax.tree.map(jnp.asarray, state)
     cell = jnp.asarray(space.matrix if cell is None else cell, dtype=state.x.dtype)
