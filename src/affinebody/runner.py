@@ -487,5 +487,5 @@ def demo_config_text() -> str:
 __all__ = [
     "CHUNK_TARGET_STEPS", "SimulationStopped", "RunSummary", "chunk_steps", "run_simulation",
     "constant_pressure", "thermostat_hook", "ThermostatHook", "demo_config_text",
-    "host_kernels_do_the_threading", "prepare_process",
+    "host_kernels_do_the_threading", "pair_forces", "prepare_process",
 ]
