@@ -74,25 +74,25 @@ def pair_terms_of_the_benchmark():
             if isinstance(t, PairTerm)]
 
 
+TESTS = Path(__file__).resolve().parents[1] / "tests"
+
+
 def pair_terms_of_the_tests():
     """[(label, pair term, n)] of every case of tests/test_pair_kernels.py."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    sys.path.insert(0, str(TESTS))
     from test_pair_kernels import CASES
 
     return [(label, potential, n) for label, (potential, n) in CASES.items()]
 
 
-def triton_modules(potential, n: int, pairs: int = 1024, bodies: int = 50) -> list[str]:
-    """The Triton modules (text) of the two kernels of one chunk, lowered for CUDA."""
-    import jax
-    import jax.numpy as jnp
-    from jax import export
+def triton_modules(potential, n: int) -> list[str]:
+    """The Triton modules (text) of the two kernels of one chunk, lowered for CUDA by the
+    tests' ``export_chunk_for_cuda`` (Pallas' lowering, kept as it passes)."""
     from jax._src.pallas.triton import lowering
-    from jax.sharding import AbstractDevice, AbstractMesh, use_abstract_mesh
 
-    from affinebody import pair_kernels as pk
+    sys.path.insert(0, str(TESTS))
+    from test_pair_kernels import export_chunk_for_cuda
 
-    layout, padding = pk._triton_layout(potential, n)
     modules = []
     lower = lowering.lower_jaxpr_to_triton_module
 
@@ -101,20 +101,9 @@ def triton_modules(potential, n: int, pairs: int = 1024, bodies: int = 50) -> li
         modules.append(result.module.operation.get_asm(enable_debug_info=False))
         return result
 
-    def chunk(u, i, j, valid, table):
-        return pk._pair_triton.chunk_rows(layout, pk._scalar_values_and_partials(potential, n),
-                                          padding, u, i, j, valid, table)
-
-    shapes = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in (
-        ((pairs, n), jnp.float64), ((pairs,), jnp.int32), ((pairs,), jnp.int32),
-        ((pairs,), bool), ((bodies * layout.columns,), jnp.float64))]
-    triton = "__gpu$xla.gpu.triton"
-    gpu = AbstractDevice(device_kind="NVIDIA H100", num_cores=None, platform="gpu")
     lowering.lower_jaxpr_to_triton_module = keeping
     try:
-        with use_abstract_mesh(AbstractMesh((1,), ("bodies",), abstract_device=gpu)):
-            export.export(jax.jit(chunk), platforms=["cuda"], disabled_checks=[
-                export.DisabledSafetyCheck.custom_call(triton)])(*shapes)
+        export_chunk_for_cuda(potential, n)
     finally:
         lowering.lower_jaxpr_to_triton_module = lower
     return modules

@@ -166,17 +166,18 @@ def test_triton_kernels_of_the_gpu_equal_all_pairs_in_the_pallas_interpreter(cas
                                atol=1e-12 * float(jnp.max(jnp.abs(reference))))
 
 
-def test_triton_kernels_lower_to_triton_for_a_cuda_gpu():
-    """Without a GPU, the kernels still go through Pallas' Triton lowering for CUDA (jax.export
-    for the "cuda" platform, an H100 named as the target device: JAX 0.12 asks for one where
-    no GPU is present): every operation they use has a Triton form, and a chunk of the JAX
-    kernel is XLA around two Triton calls (scalars, then rows)."""
+#: The custom call through which XLA runs a Pallas Triton kernel on a GPU.
+TRITON_CALL = "__gpu$xla.gpu.triton"
+
+
+def export_chunk_for_cuda(potential, n: int, pairs: int = 1024, bodies: int = 50):
+    """jax.export of one chunk of the Triton program of ``potential`` for the "cuda"
+    platform, an H100 named as the target device (JAX 0.12 asks for one where no GPU is
+    present); also what benchmarks/triton_offline.py compiles."""
     from jax import export
     from jax.sharding import AbstractDevice, AbstractMesh, use_abstract_mesh
 
-    potential, n = CASES["all-variables-3d"]  # every scalar: the kernels' every operation
     layout, padding = pk._triton_layout(potential, n)
-    pairs, bodies = 1024, 50
 
     def chunk(u, i, j, valid, table):
         return pk._pair_triton.chunk_rows(layout, pk._scalar_values_and_partials(potential, n),
@@ -185,12 +186,19 @@ def test_triton_kernels_lower_to_triton_for_a_cuda_gpu():
     shapes = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in (
         ((pairs, n), jnp.float64), ((pairs,), jnp.int32), ((pairs,), jnp.int32),
         ((pairs,), bool), ((bodies * layout.columns,), jnp.float64))]
-    triton = "__gpu$xla.gpu.triton"
     h100 = AbstractDevice(device_kind="NVIDIA H100", num_cores=None, platform="gpu")
     with use_abstract_mesh(AbstractMesh((1,), ("bodies",), abstract_device=h100)):
-        exported = export.export(jax.jit(chunk), platforms=["cuda"], disabled_checks=[
-            export.DisabledSafetyCheck.custom_call(triton)])(*shapes)
-    assert exported.mlir_module().count(f"custom_call @{triton}(") == 2
+        return export.export(jax.jit(chunk), platforms=["cuda"], disabled_checks=[
+            export.DisabledSafetyCheck.custom_call(TRITON_CALL)])(*shapes)
+
+
+def test_triton_kernels_lower_to_triton_for_a_cuda_gpu():
+    """Without a GPU, the kernels still go through Pallas' Triton lowering for CUDA
+    (:func:`export_chunk_for_cuda`): every operation they use has a Triton form, and a chunk
+    of the JAX kernel is XLA around two Triton calls (scalars, then rows)."""
+    potential, n = CASES["all-variables-3d"]  # every scalar: the kernels' every operation
+    exported = export_chunk_for_cuda(potential, n)
+    assert exported.mlir_module().count(f"custom_call @{TRITON_CALL}(") == 2
     x, phi = configuration(np.random.default_rng(5), n, potential.space)
     with pytest.raises(ValueError, match="pair program 'cuda': expected one of xla, triton"):
         pk.energy_and_gradients(potential, potential.space, x, phi, jnp.zeros(1, int),
