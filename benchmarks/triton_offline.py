@@ -21,6 +21,8 @@ compiles the kernels with XLA's own Triton): give an interpreter that has it wit
     .venv/bin/python benchmarks/triton_offline.py --triton-python /tmp/tri/bin/python
     .venv/bin/python benchmarks/triton_offline.py --triton-python /tmp/tri/bin/python \
         --all-families --keep /tmp/kernels        # + the .ttir, .ptx, .cubin and .sass files
+    .venv/bin/python benchmarks/triton_offline.py --triton-python /tmp/tri/bin/python \
+        --batch 16                                # + vmapped over 16 systems (a sweep)
 
 The figures are those of the ``triton`` package's compiler, not of the Triton inside XLA that
 a GPU run uses: a check that the kernels compile and fit in registers, not a measurement of
@@ -85,9 +87,10 @@ def pair_terms_of_the_tests():
     return [(label, potential, n) for label, (potential, n) in CASES.items()]
 
 
-def triton_modules(potential, n: int) -> list[str]:
+def triton_modules(potential, n: int, batch: int | None = None) -> list[str]:
     """The Triton modules (text) of the two kernels of one chunk, lowered for CUDA by the
-    tests' ``export_chunk_for_cuda`` (Pallas' lowering, kept as it passes)."""
+    tests' ``export_chunk_for_cuda`` (Pallas' lowering, kept as it passes); with ``batch``
+    vmapped over that many systems, as a sweep's samples run them."""
     from jax._src.pallas.triton import lowering
 
     sys.path.insert(0, str(TESTS))
@@ -103,7 +106,7 @@ def triton_modules(potential, n: int) -> list[str]:
 
     lowering.lower_jaxpr_to_triton_module = keeping
     try:
-        export_chunk_for_cuda(potential, n)
+        export_chunk_for_cuda(potential, n, batch=batch)
     finally:
         lowering.lower_jaxpr_to_triton_module = lower
     return modules
@@ -135,6 +138,9 @@ def main() -> None:
     parser.add_argument("--all-families", action="store_true",
                         help="also every pair family of tests/test_pair_kernels.py")
     parser.add_argument("--keep", type=Path, help="keep the modules and binaries here")
+    parser.add_argument("--batch", type=int, default=None,
+                        help="also the kernels vmapped over this many systems (a sweep's "
+                             "samples: a second grid axis)")
     args = parser.parse_args()
 
     try:
@@ -159,11 +165,13 @@ def main() -> None:
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for k, (label, potential, n) in enumerate(terms):
-        for name, module in zip(("scalars", "rows"), triton_modules(potential, n),
-                                strict=True):
-            path = folder / f"{k:02d}-{name}.ttir"
-            path.write_text(module)
-            paths.append((label, n, name, path))
+        for batch in (None,) if args.batch is None else (None, args.batch):
+            tag = "" if batch is None else f" x{batch}"
+            for name, module in zip(("scalars", "rows"), triton_modules(potential, n, batch),
+                                    strict=True):
+                path = folder / f"{k:02d}-{name}{tag.replace(' x', '-batch')}.ttir"
+                path.write_text(module)
+                paths.append((label + tag, n, name, path))
     done = subprocess.run([args.triton_python, "-c", COMPILE, str(args.arch),
                            str(_pair_triton.WARPS), *(str(p[-1]) for p in paths)],
                           capture_output=True, text=True, check=False)

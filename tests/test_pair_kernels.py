@@ -170,10 +170,12 @@ def test_triton_kernels_of_the_gpu_equal_all_pairs_in_the_pallas_interpreter(cas
 TRITON_CALL = "__gpu$xla.gpu.triton"
 
 
-def export_chunk_for_cuda(potential, n: int, pairs: int = 1024, bodies: int = 50):
+def export_chunk_for_cuda(potential, n: int, pairs: int = 1024, bodies: int = 50,
+                          batch: int | None = None):
     """jax.export of one chunk of the Triton program of ``potential`` for the "cuda"
     platform, an H100 named as the target device (JAX 0.12 asks for one where no GPU is
-    present); also what benchmarks/triton_offline.py compiles."""
+    present); with ``batch``, vmapped over that many systems (the samples of a sweep); also
+    what benchmarks/triton_offline.py compiles."""
     from jax import export
     from jax.sharding import AbstractDevice, AbstractMesh, use_abstract_mesh
 
@@ -183,22 +185,30 @@ def export_chunk_for_cuda(potential, n: int, pairs: int = 1024, bodies: int = 50
         return pk._pair_triton.chunk_rows(layout, pk._scalar_values_and_partials(potential, n),
                                           padding, u, i, j, valid, table)
 
-    shapes = [jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in (
+    lead = () if batch is None else (batch,)
+    shapes = [jax.ShapeDtypeStruct(lead + shape, dtype) for shape, dtype in (
         ((pairs, n), jnp.float64), ((pairs,), jnp.int32), ((pairs,), jnp.int32),
         ((pairs,), bool), ((bodies * layout.columns,), jnp.float64))]
     h100 = AbstractDevice(device_kind="NVIDIA H100", num_cores=None, platform="gpu")
     with use_abstract_mesh(AbstractMesh((1,), ("bodies",), abstract_device=h100)):
-        return export.export(jax.jit(chunk), platforms=["cuda"], disabled_checks=[
+        return export.export(jax.jit(chunk if batch is None else jax.vmap(chunk)),
+                             platforms=["cuda"], disabled_checks=[
             export.DisabledSafetyCheck.custom_call(TRITON_CALL)])(*shapes)
 
 
 def test_triton_kernels_lower_to_triton_for_a_cuda_gpu():
     """Without a GPU, the kernels still go through Pallas' Triton lowering for CUDA
     (:func:`export_chunk_for_cuda`): every operation they use has a Triton form, and a chunk
-    of the JAX kernel is XLA around two Triton calls (scalars, then rows)."""
+    of the JAX kernel is XLA around two Triton calls (scalars, then rows). Vmapped, as the
+    samples of a sweep run them, each call gets a second grid axis over the batch."""
+    import re
+
     potential, n = CASES["all-variables-3d"]  # every scalar: the kernels' every operation
     exported = export_chunk_for_cuda(potential, n)
     assert exported.mlir_module().count(f"custom_call @{TRITON_CALL}(") == 2
+    batched = export_chunk_for_cuda(potential, n, batch=3).mlir_module()
+    grids = re.findall(r"grid_x = (\d+) : i32, grid_y = (\d+) : i32", batched)
+    assert grids == [(str(1024 // pk._pair_triton.BLOCK), "3")] * 2
     x, phi = configuration(np.random.default_rng(5), n, potential.space)
     with pytest.raises(ValueError, match="pair program 'cuda': expected one of xla, triton"):
         pk.energy_and_gradients(potential, potential.space, x, phi, jnp.zeros(1, int),
