@@ -299,8 +299,10 @@ def pair_program(pot=None, n: int | None = None) -> str:
 
     chosen = os.environ.get(PAIR_PROGRAM_VARIABLE, "").strip()
     if chosen:
-        if chosen not in ("xla", "triton"):
-            raise ValueError(f"{PAIR_PROGRAM_VARIABLE}={chosen}: expected xla or triton")
+        products = [p for p in PAIR_PROGRAMS if p != "triton-interpret"]  # not the tests' one
+        if chosen not in products:
+            raise ValueError(f"{PAIR_PROGRAM_VARIABLE}={chosen}: expected "
+                             f"{' or '.join(products)}")
         if chosen == "triton" and jax.default_backend() != "gpu":
             raise ValueError(f"{PAIR_PROGRAM_VARIABLE}=triton needs a GPU (JAX's backend here "
                              f"is {jax.default_backend()}): unset it or set it to xla")
@@ -848,9 +850,7 @@ def pair_sum(pot, space: Space, x, phi, i, j, count, cell=None, virial: bool = F
 
 __all__ = [
     "ACCELERATOR_PAIR_CHUNK", "PAIR_CHUNK", "PAIR_PROGRAMS", "PAIR_PROGRAM_VARIABLE",
-    "energy_and_gradients",
-    "energy_and_gradients_host", "fused_on_host", "host_kernel_in_use", "host_threads",
-    "kernel_in_use",
-    "neighbor_energy", "padding_value", "pair_chunk", "pair_program", "pair_sum", "pair_virial",
-    "scalar_columns", "triton_builds",
+    "energy_and_gradients", "energy_and_gradients_host", "fused_on_host", "host_kernel_in_use",
+    "host_threads", "kernel_in_use", "neighbor_energy", "padding_value", "pair_chunk",
+    "pair_program", "pair_sum", "pair_virial", "scalar_columns", "triton_builds",
 ]
