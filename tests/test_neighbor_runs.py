@@ -175,7 +175,9 @@ def test_the_accelerator_path_gives_the_host_kernels_motion(monkeypatch):
     """What a GPU runs (the JAX pair kernel and list build, the exact af-is drift in JAX, tiny
     matrix products written elementwise: no host round trip in the loop) is the motion the CPU
     host kernels give (the fused Numba pair kernel, list build and drift), to round-off: the
-    same run of the periodic system with an af-is drift, once each way."""
+    same run of the periodic system with an af-is drift, once each way. The JAX kernel's
+    passes over pairs run as XLA programs, or as the GPU's Triton kernels (in Pallas'
+    interpreter: inside the compiled loop, its list rebuilds and the gradient's custom rule)."""
     import jax
 
     from affinebody import _host, _linalg, pair_kernels
@@ -196,14 +198,17 @@ def test_the_accelerator_path_gives_the_host_kernels_motion(monkeypatch):
     monkeypatch.setattr(_host, "in_use", lambda: False)
     monkeypatch.setattr(pair_kernels, "_host_in_use", lambda: False)
     monkeypatch.setattr(_linalg, "fused_products", lambda: True)
-    jax.clear_caches()
-    calls.clear()
-    try:
-        accelerator = run(system, state, DT, 60, every=EVERY, observers=observers,
-                          neighbors=lists)
-    finally:
-        jax.clear_caches()  # nothing compiled with the switches flipped outlives this test
-    assert calls == []
-    assert host.neighbor_rebuilds >= 1 and accelerator.neighbor_rebuilds == host.neighbor_rebuilds
-    assert_same_motion(accelerator, host, atol=1e-11)
+    for program in ("xla", "triton-interpret"):
+        monkeypatch.setattr(pair_kernels, "pair_program", lambda *args, p=program: p)
+        jax.clear_caches()
+        calls.clear()
+        try:
+            accelerator = run(system, state, DT, 60, every=EVERY, observers=observers,
+                              neighbors=lists)
+        finally:
+            jax.clear_caches()  # nothing compiled with the switches flipped outlives this test
+        assert calls == []
+        assert host.neighbor_rebuilds >= 1
+        assert accelerator.neighbor_rebuilds == host.neighbor_rebuilds
+        assert_same_motion(accelerator, host, atol=1e-11)
     assert np.max(np.abs(np.asarray(host.final_state.phi - state.phi))) > 1e-2  # real motion
