@@ -99,26 +99,27 @@ settings.register_profile(
 settings.register_profile("ci", parent=settings.get_profile("default"), derandomize=True)
 settings.load_profile("ci" if os.environ.get("CI") else "default")
 
-#: Test files that take longest (seconds of their tests in ``make test``, largest first; the
-#: sums of pytest's --durations per file on the 2-core machine, 2026-11-28: barostat 52,
-#: nonholonomic 49, constraints 48, kinetic 46, neighbor_runs 41, pair_kernels 40,
-#: integrators 39, sweep 37, quantum_orientations3 36, quantum_limits 35, quantum_transitions
-#: 32, quantum_densities 32, crash_safety 31, quantum_operators 31, potentials 31, thermostats
-#: 29, npt_neighbors 28, cli_neighbor_list 27, groups 25, linalg 25, quantum_n3_certified 22,
-#: quantum_evolution 21, sweep_thermal 21, quantum_n3 20, phonons 19, cli_sim 19; every other
-#: file less). ``make test`` distributes whole files over two workers
+#: Test files that take longest (seconds in ``make test``, largest first; measured per worker
+#: on the 2-core machine, 2026-11-28: nonholonomic 60, integrators 51, constraints 51, kinetic
+#: 49, pair_kernels 47, neighbor_runs 44, sweep 43, quantum_evolution3 42,
+#: quantum_orientations3 40, barostat 38, crash_safety 38, potentials 37, quantum_operators 36,
+#: quantum_transitions 36, quantum_limits 36, quantum_densities 32, cli_neighbor_list 30,
+#: thermostats 30, groups 28, quantum_n3 27, quantum_evolution 24, cli_sim 24, brackets 24,
+#: linalg 23, quantum_completeness 22, pressure 21, quantum_n3_certified 20, phonons 20;
+#: every other file 18 s or less). ``make test`` distributes whole files over two workers
 #: (--dist loadfile) in collection order (--no-loadscope-reorder: pytest-xdist would otherwise
 #: order the files by their number of tests, which started test_nonholonomic at 334 s of 591);
 #: starting with the longest files keeps a long file from starting last while the other worker
 #: idles (longest-processing-time-first). Files not listed keep their order.
-LONGEST_FIRST = ("test_barostat", "test_nonholonomic", "test_constraints", "test_kinetic",
-                 "test_neighbor_runs", "test_pair_kernels", "test_integrators", "test_sweep",
-                 "test_quantum_orientations3", "test_quantum_limits", "test_quantum_transitions",
-                 "test_quantum_densities", "test_crash_safety", "test_quantum_operators",
-                 "test_potentials", "test_thermostats", "test_npt_neighbors",
-                 "test_cli_neighbor_list", "test_groups", "test_linalg",
-                 "test_quantum_n3_certified", "test_quantum_evolution", "test_sweep_thermal",
-                 "test_quantum_n3", "test_phonons", "test_cli_sim")
+LONGEST_FIRST = ("test_nonholonomic", "test_integrators", "test_constraints", "test_kinetic",
+                 "test_pair_kernels", "test_neighbor_runs", "test_sweep",
+                 "test_quantum_evolution3", "test_quantum_orientations3", "test_barostat",
+                 "test_crash_safety", "test_potentials", "test_quantum_operators",
+                 "test_quantum_transitions", "test_quantum_limits", "test_quantum_densities",
+                 "test_cli_neighbor_list", "test_thermostats", "test_groups", "test_quantum_n3",
+                 "test_quantum_evolution", "test_cli_sim", "test_brackets", "test_linalg",
+                 "test_quantum_completeness", "test_pressure", "test_quantum_n3_certified",
+                 "test_phonons")
 
 
 @pytest.fixture(autouse=True, scope="session")
