@@ -425,8 +425,6 @@ def pressure_along_the_move(system, state, cell, mass=1.0):
 
     def energy(eps):
         mu = jnp.exp(eps / n)
-        if system.potential is None:
-            return 0.0 * eps
         return system.potential.energy(state.x * mu, state.phi, None, cell * mu)
 
     def p_of(eps):
@@ -444,6 +442,19 @@ def test_move_modulus_of_an_ideal_gas_is_one_plus_two_over_n_times_its_pressure(
         p = float(jnp.sum(state.p**2)) / (n * float(np.prod(np.diag(space.matrix))))
         k = barostat.move_modulus(system, state, None, space)
         assert k == pytest.approx((1 + 2 / n) * p, rel=1e-8)
+
+
+@pytest.mark.parametrize("length", [0.1, 0.25, 1.0, 1.25, 1.9])
+def test_variance_factor_is_that_of_euler_maruyama_steps_of_an_ou_process(length):
+    """The warnings' var(V) factor: Euler-Maruyama steps of length h (relaxation times) of
+    dx = -x dt + sqrt(2) dW, simulated (numpy, 2e5 chains), against the exact variance 1."""
+    rng = np.random.default_rng(7)
+    x = rng.normal(size=200_000)  # the exact law; its variance relaxes as (1 - h)^(2k)
+    for _ in range(int(10 / (length * (2 - length))) + 5):
+        x = (1 - length) * x + np.sqrt(2 * length) * rng.normal(size=x.size)
+    factor = barostat.variance_factor(length)
+    assert np.var(x) == pytest.approx(factor, rel=5 * np.sqrt(2 / x.size))  # 5 sigma
+    assert barostat.variance_factor(2.0) == np.inf  # |1 - h| >= 1: no stationary law
 
 
 def test_long_plain_moves_get_a_warning_and_tested_ones_none():

@@ -175,7 +175,7 @@ def export_chunk_for_cuda(potential, n: int, pairs: int = 1024, bodies: int = 50
     """jax.export of one chunk of the Triton program of ``potential`` for the "cuda"
     platform, an H100 named as the target device (JAX 0.12 asks for one where no GPU is
     present); with ``batch``, vmapped over that many systems (the samples of a sweep); also
-    what benchmarks/triton_offline.py compiles."""
+    what tools/triton_offline.py compiles."""
     from jax import export
     from jax.sharding import AbstractDevice, AbstractMesh, use_abstract_mesh
 

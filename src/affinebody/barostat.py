@@ -295,10 +295,9 @@ def move_modulus(system, state: State, cell, space, neighbors=None, step: float 
     pi fixed; module docstring) at ``state`` in ``cell``, P = Tr P_inst / n with its kinetic
     part: the stiffness that the drift of a move feels, so the volume relaxes at the rate
     beta_T K / tau (:func:`move_length`): the affine (instantaneous) bulk modulus of one
-    configuration, (1 + 2/n) P for an ideal gas; in the NPT tutorial's crystal 24.5 +- 2.8
-    from frame to frame, where kT <V> / var(V) gives 22-24 (docs/pressure.md). Central
-    difference in ln V (``step``); ``neighbors``: None (all pairs) or the (spec, list) of
-    ``state`` in ``cell``."""
+    configuration, (1 + 2/n) P for an ideal gas (docs/pressure.md compares it with
+    kT <V> / var(V) in a crystal). Central difference in ln V (``step``); ``neighbors``: None
+    (all pairs) or the (spec, list) of ``state`` in ``cell``."""
     space = as_space(space)
     state = jax.tree.map(jnp.asarray, state)
     cell = jnp.asarray(space.matrix if cell is None else cell, dtype=state.x.dtype)
@@ -328,14 +327,24 @@ def move_modulus_jit(system, state: State, cell, lst, *, space: Space, spec, ste
 def move_length(barostat: StochasticCellRescaling, modulus: float, dt: float) -> float:
     """beta_T K m dt / tau: a move's length (m = ``interval`` steps of ``dt``) in units of
     the volume's relaxation time tau / (beta_T K), K from :func:`move_modulus`. The plain
-    moves' Euler-Maruyama error in the volume's fluctuations grows with it (about
-    1 / (1 - length / 2) in var(V) for a linear response; unstable past 2): docs/pressure.md."""
+    moves' error in the volume's fluctuations grows with it (:func:`variance_factor`)."""
     return barostat.compressibility * modulus * barostat.interval * dt / barostat.tau
 
 
-#: The move length (:func:`move_length`) above which a run with plain moves warns: var(V)
-#: about 1 / (1 - 0.25 / 2) = 1.14 times the ensemble's for a linear response.
+def variance_factor(length: float) -> float:
+    """Stationary variance of Euler-Maruyama steps of length h = ``length`` (in units of the
+    relaxation time) of an Ornstein-Uhlenbeck process, over the exact one: x' = (1 - h) x +
+    sqrt(2 h) z has var = 2h / (1 - (1 - h)^2) = 1 / (1 - h/2); no stationary law for h >= 2
+    (inf). The plain moves' var(V) for a volume that responds linearly (docs/pressure.md)."""
+    return 1.0 / (1.0 - length / 2.0) if length < 2.0 else np.inf
+
+
+#: The move length (:func:`move_length`) above which plain moves get a warning: var(V) about
+#: variance_factor(0.25) = 1.14 times the ensemble's for a linear response.
 LONG_MOVE = 0.25
+#: What the warnings about long plain moves advise (``affinebody run`` and ``sweep``).
+LONG_MOVE_FIX = ("set barostat.metropolis = true, or raise barostat.tau or lower "
+                 "barostat.interval")
 
 
 def long_move_warning(barostat: StochasticCellRescaling, modulus: float, dt: float):
@@ -345,12 +354,11 @@ def long_move_warning(barostat: StochasticCellRescaling, modulus: float, dt: flo
     if barostat.metropolis or not length > LONG_MOVE:
         return None
     effect = (f"the plain moves inflate the volume's fluctuations (var(V) about "
-              f"{1 / (1 - length / 2):.2g}x for a linear response) and the compressibility "
+              f"{variance_factor(length):.2g}x for a linear response) and the compressibility "
               f"read off them" if length < 2 else "the plain moves are unstable past 2")
     return (f"barostat moves are about {length:.2g} of the volume's relaxation time tau / "
             f"(compressibility K), K = {modulus:.3g} the bulk modulus under a move at the "
-            f"last state: {effect}; set barostat.metropolis = true, or raise barostat.tau or "
-            f"lower barostat.interval")
+            f"last state: {effect}; {LONG_MOVE_FIX}")
 
 
 #: The barostat's own random stream (folded into the seed), apart from a thermostat's.
@@ -665,5 +673,6 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
 
 
 __all__ = ["COUPLINGS", "NPTTrajectory", "STREAM", "StochasticCellRescaling", "advance",
-           "LONG_MOVE", "c_rescale", "first_narrow_frame", "long_move_warning", "move_length",
-           "move_modulus", "move_modulus_jit", "run", "step_key"]
+           "LONG_MOVE", "LONG_MOVE_FIX", "c_rescale", "first_narrow_frame", "long_move_warning",
+           "move_length", "move_modulus", "move_modulus_jit", "run", "step_key",
+           "variance_factor"]

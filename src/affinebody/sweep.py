@@ -1169,7 +1169,7 @@ def long_moves_warning(lengths: Sequence[float]) -> str | None:
     """The one-line warning of an NPT sweep with plain moves whose mean ``move_length`` at
     some points (``lengths``, NaN where nothing was sampled) exceeds
     :data:`affinebody.barostat.LONG_MOVE`, or None."""
-    from affinebody.barostat import LONG_MOVE
+    from affinebody.barostat import LONG_MOVE, LONG_MOVE_FIX
 
     lengths = [x for x in lengths if np.isfinite(x)]
     long = [x for x in lengths if x > LONG_MOVE]
@@ -1178,8 +1178,7 @@ def long_moves_warning(lengths: Sequence[float]) -> str | None:
     return (f"barostat moves are up to {max(long):.2g} of the volume's relaxation time "
             f"(move_length in samples.csv; over {LONG_MOVE} at {len(long)} of {len(lengths)} "
             f"points): the plain moves inflate var(V) and with it compressibility and "
-            f"heat_capacity; set barostat.metropolis = true, or raise barostat.tau or lower "
-            f"barostat.interval")
+            f"heat_capacity; {LONG_MOVE_FIX}")
 
 
 def run_sweep(

@@ -1,5 +1,6 @@
 """The GPU pair kernels compiled for an NVIDIA GPU on a machine without one: do they build, do
-they spill, how many instructions a pair costs.
+they spill, how many instructions a pair costs. A developer's check of the build, not a
+benchmark: it times nothing (``benchmarks/gpu_session.sh`` measures the product on a GPU).
 
 The Triton program of the JAX pair kernel (``pair_kernels.pair_program`` "triton", the two
 Pallas kernels of ``affinebody._pair_triton``) runs only on a GPU, and a session is lent one
@@ -18,10 +19,10 @@ compiles the kernels with XLA's own Triton): give an interpreter that has it wit
 ``--triton-python`` (a separate virtual environment), or install it where this runs.
 
     python3.11 -m venv /tmp/tri && /tmp/tri/bin/pip install triton
-    .venv/bin/python benchmarks/triton_offline.py --triton-python /tmp/tri/bin/python
-    .venv/bin/python benchmarks/triton_offline.py --triton-python /tmp/tri/bin/python \
+    .venv/bin/python tools/triton_offline.py --triton-python /tmp/tri/bin/python
+    .venv/bin/python tools/triton_offline.py --triton-python /tmp/tri/bin/python \
         --all-families --keep /tmp/kernels        # + the .ttir, .ptx, .cubin and .sass files
-    .venv/bin/python benchmarks/triton_offline.py --triton-python /tmp/tri/bin/python \
+    .venv/bin/python tools/triton_offline.py --triton-python /tmp/tri/bin/python \
         --batch 16                                # + vmapped over 16 systems (a sweep)
 
 The figures are those of the ``triton`` package's compiler, not of the Triton inside XLA that
@@ -40,7 +41,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))  # run_scale
 
 #: Run by the interpreter that has ``triton``: compile each module named on the command line
 #: for the target in argv[1] and write its .ptx and .cubin beside it.
