@@ -14,12 +14,15 @@ measurements)).
 """
 
 import math
+import re
 import textwrap
 import warnings
 
+import numpy as np
 import pytest
 
 from affinebody.config import check_config, parse_config
+from affinebody.cli.sweep import summary_lines
 from affinebody.sweep import run_sweep
 
 N, n = 4, 2
@@ -69,6 +72,14 @@ def load(text):
     return check_config(parse_config(text))
 
 
+def table_cells(lines):
+    """The header and the rows of the sweep command's table, as lists of cells (columns are
+    at least two spaces apart, a cell's "mean ± error" one)."""
+    rows = [re.split(r"\s{2,}", line.strip()) for line in lines]
+    start = next(i for i, row in enumerate(rows) if "<E>" in row)
+    return [rows[start], *(row for row in rows[start + 2:] if len(row) == len(rows[start]))]
+
+
 def close(point, name, exact, allowance=0.0):
     mean, error = point[name], point[f"{name}_error"]
     assert abs(mean - exact) < 4 * error + allowance * abs(exact), (name, mean, error, exact)
@@ -114,6 +125,16 @@ def test_npt_sweep_follows_the_isobaric_ideal_gas_law():
         # a move of dt: K = -dP/d ln V along it is (1 + 2/n) P_inst at the last state, whose
         # mean over the samples is P (the barostat's measure dV), beta_T = 1, tau = 0.5
         close(point, "move_length", (1 + 2 / n) * pressure * 0.01 / 0.5)
+    # the command's table shows kappa_T and the move length of each point (no rejections:
+    # plain moves), each as mean ± error with the mean rounded at the error's second digit
+    table = table_cells(summary_lines(result.summary))
+    assert "rejected" not in table[0]
+    for point, row in zip(result.summary["points"], table[1:], strict=True):
+        assert float(row[0]) == point["parameters"]["barostat.pressure"]
+        for name, column in (("compressibility", "kappa_T"), ("move_length", "move")):
+            mean, error = map(float, row[table[0].index(column)].split(" ± "))
+            assert abs(error - point[name + "_error"]) <= 0.06 * error, (name, row)
+            assert abs(mean - point[name]) <= 0.06 * error, (name, row)
 
 
 def test_npt_sweep_with_tested_moves_follows_the_law_at_moves_five_times_as_long():
@@ -135,6 +156,9 @@ def test_npt_sweep_with_tested_moves_follows_the_law_at_moves_five_times_as_long
         assert point["rejected_fraction_error"] < 0.1 * point["rejected_fraction"]
         close(point, "move_length", (1 + 2 / n) * pressure * 0.05 / 0.5)
     assert 0.01 < rejected[0] < rejected[1] < 0.5, rejected
+    table = table_cells(summary_lines(result.summary))
+    shown = [float(row[table[0].index("rejected")].split(" ± ")[0]) for row in table[1:]]
+    np.testing.assert_allclose(shown, rejected, rtol=0.01)  # the table's "rejected" column
 
 
 def test_a_sweep_with_long_plain_moves_says_where_in_one_line():

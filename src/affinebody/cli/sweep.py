@@ -22,36 +22,62 @@ def _format(value: float, digits: int = 3) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
 
 
+def _with_error(mean: float, error: float) -> str:
+    """``mean ± error``: the error to two significant digits and the mean to the same decimal
+    place (``0.979 ± 0.014``), the convention of a measured value; without a finite error the
+    mean to five digits."""
+    if mean is None or not math.isfinite(mean):
+        return "-"
+    if error is None or not math.isfinite(error) or error <= 0:
+        return f"{_format(mean, 5)} ± -"
+    magnitude = math.floor(math.log10(abs(mean))) if mean else 0
+    error = float(f"{error:.2g}")  # 0.0999 is 0.10: the mean to 0.01
+    digits = min(12, max(1, magnitude - math.floor(math.log10(error)) + 2))
+    # "#" keeps the trailing zeros that carry precision (1.990, 0.0040), not a bare "."
+    return f"{mean:#.{digits}g}".rstrip(".") + " ± " + f"{error:#.2g}".rstrip(".")
+
+
 def _thermal_lines(summary: dict) -> list[str]:
     """The table of a thermostatted sweep: per point, the averages over its samples with their
     standard errors."""
+    from rich import box
     from rich.table import Table
 
-    table = Table(title=f"{summary['ensemble']} sweep: {summary['samples']} samples per point, "
+    # no vertical rules: the columns of "mean ± error" take less room
+    table = Table(box=box.SIMPLE_HEAD, title=f"{summary['ensemble']} sweep: {summary['samples']} samples per point, "
                         f"{summary['horizon']:.6g} time units, averages after "
                         f"{summary['equilibration']} steps")
     names = list(summary["points"][0]["parameters"]) if summary["points"] else []
     shown = {"mean_total_energy": "<E>", "mean_translational_temperature": "<T_tr>",
              "mean_internal_temperature": "<T_int>", "mean_pressure": "<P>",
              "mean_volume": "<V>", "heat_capacity": "C"}
+    if summary["ensemble"] == "NPT":
+        # how far var(V) (hence kappa_T and C) can be trusted: the moves' length against the
+        # volume's relaxation time, and with tested moves the fraction rejected
+        shown |= {"compressibility": "kappa_T", "move_length": "move"}
+        if any(math.isfinite(point.get("rejected_fraction", math.nan)) for point in summary["points"]):
+            shown["rejected_fraction"] = "rejected"
     for name in [*names, "sampled", "failed", *shown.values()]:
-        table.add_column(name, justify="right")
+        table.add_column(name, justify="right", no_wrap=True)
     for point in summary["points"]:
         table.add_row(*(str(point["parameters"][k]) for k in names), str(point["sampled"]),
                       str(point["failed"]),
-                      *(f"{_format(point[k], 5)} ± {_format(point[k + '_error'], 2)}"
-                        for k in shown))
+                      *(_with_error(point[k], point[k + "_error"]) for k in shown))
     return _rendered(table, summary, f"{summary['total_samples'] - summary['failed']} samples "
                                      f"({summary['failed']} failed)")
+
+
+_WIDEST = 400
 
 
 def _rendered(table, summary: dict, totals: str) -> list[str]:
     """The table as text, the totals line with the time and the cluster, the failures."""
     from rich.console import Console
 
-    console = Console(width=160, record=True, file=io.StringIO())
+    # as wide as its columns (no value broken over two lines), the text wraps where it must
+    console = Console(width=_WIDEST, record=True, file=io.StringIO())
     console.print(table)
-    lines = console.export_text().rstrip("\n").splitlines()
+    lines = [line.rstrip() for line in console.export_text().rstrip("\n").splitlines()]
     lines.append(f"{totals}, {summary['wall_seconds']:.1f} s on {summary['workers']} worker(s) "
                  f"({summary['scheduler']})")
     for point in summary["points"]:
@@ -74,8 +100,7 @@ def summary_lines(summary: dict) -> list[str]:
                  "|dE/E| median", "max rel. volume", "det phi range"]:
         table.add_column(name, justify="right")
     for point in summary["points"]:
-        fraction = (f"{_format(point['fraction_bounded'], 4)} ± "
-                    f"{_format(point['fraction_bounded_error'], 2)}")
+        fraction = _with_error(point["fraction_bounded"], point["fraction_bounded_error"])
         table.add_row(
             *(str(point["parameters"][k]) for k in names),
             str(point["bounded"]), str(point["unbounded"]), str(point["failed"]), fraction,
