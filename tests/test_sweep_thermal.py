@@ -21,8 +21,8 @@ import warnings
 import numpy as np
 import pytest
 
-from affinebody.config import check_config, parse_config
 from affinebody.cli.sweep import summary_lines
+from affinebody.config import check_config, parse_config
 from affinebody.sweep import run_sweep
 
 N, n = 4, 2

@@ -44,7 +44,8 @@ def _thermal_lines(summary: dict) -> list[str]:
     from rich.table import Table
 
     # no vertical rules: the columns of "mean ± error" take less room
-    table = Table(box=box.SIMPLE_HEAD, title=f"{summary['ensemble']} sweep: {summary['samples']} samples per point, "
+    table = Table(box=box.SIMPLE_HEAD,
+                  title=f"{summary['ensemble']} sweep: {summary['samples']} samples per point, "
                         f"{summary['horizon']:.6g} time units, averages after "
                         f"{summary['equilibration']} steps")
     names = list(summary["points"][0]["parameters"]) if summary["points"] else []
@@ -55,7 +56,8 @@ def _thermal_lines(summary: dict) -> list[str]:
         # how far var(V) (hence kappa_T and C) can be trusted: the moves' length against the
         # volume's relaxation time, and with tested moves the fraction rejected
         shown |= {"compressibility": "kappa_T", "move_length": "move"}
-        if any(math.isfinite(point.get("rejected_fraction", math.nan)) for point in summary["points"]):
+        if any(math.isfinite(point.get("rejected_fraction", math.nan))
+               for point in summary["points"]):
             shown["rejected_fraction"] = "rejected"
     for name in [*names, "sampled", "failed", *shown.values()]:
         table.add_column(name, justify="right", no_wrap=True)
