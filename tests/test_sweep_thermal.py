@@ -184,3 +184,21 @@ def test_thermal_sweep_tables_are_checked_in_one_line():
         with pytest.raises(ConfigError) as err:
             run_sweep(load(text), workers=0)
         assert words in str(err.value) and "\n" not in str(err.value)
+
+
+def test_table_values_are_rounded_at_the_second_digit_of_their_error():
+    """Every "mean ± error" of the sweep tables reads back as the mean within half a unit of
+    the error's second significant digit, and the error to two digits, over twelve decades."""
+    from affinebody.cli.sweep import _with_error
+
+    rng = np.random.default_rng(7)
+    for _ in range(2000):
+        error = 10.0 ** rng.uniform(-9, 9)
+        mean = rng.choice([-1, 1]) * error * 10.0 ** rng.uniform(-1, 4)
+        mean_text, error_text = _with_error(mean, error).split(" ± ")
+        shown_mean, shown_error = float(mean_text), float(error_text)
+        unit = 10.0 ** (math.floor(math.log10(shown_error)) - 1)
+        assert abs(shown_error - error) <= 0.5 * unit * (1 + 1e-9), (mean, error, error_text)
+        assert abs(shown_mean - mean) <= 0.5 * unit * (1 + 1e-9), (mean, error, mean_text)
+        if "e" not in mean_text:  # as many decimals as the error (none past its 2nd digit)
+            assert len(mean_text.partition(".")[2]) == len(error_text.partition(".")[2])

@@ -24,17 +24,21 @@ def _format(value: float, digits: int = 3) -> str:
 
 def _with_error(mean: float, error: float) -> str:
     """``mean ± error``: the error to two significant digits and the mean to the same decimal
-    place (``0.979 ± 0.014``), the convention of a measured value; without a finite error the
-    mean to five digits."""
+    place (``0.979 ± 0.014``, ``420 ± 110``), the convention of a measured value; far from 1
+    (below 1e-7 or above 1e7) in exponent form; without a finite error the mean to five
+    digits."""
     if mean is None or not math.isfinite(mean):
         return "-"
     if error is None or not math.isfinite(error) or error <= 0:
         return f"{_format(mean, 5)} ± -"
-    magnitude = math.floor(math.log10(abs(mean))) if mean else 0
     error = float(f"{error:.2g}")  # 0.0999 is 0.10: the mean to 0.01
-    digits = min(12, max(1, magnitude - math.floor(math.log10(error)) + 2))
-    # "#" keeps the trailing zeros that carry precision (1.990, 0.0040), not a bare "."
-    return f"{mean:#.{digits}g}".rstrip(".") + " ± " + f"{error:#.2g}".rstrip(".")
+    place = math.floor(math.log10(error)) - 1  # the decimal place of the error's second digit
+    if -7 <= place and abs(mean) < 1e7:
+        decimals = max(0, -place)
+        return f"{round(mean, -place):.{decimals}f} ± {error:.{decimals}f}"
+    magnitude = math.floor(math.log10(abs(mean))) if mean else place + 1
+    digits = max(1, magnitude - place + 1)
+    return f"{mean:.{digits - 1}e} ± {error:.1e}"
 
 
 def _thermal_lines(summary: dict) -> list[str]:
