@@ -73,15 +73,13 @@ def _thermal_lines(summary: dict) -> list[str]:
                                      f"({summary['failed']} failed)")
 
 
-_WIDEST = 400
-
-
 def _rendered(table, summary: dict, totals: str) -> list[str]:
     """The table as text, the totals line with the time and the cluster, the failures."""
     from rich.console import Console
 
-    # as wide as its columns (no value broken over two lines), the text wraps where it must
-    console = Console(width=_WIDEST, record=True, file=io.StringIO())
+    # wide enough for the table's own width (no value broken over two lines); a terminal
+    # narrower than the table wraps whole lines
+    console = Console(width=400, record=True, file=io.StringIO())
     console.print(table)
     lines = [line.rstrip() for line in console.export_text().rstrip("\n").splitlines()]
     lines.append(f"{totals}, {summary['wall_seconds']:.1f} s on {summary['workers']} worker(s) "
@@ -112,9 +110,9 @@ def summary_lines(summary: dict) -> list[str]:
             str(point["bounded"]), str(point["unbounded"]), str(point["failed"]), fraction,
             _format(point["energy_error_median"], 2), _format(point["max_relative_volume"]),
             f"{_format(point['min_det'])} .. {_format(point['max_det'])}")
+    overall = _with_error(summary["fraction_bounded"], summary["fraction_bounded_error"])
     return _rendered(table, summary,
-                     f"fraction bounded (all points): {_format(summary['fraction_bounded'], 4)} "
-                     f"± {_format(summary['fraction_bounded_error'], 2)} over "
+                     f"fraction bounded (all points): {overall} over "
                      f"{summary['total_samples'] - summary['failed']} classified samples "
                      f"({summary['failed']} failed)")
 
