@@ -60,8 +60,7 @@ def _thermal_lines(summary: dict) -> list[str]:
         # how far var(V) (hence kappa_T and C) can be trusted: the moves' length against the
         # volume's relaxation time, and with tested moves the fraction rejected
         shown |= {"compressibility": "kappa_T", "move_length": "move"}
-        if any(math.isfinite(point.get("rejected_fraction", math.nan))
-               for point in summary["points"]):
+        if any(math.isfinite(point["rejected_fraction"]) for point in summary["points"]):
             shown["rejected_fraction"] = "rejected"
     for name in [*names, "sampled", "failed", *shown.values()]:
         table.add_column(name, justify="right", no_wrap=True)
