@@ -505,13 +505,16 @@ def neighbor_energy(pot, x, phi, neighbors, cell=None) -> jax.Array:
 from affinebody import _host  # noqa: E402
 from affinebody._host import in_use as _host_in_use  # noqa: E402
 from affinebody._host_kernels.pair_expression import fused_source  # noqa: E402
+from affinebody._host_kernels.pair_source import kernels_source  # noqa: E402
 
 
 @functools.cache
-def _numba_kernels(n: int):
-    """The compiled kernels for dimension n (:mod:`affinebody._host_kernels.pair`, specialized
-    to n and cached on disk by :func:`affinebody._host.specialized`)."""
-    kernels = _host.specialized("pair", N=n)
+def _numba_kernels(n: int, plain: frozenset, k_powers: int, m_powers: int, swapped: bool):
+    """The compiled kernels of the two-callback path for a pair term that needs these scalars
+    in dimension n (written out by :func:`affinebody._host_kernels.pair_source.kernels_source`,
+    cached on disk by :func:`affinebody._host.specialized`)."""
+    source = kernels_source(n, plain, k_powers, m_powers, swapped)
+    kernels = _host.specialized("pair", extra=source, N=n)
     return types.SimpleNamespace(geometry=kernels._geometry, scatter=kernels._scatter,
                                  virial=kernels._virial)
 
@@ -604,7 +607,7 @@ def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid, h, h_inv):
     harmless padding values (beyond the cut-off, identity configurations) in the other rows.
     Only the scalars cross back to XLA (the displacements are recomputed by the scatter):
     what crosses a callback costs a copy, ~1 ns per byte here."""
-    kernels = _numba_kernels(g.n)
+    kernels = _numba_kernels(g.n, g.plain, g.k_powers, g.m_powers, g.swapped)
     # callbacks receive jax.Arrays: as NumPy arrays (no copy on a CPU) Numba indexes them
     # as typed arrays, not as generic buffers (which made the kernels ~2x slower)
     x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
@@ -620,9 +623,7 @@ def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid, h, h_inv):
     def work(_, lo, hi):
         view = {key: a[lo:hi] for key, a in out.items()}
         kernels.geometry(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, h,
-                         h_inv, g.edges, "r" in g.plain, "D" in g.plain, "det" in g.plain,
-                         g.k_powers, g.m_powers, g.swapped,
-                         view.get("r", empty1), view.get("D", empty1),
+                         h_inv, g.edges, view.get("r", empty1), view.get("D", empty1),
                          view.get("det", empty1), view.get("K", empty2),
                          view.get("M", empty2), view.get("Ms", empty2))
 
@@ -633,7 +634,7 @@ def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid, h, h_inv):
 def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partials, h, h_inv):
     """``sums`` (dV/dx, dV/dphi direct, dV/dB, dV/d det per body) plus the closed-form
     geometric derivatives of the chunk's first ``valid`` pairs, from df/dq (``partials``)."""
-    kernels = _numba_kernels(g.n)
+    kernels = _numba_kernels(g.n, g.plain, g.k_powers, g.m_powers, g.swapped)
     valid = int(valid)
     i = np.ascontiguousarray(i)
     j = np.ascontiguousarray(j)
@@ -648,8 +649,7 @@ def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partia
         kernels.scatter(0, hi - lo, i[lo:hi], j[lo:hi], x, phi, binv, det, g.mode, h,
                         h_inv, g.edges, rows("r", empty1), rows("D", empty1),
                         rows("det", empty1), rows("K", empty2), rows("M", empty2),
-                        rows("Ms", empty2), "r" in g.plain, "D" in g.plain,
-                        "det" in g.plain, g.k_powers, g.m_powers, g.swapped, *acc)
+                        rows("Ms", empty2), *acc)
         return acc
 
     out = tuple(np.array(a, dtype=np.float64) for a in sums)
@@ -662,7 +662,7 @@ def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partia
 def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
     """-sum u (dV/du)^T [n, n] of the chunk's first ``valid`` pairs (parts summed in a fixed
     order, as :func:`_host_scatter`)."""
-    kernels = _numba_kernels(g.n)
+    kernels = _numba_kernels(g.n, g.plain, g.k_powers, g.m_powers, g.swapped)
     valid = int(valid)
     i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
     x, binv, h, h_inv = (np.asarray(a) for a in (x, binv, h, h_inv))
@@ -674,7 +674,7 @@ def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
         out = np.zeros((g.n, g.n))
         rows = lambda key: partials[key][lo:hi] if key in partials else empty1  # noqa: E731
         kernels.virial(0, hi - lo, i[lo:hi], j[lo:hi], x, binv, g.mode, h, h_inv, g.edges,
-                       rows("r"), rows("D"), "r" in g.plain, "D" in g.plain, out)
+                       rows("r"), rows("D"), out)
         return out
 
     total = np.zeros((g.n, g.n))
