@@ -102,3 +102,29 @@ def test_host_drift_conserves_the_momentum_maps(model, monkeypatch):
         assert relative_error(new, old) < 1e-12
     energy = lambda s: np.asarray(model.hamiltonian(s.phi, s.pi))  # noqa: E731
     assert np.max(np.abs(energy(after) / energy(state) - 1.0)) < 1e-12
+
+
+def test_the_set_up_compiles_the_drift_kernel_that_the_loop_calls():
+    """kinetic.compile_host_drift (what config.build runs as its "drift kernel" stage) compiles
+    the host drift for the argument types of the loop's callback, so the loop's first drift
+    compiles nothing more (Numba compiles again for any other type: a writable operand, say);
+    and it does nothing where the loop runs the JAX flow (n = 2, few bodies, no isotropic
+    affine model)."""
+    if not _host.in_use():
+        pytest.skip("the host drift runs on a CPU with Numba")
+    model = K.AffineIsotropic(1.0, 0.2, 0.1)
+    bodies = K.HOST_DRIFT_MIN_BODIES
+    rng = np.random.default_rng(3)
+    assert not K.compile_host_drift(model, np.zeros((bodies, 2, 2)))
+    assert not K.compile_host_drift(model, np.zeros((bodies - 1, 3, 3)))
+    assert not K.compile_host_drift(K.DAlembert(np.eye(3)), np.zeros((bodies, 3, 3)))
+    K._drift_kernel.cache_clear()  # a new dispatcher: only what is compiled from here counts
+    assert K.compile_host_drift(model, np.zeros((bodies, 3, 3)))
+    kernel = K._drift_kernel(3)
+    assert len(kernel.signatures) == 1
+    phi = jnp.asarray(np.eye(3) + 0.1 * rng.standard_normal((bodies, 3, 3)))
+    pi = jnp.asarray(rng.standard_normal((bodies, 3, 3)))
+    coefs = jnp.asarray(rng.uniform(-0.1, 0.1, (bodies, 3)))
+    for left in (True, False):  # af-is and is-af: the same types
+        jax.block_until_ready(host_flow(phi, pi, coefs, left))
+    assert len(kernel.signatures) == 1

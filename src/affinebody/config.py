@@ -1103,6 +1103,8 @@ def build(config: Config) -> Built:
     except ValueError as err:
         raise ConfigError(f"initial: {err}") from None
     lap("state checks")
+    if _kinetic.compile_host_drift(kinetic, state.phi):
+        lap("drift kernel")
     neighbor_list = uses_neighbor_list(config, terms)
     lists = None
     if neighbor_list:

@@ -804,16 +804,38 @@ def _isotropic_flow_host_jvp(left, primals, tangents):
     return jax.jvp(functools.partial(isotropic_flow_jax, left=left), primals, tangents)
 
 
+def host_drift_in_use(phi) -> bool:
+    """Whether :func:`isotropic_flow` of configurations shaped as ``phi`` runs the host
+    kernel: a CPU with Numba, n = 3 and at least :data:`HOST_DRIFT_MIN_BODIES` bodies (a GPU:
+    no host round trip; few bodies: a callback's fixed cost, ~0.1 ms, outweighs the work;
+    n = 2: XLA's flow was the faster at every size measured, to 4096 bodies)."""
+    bodies = int(np.prod(np.shape(phi)[:-2]))
+    return _host.in_use() and np.shape(phi)[-1] == 3 and bodies >= HOST_DRIFT_MIN_BODIES
+
+
 def isotropic_flow(phi, pi, coefs, left: bool):
-    """The exact drift of af-is / af-af (``left``) and is-af: :func:`isotropic_flow_host` on a
-    CPU with Numba for n = 3 and at least :data:`HOST_DRIFT_MIN_BODIES` bodies,
-    :func:`isotropic_flow_jax` otherwise (a GPU: no host round trip; few bodies: a callback's
-    fixed cost, ~0.1 ms, outweighs the work; n = 2: XLA's flow was the faster at every size
-    measured, to 4096 bodies)."""
-    bodies = int(np.prod(phi.shape[:-2]))
-    if _host.in_use() and phi.shape[-1] == 3 and bodies >= HOST_DRIFT_MIN_BODIES:
+    """The exact drift of af-is / af-af (``left``) and is-af: :func:`isotropic_flow_host`
+    where :func:`host_drift_in_use`, :func:`isotropic_flow_jax` otherwise."""
+    if host_drift_in_use(phi):
         return isotropic_flow_host(phi, pi, coefs, left)
     return isotropic_flow_jax(phi, pi, coefs, left)
+
+
+def compile_host_drift(kinetic, phi) -> bool:
+    """Compile (or load from the disk cache) the host drift kernel that a time loop of
+    ``kinetic`` over configurations shaped as ``phi`` will call, so that a run's set-up pays
+    for it rather than its first steps (where, compiled into an empty cache, it took ~3 s of
+    the loop's time and of its steps/s). True where there was one to compile."""
+    internal = getattr(kinetic, "internal", kinetic)
+    if not (isinstance(internal, _IsotropicAffineFamily) and host_drift_in_use(phi)):
+        return False
+    n = np.shape(phi)[-1]
+    # no bodies, given as the callback gives its operands (read-only views: a writable array
+    # is another Numba type, which the loop would compile again)
+    empty, coefs = np.zeros((0, n, n)), np.zeros((0, 3))
+    empty.flags.writeable = coefs.flags.writeable = False
+    _host_isotropic_flow(True, empty, empty, coefs)
+    return True
 
 
 _REGION_DOC = """
