@@ -9,8 +9,10 @@ against all-pairs sums). Work is split in fixed parts run on up to as many threa
 (:func:`in_parts`), so results do not depend on the number of cores.
 
 The kernels live in :mod:`affinebody._host_kernels` as modules whose dimension (and box kind)
-are module constants, which Numba compiles as constants so that the small loops unroll.
-:func:`specialized` writes such a module once per set of constants into a cache folder and
+are module constants, which Numba compiles as constants so that the small loops unroll (the
+pair kernels' loops over pairs are generated source appended to their module, written out per
+pair term). :func:`specialized` writes such a module once per set of constants into a cache
+folder and
 imports it from there; Numba's ``cache=True`` then keeps the machine code beside it, so only the
 first process on a machine compiles (about 5 s for the n = 3 pair kernel), the others load.
 """

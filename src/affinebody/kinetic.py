@@ -1046,6 +1046,7 @@ __all__ = [
     "MODELS", "SYMMETRIES", "TRANSLATIONAL_MODELS", "AbstractKineticTerm", "AffineAffine",
     "AffineIsotropic", "AffineJ", "AffineTranslational", "DAlembert", "DAlembertTranslational",
     "HAffine", "IsotropicAffine", "KineticEnergy", "LeftInvariant", "RightInvariant",
-    "host_drift_threads", "isotropic_flow", "isotropic_flow_host", "isotropic_flow_jax",
+    "compile_host_drift", "host_drift_in_use", "host_drift_threads", "isotropic_flow",
+    "isotropic_flow_host", "isotropic_flow_jax",
     "rank_one_splitting",
 ]

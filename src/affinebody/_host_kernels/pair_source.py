@@ -304,3 +304,6 @@ def kernels_source(n: int, plain: frozenset, k_powers: int, m_powers: int,
                      + moving_partials + moving.force() + moving.virial_lines(), 2)
     virial += indent(moving.virial_end(), 1)
     return "\n".join(geometry + ["", ""] + scatter + ["", ""] + virial) + "\n"
+
+
+__all__ = ["Pair", "indent", "kernels_source"]
