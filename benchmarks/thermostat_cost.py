@@ -33,7 +33,7 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_scale import AFFINEBODY, CONFIG  # noqa: E402 - the same lattice as the scale benchmark
+from run_scale import AFFINEBODY, write_config  # noqa: E402 - the scale benchmark's lattice
 
 THERMOSTATS = {
     "NVE": "",
@@ -66,9 +66,9 @@ def main() -> None:
         folder = Path(tmp)
         configs = {}
         for name, table in THERMOSTATS.items():
-            configs[name] = folder / f"{name.replace(' ', '-')}.toml"
-            configs[name].write_text(CONFIG.format(bodies=args.side**3, side=args.side,
-                                                   steps=args.steps, every=args.short) + table)
+            configs[name] = write_config(folder, args.side, args.steps, args.short,
+                                         name=name.replace(" ", "-"))
+            configs[name].write_text(configs[name].read_text() + table)
         rounds = []
         for _ in range(args.repeat):  # one run of each config per round
             row = {}
