@@ -506,7 +506,10 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
     first = measure(state, cell, neighbors, exchanged, int0)
 
     def chunk(carry):  # the rejected moves are counted from frame to frame
-        carry, _ = lax.scan(one_step, carry[:-1] + (int0,), None, length=every)
+        # after a failed step the frames left keep its previous state: not computed (as
+        # simulate._simulate)
+        carry = lax.cond(carry[4] < 0, lambda c: lax.scan(one_step, c, None, length=every)[0],
+                         lambda c: c, carry[:-1] + (int0,))
         return carry, (carry[0], carry[1], measure(*carry[:3], carry[8], carry[10]))
 
     lost = (int0, int0, jnp.zeros((), dtype=state.x.dtype))

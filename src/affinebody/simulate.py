@@ -269,7 +269,11 @@ def _simulate(system, state, dt, neighbors, start=(0, 0.0), active=None, *, n_ch
     first_values.update(_thermostat_values(system, method, state, forces, neighbors))
 
     def chunk(carry):
-        carry, _ = lax.scan(one_step, carry, None, length=every)
+        # once a step has failed, the frames left in this call keep the state of the step
+        # before it: their steps are not computed (a reallocation goes on from the last frame,
+        # a stop is reported at once)
+        carry = lax.cond(carry[3] == _OK, lambda c: lax.scan(one_step, c, None, length=every)[0],
+                         lambda c: c, carry)
         state, nbrs, carried, status, bad_step = carry[:5]
         k = carry[6]
         done = jnp.where(status == _OK, k, bad_step - 1)
