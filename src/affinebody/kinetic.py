@@ -824,7 +824,7 @@ def isotropic_flow(phi, pi, coefs, left: bool):
 def compile_host_drift(kinetic, phi) -> bool:
     """Compile (or load from the disk cache) the host drift kernel that a time loop of
     ``kinetic`` over configurations shaped as ``phi`` will call, so that a run's set-up pays
-    for it rather than its first steps (where, compiled into an empty cache, it took ~3 s of
+    for it rather than its first steps (where, compiled into an empty cache, it took ~4 s of
     the loop's time and of its steps/s). True where there was one to compile."""
     internal = getattr(kinetic, "internal", kinetic)
     if not (isinstance(internal, _IsotropicAffineFamily) and host_drift_in_use(phi)):

@@ -601,13 +601,17 @@ class _HostGeometry(NamedTuple):
         """Shapes of the scalar arrays of ``rows`` pairs (:func:`scalar_columns`)."""
         return scalar_columns(self.plain, self.k_powers, self.m_powers, self.swapped, rows)
 
+    def kernels(self):
+        """The compiled two-callback kernels for these scalars (:func:`_numba_kernels`)."""
+        return _numba_kernels(self.n, self.plain, self.k_powers, self.m_powers, self.swapped)
+
 
 def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid, h, h_inv):
     """The pair scalars of the chunk (i, j): computed for its first ``valid`` pairs, the
     harmless padding values (beyond the cut-off, identity configurations) in the other rows.
     Only the scalars cross back to XLA (the displacements are recomputed by the scatter):
     what crosses a callback costs a copy, ~1 ns per byte here."""
-    kernels = _numba_kernels(g.n, g.plain, g.k_powers, g.m_powers, g.swapped)
+    kernels = g.kernels()
     # callbacks receive jax.Arrays: as NumPy arrays (no copy on a CPU) Numba indexes them
     # as typed arrays, not as generic buffers (which made the kernels ~2x slower)
     x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
@@ -634,7 +638,7 @@ def _host_geometry(g: _HostGeometry, x, phi, binv, det, i, j, valid, h, h_inv):
 def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partials, h, h_inv):
     """``sums`` (dV/dx, dV/dphi direct, dV/dB, dV/d det per body) plus the closed-form
     geometric derivatives of the chunk's first ``valid`` pairs, from df/dq (``partials``)."""
-    kernels = _numba_kernels(g.n, g.plain, g.k_powers, g.m_powers, g.swapped)
+    kernels = g.kernels()
     valid = int(valid)
     i = np.ascontiguousarray(i)
     j = np.ascontiguousarray(j)
@@ -662,7 +666,7 @@ def _host_scatter(g: _HostGeometry, sums, x, phi, binv, det, i, j, valid, partia
 def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
     """-sum u (dV/du)^T [n, n] of the chunk's first ``valid`` pairs (parts summed in a fixed
     order, as :func:`_host_scatter`)."""
-    kernels = _numba_kernels(g.n, g.plain, g.k_powers, g.m_powers, g.swapped)
+    kernels = g.kernels()
     valid = int(valid)
     i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
     x, binv, h, h_inv = (np.asarray(a) for a in (x, binv, h, h_inv))
