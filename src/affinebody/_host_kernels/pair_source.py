@@ -3,11 +3,12 @@ geometry (u, r, D, det Gamma, K_a, M_a, M'_a) and its closed-form chain rule as 
 code over named scalars, one pair at a time (docs/performance.md, "Pair kernels
 (`affinebody.pair_kernels`)", which derives the closed forms).
 
-Why generated: Numba keeps scalars in registers, but not small arrays (a 3-vector made with
-``np.empty`` lives in memory and is reloaded after every store to an output array, which
-might alias it). Written with arrays, one pair of the demo potential cost ~100 ns on one
-core; written out as scalars, geometry, f and chain rule in one loop, ~52 ns (measured at
-4096 bodies, with the compile flags of ``pair._jit_loop``).
+Why generated: Numba keeps scalars in registers, but a small array (a 3-vector made with
+``np.empty``) lives in memory, and LLVM reloads it around every store into an output array,
+which might alias it. Written with arrays, one pair of the demo potential cost 99 ns on one
+core; written out as scalars, geometry, f and chain rule in one loop, 53-54 ns
+(``benchmarks/step_phases.py --bodies 4096``; docs/performance.md, "Pair kernels
+(`affinebody.pair_kernels`)").
 
 The formulas: for bodies K = a, L = b of a pair,
 u = x_K - x_L (minimum image), r = |u|, D^2 = (|B_K u|^2 + |B_L u|^2) / 2 with B = phi^-1
