@@ -8,6 +8,7 @@ no host round trip) against the CPU's host kernels."""
 
 import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -145,6 +146,58 @@ def test_a_capacity_too_small_for_the_run_is_reallocated_transparently(monkeypat
     assert spec.capacity > int(probe.count) and int(last.overflow) == 0
     assert int(last.count) > int(probe.count)  # more pairs in range than at the start
     assert_same_motion(trajectory, all_pairs_run())
+
+
+def test_a_stop_after_a_rebuild_keeps_a_list_and_observables_of_the_last_good_state():
+    """The loop does not hold the previous list back with the previous state (that cost two
+    copies of the list per step): a step that fails has already replaced the list with one
+    for its own discarded state. With no skin every step rebuilds, so the failing one did;
+    the frame that holds the last good state (in the middle of a chunk) must still have its
+    observables of that state, all pairs, and the run must return a list valid for it."""
+    system, state = periodic_system()
+    stopped = stop_after_a_rebuild(system, state)
+    assert_a_list_and_observables_of_the_last_good_state(system, stopped)
+
+
+def stop_after_a_rebuild(system, state):
+    every_step = nb.allocate(BOX, state.x, state.phi, R_CUT, "r", 0.0, capacity_factor=3.0)
+    dt = 0.15  # too large: det phi of a body crosses 0 at step 27
+    return run(system, state, dt, 40, every=4, observers=("energy", "potential_energy"),
+               neighbors=every_step, on_stop="return")
+
+
+def assert_a_list_and_observables_of_the_last_good_state(system, stopped, dt=0.15):
+    step = stopped.stop.step
+    assert stopped.neighbor_rebuilds == step - 1  # every kept step rebuilt, the failed one too
+    assert step % 4 != 1  # the last good state is held by the failing chunk's own frame
+    assert stopped.times[-1] == pytest.approx((step - 1) * dt)
+    last = jax.tree.map(lambda a: jnp.asarray(a[-1]), stopped.states)
+    assert stopped.observables["energy"][-1] == pytest.approx(
+        float(system.hamiltonian(last)), rel=1e-12)  # all pairs, no list
+    spec, kept = stopped.neighbors
+    assert int(kept.overflow) == 0 and not bool(nb.needs_rebuild(spec, kept, last.x, last.phi))
+    assert float(system.potential_energy(last, kept)) == pytest.approx(
+        float(system.potential_energy(last)), rel=1e-12)
+
+
+def test_a_list_for_the_kept_state_that_overflows_is_reallocated_by_run(monkeypatch):
+    """Where the list built in the loop for the state a failed step keeps does not fit the
+    run's capacities (here made to overflow), ``run`` reallocates it and computes that
+    frame's observables again: still those of the last good state, with a list valid for
+    it."""
+    from affinebody import simulate
+
+    system, state = periodic_system()
+    built = simulate._list_for_kept_state
+    overflowed = lambda spec, kept: built(spec, kept)._replace(  # noqa: E731
+        overflow=jnp.asarray(nb.PAIR_OVERFLOW, jnp.int32), count=jnp.asarray(0, jnp.int32))
+    monkeypatch.setattr(simulate, "_list_for_kept_state", overflowed)
+    jax.clear_caches()  # the loop compiled with the patch, and only this test's
+    try:
+        stopped = stop_after_a_rebuild(system, state)
+    finally:
+        jax.clear_caches()
+    assert_a_list_and_observables_of_the_last_good_state(system, stopped)
 
 
 def test_stretching_bodies_with_an_affine_cut_off_rebuild_and_match_all_pairs():
