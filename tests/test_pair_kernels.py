@@ -401,3 +401,34 @@ def test_built_in_families_reach_the_fused_kernel_as_their_own_formula():
         np.testing.assert_allclose(expression(**{family.argument: s}),
                                    family.term({family.argument: s}), rtol=1e-13, atol=1e-300)
     assert not pk.fused_on_host(HarmonicInvariants(0.8, "M", cutoff=Cutoff(1.5)), 3)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_the_host_inverse_and_determinant_are_those_of_linalg(n):
+    """The fused host kernel computes B = phi^-1 and det phi per body itself (``_inverse_det``,
+    the elimination of ``_linalg.inv`` and ``det`` with its pivoting): equal to them to a few
+    cond(phi) eps, for random matrices and for permutations and near-singular ones, where
+    the pivoting decides (n = 1 exactly)."""
+    from affinebody import _host, _linalg
+
+    if not pk.host_kernel_in_use():
+        pytest.skip("no compiled host kernel here (Numba, CPU)")
+    rng = np.random.default_rng(n)
+    phi = rng.normal(size=(300, n, n))
+    phi[:6] = np.eye(n)[::-1] if n > 1 else -1.0
+    phi[6:12] = np.eye(n) + 1e-9 * rng.normal(size=(6, n, n))
+    phi[12:18, 0] = phi[12:18, -1] + 1e-7 * rng.normal(size=(6, n))  # nearly equal rows
+    kernels = _host.specialized("pair", N=n)
+    binv, det = np.empty_like(phi), np.empty(len(phi))
+    kernels._inverse_det(0, len(phi), phi, binv, det)
+    expected_inv, expected_det = np.asarray(_linalg.inv(phi)), np.asarray(_linalg.det(phi))
+    cond = np.linalg.cond(phi)
+    eps = np.finfo(float).eps
+    assert np.all(np.abs(binv - expected_inv).max(axis=(1, 2))
+                  <= 16 * eps * cond * np.abs(expected_inv).max(axis=(1, 2)))
+    assert np.all(np.abs(det - expected_det) <= 16 * eps * cond * np.abs(expected_det))
+    # and they are phi^-1 and det phi: B phi = Id to cond eps, det against NumPy's LU
+    assert np.all(np.abs(binv @ phi - np.eye(n)).max(axis=(1, 2)) <= 16 * eps * cond)
+    np.testing.assert_allclose(det, np.linalg.det(phi), rtol=1e-6)
+    if n == 1:
+        assert np.array_equal(binv, expected_inv) and np.array_equal(det, expected_det)

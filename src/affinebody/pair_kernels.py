@@ -551,7 +551,8 @@ def _fused_kernel(n: int, source: str):
     ``fused`` (the pair loop: the energy, and its gradients or its virial) and
     ``merge_finish`` (the parts' sums and the chain rule)."""
     kernels = _host.specialized("pair", extra=source, N=n)
-    return types.SimpleNamespace(fused=kernels._fused, merge_finish=kernels._merge_finish)
+    return types.SimpleNamespace(fused=kernels._fused, merge_finish=kernels._merge_finish,
+                                 inverse_det=kernels._inverse_det)
 
 
 def host_threads() -> int:
@@ -687,19 +688,24 @@ def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
     return total
 
 
-def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x, phi, binv, det,
-                i, j, count, h, h_inv):
+def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x, phi, i, j,
+                count, h, h_inv):
     """The fused kernel over the list's first ``count`` pairs, in :data:`affinebody._host.PARTS`
     fixed parts, each with sums of its own added in part order (the same bits on any thread
     count). Returns (E,), then dV/dx, dV/dphi with ``gradients`` (per-body sums, then the chain
     rule through B = phi^-1 and det phi per body, ``_merge_finish`` in parts of the bodies),
     then the virial W [n, n] of :func:`pair_virial` with ``virial``: all from the same pass.
-    One callback for the whole list: no pair scalars are held, so no chunks."""
+    One callback for the whole list: no pair scalars are held, so no chunks. B and det phi
+    are computed here first (``_inverse_det``, as ``_linalg.inv`` and ``det`` compute them),
+    once per body: in XLA they had been a dozen small operations of ~0.25 ms per step at
+    4096 bodies, against ~0.1 ms here (docs/performance.md, "Two cores")."""
     kernels = _fused_kernel(g.n, source)
     valid = min(int(count), i.shape[0])  # an overflowed list counts pairs it could not hold
     i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
-    x, phi, binv, det, h, h_inv = (np.asarray(a) for a in (x, phi, binv, det, h, h_inv))
+    x, phi, h, h_inv = (np.asarray(a) for a in (x, phi, h, h_inv))
     bodies, n = x.shape
+    binv, det = np.empty_like(phi), np.empty(bodies)
+    kernels.inverse_det(0, bodies, phi, binv, det)
     rows = bodies if gradients else 1  # the kernel adds nothing to the sums without gradients
     parts = _host.PARTS
     gx, gphi, gb = (np.zeros((parts, rows, *shape)) for shape in ((n,), (n, n), (n, n)))
@@ -754,15 +760,15 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
         h, h_inv = jnp.asarray(g.h, x.dtype), jnp.asarray(g.h_inv, x.dtype)
     else:
         h, h_inv = cell, linalg.inv(cell)
-    binv, det = linalg.inv(phi), linalg.det(phi)
     f64 = lambda shape: jax.ShapeDtypeStruct(shape, x.dtype)  # noqa: E731
     fused = _fused_source(pot, n)
     if fused is not None:  # f is a config expression: one callback does it all
         shapes = ((f64(()),) + ((f64(x.shape), f64(phi.shape)) if gradients else ())
                   + ((f64((n, n)),) if virial else ()))
         out = _host.callback(partial(_host_fused, g, fused, gradients, virial), shapes,
-                             x, phi, binv, det, i, j, count, h, h_inv, vmap_method="sequential")
+                             x, phi, i, j, count, h, h_inv, vmap_method="sequential")
         return tuple(out) if len(shapes) > 1 else out[0]
+    binv, det = linalg.inv(phi), linalg.det(phi)
     capacity = i.shape[0]
     chunk = _host_chunk(capacity)
     chunks = -(-capacity // chunk)

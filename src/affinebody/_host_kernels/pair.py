@@ -31,6 +31,41 @@ _jit_loop = numba.njit(fastmath={"contract", "arcp"}, error_model="numpy", bound
 
 
 @_jit
+def _inverse_det(start, stop, phi, binv, det):
+    """B = phi^-1 into binv and det phi into det for bodies start..stop-1, as
+    affinebody._linalg.inv and det compute them: Gaussian elimination of [phi | Id] with the
+    same partial pivoting (a row below becomes the pivot row where its |entry| is larger),
+    back substitution, det the signed product of the pivots."""
+    rows = np.empty((N, 2 * N))
+    for body in range(start, stop):
+        for r in range(N):
+            for c in range(N):
+                rows[r, c] = phi[body, r, c]
+                rows[r, N + c] = 1.0 if r == c else 0.0
+        sign = 1.0
+        for col in range(N - 1):
+            for r in range(col + 1, N):
+                if abs(rows[r, col]) > abs(rows[col, col]):
+                    for c in range(2 * N):
+                        rows[r, c], rows[col, c] = rows[col, c], rows[r, c]
+                    sign = -sign
+            for r in range(col + 1, N):
+                factor = rows[r, col] / rows[col, col]
+                for c in range(2 * N):
+                    rows[r, c] = rows[r, c] - factor * rows[col, c]
+        d = sign
+        for r in range(N):
+            d = d * rows[r, r]
+        det[body] = d
+        for r in range(N - 1, -1, -1):
+            for c in range(N):
+                acc = rows[r, N + c]
+                for k in range(r + 1, N):
+                    acc = acc - rows[r, k] * binv[body, k, c]
+                binv[body, r, c] = acc / rows[r, r]
+
+
+@_jit
 def _merge_finish(start, stop, gx_parts, gphi_parts, gb_parts, gdet_parts, binv, det,
                   gx_out, gphi_out):
     """Bodies start..stop-1: the per-body sums of the parts added in part order, then the
