@@ -17,6 +17,12 @@ reported apart):
   host kernels' callbacks in it (pair forces, drift; wall time of the callbacks, summed):
   the rest of a step runs in XLA on one thread.
 
+``--profile``: the loop once more under JAX's profiler, and what XLA ran on its thread per
+step outside the host kernels' callbacks: the time of its operations (summed, without the
+wrappers of the while loops and conditionals that hold them), their number, and the ten
+longest, named as in the optimised HLO (dumped with
+``XLA_FLAGS=--xla_dump_to=DIR --xla_dump_hlo_as_text`` to see what they compute).
+
 ``--npt``: the same system under the barostat of ``run_scale.py --npt`` (a move every step),
 and instead of ``step`` and ``loop``, ``npt loop``: the compiled NPT loop
 (``barostat.advance``, what ``affinebody run`` compiles with a ``[barostat]``) over
@@ -41,6 +47,7 @@ of the JAX kernels (how ``pair_kernels.ACCELERATOR_PAIR_CHUNK`` and
 ``neighbors._ACCELERATOR_CANDIDATES_PER_CHUNK`` were chosen on a GPU).
 
     .venv/bin/python benchmarks/step_phases.py --bodies 4096
+    .venv/bin/python benchmarks/step_phases.py --bodies 4096 --profile
     python benchmarks/step_phases.py --bodies 1000000 --pair-chunks 18 20 22 24   # on a GPU
     python benchmarks/step_phases.py --bodies 1000000 --loop-steps 0 --against /tmp/pk_old.py
     python benchmarks/step_phases.py --bodies 1000000 --loop-steps 0 --pair-program xla  # GPU
@@ -92,6 +99,8 @@ def main() -> None:
                         help="pairs per program of the Triton kernels to compare")
     parser.add_argument("--jax-kernel", action="store_true",
                         help="the JAX pair kernel on a CPU too (as on a GPU)")
+    parser.add_argument("--profile", action="store_true",
+                        help="the loop's XLA operations per step, from JAX's profiler")
     parser.add_argument("--npt", action="store_true",
                         help="the barostat's system and its NPT loop")
     parser.add_argument("--metropolis", action="store_true",
@@ -198,6 +207,41 @@ def main() -> None:
     report("step (kick, drift, list, forces)", *timed(step, state, f0))
     if args.loop_steps:
         loop(system, state, config.run.dt, built.neighbors, args.loop_steps)
+        if args.profile:
+            xla_operations(system, state, config.run.dt, built.neighbors, args.loop_steps)
+
+
+def xla_operations(system, state, dt, neighbors, steps: int) -> None:
+    """What XLA's threads ran per step of ``simulate.run`` outside the host callbacks, from a
+    trace of JAX's profiler (its Perfetto export): the leaf operations (not the while loops,
+    conditionals and executors around them), summed and counted."""
+    import collections
+    import gzip
+    import json
+
+    import jax
+
+    from affinebody import simulate
+
+    with tempfile.TemporaryDirectory() as folder:
+        with jax.profiler.trace(folder, create_perfetto_trace=True):
+            simulate.run(system, state, dt, steps, every=steps // 2, neighbors=neighbors)
+        with gzip.open(next(Path(folder).rglob("perfetto_trace.json.gz"))) as f:
+            trace = json.load(f)
+    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    names = {(e["pid"], e["tid"]): e["args"]["name"] for e in events
+             if e.get("ph") == "M" and e.get("name") == "thread_name"}
+    wrappers = ("ThunkExecutor", "cond", "while", "affinebody_host_callback")
+    time_of, count_of = collections.Counter(), collections.Counter()
+    for e in events:
+        if (e.get("ph") == "X" and names.get((e["pid"], e["tid"]), "").startswith("tf_XLA")
+                and not e["name"].startswith(wrappers)):
+            time_of[e["name"]] += e.get("dur", 0.0)
+            count_of[e["name"]] += 1
+    longest = ", ".join(f"{name} {t / steps:.0f}" for name, t in time_of.most_common(10))
+    print(f"  xla operations per step (profiler): {sum(time_of.values()) / steps:.0f} us in "
+          f"{sum(count_of.values()) / steps:.0f} operations; longest (us): {longest}",
+          flush=True)
 
 
 def npt_loop(config, system, state, neighbors, steps: int) -> None:
