@@ -698,7 +698,8 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x,
     One callback for the whole list: no pair scalars are held, so no chunks. B and det phi
     are computed here first (``_inverse_det``, as ``_linalg.inv`` and ``det`` compute them),
     once per body: in XLA they had been a dozen small operations of ~0.25 ms per step at
-    4096 bodies, against ~0.1 ms here (docs/performance.md, "Two cores")."""
+    4096 bodies, against ~0.1 ms here (docs/performance.md, "Two cores: XLA's threads and
+    the host kernels'")."""
     kernels = _fused_kernel(g.n, source)
     valid = min(int(count), i.shape[0])  # an overflowed list counts pairs it could not hold
     i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
