@@ -154,3 +154,50 @@ def test_npt_run_with_a_list_repeats_the_all_pairs_run_while_the_box_shrinks(met
         np.testing.assert_array_equal(run.observables["rejected_moves"],
                                       ref.observables["rejected_moves"])
         assert ref.observables["rejected_moves"].sum() > 0
+
+
+def test_an_npt_call_computes_no_frame_after_its_list_overflowed(monkeypatch):
+    """The NPT loop skips the frames after a failed step (a ``lax.cond`` per frame, as the NVE
+    loop): a list that overflows costs the rest of its frame and the steps redone from the
+    frame before, not the rest of the call. Counted as the host kernel's gradient passes
+    against a run whose list has room (no reallocation): at most one frame's passes more per
+    reallocation (computing every frame of the call, they had been two more here)."""
+    if not pk.host_kernel_in_use():
+        pytest.skip("counts the compiled host kernel's passes (Numba, CPU)")
+    n, steps, every = 2, 60, 20
+    space = triclinic([[4.0, 0.5], [0.0, 3.8]])
+    rng = np.random.default_rng(1)
+    grid = np.stack(np.meshgrid(np.arange(5), np.arange(5), indexing="ij"), -1).reshape(-1, n)
+    x = (grid / 5 + 0.02 * rng.normal(size=grid.shape)) @ space.matrix.T
+    bodies = len(x)
+    pair = PairPotential(lambda r, D: jnp.exp(-D * D) + 0.5 / r**2, ("r", "D"),
+                         Cutoff(1.2, 0.9), space)
+    system = HamiltonianSystem(KineticEnergy(DAlembertTranslational(1.0),
+                                             DAlembert(0.5 * np.eye(n))), pair)
+    state = State(jnp.asarray(x), jnp.asarray(np.eye(n) + 0.05 * rng.normal(size=(bodies, n, n))),
+                  jnp.asarray(0.5 * rng.normal(size=(bodies, n))), jnp.zeros((bodies, n, n)))
+    b = barostat.c_rescale(20.0, n, tau=1.0, compressibility=1.0, temperature=0.1)
+    passes, reallocations = [], []
+    scatter, reallocate = pk._host_scatter, nb.reallocate
+    monkeypatch.setattr(pk, "_host_scatter", lambda *a, **k: passes.append(1) or scatter(*a, **k))
+    monkeypatch.setattr(nb, "reallocate",
+                        lambda *a, **k: reallocations.append(1) or reallocate(*a, **k))
+
+    def counted(capacity_factor):
+        passes.clear()
+        reallocations.clear()
+        lists = nb.allocate(space, state.x, state.phi, 1.2, "r", 0.05, cell=space.matrix,
+                            capacity_factor=capacity_factor)
+        out = barostat.run(system, state, space, b, 0.005, steps, seed=3, every=every,
+                           neighbors=lists)
+        assert out.failed_step is None
+        return len(passes), len(reallocations), out
+
+    roomy, none, reference = counted(6.0)
+    tight, some, overflowed = counted(1.25)  # the box shrinks: more pairs than it holds
+    assert none == 0 and some >= 1
+    per_step = (roomy - 1) / steps  # one pass for the initial forces
+    assert per_step >= 1
+    assert tight <= roomy + some * (per_step * every + 1)
+    np.testing.assert_allclose(overflowed.states.x, reference.states.x, rtol=0,
+                               atol=1e-11 * np.max(np.abs(reference.states.x)))
