@@ -286,3 +286,38 @@ def test_the_accelerator_path_gives_the_host_kernels_motion(monkeypatch):
         assert accelerator.neighbor_rebuilds == host.neighbor_rebuilds
         assert_same_motion(accelerator, host, atol=1e-11)
     assert np.max(np.abs(np.asarray(host.final_state.phi - state.phi))) > 1e-2  # real motion
+
+
+def test_a_sweep_sample_that_stops_after_a_rebuild_ends_as_the_all_pairs_sample(monkeypatch):
+    """A sweep sample (``sweep.follow``, the run driver's step in a while loop) does not hold
+    the previous list back either: the sample that fails right after a rebuild (no skin) gets
+    a list for the state it keeps, so its final energy is the all-pairs sample's; and where
+    that list does not fit (made to overflow here) the sample reports an overflow, which its
+    caller answers by repeating it with a reallocated list."""
+    import jax
+
+    from affinebody import simulate, sweep
+    from affinebody.integrators import get_integrator
+
+    system, state = periodic_system()
+    spec, every_step = nb.allocate(BOX, state.x, state.phi, R_CUT, "r", 0.0,
+                                   capacity_factor=3.0)
+    # dt far too large: a body leaves GL+ at step 5 (at smaller dt the motion first turns
+    # chaotic, and the list's round-off and all pairs' part ways before the stop)
+    follow = jax.jit(lambda listed: sweep.follow(
+        system, state, 0.2, 1e6, steps=40, method=get_integrator("strang"), watch_det=True,
+        spec=spec if listed is not None else None, neighbors=listed))
+    listed, all_pairs = follow(every_step), follow(None)
+    assert int(all_pairs["code"]) == int(simulate.Stop.LEFT_GROUP)
+    for key in ("code", "steps_done"):
+        assert int(listed[key]) == int(all_pairs[key])
+    assert float(listed["final_energy"]) == pytest.approx(float(all_pairs["final_energy"]),
+                                                          rel=1e-10)
+    built = simulate._list_for_kept_state
+    monkeypatch.setattr(simulate, "_list_for_kept_state", lambda s, kept: built(s, kept)._replace(
+        overflow=jnp.asarray(nb.PAIR_OVERFLOW, jnp.int32)))
+    refit = jax.jit(lambda listed: sweep.follow(
+        system, state, 0.2, 1e6, steps=40, method=get_integrator("strang"), watch_det=True,
+        spec=spec, neighbors=listed))(every_step)
+    assert int(refit["code"]) == int(simulate.Stop.OVERFLOW)
+    assert int(refit["overflow"]) == nb.PAIR_OVERFLOW

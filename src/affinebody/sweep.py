@@ -532,8 +532,9 @@ def follow(system, state, dt, bound, *, steps: int, method, watch_det: bool, spe
         s, lo, hi, r = _measures(jnp.where(good, w.state.phi, state.phi))
         code = jnp.where(good, code, w.stop)
         keep = lambda new, old: jnp.where(good, new, old)  # noqa: E731
-        state, nbrs, forces = (jax.tree.map(keep, w.state, state),
-                               jax.tree.map(keep, w.neighbors, nbrs),
+        # the list is not kept back with the state (as in simulate.run: that cost two copies
+        # of it per step); after the loop a failed sample's kept state gets one of its own
+        state, nbrs, forces = (jax.tree.map(keep, w.state, state), w.neighbors,
                                jax.tree.map(keep, w.forces, forces))
         exit_step = jnp.where(good & (exit_step < 0) & (s >= bound), k + 1, exit_step)
         spread = jnp.where(good, jnp.maximum(spread, s), spread)
@@ -545,6 +546,17 @@ def follow(system, state, dt, bound, *, steps: int, method, watch_det: bool, spe
 
     state, nbrs, _, code, k, exit_step, spread, dmin, dmax, rel, lost = lax.while_loop(
         running, advance, init)
+    if spec is not None:
+        from affinebody.simulate import _list_for_kept_state
+
+        failed = code != code0  # the loop ended on a step it discarded, with that step's list
+        nbrs = lax.cond(failed, lambda: _list_for_kept_state(spec, state), lambda: nbrs)
+        # a list for the kept state that does not fit the capacities: the sample is repeated
+        # with room, as after an overflow in a step
+        refit = failed & (nbrs.overflow != 0)
+        code = jnp.where(refit, int(Stop.OVERFLOW), code)
+        lost = jax.tree.map(lambda old, new: jnp.where(refit, new, old), lost,
+                            (nbrs.overflow, nbrs.count, nbrs.reach))
     code = jnp.where((code == _BOUNDED) & (exit_step >= 0), _UNBOUNDED, code)
     return {"code": code, "steps_done": k, "exit_step": exit_step, "max_spread": spread,
             "min_det": dmin, "max_det": dmax, "max_relative_volume": rel,
