@@ -188,10 +188,10 @@ def test_a_list_for_the_kept_state_that_overflows_is_reallocated_by_run(monkeypa
     from affinebody import simulate
 
     system, state = periodic_system()
-    built = simulate._list_for_kept_state
+    built = simulate.list_for_kept_state
     overflowed = lambda spec, kept: built(spec, kept)._replace(  # noqa: E731
         overflow=jnp.asarray(nb.PAIR_OVERFLOW, jnp.int32), count=jnp.asarray(0, jnp.int32))
-    monkeypatch.setattr(simulate, "_list_for_kept_state", overflowed)
+    monkeypatch.setattr(simulate, "list_for_kept_state", overflowed)
     jax.clear_caches()  # the loop compiled with the patch, and only this test's
     try:
         stopped = stop_after_a_rebuild(system, state)
@@ -313,8 +313,8 @@ def test_a_sweep_sample_that_stops_after_a_rebuild_ends_as_the_all_pairs_sample(
         assert int(listed[key]) == int(all_pairs[key])
     assert float(listed["final_energy"]) == pytest.approx(float(all_pairs["final_energy"]),
                                                           rel=1e-10)
-    built = simulate._list_for_kept_state
-    monkeypatch.setattr(simulate, "_list_for_kept_state", lambda s, kept: built(s, kept)._replace(
+    built = simulate.list_for_kept_state
+    monkeypatch.setattr(simulate, "list_for_kept_state", lambda s, kept: built(s, kept)._replace(
         overflow=jnp.asarray(nb.PAIR_OVERFLOW, jnp.int32)))
     refit = jax.jit(lambda listed: sweep.follow(
         system, state, 0.2, 1e6, steps=40, method=get_integrator("strang"), watch_det=True,

@@ -294,7 +294,7 @@ def _simulate(system, state, dt, neighbors, start=(0, 0.0), active=None, *, n_ch
             # the steps after it, theirs): the state kept gets a list built for it, for this
             # frame's observables and the list the run returns
             failed_here = running & (carry[3] != _OK)
-            carry = (carry[0], lax.cond(failed_here, lambda: _list_for_kept_state(spec, carry[0]),
+            carry = (carry[0], lax.cond(failed_here, lambda: list_for_kept_state(spec, carry[0]),
                                         lambda: carry[1]), *carry[2:])
         state, nbrs, carried, status, bad_step = carry[:5]
         k = carry[6]
@@ -313,7 +313,7 @@ def _simulate(system, state, dt, neighbors, start=(0, 0.0), active=None, *, n_ch
     return frames, values, done, status, bad_step, bad_body, last_list, rebuilds, lost
 
 
-def _list_for_kept_state(spec, state):
+def list_for_kept_state(spec, state):
     """The list a failed step's chunk gives the state it keeps (the step's own list is for its
     discarded state): built for it, with the run's capacities (``run`` reallocates it where
     they are too small)."""
@@ -595,5 +595,6 @@ def energy_error(trajectory: Trajectory, key: str = "energy") -> np.ndarray:
 
 __all__: Sequence[str] = (
     "IntegrationStopped", "NAMED_OBSERVABLES", "Stop", "StopReport", "Trajectory", "Watched",
-    "energy_error", "initial_forces", "relative_error", "run", "scan_chunks", "watched_step",
+    "energy_error", "initial_forces", "list_for_kept_state", "relative_error", "run",
+    "scan_chunks", "watched_step",
 )

@@ -547,10 +547,10 @@ def follow(system, state, dt, bound, *, steps: int, method, watch_det: bool, spe
     state, nbrs, _, code, k, exit_step, spread, dmin, dmax, rel, lost = lax.while_loop(
         running, advance, init)
     if spec is not None:
-        from affinebody.simulate import _list_for_kept_state
+        from affinebody.simulate import list_for_kept_state
 
         failed = code != code0  # the loop ended on a step it discarded, with that step's list
-        nbrs = lax.cond(failed, lambda: _list_for_kept_state(spec, state), lambda: nbrs)
+        nbrs = lax.cond(failed, lambda: list_for_kept_state(spec, state), lambda: nbrs)
         # a list for the kept state that does not fit the capacities: the sample is repeated
         # with room, as after an overflow in a step
         refit = failed & (nbrs.overflow != 0)
