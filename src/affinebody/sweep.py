@@ -555,8 +555,9 @@ def follow(system, state, dt, bound, *, steps: int, method, watch_det: bool, spe
         # with room, as after an overflow in a step
         refit = failed & (nbrs.overflow != 0)
         code = jnp.where(refit, int(Stop.OVERFLOW), code)
-        lost = jax.tree.map(lambda old, new: jnp.where(refit, new, old), lost,
-                            (nbrs.overflow, nbrs.count, nbrs.reach))
+        lost = (lost[0] | jnp.where(refit, nbrs.overflow, 0),  # room for both lists
+                jnp.maximum(lost[1], jnp.where(refit, nbrs.count, 0)),
+                jnp.maximum(lost[2], jnp.where(refit, nbrs.reach, 0.0)))
     code = jnp.where((code == _BOUNDED) & (exit_step >= 0), _UNBOUNDED, code)
     return {"code": code, "steps_done": k, "exit_step": exit_step, "max_spread": spread,
             "min_det": dmin, "max_det": dmax, "max_relative_volume": rel,
