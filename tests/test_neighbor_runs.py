@@ -107,9 +107,9 @@ def count_force_passes(monkeypatch) -> dict:
     passes = {"gradients": 0}
     fused = pk._host_fused
 
-    def counted(g, source, gradients, virial, *args):
+    def counted(g, source, gradients, virial, *args, **kwargs):
         passes["gradients"] += bool(gradients)
-        return fused(g, source, gradients, virial, *args)
+        return fused(g, source, gradients, virial, *args, **kwargs)
 
     monkeypatch.setattr(pk, "_host_fused", counted)
     return passes

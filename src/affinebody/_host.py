@@ -148,48 +148,193 @@ if _emit_python_callback is not None and not {"has_side_effect", "returns_token"
         inspect.signature(_emit_python_callback).parameters):  # pragma: no cover - changed
     _emit_python_callback = None
 
+
+# The call on a CPU: XLA's typed FFI (xla/ffi/api/c_api.h, API 0.3) calls a C function pointer
+# made by ctypes from :func:`_ffi_handler` with one XLA_FFI_CallFrame*; the handler reads the
+# operand and result buffers' addresses from it and gives the host function NumPy views of
+# them, with no copy. JAX's own Python callback copies every operand first (~0.1 ms per MB: at
+# 4096 bodies ~0.75 ms a step for the pair list alone, docs/performance.md). The structs are
+# read as 8-byte words at the offsets of the C header (x86-64 and aarch64 LP64 layout):
+#   XLA_FFI_CallFrame: 1 extension_start, 2 api, 4 stage, 7 args.size, 9 args.args,
+#                      12 rets.size, 14 rets.rets, 20 attrs.attrs (22 words);
+#   XLA_FFI_Buffer:    2 dtype, 3 data, 4 rank, 5 dims;
+#   XLA_FFI_Extension_Base: 1 type, then (metadata extension) 3 XLA_FFI_Metadata*.
+_FFI_TARGET = "affinebody_host_callback"
+_FFI_API_VERSION = (0, 3)
+_FFI_EXECUTE, _FFI_METADATA, _FFI_INTERNAL = 3, 1, 13
+_FFI_DTYPES = {1: np.bool_, 2: np.int8, 3: np.int16, 4: np.int32, 5: np.int64, 6: np.uint8,
+               7: np.uint16, 8: np.uint32, 9: np.uint64, 11: np.float32, 12: np.float64,
+               15: np.complex64, 18: np.complex128}
+_FRAME_WORDS = ctypes.c_char * (22 * 8)
+#: the host function of each lowered call (the call's ``index`` attribute), and the operand and
+#: result layouts of each, read from its first call
+_FFI_FUNCTIONS: list = []
+_FFI_LAYOUTS: dict = {}
+_FFI_LOCK = threading.Lock()
+
+
+class _ApiVersion(ctypes.Structure):
+    _fields_ = [("struct_size", ctypes.c_size_t), ("extension_start", ctypes.c_void_p),
+                ("major_version", ctypes.c_int), ("minor_version", ctypes.c_int)]
+
+
+class _ErrorCreateArgs(ctypes.Structure):
+    _fields_ = [("struct_size", ctypes.c_size_t), ("extension_start", ctypes.c_void_p),
+                ("message", ctypes.c_char_p), ("errc", ctypes.c_int)]
+
+
+_ERROR_CREATE = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.POINTER(_ErrorCreateArgs))
+
+
+def _words(address: int, count: int) -> np.ndarray:
+    return np.frombuffer((ctypes.c_char * (8 * count)).from_address(address), np.int64)
+
+
+def _buffer_layout(address: int) -> tuple:
+    """(dtype, shape, the ctypes type of its bytes or None when empty) of an XLA_FFI_Buffer."""
+    words = _words(address, 6)
+    dtype = np.dtype(_FFI_DTYPES[int(words[2]) & 0xFFFFFFFF])
+    rank = int(words[4])
+    shape = tuple(int(d) for d in _words(int(words[5]), rank)) if rank else ()
+    size = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    return dtype, shape, (ctypes.c_char * size) if size else None
+
+
+def _buffer_view(address: int, layout: tuple, writeable: bool) -> np.ndarray:
+    dtype, shape, raw = layout
+    if raw is None:
+        return np.empty(shape, dtype)
+    data = ctypes.c_void_p.from_address(address + 24).value
+    view = np.frombuffer(raw.from_address(data), dtype).reshape(shape)
+    view.flags.writeable = writeable
+    return view
+
+
+def _ffi_error(api: int, message: str) -> int:
+    """An XLA_FFI_Error made by the API's XLA_FFI_Error_Create (its first function, after
+    struct_size, extension_start, the 24-byte api_version and internal_api)."""
+    create = _ERROR_CREATE(ctypes.c_void_p.from_address(api + 48).value)
+    args = _ErrorCreateArgs(ctypes.sizeof(_ErrorCreateArgs), None,
+                            message.encode("utf-8", "replace"), _FFI_INTERNAL)
+    return create(ctypes.byref(args))
+
+
+def _ffi_handler(frame: int) -> int | None:
+    """The FFI handler: answers the metadata query (the API version it was written for), does
+    nothing before the execute stage, and there calls the host function (a :class:`_Flat`)
+    of the call's ``index`` on read-only views of the operands and writable views of XLA's
+    result buffers. An exception becomes an XLA error (raised by the jitted call)."""
+    words = np.frombuffer(_FRAME_WORDS.from_address(frame), np.int64)
+    if words[1] and int(_words(int(words[1]), 2)[1]) & 0xFFFFFFFF == _FFI_METADATA:
+        metadata = int(_words(int(words[1]), 4)[3])
+        version = _ApiVersion.from_address(metadata + 8)
+        version.major_version, version.minor_version = _FFI_API_VERSION
+        ctypes.c_uint32.from_address(metadata + 8 + ctypes.sizeof(_ApiVersion)).value = 0
+        return None
+    if int(words[4]) & 0xFFFFFFFF != _FFI_EXECUTE:
+        return None
+    try:
+        index = ctypes.c_uint64.from_address(
+            ctypes.c_void_p.from_address(int(_words(int(words[20]), 1)[0]) + 8).value).value
+        args, rets = _words(int(words[9]), int(words[7])), _words(int(words[14]), int(words[12]))
+        layouts = _FFI_LAYOUTS.get(index)
+        if layouts is None:
+            layouts = _FFI_LAYOUTS[index] = ([_buffer_layout(int(a)) for a in args],
+                                             [_buffer_layout(int(r)) for r in rets])
+        operands = [_buffer_view(int(a), layout, False)
+                    for a, layout in zip(args, layouts[0], strict=True)]
+        results = tuple(_buffer_view(int(r), layout, True)
+                        for r, layout in zip(rets, layouts[1], strict=True))
+        _FFI_FUNCTIONS[index](*operands, results=results)
+    except Exception as error:  # noqa: BLE001 - every error goes back to XLA, which raises it
+        return _ffi_error(int(words[2]), f"affinebody host callback: "
+                                         f"{type(error).__name__}: {error}")
+    return None
+
+
+_FFI_HANDLER = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_void_p)(_ffi_handler)
+try:
+    jax.ffi.register_ffi_target(_FFI_TARGET, jax.ffi.pycapsule(_FFI_HANDLER), platform="cpu")
+    _FFI_LOWERING = jax.ffi.ffi_lowering(_FFI_TARGET)
+except Exception:  # pragma: no cover - a JAX without this FFI: JAX's own Python callback
+    _FFI_LOWERING = None
+
+
 #: The name of :func:`callback`'s primitive in a jaxpr (where a host kernel is called).
 CALLBACK_NAME = "affinebody_host_callback"
 _CALLBACK = Primitive(CALLBACK_NAME)
 _CALLBACK.multiple_results = True
 
 
-def callback(function, result_shapes, *args, vmap_method: str = "sequential"):
+def callback(function, result_shapes, *args, vmap_method: str = "sequential",
+             fills_results: bool = False):
     """``jax.pure_callback(function, result_shapes, *args, vmap_method=...)`` without its
-    per-operand cost: pure_callback first copies every operand into a new JAX array
-    (``device_put``), ~20 us per operand plus the bytes (a 4096-body pair call: 9 operands,
-    ~0.3 ms a step); here ``function`` gets read-only NumPy views of XLA's buffers. The same
-    lowering (JAX's Python-callback custom call), purity (XLA may drop or merge calls whose
-    results are unused or equal) and vmap methods ("sequential": one call per batch
-    element; "broadcast_all": one call over the batch, every operand given the batch axes).
-    No derivative (as pure_callback): wrap it in a ``custom_jvp``. Where this JAX lacks the
-    emitter, it is jax.pure_callback."""
+    copies: pure_callback copies every operand into a new JAX array (``device_put``, ~20 us
+    per operand plus the bytes), and JAX's Python callback under it copies each operand again
+    and each result into XLA's buffer (~0.1 ms per MB: ~0.3 ms a step for a 4096-body pair
+    call). Here, on a CPU, ``function`` gets read-only NumPy views of XLA's operand buffers
+    (:func:`_ffi_handler`) and, with ``fills_results``, writable views of its result buffers
+    as ``results=`` (a flat tuple in the order of ``result_shapes``' leaves) to fill in place,
+    returning nothing; otherwise its results are copied there. The same purity (XLA may drop
+    or merge calls whose results are unused or equal) and vmap methods ("sequential": one
+    call per batch element; "broadcast_all": one call over the batch, every operand given
+    the batch axes). No derivative (as pure_callback): wrap it in a ``custom_jvp``. On other
+    platforms it is JAX's Python callback; where this JAX lacks that, jax.pure_callback."""
     if _emit_python_callback is None:  # pragma: no cover
+        if fills_results:
+            function = _Flat(function, None, True).returning(result_shapes)
         return jax.pure_callback(function, result_shapes, *args, vmap_method=vmap_method)
     leaves, tree = jax.tree.flatten(result_shapes)
     flat_args, args_tree = jax.tree.flatten(args)
     avals = tuple(jax.core.ShapedArray(leaf.shape, leaf.dtype) for leaf in leaves)
-    out = _CALLBACK.bind(*flat_args, function=_Flat(function, args_tree), result_avals=avals,
-                         vmap_method=vmap_method)
+    out = _CALLBACK.bind(*flat_args, function=_Flat(function, args_tree, fills_results),
+                         result_avals=avals, vmap_method=vmap_method)
     return jax.tree.unflatten(tree, out)
 
 
 class _Flat:
-    """``function`` called with its operands unflattened (hashable, so jit caches by it)."""
+    """``function`` called with its operands unflattened and its results written into the
+    given ``results`` (writable arrays of the declared shapes and dtypes), by ``function``
+    itself where it ``fills`` them, else copied from what it returns (hashable, so jit caches
+    by it)."""
 
-    def __init__(self, function, tree):
-        self.function, self.tree = function, tree
+    def __init__(self, function, tree, fills: bool):
+        self.function, self.tree, self.fills = function, tree, fills
 
-    def __call__(self, *flat):
-        out = self.function(*jax.tree.unflatten(self.tree, flat))
-        return tuple(np.asarray(a) for a in jax.tree.leaves(out))
+    def __call__(self, *flat, results: tuple):
+        args = flat if self.tree is None else jax.tree.unflatten(self.tree, flat)
+        if self.fills:
+            self.function(*args, results=results)
+            return
+        out = jax.tree.leaves(self.function(*args))
+        if len(out) != len(results):
+            raise TypeError(f"a host callback returned {len(out)} arrays where "
+                            f"{len(results)} were declared")
+        for target, value in zip(results, out, strict=True):
+            value = np.asarray(value)
+            if value.shape != target.shape or value.dtype != target.dtype:
+                raise TypeError(f"a host callback returned {value.dtype}{list(value.shape)} "
+                                f"where {target.dtype}{list(target.shape)} was declared")
+            np.copyto(target, value)
+
+    def returning(self, shapes):
+        """A function of the operands that returns new arrays shaped as ``shapes``' leaves,
+        filled by this one (for a caller that takes results, JAX's Python callback)."""
+        leaves = [(leaf.shape, leaf.dtype) for leaf in jax.tree.leaves(shapes)]
+
+        def call(*flat):
+            results = tuple(np.empty(shape, dtype) for shape, dtype in leaves)
+            self(*flat, results=results)
+            return results
+
+        return call
 
     def __hash__(self):
-        return hash((self.function, self.tree))
+        return hash((self.function, self.tree, self.fills))
 
     def __eq__(self, other):
         return (isinstance(other, _Flat) and self.function == other.function
-                and self.tree == other.tree)
+                and self.tree == other.tree and self.fills == other.fills)
 
 
 def _callback_abstract(*args, function, result_avals, vmap_method):
@@ -200,16 +345,25 @@ def _callback_impl(*args, function, result_avals, vmap_method):
     """Outside jit: the host function called at once on NumPy views of the operands, as the
     compiled call gives it them (compiling a one-call program instead cost a compilation per
     call: the function, a new partial each time, is part of the cache key)."""
-    out = function(*(np.asarray(a) for a in args))
-    return [jnp.asarray(o, dtype=aval.dtype).reshape(aval.shape)
-            for o, aval in zip(out, result_avals, strict=True)]
+    out = function.returning(result_avals)(*(np.asarray(a) for a in args))
+    return [jnp.asarray(o) for o in out]
 
 
 def _callback_lowering(ctx, *args, function, result_avals, vmap_method):
-    result, _, _ = _emit_python_callback(ctx, function, None, list(args), ctx.avals_in,
+    result, _, _ = _emit_python_callback(ctx, function.returning(ctx.avals_out), None,
+                                         list(args), ctx.avals_in,
                                          ctx.avals_out, has_side_effect=False,
                                          returns_token=False)
     return result
+
+
+def _callback_ffi_lowering(ctx, *args, function, result_avals, vmap_method):
+    """On a CPU: XLA's FFI custom call of :func:`_ffi_handler`, with the index of ``function``
+    (kept for as long as the process lives, as JAX keeps its callbacks) as attribute."""
+    with _FFI_LOCK:
+        _FFI_FUNCTIONS.append(function)
+        index = len(_FFI_FUNCTIONS) - 1
+    return _FFI_LOWERING(ctx, *args, index=np.uint64(index))
 
 
 def _callback_batched(args, dims, *, function, result_avals, vmap_method):
@@ -246,6 +400,8 @@ _CALLBACK.def_abstract_eval(_callback_abstract)
 batching.primitive_batchers[_CALLBACK] = _callback_batched
 if _emit_python_callback is not None:
     mlir.register_lowering(_CALLBACK, _callback_lowering)
+if _FFI_LOWERING is not None:
+    mlir.register_lowering(_CALLBACK, _callback_ffi_lowering, platform="cpu")
 
 
 def cache_folder() -> Path:

@@ -771,22 +771,26 @@ def _drift_kernel(n: int):
                              MAX_SQUARINGS=linalg.MAX_SQUARINGS).isotropic_flow
 
 
-def _host_isotropic_flow(left: bool, phi, pi, coefs):
+def _host_isotropic_flow(left: bool, phi, pi, coefs, *, results=None):
     """The callback: the Numba kernel ``_host_kernels/drift.py`` over every body (leading axes
     flattened), in :data:`affinebody._host.PARTS` parts on up to :func:`host_drift_threads`
-    threads. Bodies are independent: the same bits on any number of threads."""
+    threads, written into ``results`` (XLA's buffers for phi and pi, ``_host.callback``'s
+    ``fills_results``; new arrays, returned, without them). Bodies are independent: the same
+    bits on any number of threads."""
     shape = phi.shape
     n = shape[-1]
     kernel = _drift_kernel(n)
     phi = np.ascontiguousarray(np.asarray(phi).reshape(-1, n, n))
     pi = np.ascontiguousarray(np.asarray(pi).reshape(-1, n, n))
     coefs = np.ascontiguousarray(np.asarray(coefs).reshape(-1, 3))
-    phi_out, pi_out = np.empty_like(phi), np.empty_like(pi)
+    if results is None:
+        results = np.empty_like(phi), np.empty_like(pi)
+    phi_out, pi_out = (out.reshape(phi.shape) for out in results)  # views: C-contiguous
     rows = phi.shape[0]
     count = host_drift_threads() if rows >= HOST_DRIFT_THREAD_MIN_ROWS else 1
     _host.in_parts(lambda _, lo, hi: kernel(lo, hi, left, phi, pi, coefs, phi_out, pi_out),
                    rows, _host.PARTS, count)
-    return phi_out.reshape(shape), pi_out.reshape(shape)
+    return tuple(out.reshape(shape) for out in results)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
@@ -796,7 +800,7 @@ def isotropic_flow_host(phi, pi, coefs, left: bool):
     derivative: jvp, grad and jacfwd differentiate :func:`isotropic_flow_jax` instead."""
     out = jax.ShapeDtypeStruct(jnp.shape(phi), jnp.result_type(phi))
     return _host.callback(functools.partial(_host_isotropic_flow, left), (out, out),
-                          phi, pi, coefs, vmap_method="broadcast_all")
+                          phi, pi, coefs, vmap_method="broadcast_all", fills_results=True)
 
 
 @isotropic_flow_host.defjvp

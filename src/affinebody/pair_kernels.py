@@ -689,12 +689,14 @@ def _host_virial(g: _HostGeometry, x, binv, i, j, valid, partials, h, h_inv):
 
 
 def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x, phi, i, j,
-                count, h, h_inv):
+                count, h, h_inv, *, results):
     """The fused kernel over the list's first ``count`` pairs, in :data:`affinebody._host.PARTS`
     fixed parts, each with sums of its own added in part order (the same bits on any thread
-    count). Returns (E,), then dV/dx, dV/dphi with ``gradients`` (per-body sums, then the chain
-    rule through B = phi^-1 and det phi per body, ``_merge_finish`` in parts of the bodies),
-    then the virial W [n, n] of :func:`pair_virial` with ``virial``: all from the same pass.
+    count). Fills ``results`` (XLA's result buffers, ``_host.callback``'s ``fills_results``):
+    E, then dV/dx, dV/dphi with ``gradients`` (per-body sums, then the chain rule through
+    B = phi^-1 and det phi per body, ``_merge_finish`` in parts of the bodies, written in
+    place), then the virial W [n, n] of :func:`pair_virial` with ``virial``: all from the
+    same pass.
     One callback for the whole list: no pair scalars are held, so no chunks. B and det phi
     are computed here first (``_inverse_det``, as ``_linalg.inv`` and ``det`` compute them),
     once per body: in XLA they had been a dozen small operations of ~0.25 ms per step at
@@ -716,19 +718,17 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x,
         return kernels.fused(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges,
                              gradients, virial, gx[k], gphi[k], gb[k], gdet[k], w[k])
 
-    energy, total = np.zeros(()), np.zeros((n, n))
+    energy, total = 0.0, np.zeros((n, n))
     for k, e in enumerate(_in_parts(pairs, valid)):  # a fixed order
         energy += e
         total += w[k]
-    out = (energy,)
+    results[0][...] = energy
     if gradients:
-        g_x, g_phi = np.empty_like(x), np.empty_like(phi)
+        g_x, g_phi = results[1:3]
         _in_parts(lambda _, lo, hi: kernels.merge_finish(lo, hi, gx, gphi, gb, gdet, binv, det,
                                                          g_x, g_phi), bodies)
-        out += (g_x, g_phi)
     if virial:
-        out += (total,)
-    return out
+        results[-1][...] = total
 
 
 def _host_chunk(capacity: int) -> int:
@@ -767,7 +767,8 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
         shapes = ((f64(()),) + ((f64(x.shape), f64(phi.shape)) if gradients else ())
                   + ((f64((n, n)),) if virial else ()))
         out = _host.callback(partial(_host_fused, g, fused, gradients, virial), shapes,
-                             x, phi, i, j, count, h, h_inv, vmap_method="sequential")
+                             x, phi, i, j, count, h, h_inv, vmap_method="sequential",
+                             fills_results=True)
         return tuple(out) if len(shapes) > 1 else out[0]
     binv, det = linalg.inv(phi), linalg.det(phi)
     capacity = i.shape[0]
