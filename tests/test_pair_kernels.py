@@ -270,15 +270,21 @@ def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch
     args = (potential, potential.space, x, phi, nbrs.i, nbrs.j, nbrs.count)
     monkeypatch.setattr(pk, "HOST_CHUNK_PAIRS", 97)  # several chunks, the last one partial
     monkeypatch.setattr(pk, "HOST_THREAD_MIN_ROWS", 0)
-    chunked = jax.jit(pk._host_pair_sum, static_argnums=(0, 1))
+    chunked = jax.jit(pk._host_pair_sum, static_argnums=(0, 1),
+                      static_argnames=("gradients", "virial"))
     assert nbrs.i.shape[0] > 3 * 97
+    kinds = ({}, {"virial": True}, {"gradients": False, "virial": True})
     monkeypatch.setattr(pk, "host_threads", lambda: 1)
-    one = chunked(*args)
+    one = [chunked(*args, **kind) for kind in kinds]
     monkeypatch.setattr(pk, "host_threads", lambda: 2)
-    two = chunked(*args)
-    for a, b in zip(one, two, strict=True):
+    two = [chunked(*args, **kind) for kind in kinds]
+    for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(two), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))  # bit for bit
-    assert_same(one, all_pairs(potential, x, phi))
+    assert_same(one[0], all_pairs(potential, x, phi))
+    # the virial of the same pass with and without gradients (the fused kernel: two threads
+    # with barriers between their phases, or one after the other)
+    np.testing.assert_array_equal(np.asarray(one[1][-1]), np.asarray(one[2][-1]))
+    assert float(one[2][0]) == float(one[0][0])
 
 
 def test_forces_after_strong_deformation_and_after_a_capacity_overflow():

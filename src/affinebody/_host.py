@@ -110,6 +110,15 @@ def in_parts(work, rows: int, parts: int, count: int) -> list:
     return results
 
 
+def side_by_side(work, count: int) -> list:
+    """``work(k)`` for k in range(count), each on a thread of its own at the same time (the
+    calling thread runs k = 0), results in order of k: for parts that wait on each other (a
+    barrier between phases, ``_host_kernels/pair.py``), which :func:`in_parts`, where a
+    thread takes the next part only once it is free, could not run."""
+    helpers = [_pool(count - 1).submit(work, k) for k in range(1, count)]
+    return [work(0)] + [helper.result() for helper in helpers]
+
+
 #: glibc ``mallopt`` parameters (malloc.h) and the values :func:`keep_freed_memory` sets: blocks
 #: up to 32 MiB (glibc's largest heap threshold) from the heap, and a heap trimmed only when
 #: 2 GiB (the largest int) lie free at its top.

@@ -552,7 +552,8 @@ def _fused_kernel(n: int, source: str):
     ``merge_finish`` (the parts' sums and the chain rule)."""
     kernels = _host.specialized("pair", extra=source, N=n)
     return types.SimpleNamespace(fused=kernels._fused, merge_finish=kernels._merge_finish,
-                                 inverse_det=kernels._inverse_det)
+                                 inverse_det=kernels._inverse_det,
+                                 fused_thread=kernels._fused_thread)
 
 
 def host_threads() -> int:
@@ -561,11 +562,15 @@ def host_threads() -> int:
     return _host.threads(_host.PARTS)
 
 
+def _thread_count(rows: int) -> int:
+    """Threads for ``rows`` pairs: :func:`host_threads`, one below HOST_THREAD_MIN_ROWS."""
+    return host_threads() if rows >= HOST_THREAD_MIN_ROWS else 1
+
+
 def _in_parts(work, rows: int) -> list:
     """``work(part, lo, hi)`` over :data:`affinebody._host.PARTS` fixed parts of range(rows),
     on up to :func:`host_threads` threads (Numba releases the GIL); results in part order."""
-    count = host_threads() if rows >= HOST_THREAD_MIN_ROWS else 1
-    return _host.in_parts(work, rows, _host.PARTS, count)
+    return _host.in_parts(work, rows, _host.PARTS, _thread_count(rows))
 
 
 class _HostGeometry(NamedTuple):
@@ -701,32 +706,44 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x,
     are computed here first (``_inverse_det``, as ``_linalg.inv`` and ``det`` compute them),
     once per body: in XLA they had been a dozen small operations of ~0.25 ms per step at
     4096 bodies, against ~0.1 ms here (docs/performance.md, "Two cores: XLA's threads and
-    the host kernels'")."""
+    the host kernels'"). With a thread per part, the whole evaluation is one hand-off: each
+    thread zeroes its part's sums, inverts its share of the bodies, sums its pairs and merges
+    its share of the bodies, with barriers between (``_fused_thread``); on one thread the same
+    phases run one after the other, all parts each."""
     kernels = _fused_kernel(g.n, source)
     valid = min(int(count), i.shape[0])  # an overflowed list counts pairs it could not hold
     i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
     x, phi, h, h_inv = (np.asarray(a) for a in (x, phi, h, h_inv))
     bodies, n = x.shape
     binv, det = np.empty_like(phi), np.empty(bodies)
-    kernels.inverse_det(0, bodies, phi, binv, det)
     rows = bodies if gradients else 1  # the kernel adds nothing to the sums without gradients
     parts = _host.PARTS
-    gx, gphi, gb = (np.zeros((parts, rows, *shape)) for shape in ((n,), (n, n), (n, n)))
-    gdet, w = np.zeros((parts, rows)), np.zeros((parts, n, n))
-
-    def pairs(k, lo, hi):
-        return kernels.fused(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges,
-                             gradients, virial, gx[k], gphi[k], gb[k], gdet[k], w[k])
-
+    gx, gphi, gb = (np.empty((parts, rows, *shape)) for shape in ((n,), (n, n), (n, n)))
+    gdet, w = np.empty((parts, rows)), np.empty((parts, n, n))
+    g_x, g_phi = results[1:3] if gradients else (gx[0], gphi[0])  # not written without
+    pair_parts, body_parts = _host.part_ranges(valid, parts), _host.part_ranges(bodies, parts)
+    if _thread_count(valid) == parts:
+        arrived = np.zeros(parts, np.int64)
+        energies = _host.side_by_side(
+            lambda k: kernels.fused_thread(k, arrived, *pair_parts[k], *body_parts[k], i, j, x,
+                                           phi, binv, det, g.mode, h, h_inv, g.edges,
+                                           gradients, virial, gx, gphi, gb, gdet, w, g_x,
+                                           g_phi), parts)
+    else:
+        for a in (gx, gphi, gb, gdet, w):
+            a[...] = 0.0
+        kernels.inverse_det(0, bodies, phi, binv, det)
+        energies = [kernels.fused(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges,
+                                  gradients, virial, gx[k], gphi[k], gb[k], gdet[k], w[k])
+                    for k, (lo, hi) in enumerate(pair_parts)]
+        if gradients:
+            for start, stop in body_parts:
+                kernels.merge_finish(start, stop, gx, gphi, gb, gdet, binv, det, g_x, g_phi)
     energy, total = 0.0, np.zeros((n, n))
-    for k, e in enumerate(_in_parts(pairs, valid)):  # a fixed order
+    for k, e in enumerate(energies):  # a fixed order
         energy += e
         total += w[k]
     results[0][...] = energy
-    if gradients:
-        g_x, g_phi = results[1:3]
-        _in_parts(lambda _, lo, hi: kernels.merge_finish(lo, hi, gx, gphi, gb, gdet, binv, det,
-                                                         g_x, g_phi), bodies)
     if virial:
         results[-1][...] = total
 

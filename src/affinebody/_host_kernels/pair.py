@@ -2,7 +2,8 @@
 loops over pairs are appended to (written out per pair term by
 :mod:`affinebody._host_kernels.pair_source` and :mod:`affinebody._host_kernels.pair_expression`),
 and, per body, the parts' sums added and the chain rule through B = phi^-1 and det phi
-(``_merge_finish``).
+(``_merge_finish``); ``_fused_thread``, one thread's share of a whole fused evaluation when
+each part has a thread of its own, its phases separated by a barrier in shared memory.
 
 The dimension ``N`` is a module constant, which Numba compiles as a constant, so the small
 loops over components unroll (about 5x faster than a run-time n). The loader
@@ -14,6 +15,9 @@ processes load it instead of compiling it again.
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 # --- constants (written by affinebody._host.specialized)
 N = 3
@@ -28,6 +32,61 @@ _jit = numba.njit(fastmath=False, boundscheck=False, nogil=True, cache=CACHE)
 # together ~12 % off the demo's pair loop (measured at 4096 bodies, docs/performance.md)
 _jit_loop = numba.njit(fastmath={"contract", "arcp"}, error_model="numpy", boundscheck=False,
                        nogil=True, cache=CACHE)
+
+
+@intrinsic
+def _load_acquire(typingctx, flags, index):
+    """flags[index], read with acquire ordering (what the thread that stored it wrote before
+    is visible after), and read again on every call (never hoisted out of a loop)."""
+    def codegen(context, builder, signature, args):
+        array_type = signature.args[0]
+        array = context.make_array(array_type)(context, builder, args[0])
+        pointer = cgutils.get_item_pointer(context, builder, array_type, array, [args[1]])
+        return builder.load_atomic(pointer, "acquire", 8)
+    return flags.dtype(flags, index), codegen
+
+
+@intrinsic
+def _store_release(typingctx, flags, index, value):
+    """flags[index] = value with release ordering (after everything written before it)."""
+    def codegen(context, builder, signature, args):
+        array_type, _, value_type = signature.args
+        array = context.make_array(array_type)(context, builder, args[0])
+        pointer = cgutils.get_item_pointer(context, builder, array_type, array, [args[1]])
+        value = context.cast(builder, args[2], value_type, array_type.dtype)
+        builder.store_atomic(value, pointer, "release", 8)
+        return context.get_dummy_value()
+    return numba.types.none(flags, index, value), codegen
+
+
+@intrinsic
+def _yield_core(typingctx):
+    """sched_yield(): let another thread have this core (resolved by name, so the machine
+    code can be cached)."""
+    def codegen(context, builder, signature, args):
+        function = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.IntType(32), []), "sched_yield")
+        builder.call(function, [])
+        return context.get_dummy_value()
+    return numba.types.none(), codegen
+
+
+#: spins on a barrier before each yield of the core (a few microseconds)
+_SPINS = 2000
+
+
+@_jit
+def _arrive_and_wait(arrived, k, phase):
+    """Thread k has finished ``phase``; returns once every thread (one per entry of
+    ``arrived``) has. Waits by spinning, yielding the core every few microseconds, so a
+    thread that shares its core with the one it waits for lets it run."""
+    _store_release(arrived, k, phase)
+    spins = 0
+    for other in range(arrived.shape[0]):
+        while _load_acquire(arrived, other) < phase:
+            spins += 1
+            if spins % _SPINS == 0:
+                _yield_core()
 
 
 @_jit
@@ -104,3 +163,27 @@ def _merge_finish(start, stop, gx_parts, gphi_parts, gb_parts, gdet_parts, binv,
                 for p in range(parts):
                     g += gphi_parts[p, body, r, c]
                 gphi_out[body, r, c] = g - acc + gdet * det[body] * binv[body, c, r]
+
+
+@_jit
+def _fused_thread(k, arrived, lo, hi, start, stop, i, j, x, phi, binv, det, mode, h, h_inv,
+                  edges, gradients, virial, gx, gphi, gb, gdet, w, g_x, g_phi):
+    """Thread k's share of a fused evaluation, one thread per part (``arrived``: one entry per
+    thread, zero at the start): part k's sums zeroed and B, det phi of bodies start..stop-1;
+    once every thread has done so, the pairs lo..hi-1 into part k's sums (``_fused``, appended
+    to this module); once every thread has done that (with gradients), the merge and the chain
+    rule of bodies start..stop-1. Each body and each part is computed as by the phases run one
+    after the other on one thread, so the bits are the same. Returns the part's energy."""
+    gx[k][...] = 0.0
+    gphi[k][...] = 0.0
+    gb[k][...] = 0.0
+    gdet[k][...] = 0.0
+    w[k][...] = 0.0
+    _inverse_det(start, stop, phi, binv, det)
+    _arrive_and_wait(arrived, k, 1)
+    energy = _fused(lo, hi, i, j, x, phi, binv, det, mode, h, h_inv, edges,  # noqa: F821
+                    gradients, virial, gx[k], gphi[k], gb[k], gdet[k], w[k])
+    if gradients:
+        _arrive_and_wait(arrived, k, 2)
+        _merge_finish(start, stop, gx, gphi, gb, gdet, binv, det, g_x, g_phi)
+    return energy
