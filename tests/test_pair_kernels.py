@@ -33,11 +33,13 @@ from affinebody.system import HamiltonianSystem
 BODIES = 40
 BOX3 = triclinic([[5.0, 0.8, -0.5], [0.0, 5.2, 0.6], [0.0, 0.0, 5.1]])
 BOX2 = orthorhombic((5.0, 5.4))
+CUBE = orthorhombic((5.0, 5.0, 5.0))  # the box kind of `affinebody run`'s lattices
 DEMO = "(1 - exp(-3*(r - 1)))**2 - 1 + 0.5*exp(-D**2/4)*(M1 - 3)**2"
 EVERYTHING3 = "exp(-D**2)*(M2 - 2)**2 + 0.3*det + 0.01*M3 + 0.02*K2 + K1*exp(-r) + 0.001*K3"
 
 CASES = {
     "demo-3d": (PairPotential.from_expression(DEMO, 3, cutoff=Cutoff(1.5), box=BOX3), 3),
+    "demo-cubic-3d": (PairPotential.from_expression(DEMO, 3, cutoff=Cutoff(1.5), box=CUBE), 3),
     "all-variables-3d": (
         PairPotential.from_expression(EVERYTHING3, 3, cutoff=Cutoff(1.5, 1.2), box=BOX3), 3),
     "material-affine-arrays-3d": (PairPotential(
@@ -259,7 +261,7 @@ def test_the_pair_program_variable_chooses_the_program_or_says_what_is_wrong(mon
     assert pk.triton_builds.cache_info().currsize == 0
 
 
-@pytest.mark.parametrize("case", ["material-affine-arrays-3d", "demo-3d"])
+@pytest.mark.parametrize("case", ["material-affine-arrays-3d", "demo-3d", "demo-cubic-3d"])
 def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch, case):
     """Chunks of pairs (per-body sums carried between callbacks) give the all-pairs forces,
     and the threads' fixed parts give the same bits on one thread or two: with a Python f
@@ -274,10 +276,21 @@ def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch
                       static_argnames=("gradients", "virial"))
     assert nbrs.i.shape[0] > 3 * 97
     kinds = ({}, {"virial": True}, {"gradients": False, "virial": True})
+    fused = pk.fused_on_host(potential, n)
+    calls = []
+    if fused:  # one thread and two run the same compiled function (FMA contraction, hence
+        # the last bit, depends on where LLVM inlines a loop: a second function for one
+        # thread had given dV/dx an ulp apart in a 4096-body run)
+        kernels = pk._fused_kernel(n, pk._fused_source(potential, n))
+        thread = kernels.fused_thread
+        monkeypatch.setattr(kernels, "fused_thread",
+                            lambda *a: calls.append(pk.host_threads()) or thread(*a))
     monkeypatch.setattr(pk, "host_threads", lambda: 1)
     one = [chunked(*args, **kind) for kind in kinds]
     monkeypatch.setattr(pk, "host_threads", lambda: 2)
     two = [chunked(*args, **kind) for kind in kinds]
+    if fused:
+        assert calls.count(1) == 3 * 3 + 3 * 3 and calls.count(2) == 3 * 2
     for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(two), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))  # bit for bit
     assert_same(one[0], all_pairs(potential, x, phi))

@@ -255,7 +255,7 @@ def _ffi_handler(frame: int) -> int | None:
         results = tuple(_buffer_view(int(r), layout, True)
                         for r, layout in zip(rets, layouts[1], strict=True))
         _FFI_FUNCTIONS[index](*operands, results=results)
-    except Exception as error:  # noqa: BLE001 - every error goes back to XLA, which raises it
+    except BaseException as error:  # noqa: BLE001 - every error goes back to XLA, which raises it
         return _ffi_error(int(words[2]), f"affinebody host callback: "
                                          f"{type(error).__name__}: {error}")
     return None

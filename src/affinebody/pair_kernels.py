@@ -548,12 +548,12 @@ def fused_on_host(pot, n: int) -> bool:
 def _fused_kernel(n: int, source: str):
     """The compiled fused kernel: the pair kernels of dimension n with ``source`` appended
     (cached on disk under a hash of the whole text, :func:`affinebody._host.specialized`):
-    ``fused`` (the pair loop: the energy, and its gradients or its virial) and
-    ``merge_finish`` (the parts' sums and the chain rule)."""
+    ``fused_thread`` (one part's phases: its sums zeroed and B, det phi of its bodies; its
+    pairs, the energy and its gradients or its virial; the parts' sums of its bodies with
+    the chain rule) and ``phases``, the bits that select them."""
     kernels = _host.specialized("pair", extra=source, N=n)
-    return types.SimpleNamespace(fused=kernels._fused, merge_finish=kernels._merge_finish,
-                                 inverse_det=kernels._inverse_det,
-                                 fused_thread=kernels._fused_thread)
+    return types.SimpleNamespace(fused_thread=kernels._fused_thread,
+                                 phases=(kernels.PREPARE, kernels.PAIRS, kernels.MERGE))
 
 
 def host_threads() -> int:
@@ -709,7 +709,7 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x,
     the host kernels'"). With a thread per part, the whole evaluation is one hand-off: each
     thread zeroes its part's sums, inverts its share of the bodies, sums its pairs and merges
     its share of the bodies, with barriers between (``_fused_thread``); on one thread the same
-    phases run one after the other, all parts each."""
+    compiled function runs the phases one after the other, every part each."""
     kernels = _fused_kernel(g.n, source)
     valid = min(int(count), i.shape[0])  # an overflowed list counts pairs it could not hold
     i, j = np.ascontiguousarray(i), np.ascontiguousarray(j)
@@ -722,23 +722,20 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x,
     gdet, w = np.empty((parts, rows)), np.empty((parts, n, n))
     g_x, g_phi = results[1:3] if gradients else (gx[0], gphi[0])  # not written without
     pair_parts, body_parts = _host.part_ranges(valid, parts), _host.part_ranges(bodies, parts)
+
+    def part(k, phases, arrived):
+        return kernels.fused_thread(k, phases, arrived, *pair_parts[k], *body_parts[k], i, j, x,
+                                    phi, binv, det, g.mode, h, h_inv, g.edges, gradients,
+                                    virial, gx, gphi, gb, gdet, w, g_x, g_phi)
+
     if _thread_count(valid) == parts:
         arrived = np.zeros(parts, np.int64)
-        energies = _host.side_by_side(
-            lambda k: kernels.fused_thread(k, arrived, *pair_parts[k], *body_parts[k], i, j, x,
-                                           phi, binv, det, g.mode, h, h_inv, g.edges,
-                                           gradients, virial, gx, gphi, gb, gdet, w, g_x,
-                                           g_phi), parts)
+        every = sum(kernels.phases)
+        energies = _host.side_by_side(lambda k: part(k, every, arrived), parts)
     else:
-        for a in (gx, gphi, gb, gdet, w):
-            a[...] = 0.0
-        kernels.inverse_det(0, bodies, phi, binv, det)
-        energies = [kernels.fused(lo, hi, i, j, x, phi, binv, det, g.mode, h, h_inv, g.edges,
-                                  gradients, virial, gx[k], gphi[k], gb[k], gdet[k], w[k])
-                    for k, (lo, hi) in enumerate(pair_parts)]
-        if gradients:
-            for start, stop in body_parts:
-                kernels.merge_finish(start, stop, gx, gphi, gb, gdet, binv, det, g_x, g_phi)
+        alone = np.zeros(0, np.int64)
+        energies = [[part(k, phase, alone) for k in range(parts)] for phase in kernels.phases]
+        energies = energies[1]  # those of the pairs phase
     energy, total = 0.0, np.zeros((n, n))
     for k, e in enumerate(energies):  # a fixed order
         energy += e

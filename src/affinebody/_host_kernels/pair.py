@@ -165,25 +165,38 @@ def _merge_finish(start, stop, gx_parts, gphi_parts, gb_parts, gdet_parts, binv,
                 gphi_out[body, r, c] = g - acc + gdet * det[body] * binv[body, c, r]
 
 
+#: the phases of ``_fused_thread`` (bits of its ``phases``)
+PREPARE, PAIRS, MERGE = 1, 2, 4
+
+
 @_jit
-def _fused_thread(k, arrived, lo, hi, start, stop, i, j, x, phi, binv, det, mode, h, h_inv,
-                  edges, gradients, virial, gx, gphi, gb, gdet, w, g_x, g_phi):
-    """Thread k's share of a fused evaluation, one thread per part (``arrived``: one entry per
-    thread, zero at the start): part k's sums zeroed and B, det phi of bodies start..stop-1;
-    once every thread has done so, the pairs lo..hi-1 into part k's sums (``_fused``, appended
-    to this module); once every thread has done that (with gradients), the merge and the chain
-    rule of bodies start..stop-1. Each body and each part is computed as by the phases run one
-    after the other on one thread, so the bits are the same. Returns the part's energy."""
-    gx[k][...] = 0.0
-    gphi[k][...] = 0.0
-    gb[k][...] = 0.0
-    gdet[k][...] = 0.0
-    w[k][...] = 0.0
-    _inverse_det(start, stop, phi, binv, det)
-    _arrive_and_wait(arrived, k, 1)
-    energy = _fused(lo, hi, i, j, x, phi, binv, det, mode, h, h_inv, edges,  # noqa: F821
-                    gradients, virial, gx[k], gphi[k], gb[k], gdet[k], w[k])
-    if gradients:
+def _fused_thread(k, phases, arrived, lo, hi, start, stop, i, j, x, phi, binv, det, mode, h,
+                  h_inv, edges, gradients, virial, gx, gphi, gb, gdet, w, g_x, g_phi):
+    """Part k of a fused evaluation, in three phases: PREPARE zeroes part k's sums and
+    computes B and det phi of bodies start..stop-1; PAIRS sums the pairs lo..hi-1 into part
+    k's sums (``_fused``, appended to this module) and returns their energy; MERGE (with
+    gradients) adds the parts' sums of bodies start..stop-1 and applies the chain rule.
+    ``phases`` says which to run. With a thread per part, each runs all three, and
+    ``arrived`` (one entry per thread, zero at the start) is the barrier between them; one
+    thread runs the phases one at a time for every part, ``arrived`` empty. Both ways run this
+    one compiled function, so every bit is the same: LLVM's FMA contraction depends on
+    where a loop is inlined, and ``_fused`` called on its own had given dV/dx an ulp apart."""
+    barrier = arrived.shape[0] > 0
+    energy = 0.0
+    if phases & PREPARE:
+        gx[k][...] = 0.0
+        gphi[k][...] = 0.0
+        gb[k][...] = 0.0
+        gdet[k][...] = 0.0
+        w[k][...] = 0.0
+        _inverse_det(start, stop, phi, binv, det)
+    if barrier:
+        _arrive_and_wait(arrived, k, 1)
+    if phases & PAIRS:
+        energy = _fused(lo, hi, i, j, x, phi, binv, det, mode, h, h_inv, edges,  # noqa: F821
+                        gradients, virial, gx[k], gphi[k], gb[k], gdet[k], w[k])
+    if gradients and barrier:
         _arrive_and_wait(arrived, k, 2)
+    if gradients and phases & MERGE:
         _merge_finish(start, stop, gx, gphi, gb, gdet, binv, det, g_x, g_phi)
     return energy
