@@ -161,8 +161,8 @@ if _emit_python_callback is not None and not {"has_side_effect", "returns_token"
 # The call on a CPU: XLA's typed FFI (xla/ffi/api/c_api.h, API 0.3) calls a C function pointer
 # made by ctypes from :func:`_ffi_handler` with one XLA_FFI_CallFrame*; the handler reads the
 # operand and result buffers' addresses from it and gives the host function NumPy views of
-# them, with no copy. JAX's own Python callback copies every operand first (~0.1 ms per MB: at
-# 4096 bodies ~0.75 ms a step for the pair list alone, docs/performance.md). The structs are
+# them, with no copy. JAX's own Python callback copies every operand and result (~0.1 ms per
+# MB: ~0.3 ms a step at 4096 bodies, docs/performance.md). The structs are
 # read as 8-byte words at the offsets of the C header (x86-64 and aarch64 LP64 layout):
 #   XLA_FFI_CallFrame: 1 extension_start, 2 api, 4 stage, 7 args.size, 9 args.args,
 #                      12 rets.size, 14 rets.rets, 20 attrs.attrs (22 words);
@@ -234,8 +234,9 @@ def _ffi_handler(frame: int) -> int | None:
     of the call's ``index`` on read-only views of the operands and writable views of XLA's
     result buffers. An exception becomes an XLA error (raised by the jitted call)."""
     words = np.frombuffer(_FRAME_WORDS.from_address(frame), np.int64)
-    if words[1] and int(_words(int(words[1]), 2)[1]) & 0xFFFFFFFF == _FFI_METADATA:
-        metadata = int(_words(int(words[1]), 4)[3])
+    extension = _words(int(words[1]), 4) if words[1] else None
+    if extension is not None and int(extension[1]) & 0xFFFFFFFF == _FFI_METADATA:
+        metadata = int(extension[3])
         version = _ApiVersion.from_address(metadata + 8)
         version.major_version, version.minor_version = _FFI_API_VERSION
         ctypes.c_uint32.from_address(metadata + 8 + ctypes.sizeof(_ApiVersion)).value = 0

@@ -732,10 +732,14 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x,
         arrived = np.zeros(parts, np.int64)
         every = sum(kernels.phases)
         energies = _host.side_by_side(lambda k: part(k, every, arrived), parts)
-    else:
+    else:  # one phase at a time, every part each (the merge adds nothing without gradients)
         alone = np.zeros(0, np.int64)
-        energies = [[part(k, phase, alone) for k in range(parts)] for phase in kernels.phases]
-        energies = energies[1]  # those of the pairs phase
+        prepare, pairs, merge = kernels.phases
+        for k in range(parts):
+            part(k, prepare, alone)
+        energies = [part(k, pairs, alone) for k in range(parts)]
+        for k in range(parts):
+            part(k, merge, alone)
     energy, total = 0.0, np.zeros((n, n))
     for k, e in enumerate(energies):  # a fixed order
         energy += e
