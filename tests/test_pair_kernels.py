@@ -300,6 +300,65 @@ def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch
     assert float(one[2][0]) == float(one[0][0])
 
 
+def _with_timeout(call, seconds=120.0):
+    """call() on a thread of its own; its outcome, or a failure where it does not return in
+    time (a thread that waits for ever on a barrier would otherwise hang the suite)."""
+    import threading
+
+    outcome = {}
+
+    def target():
+        try:
+            outcome["value"] = call()
+        except Exception as error:  # noqa: BLE001 - handed to the test
+            outcome["error"] = error
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    thread.join(seconds)
+    assert not thread.is_alive(), "the host kernel did not return (a thread waits for ever)"
+    return outcome
+
+
+def test_two_host_threads_neither_hang_nor_raise_on_a_singular_body_or_a_failing_part(
+        monkeypatch):
+    """The fused kernel's two threads wait for each other between phases: a singular phi
+    gives a non-finite energy and forces (as the JAX path, for the run's finiteness check),
+    the same bits on one thread and two; where one thread's part raises, the other is
+    released from the barrier and the error comes back with its message."""
+    potential, n = CASES["demo-cubic-3d"]
+    x, phi = configuration(np.random.default_rng(3), n, potential.space)
+    _, nbrs = list_for(potential, x, phi)
+    singular = phi.at[0].set(0.0)
+    call = jax.jit(pk._host_pair_sum, static_argnums=(0, 1))
+    args = (potential, potential.space, x, singular, nbrs.i, nbrs.j, nbrs.count)
+    monkeypatch.setattr(pk, "HOST_THREAD_MIN_ROWS", 0)
+    results = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(pk, "host_threads", lambda threads=threads: threads)
+        outcome = _with_timeout(lambda: jax.tree.map(np.asarray, call(*args)))
+        assert "error" not in outcome, outcome.get("error")
+        results[threads] = outcome["value"]
+    assert not np.isfinite(results[1][0]) and not np.isfinite(results[1][2][0]).all()
+    for a, b in zip(results[1], results[2], strict=True):
+        assert np.array_equal(a, b, equal_nan=True)
+    reference = _all_pairs(potential, x, singular)
+    assert not np.isfinite(float(reference[0]))
+
+    kernels = pk._fused_kernel(n, pk._fused_source(potential, n))
+    thread = kernels.fused_thread
+    for failing in (0, 1):
+        def part(k, *rest, failing=failing):
+            if k == failing:
+                raise RuntimeError(f"part {k} failed")
+            return thread(k, *rest)
+
+        monkeypatch.setattr(kernels, "fused_thread", part)
+        outcome = _with_timeout(lambda: call(potential, potential.space, x, phi, nbrs.i,
+                                             nbrs.j, nbrs.count)[0].block_until_ready())
+        assert f"part {failing} failed" in str(outcome.get("error"))
+
+
 def test_forces_after_strong_deformation_and_after_a_capacity_overflow():
     # affine cut-off in free space: stretching by up to 2.2 widens every body's reach
     potential, n = CASES["lennard-jones-in-D-free-3d"]
@@ -449,3 +508,12 @@ def test_the_host_inverse_and_determinant_are_those_of_linalg(n):
     np.testing.assert_allclose(det, np.linalg.det(phi), rtol=1e-6)
     if n == 1:
         assert np.array_equal(binv, expected_inv) and np.array_equal(det, expected_det)
+    # a singular phi gives what _linalg gives (inf or nan), not an exception in a callback
+    singular = np.zeros((2, n, n))
+    singular[1] = np.eye(n)
+    singular[1, :, 0] = 0.0
+    binv, det = np.empty_like(singular), np.empty(2)
+    kernels._inverse_det(0, 2, singular, binv, det)
+    assert not np.isfinite(binv).any()
+    assert np.array_equal(binv, np.asarray(_linalg.inv(singular)), equal_nan=True)
+    assert np.array_equal(det, np.asarray(_linalg.det(singular)), equal_nan=True)

@@ -104,19 +104,39 @@ def in_parts(work, rows: int, parts: int, count: int) -> list:
             results[k] = work(k, *ranges[k])
 
     helpers = [_pool(count - 1).submit(drain) for _ in range(count - 1)]
-    drain()
+    try:
+        drain()
+    finally:  # never return (or raise into XLA, which frees the buffers) while a helper writes
+        for helper in helpers:
+            helper.exception()
     for helper in helpers:
         helper.result()
     return results
 
 
-def side_by_side(work, count: int) -> list:
+def side_by_side(work, count: int, failed=None) -> list:
     """``work(k)`` for k in range(count), each on a thread of its own at the same time (the
     calling thread runs k = 0), results in order of k: for parts that wait on each other (a
     barrier between phases, ``_host_kernels/pair.py``), which :func:`in_parts`, where a
-    thread takes the next part only once it is free, could not run."""
-    helpers = [_pool(count - 1).submit(work, k) for k in range(1, count)]
-    return [work(0)] + [helper.result() for helper in helpers]
+    thread takes the next part only once it is free, could not run. Where ``work(k)`` raises,
+    ``failed(k)`` is called first (e.g. to release the others from a barrier they would
+    otherwise wait at for ever); every thread has returned before the first error is
+    raised."""
+    def guarded(k):
+        try:
+            return work(k)
+        except BaseException:
+            if failed is not None:
+                failed(k)
+            raise
+
+    helpers = [_pool(count - 1).submit(guarded, k) for k in range(1, count)]
+    try:
+        first = guarded(0)
+    finally:
+        for helper in helpers:
+            helper.exception()
+    return [first] + [helper.result() for helper in helpers]
 
 
 #: glibc ``mallopt`` parameters (malloc.h) and the values :func:`keep_freed_memory` sets: blocks

@@ -550,10 +550,12 @@ def _fused_kernel(n: int, source: str):
     (cached on disk under a hash of the whole text, :func:`affinebody._host.specialized`):
     ``fused_thread`` (one part's phases: its sums zeroed and B, det phi of its bodies; its
     pairs, the energy and its gradients or its virial; the parts' sums of its bodies with
-    the chain rule) and ``phases``, the bits that select them."""
+    the chain rule), ``phases``, the bits that select them, and ``failed``, what a thread
+    that raised writes into the barrier so that the other does not wait for it."""
     kernels = _host.specialized("pair", extra=source, N=n)
     return types.SimpleNamespace(fused_thread=kernels._fused_thread,
-                                 phases=(kernels.PREPARE, kernels.PAIRS, kernels.MERGE))
+                                 phases=(kernels.PREPARE, kernels.PAIRS, kernels.MERGE),
+                                 failed=kernels.FAILED)
 
 
 def host_threads() -> int:
@@ -731,7 +733,8 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x,
     if _thread_count(valid) == parts:
         arrived = np.zeros(parts, np.int64)
         every = sum(kernels.phases)
-        energies = _host.side_by_side(lambda k: part(k, every, arrived), parts)
+        energies = _host.side_by_side(lambda k: part(k, every, arrived), parts,
+                                      failed=lambda k: arrived.__setitem__(k, kernels.failed))
     else:  # one phase at a time, every part each (the merge adds nothing without gradients)
         alone = np.zeros(0, np.int64)
         prepare, pairs, merge = kernels.phases

@@ -73,6 +73,9 @@ def _yield_core(typingctx):
 
 #: spins on a barrier before each yield of the core (a few microseconds)
 _SPINS = 2000
+#: what a thread that failed writes into its entry of a barrier: past every phase, so that
+#: the others do not wait for it (``_host.side_by_side``'s ``failed``)
+FAILED = 1 << 62
 
 
 @_jit
@@ -89,7 +92,9 @@ def _arrive_and_wait(arrived, k, phase):
                 _yield_core()
 
 
-@_jit
+# a singular phi gives inf or nan, as _linalg.inv does in JAX (the run's finiteness check
+# reports it), not a ZeroDivisionError inside a callback
+@numba.njit(fastmath=False, boundscheck=False, nogil=True, cache=CACHE, error_model="numpy")
 def _inverse_det(start, stop, phi, binv, det):
     """B = phi^-1 into binv and det phi into det for bodies start..stop-1, as
     affinebody._linalg.inv and det compute them: Gaussian elimination of [phi | Id] with the
