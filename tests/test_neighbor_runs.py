@@ -314,10 +314,41 @@ def test_a_sweep_sample_that_stops_after_a_rebuild_ends_as_the_all_pairs_sample(
     assert float(listed["final_energy"]) == pytest.approx(float(all_pairs["final_energy"]),
                                                           rel=1e-10)
     built = simulate.list_for_kept_state
-    monkeypatch.setattr(simulate, "list_for_kept_state", lambda s, kept: built(s, kept)._replace(
-        overflow=jnp.asarray(nb.PAIR_OVERFLOW, jnp.int32)))
+    monkeypatch.setattr(simulate, "list_for_kept_state",
+                        lambda s, kept, *cell: built(s, kept, *cell)._replace(
+                            overflow=jnp.asarray(nb.PAIR_OVERFLOW, jnp.int32)))
     refit = jax.jit(lambda listed: sweep.follow(
         system, state, 0.2, 1e6, steps=40, method=get_integrator("strang"), watch_det=True,
         spec=spec, neighbors=listed))(every_step)
     assert int(refit["code"]) == int(simulate.Stop.OVERFLOW)
     assert int(refit["overflow"]) == nb.PAIR_OVERFLOW
+
+
+def test_a_thermal_sample_that_stops_after_a_rebuild_sums_what_the_all_pairs_sample_sums():
+    """A thermostatted NVT sample (``sweep.thermal_sample``) does not hold the previous list
+    back either: once a step failed the sample's measurements are no longer counted, so
+    nothing reads the discarded step's list. With no skin every step rebuilds; the sample that
+    leaves GL+ at step 11 (dt far too large) counts the same measurements, with the same sums,
+    as the all-pairs sample (the same thermostat noise)."""
+    import jax
+
+    from affinebody import simulate, sweep
+    from affinebody.integrators import get_integrator
+    from affinebody.thermostats import Langevin
+
+    system, state = periodic_system()
+    spec, every_step = nb.allocate(BOX, state.x, state.phi, R_CUT, "r", 0.0,
+                                   capacity_factor=3.0)
+    sample = jax.jit(lambda listed: sweep.thermal_sample(
+        system, state, 0.1, np.uint32(3), 0.5, steps=40, every=4, equilibration=0,
+        method=get_integrator("strang"), thermostat=Langevin(0.5, 1.0, 0), watch_det=True,
+        spec=spec if listed is not None else None, neighbors=listed))
+    listed, all_pairs = sample(every_step), sample(None)
+    assert int(all_pairs["code"]) == int(simulate.Stop.LEFT_GROUP)
+    assert int(all_pairs["steps_done"]) == 10 and int(all_pairs["measurements"]) == 2
+    for key in ("code", "steps_done", "measurements"):
+        assert int(listed[key]) == int(all_pairs[key])
+    sums, reference = np.asarray(listed["sums"]), np.asarray(all_pairs["sums"])
+    finite = np.isfinite(reference)  # no box pressure without a space: nan in both
+    np.testing.assert_array_equal(np.isfinite(sums), finite)
+    np.testing.assert_allclose(sums[finite], reference[finite], rtol=1e-10, atol=1e-10)

@@ -198,3 +198,67 @@ def test_an_npt_call_computes_no_frame_after_its_list_overflowed(monkeypatch):
         assert tight <= roomy + some * (per_step * every + 1)
     np.testing.assert_allclose(overflowed.states.x, reference.states.x, rtol=0,
                                atol=1e-11 * np.max(np.abs(reference.states.x)))
+
+
+def test_an_npt_run_that_stops_after_a_rebuild_ends_with_a_list_of_its_last_good_state(
+        monkeypatch):
+    """The NPT loop does not hold the previous list back with the previous state and cell
+    (that cost a copy of the list per step): a step that fails has already replaced the list
+    with one for its own discarded state. With no skin every step rebuilds; the step that
+    fails here (dt too large: the box shrinks below twice the list's radius at step 12) is in
+    the middle of a frame, so that frame (and those after it) holds the last good state,
+    whose observables and list must be its own: the pressure of the last frame is the
+    all-pairs pressure of that state in that cell, and the run returns a list built for
+    them that holds every pair. Where the list built for it does not fit (made to overflow
+    here), the run reallocates and repeats from the frame before, to the same end."""
+    from affinebody import simulate
+
+    n, every, dt_too_large = 2, 8, 0.08
+    system, state, space = shrinking_box()
+    b = barostat.c_rescale(20.0, n, tau=1.0, compressibility=1.0, temperature=0.1)
+    lists = nb.allocate(space, state.x, state.phi, 1.2, "r", 0.0, cell=space.matrix,
+                        capacity_factor=3.0)
+
+    def stopped():
+        return barostat.run(system, state, space, b, dt_too_large, 64, seed=3, every=every,
+                            neighbors=lists)
+
+    def assert_last_good_state(out):
+        step = out.failed_step
+        assert step is not None and step % every not in (0, 1)  # stops inside a frame
+        assert out.stop_reason.startswith("the box shrank below twice")
+        last = jax.tree.map(lambda a: jnp.asarray(a[-1]), out.states)
+        cell = jnp.asarray(out.cells[-1])
+        boxed = system.replace(cell=cell)
+        np.testing.assert_allclose(out.observables["pressure"][-1],
+                                   pressure.pressure_tensor(boxed, last, space), rtol=1e-12,
+                                   atol=1e-12 * np.max(np.abs(out.observables["pressure"][-1])))
+        spec, kept = out.neighbors
+        assert int(kept.overflow) == 0
+        np.testing.assert_array_equal(kept.cell, cell)  # built for that state in that cell
+        np.testing.assert_array_equal(kept.reference_x, last.x)
+        in_range = nb.brute_force_pairs(triclinic(np.asarray(cell)), np.asarray(last.x), 1.2)
+        assert set(map(tuple, in_range)) <= set(map(tuple, nb.pairs_of(kept)))
+        return out
+
+    plain = assert_last_good_state(stopped())
+    built = simulate.list_for_kept_state
+    first = lists[0].capacity
+
+    def overflowing(spec, kept, *cell):  # the run's first capacities are too small for it
+        out = built(spec, kept, *cell)
+        if spec.capacity != first:
+            return out
+        return out._replace(overflow=jnp.asarray(nb.PAIR_OVERFLOW, jnp.int32),
+                            count=jnp.asarray(spec.capacity + 1, jnp.int32))
+
+    monkeypatch.setattr(simulate, "list_for_kept_state", overflowing)
+    jax.clear_caches()  # the loop compiled with the patch, and only this test's
+    try:
+        refit = assert_last_good_state(stopped())
+    finally:
+        jax.clear_caches()
+    assert refit.neighbors[0].capacity > first and refit.failed_step == plain.failed_step
+    np.testing.assert_allclose(refit.states.x, plain.states.x, rtol=0,
+                               atol=1e-12 * np.max(np.abs(plain.states.x)))
+    np.testing.assert_allclose(refit.cells, plain.cells, rtol=1e-12)

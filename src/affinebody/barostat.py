@@ -69,7 +69,7 @@ from affinebody import neighbors as nb
 from affinebody import pressure as pressure_module
 from affinebody.integrators import get_integrator
 from affinebody.integrators.splitting import update_neighbors
-from affinebody.simulate import scan_chunks
+from affinebody.simulate import kept_list_or_refit, scan_chunks
 from affinebody.space import Space, as_space
 from affinebody.state import State
 
@@ -494,8 +494,9 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
             ok &= ~over
         failed = jnp.where((failed < 0) & ~ok, k + 1, failed)
         keep = lambda old, new: jnp.where(failed < 0, new, old)  # noqa: E731
+        # the list is not kept back with the state (as in simulate.run: that cost a copy of
+        # it per step): a chunk in which a step failed gives the kept state a list after it
         state, cell = jax.tree.map(keep, old_state, state), keep(old_cell, cell)
-        nbrs = jax.tree.map(keep, old_nbrs, nbrs)
         exchanged = jax.tree.map(keep, exchanged, (exchanged[0] + heat, exchanged[1] + work))
         carried = jax.tree.map(keep, old_forces, forces)
         rejections = keep(rejections, rejections + rejected)
@@ -508,8 +509,16 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
     def chunk(carry):  # the rejected moves are counted from frame to frame
         # after a failed step the frames left keep its previous state: not computed (as
         # simulate._simulate)
-        carry = lax.cond(carry[4] < 0, lambda c: lax.scan(one_step, c, None, length=every)[0],
+        running = carry[4] < 0
+        carry = lax.cond(running, lambda c: lax.scan(one_step, c, None, length=every)[0],
                          lambda c: c, carry[:-1] + (int0,))
+        if spec is not None:  # the kept state and cell get a list of their own; one that
+            # does not fit is an overflow, which run reallocates from the frame before
+            state, cell, nbrs, k, failed, overflowed, narrow, lost = carry[:8]
+            nbrs, refit, lost = kept_list_or_refit(spec, running & (failed >= 0), state, nbrs,
+                                                   lost, cell)
+            carry = (state, cell, nbrs, k, failed, overflowed | refit, narrow, lost,
+                     *carry[8:])
         return carry, (carry[0], carry[1], measure(*carry[:3], carry[8], carry[10]))
 
     lost = (int0, int0, jnp.zeros((), dtype=state.x.dtype))

@@ -313,11 +313,27 @@ def _simulate(system, state, dt, neighbors, start=(0, 0.0), active=None, *, n_ch
     return frames, values, done, status, bad_step, bad_body, last_list, rebuilds, lost
 
 
-def list_for_kept_state(spec, state):
+def list_for_kept_state(spec, state, cell=None):
     """The list a failed step's chunk gives the state it keeps (the step's own list is for its
     discarded state): built for it, with the run's capacities (``run`` reallocates it where
-    they are too small)."""
-    return nb.build(spec, state.x, state.phi)
+    they are too small); ``cell``: the kept cell of a box that a barostat deforms."""
+    return nb.build(spec, state.x, state.phi, cell)
+
+
+def kept_list_or_refit(spec, failed, state, nbrs, lost, cell=None):
+    """For loops that keep back the state, not the list, of a step they discard (keeping the
+    list cost two copies of it per step): where ``failed`` (traced), the list of
+    :func:`list_for_kept_state` in place of ``nbrs`` (the discarded step's), and ``refit``,
+    whether it overflows the capacities, with ``lost`` (overflow flags, most pairs, largest
+    reach) grown to hold it: the run or sample is then repeated with room, as after an
+    overflow in a step. Else ``nbrs``, False and ``lost`` as given. Returns (list, refit,
+    lost)."""
+    nbrs = lax.cond(failed, lambda: list_for_kept_state(spec, state, cell), lambda: nbrs)
+    refit = failed & (nbrs.overflow != 0)
+    lost = (lost[0] | jnp.where(refit, nbrs.overflow, 0),
+            jnp.maximum(lost[1], jnp.where(refit, nbrs.count, 0)),
+            jnp.maximum(lost[2], jnp.where(refit, nbrs.reach, 0.0)))
+    return nbrs, refit, lost
 
 
 def scan_chunks(chunk, skipped, init, n_chunks: int, active=None):

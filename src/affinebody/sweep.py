@@ -124,7 +124,7 @@ import numpy as np
 
 from affinebody import _host, _xla
 from affinebody.config import Config, ConfigError, ScanRange, check_config
-from affinebody.simulate import Stop, relative_error
+from affinebody.simulate import Stop, kept_list_or_refit, relative_error
 
 #: Environment of local Dask workers: one thread for XLA and BLAS, XLA's faster compilation
 #: (``_xla.FAST_COMPILATION``, where jaxlib knows it), float64 JAX.
@@ -547,17 +547,10 @@ def follow(system, state, dt, bound, *, steps: int, method, watch_det: bool, spe
     state, nbrs, _, code, k, exit_step, spread, dmin, dmax, rel, lost = lax.while_loop(
         running, advance, init)
     if spec is not None:
-        from affinebody.simulate import list_for_kept_state
-
-        failed = code != code0  # the loop ended on a step it discarded, with that step's list
-        nbrs = lax.cond(failed, lambda: list_for_kept_state(spec, state), lambda: nbrs)
-        # a list for the kept state that does not fit the capacities: the sample is repeated
-        # with room, as after an overflow in a step
-        refit = failed & (nbrs.overflow != 0)
+        # the loop ended on a step it discarded, with that step's list: the kept state gets
+        # its own (one that does not fit: the sample is repeated with room for both lists)
+        nbrs, refit, lost = kept_list_or_refit(spec, code != code0, state, nbrs, lost)
         code = jnp.where(refit, int(Stop.OVERFLOW), code)
-        lost = (lost[0] | jnp.where(refit, nbrs.overflow, 0),  # room for both lists
-                jnp.maximum(lost[1], jnp.where(refit, nbrs.count, 0)),
-                jnp.maximum(lost[2], jnp.where(refit, nbrs.reach, 0.0)))
     code = jnp.where((code == _BOUNDED) & (exit_step >= 0), _UNBOUNDED, code)
     return {"code": code, "steps_done": k, "exit_step": exit_step, "max_spread": spread,
             "min_det": dmin, "max_det": dmax, "max_relative_volume": rel,
@@ -826,8 +819,12 @@ def thermal_sample(system, state, dt, seed, temperature, pressure=None, *, steps
                 seen = (w.tracked.overflow, w.tracked.most_pairs, w.tracked.largest_reach)
                 lost = jax.tree.map(lambda old, new: jnp.where(first, new, old), lost, seen)
             keep = lambda new, old: jnp.where(good, new, old)  # noqa: E731
-            moved = jax.tree.map(keep, (w.state, w.neighbors, w.forces), (state, nbrs, forces))
-            return (moved, jnp.where(first, w.stop, code), done + good, lost), None
+            # the list is not kept back with the state (as in simulate.run: that cost two
+            # copies of it per step): once a step failed, the sample's measurements are no
+            # longer counted and nothing reads its list again
+            state, forces = jax.tree.map(keep, (w.state, w.forces), (state, forces))
+            return ((state, w.neighbors, forces), jnp.where(first, w.stop, code), done + good,
+                    lost), None
 
         (moved, code, done, lost), _ = lax.scan(one, carry[:4], None, length=every)
         return moved, code, done, lost, carry[4], measure(moved[0], moved[1]), int0
