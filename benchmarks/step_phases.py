@@ -36,11 +36,14 @@ that kernel; on a CPU it runs the host kernel, so force it with ``--jax-kernel``
 
 ``--pair-program NAME``: ``forces`` again with the JAX pair kernel's passes over pairs run by
 program NAME (``pair_kernels.pair_program``: ``xla`` or, on a GPU, ``triton``) instead of the
-backend's default, in the same process: an A/B of the product's two programs on a GPU.
+backend's default, in the same process: an A/B of the product's two programs on a GPU. The
+largest difference of their forces, relative, is printed after it.
 
 ``--triton-blocks B ...``: ``forces`` again with the Triton program at B pairs per program of
 its kernels (``_pair_triton.BLOCK``, one pair per thread: B / 32 warps), on a GPU (on a CPU in
-Pallas' interpreter, a smoke test only): how ``BLOCK`` is to be chosen there.
+Pallas' interpreter, a smoke test only): how ``BLOCK`` is to be chosen there; each with the
+largest difference of its forces from ``forces``. tests/test_benchmarks.py runs these options
+(the first command of ``gpu_session.sh run``) on the CPU at 512 bodies.
 
 ``--pair-chunks`` and ``--candidate-chunks`` time the forces and the build at other pass sizes
 of the JAX kernels (how ``pair_kernels.ACCELERATOR_PAIR_CHUNK`` and
@@ -149,6 +152,12 @@ def main() -> None:
         report(label, *timed(again, state, lst))
         return again
 
+    def difference_to_forces(other):
+        """The same forces by another program: their largest difference, relative, printed."""
+        difference = max(float(jax.numpy.max(abs(a - b)) / jax.numpy.max(abs(a)))
+                         for a, b in zip(forces(state, lst), other(state, lst), strict=True))
+        print(f"  {'(largest difference, relative)':<34} {difference:10.1e}", flush=True)
+
     if args.against:
         import importlib.util
 
@@ -163,23 +172,20 @@ def main() -> None:
         pk.energy_and_gradients = product
     if args.pair_program:
         default = pk.pair_program
-        pk.pair_program = lambda: args.pair_program
+        pk.pair_program = lambda *_: args.pair_program
         other = forces_again(f"forces, pair program {args.pair_program}")
         pk.pair_program = default
-        # the two programs compute the same forces: their largest difference, relative
-        difference = max(float(jax.numpy.max(abs(a - b)) / jax.numpy.max(abs(a)))
-                         for a, b in zip(forces(state, lst), other(state, lst), strict=True))
-        print(f"  {'(largest difference, relative)':<34} {difference:10.1e}", flush=True)
+        difference_to_forces(other)
     if args.triton_blocks:
         from affinebody import _pair_triton
 
         default = pk.pair_program, _pair_triton.BLOCK, _pair_triton.WARPS
         program = "triton" if jax.default_backend() == "gpu" else "triton-interpret"
-        pk.pair_program = lambda: program
+        pk.pair_program = lambda *_: program
         for block in args.triton_blocks:
             _pair_triton.BLOCK, _pair_triton.WARPS = block, max(1, block // 32)
             _pair_triton._calls.cache_clear()  # kernels of the new block
-            forces_again(f"forces, Triton block {block}")
+            difference_to_forces(forces_again(f"forces, Triton block {block}"))
         pk.pair_program, _pair_triton.BLOCK, _pair_triton.WARPS = default
         _pair_triton._calls.cache_clear()
     for log2 in args.pair_chunks:

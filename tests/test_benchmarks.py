@@ -1,0 +1,31 @@
+"""The benchmark commands that a session lent a GPU machine runs first
+(``benchmarks/gpu_session.sh run``: ``step_phases.py`` with ``--pair-program`` and
+``--triton-blocks``), run here on the CPU at 512 bodies with the JAX pair kernel (the GPU's
+kernel): they must run through, and the forces of the Triton kernels (in Pallas' interpreter
+here) and of the XLA program must be those of the product's forces. A GPU session has a few
+minutes; a benchmark option broken by a change of the library (as the patched
+``pair_kernels.pair_program`` was once, when it gained arguments) would spend them."""
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_gpu_sessions_first_command_runs_and_its_programs_agree():
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env.pop("AFFINEBODY_PAIR_PROGRAM", None)
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "step_phases.py"), "--bodies", "512",
+         "--loop-steps", "0", "--pair-program", "xla", "--triton-blocks", "64",
+         "--jax-kernel"], capture_output=True, text=True, env=env, cwd=ROOT, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    out = done.stdout
+    assert "forces, pair program xla" in out and "forces, Triton block 64" in out
+    differences = [float(d) for d in re.findall(r"\(largest difference, relative\)\s+(\S+)",
+                                                 out)]
+    assert len(differences) == 2  # the XLA program and the Triton kernels, each against forces
+    assert all(d <= 1e-12 for d in differences), out
