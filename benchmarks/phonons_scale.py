@@ -112,7 +112,7 @@ def box_sizes(sides: list[int]) -> None:
             path = write_config(Path(tmp), side, steps=10, every=10)
             text = path.read_text().replace("jitter = 0.03", "jitter = 0.0")
             path.write_text(text.replace("phi_noise = 0.05", "phi_noise = 0.0"))
-            wall, out, peak = timed(pinned("0", [*AFFINEBODY, "phonons", str(path), "-o", tmp,
+            wall, out, peak, _ = timed(pinned("0", [*AFFINEBODY, "phonons", str(path), "-o", tmp,
                                                  "--mesh", "4", "--points", "10"]))
             if "wrote" not in out:
                 raise SystemExit(f"affinebody phonons failed at side {side}: {out[-400:]}")
