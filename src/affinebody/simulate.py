@@ -611,6 +611,7 @@ def energy_error(trajectory: Trajectory, key: str = "energy") -> np.ndarray:
 
 __all__: Sequence[str] = (
     "IntegrationStopped", "NAMED_OBSERVABLES", "Stop", "StopReport", "Trajectory", "Watched",
-    "energy_error", "initial_forces", "list_for_kept_state", "relative_error", "run",
+    "energy_error", "initial_forces", "kept_list_or_refit", "list_for_kept_state",
+    "relative_error", "run",
     "scan_chunks", "watched_step",
 )
