@@ -162,12 +162,17 @@ def test_npt_sweep_with_tested_moves_follows_the_law_at_moves_five_times_as_long
 
 
 def test_a_sweep_with_long_plain_moves_says_where_in_one_line():
+    from affinebody import barostat
     from affinebody.sweep import long_moves_warning
 
     assert long_moves_warning([0.02, 0.08, math.nan]) is None
     message = long_moves_warning([0.1, 0.4, 1.3, math.nan])
     assert "up to 1.3 of the volume's relaxation time" in message and "\n" not in message
     assert "over 0.25 at 2 of 3 points" in message and "metropolis = true" in message
+    # the same words as the run's warning: var(V)'s factor at the longest, unstable past 2
+    assert f"var(V) about {barostat.variance_factor(1.3):.2g}x" in message
+    assert "heat_capacity" in message
+    assert "unstable past 2" in long_moves_warning([0.1, 2.5])
 
 
 def test_thermal_sweep_tables_are_checked_in_one_line():

@@ -347,18 +347,27 @@ LONG_MOVE_FIX = ("set barostat.metropolis = true, or raise barostat.tau or lower
                  "barostat.interval")
 
 
+def long_move_effect(length: float, readings: str) -> str:
+    """What plain moves of ``length`` (:func:`move_length`) do, in the words of the warnings
+    of ``affinebody run`` and ``sweep``: they inflate var(V) by :func:`variance_factor` (a
+    linear response), and with it ``readings`` (what is read off var(V)); past 2 they are
+    unstable (no stationary law)."""
+    if length < 2:
+        return (f"the plain moves inflate the volume's fluctuations (var(V) about "
+                f"{variance_factor(length):.2g}x for a linear response) and {readings}")
+    return "the plain moves are unstable past 2"
+
+
 def long_move_warning(barostat: StochasticCellRescaling, modulus: float, dt: float):
     """The one-line warning of a run whose plain moves are long (:data:`LONG_MOVE`), or None
     (tested moves are exact at any length; a modulus <= 0 gives no relaxation time)."""
     length = move_length(barostat, modulus, dt)
     if barostat.metropolis or not length > LONG_MOVE:
         return None
-    effect = (f"the plain moves inflate the volume's fluctuations (var(V) about "
-              f"{variance_factor(length):.2g}x for a linear response) and the compressibility "
-              f"read off them" if length < 2 else "the plain moves are unstable past 2")
     return (f"barostat moves are about {length:.2g} of the volume's relaxation time tau / "
             f"(compressibility K), K = {modulus:.3g} the bulk modulus under a move at the "
-            f"last state: {effect}; {LONG_MOVE_FIX}")
+            f"last state: {long_move_effect(length, 'the compressibility read off them')}; "
+            f"{LONG_MOVE_FIX}")
 
 
 #: The barostat's own random stream (folded into the seed), apart from a thermostat's.
@@ -685,6 +694,7 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
 
 
 __all__ = ["COUPLINGS", "NPTTrajectory", "STREAM", "StochasticCellRescaling", "advance",
-           "LONG_MOVE", "LONG_MOVE_FIX", "c_rescale", "first_narrow_frame", "long_move_warning",
+           "LONG_MOVE", "LONG_MOVE_FIX", "c_rescale", "first_narrow_frame", "long_move_effect",
+           "long_move_warning",
            "move_length", "move_modulus", "move_modulus_jit", "run", "step_key",
            "variance_factor"]

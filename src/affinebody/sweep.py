@@ -1179,16 +1179,16 @@ def long_moves_warning(lengths: Sequence[float]) -> str | None:
     """The one-line warning of an NPT sweep with plain moves whose mean ``move_length`` at
     some points (``lengths``, NaN where nothing was sampled) exceeds
     :data:`affinebody.barostat.LONG_MOVE`, or None."""
-    from affinebody.barostat import LONG_MOVE, LONG_MOVE_FIX
+    from affinebody.barostat import LONG_MOVE, LONG_MOVE_FIX, long_move_effect
 
     lengths = [x for x in lengths if np.isfinite(x)]
     long = [x for x in lengths if x > LONG_MOVE]
     if not long:
         return None
+    effect = long_move_effect(max(long), "with them compressibility and heat_capacity")
     return (f"barostat moves are up to {max(long):.2g} of the volume's relaxation time "
             f"(move_length in samples.csv; over {LONG_MOVE} at {len(long)} of {len(lengths)} "
-            f"points): the plain moves inflate var(V) and with it compressibility and "
-            f"heat_capacity; {LONG_MOVE_FIX}")
+            f"points): {effect}; {LONG_MOVE_FIX}")
 
 
 def run_sweep(
