@@ -99,18 +99,11 @@ def in_parts(work, rows: int, parts: int, count: int) -> list:
     results: list = [None] * parts
     taken = itertools.count()  # next() is atomic under the GIL
 
-    def drain() -> None:
+    def drain(_) -> None:
         while (k := next(taken)) < parts:
             results[k] = work(k, *ranges[k])
 
-    helpers = [_pool(count - 1).submit(drain) for _ in range(count - 1)]
-    try:
-        drain()
-    finally:  # never return (or raise into XLA, which frees the buffers) while a helper writes
-        for helper in helpers:
-            helper.exception()
-    for helper in helpers:
-        helper.result()
+    side_by_side(drain, count)
     return results
 
 
@@ -121,7 +114,8 @@ def side_by_side(work, count: int, failed=None) -> list:
     thread takes the next part only once it is free, could not run. Where ``work(k)`` raises,
     ``failed(k)`` is called first (e.g. to release the others from a barrier they would
     otherwise wait at for ever); every thread has returned before the first error is
-    raised."""
+    raised (never return, or raise into XLA, which frees the buffers, while a helper
+    writes)."""
     def guarded(k):
         try:
             return work(k)

@@ -737,8 +737,11 @@ def _host_fused(g: _HostGeometry, source: str, gradients: bool, virial: bool, x,
     if _thread_count(valid) == parts:
         arrived = np.zeros(parts, np.int64)
         every = sum(kernels.phases)
-        energies = _host.side_by_side(lambda k: part(k, every, arrived), parts,
-                                      failed=lambda k: arrived.__setitem__(k, kernels.failed))
+
+        def release(k):  # thread k raised: the other must not wait for it at a barrier
+            arrived[k] = kernels.failed
+
+        energies = _host.side_by_side(lambda k: part(k, every, arrived), parts, failed=release)
     else:  # one phase at a time, every part each (the merge adds nothing without gradients)
         alone = np.zeros(0, np.int64)
         prepare, pairs, merge = kernels.phases
