@@ -206,6 +206,30 @@ def test_allocate_refuses_a_radius_beyond_half_the_box():
         nb.allocate(None, x, jnp.stack([jnp.eye(3)] * 2), 1.0, "q")
 
 
+
+@pytest.mark.parametrize("cell", [False, True])
+def test_a_dilute_box_gets_at_most_two_cells_a_body_and_every_pair_in_range(cell):
+    """A few bodies in a box 10^5 wide (a gas, or a config's box mistyped by orders of
+    magnitude): cells of the radius would be 10^14 in number (a table of ~10^3 TB, before);
+    the cells are made wider instead, at most CELLS_PER_BODY a body, and the list is still
+    every pair in range, across the faces of the box too (host and JAX builds alike)."""
+    width = 1e5
+    space = orthorhombic((width, width, width))
+    rng = np.random.default_rng(3)
+    centres = rng.uniform(0.0, width, size=(BODIES // 2, 3))
+    centres[0] = [0.3, width / 2, width - 0.2]  # its partner is across two faces
+    x = np.concatenate([centres, centres + rng.uniform(-1.0, 1.0, size=centres.shape)])
+    phi = jnp.stack([jnp.eye(3)] * BODIES)
+    spec, nbrs = nb.allocate(space, x, phi, 1.5, "r", 0.3,
+                             cell=np.diag([width] * 3) if cell else None)
+    assert np.prod(spec.grid) <= nb.CELLS_PER_BODY * BODIES
+    expected = pair_set(nb.brute_force_pairs(space, jnp.asarray(x), 1.8))
+    assert len(expected) >= BODIES // 2 - 2  # most pairs of partners are in range
+    assert pair_set(nb.pairs_of(nbrs)) == expected
+    reference = jax.jit(nb.build_jax, static_argnums=0)(
+        spec, jnp.asarray(x), phi, jnp.diag(jnp.full(3, width)) if cell else None)
+    assert pair_set(nb.pairs_of(reference)) == expected
+
 @pytest.mark.parametrize("kind", list(BOXES))
 def test_host_build_and_jax_build_give_the_same_list(kind):
     """The compiled CPU build (what runs on a CPU) and the JAX build (what runs on a GPU)

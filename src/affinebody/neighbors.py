@@ -43,9 +43,10 @@ Build (one jitted function, also on a GPU): cell index of every centre (fraction
 in a box), bodies sorted by cell into a table [N_cells, cell_capacity], then chunks of bodies
 scan the 3^n neighbouring cells, keep partners L > K within rho + skin and write them, in order
 of K, into the pair arrays (``i < j``). Cells are at least rho + skin wide in every lattice
-direction, so a pair in range is always in neighbouring cells; in free space the grid covers the
-bounding box at allocation and centres outside it are clamped into the edge cells, which keeps
-that property (clamping moves cell indices by no more than the positions differ).
+direction (wider in a dilute box: at most ``CELLS_PER_BODY`` cells per body), so a pair in
+range is always in neighbouring cells; in free space the grid covers the bounding box at
+allocation and centres outside it are clamped into the edge cells, which keeps that property
+(clamping moves cell indices by no more than the positions differ).
 """
 
 from __future__ import annotations
@@ -80,6 +81,9 @@ BOX_HEADROOM = 0.1
 #: Relative growth of the list radius that a new list's cells allow, by cut-off variable: none
 #: for r, 1/4 for D, whose reach grows as bodies stretch (``allocate(reach_headroom=...)``).
 REACH_HEADROOM = {"r": 0.0, "D": 0.25}
+#: Most cells per body (at least 8 cells): the table [N_cells, cell_capacity] stays linear in
+#: N in a dilute box or a wide free space, whose cells are then made wider than the radius.
+CELLS_PER_BODY = 2
 
 
 def candidates_per_chunk() -> int:
@@ -522,18 +526,21 @@ def allocate(
     now.check_cutoff(radius, "neighbour-list radius (reach + skin)")
     max_radius = min(radius * (1.0 + reach_headroom), now.max_cutoff)
     x_np = np.asarray(x)
+    most_cells = max(8, CELLS_PER_BODY * bodies)
     if space.periodic:
         grid = tuple(int(max(1, math.floor(w / (max_radius * room)))) for w in now.widths)
+        while np.prod(grid, dtype=float) > most_cells:  # a dilute box: larger cells
+            grid = tuple(max(1, math.floor(g / 1.26)) for g in grid)
         origin = size = None
         s = x_np @ now.inverse.T
         coords = np.clip(np.floor((s - np.floor(s)) * grid).astype(int), 0, np.array(grid) - 1)
     else:
         lo, hi = x_np.min(axis=0), x_np.max(axis=0)
         edge = max_radius
-        while True:  # at most ~2 cells per body (memory linear in N)
+        while True:
             extent = hi - lo
             grid = tuple(int(max(1, math.ceil(e / edge + 1e-9))) for e in extent)
-            if np.prod(grid) <= max(8, 2 * bodies):
+            if np.prod(grid, dtype=float) <= most_cells:
                 break
             edge *= 1.26
         origin, size = tuple(map(float, lo)), (float(edge),) * n
