@@ -196,6 +196,14 @@ BAD = [
     (swap("steps = 1000", "steps = 0"), "run.steps"),
     (swap('integrator = "strang"', 'integrator = "euler"'), "run.integrator"),
     (swap("every = 10", "every = 10\ncheckpoint = 15"), "run.checkpoint"),
+    # integers beyond int64 (what H5MD attributes and JAX keys hold; found by fuzzing the CLI)
+    (swap("every = 10", "every = 10\ncheckpoint = 100000000000000000000"), "run.checkpoint"),
+    (swap("every = 10", "every = 100000000000000000000"), "run.every"),
+    (swap("steps = 1000", "steps = 100000000000000000000"), "run.steps"),
+    (swap("every = 10", "every = 10\nseed = 100000000000000000000"), "run.seed"),
+    (swap("every = 10", "every = 10\nseed = -1"), "run.seed"),
+    (swap("momentum = [[0.0, 0.0], [0.0, 0.0]]",
+          "momentum = [[0.0, 0.0], [0.0, 0.0]]\nseed = -1"), "initial.seed"),
     (swap("[run]", "[runs]"), "runs"),
     (swap("dt = 0.01", "dt = true"), "run.dt"),
     (swap('group = "GL+"', 'group = "SL"'), "initial"),
@@ -340,6 +348,25 @@ def test_a_chunk_of_frames_stays_within_its_buffer_for_large_systems():
         assert chunk * frame_bytes(config) <= max(FRAME_BUFFER_BYTES, frame_bytes(config))
         if bodies == 10:
             assert chunk == config.checkpoint_every  # small systems are not split
+
+
+def test_the_chunk_is_the_largest_allowed_divisor_even_for_a_checkpoint_interval_of_1e15():
+    """chunk_steps against its definition by exhaustion (every multiple of run.every that
+    divides the checkpoint interval, within CHUNK_TARGET_STEPS): the same for small intervals,
+    and an interval of 10^15 steps ("never") is answered at once (it looped over every
+    divisor candidate, for ever: found by fuzzing the CLI)."""
+    from affinebody.runner import CHUNK_TARGET_STEPS, chunk_steps, demo_config_text
+
+    base = parse_config(demo_config_text())
+    for every in (1, 3, 7, 40):
+        for frames in (*range(1, 60), 97, 210, 1024, 3 * CHUNK_TARGET_STEPS):
+            run = base.run.model_copy(update={"every": every, "checkpoint": every * frames})
+            config = base.model_copy(update={"run": run})
+            allowed = [d * every for d in range(1, frames + 1)
+                       if frames % d == 0 and d * every <= max(every, CHUNK_TARGET_STEPS)]
+            assert chunk_steps(config) == max(allowed)
+    run = base.run.model_copy(update={"every": 1, "checkpoint": 10**15})
+    assert chunk_steps(base.model_copy(update={"run": run})) == CHUNK_TARGET_STEPS
 
 
 def test_an_inertia_beyond_float64_is_refused_in_one_line():

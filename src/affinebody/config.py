@@ -60,6 +60,8 @@ AUTO_NEIGHBOR_LIST_BODIES = 500
 #: Configuration groups accepted by system.group (the paper's list plus all matrices "L").
 CONFIG_GROUPS = CONFIGURATION_SPACES
 MAX_DIMENSION = 6
+#: The largest integer a count or a seed may be: H5MD attributes, NumPy and JAX hold int64.
+INT64_MAX = 2**63 - 1
 #: The names ``system.units`` accepts (``units.UNIT_SYSTEMS``).
 UnitSystem = Literal[tuple(UNIT_SYSTEMS)]
 
@@ -158,7 +160,7 @@ class InitialSection(_Section):
     momentum_scale: float = 0.0
     phi_momentum_scale: float = 0.0
     zero_momentum: bool = True
-    seed: int | None = None
+    seed: int | None = Field(None, ge=0, le=INT64_MAX, description="default: run.seed")
 
 
 class RunSection(_Section):
@@ -166,11 +168,12 @@ class RunSection(_Section):
     whether pair forces are summed over a cell/neighbour list (:func:`uses_neighbor_list`)."""
 
     dt: float
-    steps: int = Field(ge=1)
+    steps: int = Field(ge=1, le=INT64_MAX)
     integrator: str = "strang"
-    every: int = Field(1, ge=1, description="write a frame every k steps")
-    checkpoint: int | None = Field(None, ge=1, description="checkpoint every m steps")
-    seed: int = 0
+    every: int = Field(1, ge=1, le=INT64_MAX, description="write a frame every k steps")
+    checkpoint: int | None = Field(None, ge=1, le=INT64_MAX,
+                                   description="checkpoint every m steps")
+    seed: int = Field(0, ge=0, le=INT64_MAX, description="initial state and barostat draws")
     neighbor_list: Literal["auto", "on", "off"] = Field(
         "auto", description="sum pair forces over a neighbour list: on, off (all pairs), or "
                             f"auto (on for >= {AUTO_NEIGHBOR_LIST_BODIES} bodies if possible)")
@@ -207,7 +210,7 @@ class SweepSection(_Section):
     """``[sweep]``: an ensemble of runs of this config (``affinebody sweep``,
     :mod:`affinebody.sweep` documents every field)."""
 
-    samples: int = Field(1, ge=1, description="samples per parameter point")
+    samples: int = Field(1, ge=1, le=INT64_MAX, description="samples per parameter point")
     seed: int = Field(0, ge=0, lt=2**32,
                       description="sample k draws from the key fold_in(key(seed), k)")
     initial_velocity: Literal["none", "normal"] = Field(
@@ -217,8 +220,9 @@ class SweepSection(_Section):
     x_velocity_scale: float = Field(1.0, ge=0)
     bound: float = Field(1000.0, gt=1, description="bounded: sigma_max(phi^+-1) < bound")
     batch: int = Field(64, ge=1, le=100_000, description="samples per task (vmapped)")
-    equilibration: int = Field(0, ge=0, description="thermostatted sweeps: steps run before "
-                                                    "the time averages start")
+    equilibration: int = Field(0, ge=0, le=INT64_MAX,
+                               description="thermostatted sweeps: steps run before the time "
+                                           "averages start")
     scan: dict[str, list[float | str] | ScanRange] = Field(
         default_factory=dict, description="dotted config field -> values or a range")
 
@@ -265,10 +269,11 @@ class BarostatSection(_Section):
     temperature: float | None = Field(None, description="kT of the barostat's noise (the "
                                                       "temperature of the ensemble); default: "
                                                       "thermostat.temperature")
-    interval: int = Field(1, ge=1, description="steps between two moves of the box, each "
-                                               "of length interval * dt (as GROMACS's "
-                                               "nstpcouple; about 10 makes an NPT step cost "
-                                               "little more than an NVT one)")
+    interval: int = Field(1, ge=1, le=INT64_MAX,
+                          description="steps between two moves of the box, each "
+                                      "of length interval * dt (as GROMACS's "
+                                      "nstpcouple; about 10 makes an NPT step cost "
+                                      "little more than an NVT one)")
     metropolis: bool = Field(False, description="accept or reject each move by a "
                                                  "Metropolis-Hastings test: the ensemble "
                                                  "exact at any interval * dt (docs/pressure.md)")
@@ -842,7 +847,8 @@ def available_memory() -> float | None:
         return None
 
 
-def _gib(value: float) -> str:
+def gib(value: float) -> str:
+    """A size in bytes as GiB (TiB from 1 TiB on), for messages."""
     return f"{value / 2**30:.3g} GiB" if value < 2**40 else f"{value / 2**40:.3g} TiB"
 
 
@@ -854,8 +860,8 @@ def check_memory(config: Config) -> None:
         bodies = config.bodies_count
         hint = ("reduce system.bodies" if config.run.neighbor_list != "off" or bodies < 500
                 else 'reduce system.bodies or use run.neighbor_list = "on"')
-        raise ConfigError(f"system.bodies = {bodies} needs about {_gib(need)} of memory, more "
-                          f"than the {_gib(have)} available: {hint}")
+        raise ConfigError(f"system.bodies = {bodies} needs about {gib(need)} of memory, more "
+                          f"than the {gib(have)} available: {hint}")
 
 
 def check_barostat(config: Config) -> None:
@@ -1134,7 +1140,8 @@ def build(config: Config) -> Built:
 
 __all__ = [
     "INTERNAL_MODELS", "TRANSLATIONAL_MODELS", "INTEGRATOR_NAMES", "SPLITTING_INTEGRATORS",
-    "AUTO_NEIGHBOR_LIST_BODIES", "CONFIG_GROUPS", "MAX_DIMENSION", "UnitSystem", "ConfigError",
+    "AUTO_NEIGHBOR_LIST_BODIES", "CONFIG_GROUPS", "MAX_DIMENSION", "INT64_MAX", "UnitSystem",
+    "ConfigError",
     "Vector", "Matrix", "Matrices", "Tensor4", "SystemSection", "Constituents", "BodySection",
     "KineticSection", "PotentialSection", "InitialSection", "RunSection", "ThermostatSection",
     "ScanRange", "SweepSection", "ConstraintsSection", "PhononsSection", "BarostatSection",
@@ -1142,6 +1149,7 @@ __all__ = [
     "body_inertia", "check_kinetic", "check_thermostat", "build_thermostat", "check_run",
     "uses_neighbor_list", "check_system", "check_initial", "build_potential_entry",
     "check_potentials", "MEMORY_PER_BODY_3D", "MEMORY_BASE", "FRAME_BUFFER_BYTES", "frame_bytes",
-    "estimated_memory", "available_memory", "check_memory", "check_barostat", "records_pressure",
-    "check_config", "Built", "build_kinetic", "initial_configuration", "initial_state", "build"
+    "estimated_memory", "available_memory", "gib", "check_memory", "check_barostat",
+    "records_pressure", "check_config", "Built", "build_kinetic", "initial_configuration",
+    "initial_state", "build"
 ]

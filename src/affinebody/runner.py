@@ -41,6 +41,7 @@ from affinebody._timing import CompileClock, Phases
 from affinebody.checkpoint import Checkpoint, checkpoint_path, load_checkpoint, save_checkpoint
 from affinebody.config import (
     FRAME_BUFFER_BYTES,
+    INT64_MAX,
     Config,
     ConfigError,
     build,
@@ -138,11 +139,11 @@ def chunk_steps(config: Config) -> int:
     every, interval = config.run.every, config.checkpoint_every
     frames = interval // every
     most_frames = max(1, FRAME_BUFFER_BYTES // frame_bytes(config))
-    best = 1
-    for d in range(1, frames + 1):
-        if frames % d == 0 and d * every <= max(every, CHUNK_TARGET_STEPS) and d <= most_frames:
-            best = d
-    return best * every
+    # from the largest candidate down: a checkpoint interval of 10^12 steps takes no time
+    for d in range(min(frames, most_frames, max(1, CHUNK_TARGET_STEPS // every)), 0, -1):
+        if frames % d == 0:
+            return d * every
+    return every
 
 
 def host_kernels_do_the_threading(config: Config) -> bool:
@@ -199,8 +200,8 @@ def run_simulation(
     started = time.perf_counter()
     output = Path(output)
     total = config.run.steps if steps is None else int(steps)
-    if total < 1:
-        raise ConfigError(f"--steps must be >= 1 (got {total})")
+    if not 1 <= total <= INT64_MAX:
+        raise ConfigError(f"--steps must be >= 1 and <= {INT64_MAX} (got {total})")
     if not (resume or overwrite) and (output.exists() or checkpoint_path(output).exists()):
         raise ConfigError(f"{output} exists: continue it with --resume, replace it with "
                           f"--overwrite, or write elsewhere with -o")
