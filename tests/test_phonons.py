@@ -15,6 +15,7 @@ Facts checked against independent derivations or methods:
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import jax
 import numpy as np
@@ -401,6 +402,31 @@ def test_cli_refuses_a_non_equilibrium_and_relaxes_it(tmp_path):
     assert doc["crystal"]["relaxed"] and doc["crystal"]["residual_force"] < 1e-8
     assert doc["crystal"]["lattice"] == pytest.approx([1.0], rel=1e-8)
     assert (tmp_path / "out" / "phonons.json").exists()
+
+
+@pytest.mark.parametrize("flags,named", [
+    (["--mesh", "99999999999"], "phonons.mesh = [99999999999]"),
+    (["--points", "10000000000"], "phonons.points = 10000000000"),
+])
+def test_cli_refuses_a_path_or_mesh_beyond_memory_in_one_line(tmp_path, flags, named):
+    """A DOS mesh of 10^11 points or a path of 10^10 (found by fuzzing the CLI: a MemoryError
+    as an internal error after the relaxation) is refused with the estimate and what is
+    available; the estimate of the chain's default document is a few kB, linear in the
+    points."""
+    from affinebody.cli.phonons import k_points_bytes
+
+    config = tmp_path / "c.toml"
+    config.write_text(CHAIN_CONFIG, encoding="utf-8")
+    result = CliRunner().invoke(_main(), ["phonons", str(config), "--no-plot", "--relax",
+                                          "-o", str(tmp_path / "out"), *flags])
+    message = result.stderr.strip()
+    assert result.exit_code == 1 and "\n" not in message, message
+    assert message.startswith(f"config error: {named}") and "available" in message, message
+    assert not (tmp_path / "out" / "phonons.json").exists()
+    crystal = SimpleNamespace(basis=[0], dof=2, n=1)
+    assert sum(k_points_bytes(crystal, 5, [8])) < 1e4
+    assert np.allclose(k_points_bytes(crystal, 10, [16]), 2 * np.array(k_points_bytes(crystal, 5,
+                                                                                    [8])))
 
 
 # ---------------------------------------------------------------- an oblique (triangular) lattice

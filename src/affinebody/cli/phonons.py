@@ -74,6 +74,33 @@ def crystal_of(config, built, relax: bool | None = None):
     return crystal, worst
 
 
+def k_points_bytes(crystal, path_points: int, mesh_sizes) -> tuple[float, float]:
+    """Bytes the k points of a document take, estimated before any is computed: (the path's:
+    each point's eigenvectors, one complex matrix of the cell's degrees of freedom, and its
+    frequencies as NumPy and as JSON numbers; the DOS mesh's: its index arrays and the
+    frequencies, ``phonons.mesh``, ``phonons.solve``)."""
+    size = len(crystal.basis) * crystal.dof
+    return (path_points * (16.0 * size * size + 80 * size),
+            float(np.prod(np.asarray(mesh_sizes, dtype=float))) * (40 * crystal.n + 8 * size))
+
+
+def _check_k_points(crystal, labels, points: int, sizes, dos: bool) -> None:
+    """Refuse, before computing, a path or mesh that cannot fit in memory (both figures)."""
+    from affinebody import phonons
+    from affinebody.config import available_memory, gib
+
+    corners = len(labels) if labels else len(phonons.DEFAULT_PATHS[min(crystal.n, 3)])
+    path_bytes, mesh_bytes = k_points_bytes(crystal, max(corners - 1, 1) * points, sizes)
+    mesh_bytes = mesh_bytes if dos else 0.0
+    have = available_memory()
+    if have is not None and path_bytes + mesh_bytes > have:
+        named = (f"phonons.mesh = {list(sizes)} (or --mesh)" if mesh_bytes > path_bytes else
+                 f"phonons.points = {points} (or --points)")
+        raise _error(f"{named} needs about {gib(path_bytes + mesh_bytes)} of memory, more than "
+                     f"the {gib(have)} available: use "
+                     f"{'a coarser mesh' if mesh_bytes > path_bytes else 'fewer points'}")
+
+
 def compute(config, built, path=None, mesh=None, points=None, relax=None, dos=True) -> dict:
     """The phonon document of a config (what ``--json`` writes, module docstring)."""
     from affinebody import phonons
@@ -87,6 +114,7 @@ def compute(config, built, path=None, mesh=None, points=None, relax=None, dos=Tr
     sizes = mesh or (None if section is None else section.mesh) or [default] * config.n
     if len(sizes) != config.n or min(sizes) < 1:
         raise _error(f"phonons.mesh must be {config.n} positive integers (got {list(sizes)})")
+    _check_k_points(crystal, labels, points, sizes, dos)
     try:
         fc = phonons.force_constants(crystal)
         k, distance, ticks = phonons.path(crystal, labels, points)
@@ -230,4 +258,4 @@ def phonons_command(config_path, output, path_, mesh, points, relax, as_json, no
                                                   f" and {out / 'dispersion.png'}"))
 
 
-__all__ = ["check_phonons", "compute", "crystal_of", "phonons_command", "plot"]
+__all__ = ["check_phonons", "compute", "crystal_of", "k_points_bytes", "phonons_command", "plot"]
