@@ -132,6 +132,33 @@ def test_random_phi_noise_stays_in_the_group():
     assert float(np.max(np.abs(state.phi - np.eye(3)))) > 0.05
 
 
+def test_random_positions_fill_the_periodic_box_without_an_extent():
+    """generator = "random" in a box and no initial.extent: uniform over the whole box, each
+    edge its own (it stopped every such config with NumPy's 'truth value of an array is
+    ambiguous': found by fuzzing the CLI)."""
+    text = textwrap.dedent('''
+        [system]
+        n = 2
+        bodies = 400
+        box = [30.0, 8.0]
+        [kinetic]
+        internal = "af-is"
+        I = 1.0
+        A = 0.1
+        [initial]
+        generator = "random"
+        [run]
+        dt = 0.1
+        steps = 1
+    ''')
+    x = np.asarray(build(load(text)).state.x)
+    assert np.all((x >= 0) & (x <= [30.0, 8.0]))
+    # uniform on each edge: the mean within 5 standard errors, the spread near edge / sqrt(12)
+    for edge, column in zip((30.0, 8.0), x.T, strict=True):
+        assert abs(column.mean() - edge / 2) < 5 * edge / np.sqrt(12 * len(column))
+        assert abs(column.std() / (edge / np.sqrt(12)) - 1) < 0.15
+
+
 def test_constituents_give_the_second_moment_of_eq_8():
     text = textwrap.dedent('''
         [system]

@@ -1001,8 +1001,12 @@ def _generated_configuration(config: Config) -> tuple[np.ndarray, np.ndarray]:
         x = np.asarray(i.x, dtype=np.float64)
     elif i.generator == "random":
         box = config.system.box
-        extent = i.extent or (None if box is None else np.asarray(box)) or i.spacing * count ** (
-            1 / n)
+        if i.extent is not None:
+            extent = i.extent
+        elif box is not None:  # the whole periodic box
+            extent = np.asarray(box, dtype=np.float64)
+        else:
+            extent = i.spacing * count ** (1 / n)
         x = origin + _rng(seed, 0).uniform(0.0, 1.0, (count, n)) * extent
     else:  # lattice
         shape = i.shape or _lattice_shape(count, n)
