@@ -279,6 +279,34 @@ def test_a_second_run_onto_an_existing_output_is_refused_unless_overwrite(folder
     assert read_trajectory(out).frames == 2  # steps 0 and 500 (every = 500)
 
 
+
+def test_no_command_writes_over_the_file_it_reads(folder, reference):
+    """run -o CONFIG --overwrite replaced the config by an HDF5 file, and export --xyz OUT.h5
+    emptied the trajectory before reading it (found by fuzzing the CLI): both are refused in
+    one line, by path or through a link, and the files are kept byte for byte; a thickness
+    that is not a positive number is refused too (it wrote nan into the XYZ file)."""
+    config = folder / "own.toml"
+    config.write_text(TINY)
+    trajectory = folder / "own.h5"
+    trajectory.write_bytes(reference.read_bytes())
+    (folder / "own-link.h5").unlink(missing_ok=True)
+    (folder / "own-link.h5").symlink_to(trajectory)
+    attempts = [("run", config, "-o", config, "--overwrite", "--quiet"),
+                ("run", config, "-o", folder / ".." / folder.name / "own.toml", "--overwrite"),
+                ("export", trajectory, "--xyz", trajectory),
+                ("export", trajectory, "--xyz", folder / "own-link.h5")]
+    for args in attempts:
+        result = invoke(*args)
+        message = result.stderr.strip()
+        assert result.exit_code == 1 and "\n" not in message, message
+        assert "is the file this command reads" in message, message
+    assert config.read_text() == TINY
+    assert trajectory.read_bytes() == reference.read_bytes()
+    for thickness in ("nan", "inf", "0", "-1"):
+        result = invoke("export", trajectory, "--xyz", folder / "thick.xyz",
+                        "--thickness", thickness)
+        assert result.exit_code == 1 and "--thickness" in result.stderr, result.stderr
+
 def test_progress_says_compiling_first_and_the_summary_keeps_compilation_apart(folder, monkeypatch):
     """Issue 18 item 6: the bar exists (phase "compiling") before the first, compiling chunk
     and shows a rate only once integrating; the summary gives compilation and integration

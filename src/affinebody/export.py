@@ -22,6 +22,7 @@ earlier versions had phi row by row, which OVITO read as phi^T). A periodic box 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -139,6 +140,9 @@ def write_xyz(
     """Write every ``every``-th frame of ``trajectory`` as extended XYZ; returns frames written."""
     if every < 1:
         raise ValueError(f"--every must be >= 1 (got {every})")
+    if not (math.isfinite(thickness) and thickness > 0):
+        raise ValueError(f"--thickness must be a finite number > 0, a fraction of the radius "
+                         f"such as 0.05 (got {thickness})")
     n = trajectory.n
     frames = range(0, trajectory.frames, every)
     boxes = trajectory.boxes

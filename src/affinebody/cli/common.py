@@ -65,4 +65,17 @@ def one_line_errors(command):
     return wrapper
 
 
-__all__ = ["EXIT_BAD_INPUT", "EXIT_INTERRUPTED", "EXIT_STOPPED", "fail", "one_line_errors"]
+def refuse_writing_over(written, read, what: str) -> None:
+    """A ValueError (one line) when the file a command would write, ``written``, is a file it
+    reads, ``read`` (the same path, or a link to it): writing first would destroy it."""
+    from pathlib import Path
+
+    written, read = Path(written), Path(read)
+    same = (written.samefile(read) if written.exists() and read.exists()
+            else written.resolve() == read.resolve())
+    if same:
+        raise ValueError(f"{what} {written} is the file this command reads: write elsewhere")
+
+
+__all__ = ["EXIT_BAD_INPUT", "EXIT_INTERRUPTED", "EXIT_STOPPED", "fail", "one_line_errors",
+           "refuse_writing_over"]

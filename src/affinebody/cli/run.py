@@ -14,7 +14,8 @@ from pathlib import Path
 import click
 
 from affinebody._checks import enable_x64
-from affinebody.cli.common import one_line_errors
+from affinebody.checkpoint import checkpoint_path
+from affinebody.cli.common import one_line_errors, refuse_writing_over
 from affinebody.config import (
     Config,
     build,
@@ -107,6 +108,8 @@ def run(config_file, output, steps, resume, overwrite, quiet, verbose):
     output = Path(output) if output else Path(config_file).with_suffix(".h5")
     if resume and overwrite:
         raise click.UsageError("--resume continues OUTPUT and --overwrite replaces it: give one")
+    refuse_writing_over(output, config_file, "-o")
+    refuse_writing_over(checkpoint_path(output), config_file, "-o's checkpoint")
     summary = _run_with_progress(config, output, steps, resume, quiet, overwrite)
     if not quiet:
         for line in summary.lines():
@@ -194,6 +197,7 @@ def export(trajectory_file, xyz_file, every, thickness):
     from affinebody.export import write_xyz
 
     enable_x64()
+    refuse_writing_over(xyz_file, trajectory_file, "--xyz")
     with open_trajectory(trajectory_file) as trajectory:  # frames read one at a time
         count = write_xyz(trajectory, xyz_file, every=every, thickness=thickness)
     click.echo(f"wrote {count} frames to {xyz_file}")
