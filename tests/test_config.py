@@ -343,6 +343,29 @@ steps = 10
 """
 
 
+def test_bodies_far_too_dense_for_their_box_are_refused_before_the_list_is_built():
+    """10^6 bodies in a 2D box of area 36 (found by fuzzing the CLI: validate ran for minutes,
+    building a list of ~3.4e5 partners a body): refused in one line with the bodies per
+    cut-off, the list's size and what is available; the same box with 100 bodies builds, and
+    its list holds what uniform_list_bytes counts for it, within the fluctuation."""
+    from affinebody import neighbors as nb
+
+    text = (HUGE.replace("n = 3", "n = 2").replace("[1000.0, 1000.0, 1000.0]", "[6.0, 6.0]")
+            .replace('kind = "morse"', 'kind = "morse"\ndepth = 1.0\nalpha = 3.0\nr0 = 1.0'))
+    with pytest.raises(ConfigError) as refused:
+        build(parse_config(text.replace("bodies = 1000000000", "bodies = 1000000")))
+    message = str(refused.value)
+    assert message.startswith("config error: system.bodies = 1000000 in system.box = [6.0, 6.0]")
+    assert "neighbour list of" in message and "enlarge system.box" in message
+    small = parse_config(text.replace("bodies = 1000000000", "bodies = 100")
+                         .replace("[run]", '[run]\nneighbor_list = "on"'))
+    spec, lists = build(small).neighbors
+    radius = 2.0 + small.run.neighbor_skin
+    assert spec.capacity * 8 == pytest.approx(nb.uniform_list_bytes(spec.space, 100, radius),
+                                              rel=0.02)
+    assert int(lists.count) <= spec.capacity
+
+
 def test_a_config_that_cannot_fit_in_memory_is_refused_before_anything_is_allocated():
     """10^9 bodies: refused at once with the estimate and what is available, never by running
     out of memory after minutes of set-up."""

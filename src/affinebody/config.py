@@ -864,6 +864,23 @@ def check_memory(config: Config) -> None:
                           f"than the {gib(have)} available: {hint}")
 
 
+def _check_list_memory(config: Config, space, reach: float) -> None:
+    """Refuse, before allocating it, a neighbour list that cannot fit in memory: bodies far
+    too dense for their box (:func:`affinebody.neighbors.uniform_list_bytes`)."""
+    from affinebody import neighbors as nb
+
+    if not space.periodic:
+        return
+    bodies, radius = config.bodies_count, reach + config.run.neighbor_skin
+    need, have = nb.uniform_list_bytes(space, bodies, radius), available_memory()
+    if have is not None and need > have:
+        per_body = 2 * nb.uniform_pair_count(space, bodies, radius) / bodies
+        raise ConfigError(f"system.bodies = {bodies} in system.box = {list(config.system.box)} "
+                          f"puts about {per_body:.3g} bodies within the pair cut-off of each "
+                          f"(a neighbour list of {gib(need)}, more than the {gib(have)} "
+                          f"available): enlarge system.box or lower system.bodies")
+
+
 def check_barostat(config: Config) -> None:
     if config.run.pressure and config.system.box is None:
         raise ConfigError("run.pressure = true needs a periodic box: set system.box")
@@ -1121,6 +1138,7 @@ def build(config: Config) -> Built:
         from affinebody import neighbors as nb
 
         space, cutoff, variable = system.neighbor_range()
+        _check_list_memory(config, space, float(nb.spatial_reach(cutoff, variable, state.phi)))
         try:
             lists = nb.allocate(space, state.x, state.phi, cutoff, variable,
                                 config.run.neighbor_skin,  # a [barostat]: cells that follow

@@ -81,6 +81,8 @@ BOX_HEADROOM = 0.1
 #: Relative growth of the list radius that a new list's cells allow, by cut-off variable: none
 #: for r, 1/4 for D, whose reach grows as bodies stretch (``allocate(reach_headroom=...)``).
 REACH_HEADROOM = {"r": 0.0, "D": 0.25}
+#: Room a new list has for more pairs than it found (or than a uniform fluid has, in a box).
+CAPACITY_FACTOR = 1.25
 #: Most cells per body (at least 8 cells): the table [N_cells, cell_capacity] stays linear in
 #: N in a dilute box or a wide free space, whose cells are then made wider than the radius.
 CELLS_PER_BODY = 2
@@ -480,7 +482,7 @@ def allocate(
     variable: str = "r",
     skin: float = 0.3,
     *,
-    capacity_factor: float = 1.25,
+    capacity_factor: float = CAPACITY_FACTOR,
     cell_factor: float = 2.5,
     reach_headroom: float | None = None,
     capacity: int | None = None,
@@ -670,6 +672,14 @@ def uniform_pair_count(space: Space, bodies: int, radius: float) -> int:
         np.asarray(space.matrix))))))
 
 
+def uniform_list_bytes(space: Space, bodies: int, radius: float) -> float:
+    """Bytes of the pair arrays (i, j: int32) of a list that :func:`allocate` makes for
+    ``bodies`` spread uniformly in a periodic box (:func:`uniform_pair_count`, with
+    :data:`CAPACITY_FACTOR`): at least what a run with this list needs, known before it is
+    built (a box far too small for its bodies asks for more than a machine has)."""
+    return 8.0 * CAPACITY_FACTOR * uniform_pair_count(space, bodies, radius)
+
+
 def brute_force_pairs(space, x, radius: float) -> np.ndarray:
     """All pairs i < j with |x_i - x_j| < radius (minimum image), [P, 2] in NumPy; O(N^2), for
     tests."""
@@ -692,5 +702,5 @@ __all__ = [
     "largest_singular_values", "spatial_reach", "cell_table", "perpendicular_widths", "build",
     "build_jax", "build_jit", "needs_rebuild", "fits_box", "update", "NeighborListOverflow",
     "check", "allocate", "MAX_REALLOCATIONS_IN_A_ROW", "reallocate", "list_at",
-    "uniform_pair_count", "brute_force_pairs", "pairs_of"
+    "uniform_pair_count", "uniform_list_bytes", "CAPACITY_FACTOR", "brute_force_pairs", "pairs_of"
 ]
