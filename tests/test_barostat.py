@@ -3,6 +3,7 @@ ensemble exp(-(H + P V)/kT) dV (isotropic, and the volume of the anisotropic ort
 coupling); the Ito drift of the triclinic coupling is the divergence worked out by hand; a
 run continued from its last frame repeats the uninterrupted one bit for bit."""
 
+import textwrap
 import warnings
 
 import jax
@@ -587,3 +588,59 @@ def test_a_bound_pair_samples_the_exact_isobaric_volume_law(metropolis, dt):
     exact = (weight * v).sum() / weight.sum()
     assert abs(volume.mean() - exact) < 4 * error, (volume.mean(), error, exact)
     assert 3 * kt / p0 - exact > 5 * error  # the ideal-gas law would fail
+
+
+def test_a_box_that_blows_up_stops_the_run_before_its_volume_overflows(tmp_path):
+    """Sixty-four bodies 1e-9 apart under a barostat (found by fuzzing the CLI): the Morse
+    repulsion's pressure throws the box open by hundreds of orders of magnitude in a few steps.
+    The edges stayed finite while the volume overflowed, and the run ended with exit 0 and an
+    infinite volume, nan effective energy in its file: now the step is not kept and the run
+    stops (SimulationStopped, what the CLI reports with exit 3), every kept frame finite."""
+    from affinebody.config import check_config, parse_config
+    from affinebody.h5md import read_trajectory
+    from affinebody.runner import SimulationStopped, run_simulation
+
+    text = textwrap.dedent("""
+        [system]
+        n = 2
+        bodies = 64
+        box = [8.0, 8.0]
+        [kinetic]
+        internal = "af-is"
+        I = 1.0
+        A = 0.2
+        B = 0.1
+        [[potential]]
+        kind = "pair"
+        expr = "(1 - exp(-3*(r - 1)))**2 - 1 + 0.5*exp(-D**2/4)*(M1 - 2)**2"
+        r_cut = 2.5
+        [[potential]]
+        kind = "one-body"
+        expr = "5*(det - 1)**2 + 0.5*(trG - 2)**2"
+        [initial]
+        generator = "lattice"
+        spacing = 1e-9
+        phi_noise = 0.02
+        [run]
+        dt = 0.005
+        steps = 40
+        every = 10
+        seed = 1
+        neighbor_list = "on"
+        [thermostat]
+        kind = "langevin"
+        temperature = 0.1
+        friction = 1.0
+        [barostat]
+        pressure = 0.5
+        tau = 1.0
+        compressibility = 1.0
+        interval = 10
+    """)
+    with pytest.raises(SimulationStopped, match="non-finite state or box"):
+        run_simulation(check_config(parse_config(text)), tmp_path / "npt.h5")
+    kept = read_trajectory(tmp_path / "npt.h5")
+    assert kept.frames >= 1
+    for name in ("volume", "effective_energy", "total_energy"):
+        assert np.all(np.isfinite(kept.observables[name])), name
+    assert np.all(np.isfinite(kept.boxes))

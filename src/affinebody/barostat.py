@@ -487,7 +487,10 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
         else:  # a move after the steps k with (k + 1) % interval == 0 (module docstring)
             state, cell, tracked, forces, work, rejected = lax.cond(
                 (k + 1) % interval == 0, move, stay, state, tracked, forces)
-        ok = jnp.all(jnp.diagonal(cell) > 0) & jnp.all(jnp.isfinite(cell))
+        # a cell whose volume overflows (edges past ~1e154 in 2D) is not finite either, nor a
+        # step whose heat or work is not: the effective energy would be nan from it on
+        ok = (jnp.all(jnp.diagonal(cell) > 0) & jnp.all(jnp.isfinite(cell))
+              & jnp.isfinite(linalg.det(cell)) & jnp.isfinite(heat) & jnp.isfinite(work))
         for leaf in jax.tree.leaves(state):
             ok &= jnp.all(jnp.isfinite(leaf))
         nbrs = None
