@@ -211,6 +211,11 @@ def test_plot_can_animate(folder, reference):
     assert result.exit_code == 0, result.stderr
     gif = folder / "anim" / "bodies.gif"
     assert gif.read_bytes()[:6] in (b"GIF87a", b"GIF89a")
+    for fps in ("0", "-5"):  # were a ZeroDivisionError / OverflowError (fuzzing the CLI)
+        result = invoke("plot", reference, "-o", folder / "anim0", "--animate", "gif",
+                        "--fps", fps)
+        message = result.stderr.strip()
+        assert result.exit_code == 1 and message.startswith("error: --fps must be"), message
 
 
 def test_export_quaternions_reproduce_phi(folder, reference):

@@ -456,3 +456,22 @@ def test_generated_states_beyond_float64_are_refused_in_one_line_naming_the_keys
         warnings.simplefilter("error")
         with pytest.raises(ConfigError, match=message):
             build(check_config(parse_config(text)))
+
+
+def test_a_toml_nested_too_deeply_or_with_a_byte_order_mark_is_read_or_refused_in_one_line(
+        tmp_path):
+    """Arrays nested 3000 deep made tomllib recurse past Python's limit (an internal
+    RecursionError); a UTF-8 byte-order mark, as some Windows editors write, made every config
+    'Invalid statement (line 1, col 1)' (both found by fuzzing the CLI): the first is refused
+    in one line, the second read as the same config."""
+    from affinebody.config import load_config
+    from affinebody.runner import demo_config_text
+
+    deep = tmp_path / "deep.toml"
+    deep.write_text(demo_config_text() + "[extra]\nv = " + "[" * 3000 + "]" * 3000 + "\n")
+    with pytest.raises(ConfigError, match="nested too deeply") as refused:
+        load_config(deep)
+    assert "\n" not in str(refused.value)
+    marked = tmp_path / "bom.toml"
+    marked.write_bytes(b"\xef\xbb\xbf" + demo_config_text().encode("utf-8"))
+    assert load_config(marked) == parse_config(demo_config_text())

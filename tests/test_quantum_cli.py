@@ -221,3 +221,19 @@ def test_out_of_range_counts_are_one_line_exit_1(tmp_path, command, flags, name)
     assert result.exit_code == 1
     message = result.stderr.strip()
     assert "\n" not in message and name in message
+
+
+@pytest.mark.parametrize("line, name", [("hbar = 1e308", "quantum.hbar"),
+                                        ("hbar = 1.0\nscale = 1e308", "quantum.scale"),
+                                        ("hbar = 1.0\nscale = 5e-324", "quantum.scale"),
+                                        ("hbar = 1e-150", "quantum.hbar")])
+def test_constants_beyond_float64_are_refused_in_one_line_naming_them(tmp_path, line, name):
+    """hbar or a basis scale so large or small that the solvers' squares and inverses leave
+    float64 (found by fuzzing the CLI: an OverflowError as an internal error, or eleven
+    overflow warnings and then one) is refused before any solving, naming the key."""
+    path = tmp_path / "osc.toml"
+    path.write_text(OSCILLATOR.replace("hbar = 1.0", line))
+    result = CliRunner().invoke(spectrum, [str(path), "--levels", "3"])
+    message = result.stderr.strip()
+    assert result.exit_code == 1 and "\n" not in message, message
+    assert message.startswith(f"config error: {name} = ") and "float64" in message

@@ -399,6 +399,9 @@ def load_toml(text: str, source: str = "config") -> dict:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{source} is not valid TOML: {err}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables recursively
+        raise ConfigError(f"{source}: arrays or tables nested too deeply to read (a config "
+                          f"needs at most 4 levels)") from None
 
 
 def parse_config(text: str, source: str = "config") -> Config:
@@ -416,7 +419,7 @@ def load_config(path: str | Path) -> Config:
     """Read, parse and check a config file (both passes); raises :class:`ConfigError`."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as err:
         raise ConfigError(f"cannot read {path}: {err.strerror if hasattr(err, 'strerror') else err}"
                           ) from None

@@ -374,6 +374,9 @@ def plot_all(trajectory: Trajectory, folder: str | Path, *, animate: str | None 
         raise ValueError("the trajectory has no frames to plot")
     if animate and trajectory.n != 2:
         raise ValueError(f"--animate needs n = 2 (got n = {trajectory.n})")
+    if animate and not 1 <= fps <= 1000:
+        raise ValueError(f"--fps must be a whole number of frames per second from 1 to 1000 "
+                         f"(got {fps})")
     paths = [
         plot_energy(trajectory, folder / "energy.png"),
         plot_momenta(trajectory, folder / "momenta.png"),

@@ -86,6 +86,20 @@ def _positive(value: float | None, name: str) -> None:
         raise ConfigError(f"quantum.{name} must be > 0 (got {value})")
 
 
+#: Magnitudes of the physical constants and basis scales the solvers handle in float64 (their
+#: squares, products and inverses stay finite): choose units in which they are nearer 1.
+MAGNITUDES = (1e-100, 1e100)
+_SCALED = ("hbar", "inertia", "I", "A", "B", "scale", "scale_sigma", "centre")
+
+
+def _in_range(value: float | None, name: str) -> None:
+    low, high = MAGNITUDES
+    if value is not None and value != 0 and not low <= abs(value) <= high:
+        raise ConfigError(f"quantum.{name} = {value:g} is beyond what the solvers handle in "
+                          f"float64 (|{name}| from {low:g} to {high:g}, or 0 where allowed): "
+                          f"choose units in which it is nearer 1")
+
+
 def check(config: QuantumConfig) -> QuantumConfig:
     """Meaning checks beyond types; raises :class:`ConfigError` (one line)."""
     n, qc = config.system.n, config.quantum
@@ -94,6 +108,11 @@ def check(config: QuantumConfig) -> QuantumConfig:
     _positive(qc.hbar, "hbar")
     for name in ("scale", "scale_sigma", "tolerance", "density_tolerance"):
         _positive(getattr(qc, name), name)
+    for name in _SCALED:
+        value = getattr(qc, name)
+        if value is not None and not math.isfinite(value):
+            raise ConfigError(f"quantum.{name} must be finite (got {value})")
+        _in_range(value, name)
     if qc.kinetic not in KINETIC_NAMES:
         raise ConfigError(f"quantum.kinetic must be one of {', '.join(KINETIC_NAMES)} "
                           f"(got {qc.kinetic!r})")
@@ -190,7 +209,7 @@ def parse(text: str, source: str = "config") -> QuantumConfig:
 def load(path: str | Path) -> QuantumConfig:
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as err:
         raise ConfigError(f"cannot read {path}: {err}") from None
     return parse(text, str(path))
@@ -215,6 +234,7 @@ def solver_arguments(config: QuantumConfig) -> dict:
 
 
 __all__ = [
-    "KINETIC_NAMES", "QuantumSystem", "QuantumSection", "QuantumConfig", "VARIABLES_DOC",
-    "invariant_names", "check", "compile_potential", "parse", "load", "solver_arguments"
+    "KINETIC_NAMES", "MAGNITUDES", "QuantumSystem", "QuantumSection", "QuantumConfig",
+    "VARIABLES_DOC", "invariant_names", "check", "compile_potential", "parse", "load",
+    "solver_arguments"
 ]
