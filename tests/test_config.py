@@ -205,6 +205,7 @@ BAD = [
     (swap('translational = "dalembert"', 'translational = "af-af"'), "kinetic.translational"),
     (swap("I = 1.0", "I = 0.2").replace("A = 0.2", "A = 0.5"), "kinetic.I must be > |kinetic.A|"),
     (swap("B = 0.1", "B = -1.0"), "kinetic.B"),
+    (swap("B = 0.1", "B = inf"), "kinetic.B must be finite"),  # blamed I + A (fuzzing the CLI)
     (swap("I = 1.0\n", ""), "kinetic.I"),
     (swap("B = 0.1", "B = 0.1\nH = 1.0"), "kinetic.H"),
     (swap('kind = "pair"', 'kind = "pairs"'), "potential.0.kind"),

@@ -388,6 +388,12 @@ def one_line_error(err: ValidationError) -> str:
     return f"{where}: {first['msg']} (got {_show(value)})"
 
 
+def _numbers(value: Any) -> list[float]:
+    """Every number in a (nested) list, whatever its shape (shapes are checked elsewhere)."""
+    return ([v for item in value for v in _numbers(item)] if isinstance(value, list)
+            else [float(value)])
+
+
 def _show(value: Any) -> str:
     text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
@@ -569,6 +575,8 @@ def check_kinetic(config: Config) -> None:
     needed = INTERNAL_MODELS[k.internal]
     for name in ("I", "A", "B", "J", "H", "L", "R"):
         value = getattr(k, name)
+        if value is not None and not all(map(math.isfinite, _numbers(value))):
+            raise ConfigError(f"kinetic.{name} must be finite (got {_show(value)})")
         if name in needed and value is None and name not in ("J", "B"):
             raise ConfigError(f"kinetic.{name} is required by the internal model {k.internal!r}")
         if name not in needed and value is not None:
