@@ -400,7 +400,9 @@ def test_cli_evolve_json_and_errors(tmp_path):
     assert data["survival"][0] == pytest.approx(1.0)
     for extra, needle in ((["--at", "1.0,0.9"], "6 widths from the wall"),
                           (["--steps", "1000000"], "--steps must be between"),
-                          (["--at", "1.85"], "two finite numbers")):
+                          (["--at", "1.85"], "two finite numbers"),
+                          # nan everywhere with exit 0 before (found by fuzzing the CLI)
+                          (["--momentum", "1e308,0"], "expansion in the eigenstates is nan")):
         bad = CliRunner().invoke(evolve_command, [*args, *extra])
         assert bad.exit_code == 1, (extra, bad.output)
         assert needle in bad.output and len(bad.output.strip().splitlines()) == 1

@@ -173,7 +173,12 @@ def check_work(basis_size: int, times: int) -> None:
 
 
 def require_captured(captured: float) -> None:
-    """Refuse a packet the eigenstates hold to less than 1 - :data:`CAPTURE`."""
+    """Refuse a packet the eigenstates hold to less than 1 - :data:`CAPTURE`, or whose
+    expansion is not finite."""
+    if not math.isfinite(captured):
+        raise ValueError(f"evolve: the packet's expansion in the eigenstates is {captured} in "
+                         f"float64 (its momentum or its inverse width is too large for it): "
+                         f"lower --momentum (--pi) or widen --width")
     if captured < 1 - CAPTURE:
         raise ValueError(f"evolve: the eigenstates of the basis hold only {captured:.6f} of the "
                          f"packet (it reaches energies or places the basis does not resolve): "
@@ -228,13 +233,14 @@ def evolve(spectrum: Spectrum, packet: Packet, times: np.ndarray, hbar: float) -
     # |psi_0|^2 mu dy = Gaussian(X) dX: psi_0 = gauss / sqrt(mu |dy/dX|), |dy/dX| constant
     X0, p0 = np.asarray(packet.centre, float), np.asarray(packet.momentum, float)
     d = X - X0
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # a packet beyond float64 (a momentum of 1e308) gives nan here: require_captured says so
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         psi = np.where(mu > 0, np.exp(-np.sum(d * d, -1) / (4 * packet.width**2)
                                       + 1j * (d @ p0) / hbar) / np.sqrt(np.where(mu > 0, mu, 1)),
                        0.0)
-    psi /= math.sqrt(float(np.sum(weights * np.abs(psi) ** 2)))
-    c = vectors.T @ (functions.T @ (weights * psi))
-    captured = float(np.sum(np.abs(c) ** 2))
+        psi /= math.sqrt(float(np.sum(weights * np.abs(psi) ** 2)))
+        c = vectors.T @ (functions.T @ (weights * psi))
+        captured = float(np.sum(np.abs(c) ** 2))
     require_captured(captured)
     errors = np.array([lv.error for lv in levels])
     E = np.array([lv.energy for lv in levels])
