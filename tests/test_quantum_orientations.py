@@ -130,3 +130,15 @@ density_points = 11
     result = CliRunner().invoke(density, [str(path), "--state", "0", "--temperature", "1",
                                           "-o", str(out)])
     assert result.exit_code == 1 and "exactly one of --state" in result.output
+    # non-finite amplitudes and temperatures: refused at once in one line naming the flag (an
+    # inf amplitude wrote nan files with four warnings, an infinite kT ran for minutes:
+    # found by fuzzing the CLI); an amplitude of nan is not "zero"
+    for flags, needle in ((["--superpose", "0:inf"], "--superpose: the amplitude of state 0"),
+                          (["--superpose", "0:1,1:nan"], "--superpose: the amplitude of state 1"),
+                          (["--temperature", "inf"], "--temperature must be a finite kT > 0"),
+                          (["--temperature", "0"], "--temperature must be a finite kT > 0")):
+        bad = tmp_path / "refused"
+        result = CliRunner().invoke(density, [str(path), *flags, "-o", str(bad)])
+        message = result.stderr.strip()
+        assert result.exit_code == 1 and "\n" not in message and needle in message, message
+        assert not bad.exists()

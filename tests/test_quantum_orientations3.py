@@ -318,7 +318,7 @@ def test_density_command_n3_superposition_and_temperature(tmp_path):
     np.testing.assert_allclose(doc["densities"]["R_axis1"]["density"], 0.5, atol=1e-12)
     bad = CliRunner().invoke(density, [str(path), "--temperature", "-1", "-o", str(out)])
     assert bad.exit_code == 1 and len(bad.output.strip().splitlines()) == 1
-    assert "temperature must be > 0" in bad.output
+    assert "--temperature must be a finite kT > 0" in bad.output
 
 
 def test_green_diagonal_densities_against_closed_form_and_transition_elements(oscillator3):

@@ -29,6 +29,7 @@ flagged (``converged: false``, a warning) and the command exits with status 3.
 from __future__ import annotations
 
 import json
+import math
 import sys
 
 import click
@@ -169,6 +170,8 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
         name.strip() for name in g_components.split(",") if name.strip())
     if green and state is not None and not orientation:
         raise ValueError("--g-components needs --orientation, --superpose or --temperature")
+    if temperature is not None and not (math.isfinite(temperature) and temperature > 0):
+        raise ValueError(f"--temperature must be a finite kT > 0 (got {temperature})")
     if superpose is not None or temperature is not None:
         superposition = None if superpose is None else parse_superposition(superpose)
         if superposition is not None and min(superposition) < 0:

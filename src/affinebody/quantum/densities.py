@@ -691,8 +691,8 @@ def thermal_states(spectrum: Spectrum, temperature: float) -> tuple[list, np.nda
     """The thermal mixture exp(-E / T) / Z over the converged states computed (k_B = 1):
     (pure states [one eigenstate each], probabilities, the Boltzmann factor of the highest
     state relative to the lowest, the order of the weight of each state left out)."""
-    if not temperature > 0:
-        raise ValueError(f"the temperature must be > 0 (got {temperature})")
+    if not 0 < temperature < math.inf:
+        raise ValueError(f"the temperature must be finite and > 0 (got {temperature})")
     count = len(spectrum.energies())
     table = state_components(spectrum, count - 1)
     states, energies = [], []

@@ -4,6 +4,7 @@ density (the application layer: the library computes, this module writes and plo
 
 from __future__ import annotations
 
+import cmath
 import json
 from pathlib import Path
 
@@ -87,6 +88,10 @@ def parse_superposition(text: str) -> dict[int, complex]:
     except ValueError:
         raise ValueError(f"--superpose must be index:amplitude pairs like 0:1,8:0.5j (got "
                          f"{text!r})") from None
+    for index, amplitude in out.items():
+        if not cmath.isfinite(amplitude):
+            raise ValueError(f"--superpose: the amplitude of state {index} must be finite (got "
+                             f"{amplitude})")
     return out
 
 

@@ -419,8 +419,8 @@ def state_mixture(spectrum: Spectrum, state: int | None = None,
             raise ValueError("densities: the states do not share one reduced quadrature")
         return ([(1.0, c / np.sqrt(np.sum(np.abs(c) ** 2)), [p for p, _ in picked])], weights,
                 kind, warnings)
-    if not temperature > 0:
-        raise ValueError(f"the temperature must be > 0 (got {temperature})")
+    if not 0 < temperature < math.inf:
+        raise ValueError(f"the temperature must be finite and > 0 (got {temperature})")
     states, weights = level_multiplet_states(spectrum)
     E = np.array([st.energy for st in states])
     boltzmann = np.exp(-(E - E.min()) / temperature)
