@@ -303,8 +303,16 @@ def test_scan_points_expand_ranges_in_order_and_check_each_point():
         with pytest.raises(ConfigError) as info:
             scan_points(load(MIXED.replace('{ "kinetic.A" = [1.0, 2.0, 0.0] }', scan)))
         assert field in str(info.value) and "\n" not in str(info.value)
-    bad = scan_points(load(MIXED.replace("[1.0, 2.0, 0.0]", '["x"]')))[0].error
-    assert bad.startswith("config error: kinetic.A")
+    mixed = scan_points(load(MIXED.replace("[1.0, 2.0, 0.0]", '["x", 1.0]')))
+    assert mixed[0].error.startswith("config error: kinetic.A") and mixed[1].error is None
+    # a scan none of whose points can run, or with a value that is not finite, is refused as
+    # a whole (it ran, exit 0, with every sample failed or nan: found by fuzzing the CLI)
+    for scan, text in (('["x"]', "every point of the scan is refused, e.g. kinetic.A = 'x'"),
+                       ("[1.0, nan]", "sweep.scan.kinetic.A: values must be finite (got nan)"),
+                       ("{ start = 1.0, stop = inf, num = 3 }", "must be finite (got inf)")):
+        with pytest.raises(ConfigError) as info:
+            scan_points(load(MIXED.replace("[1.0, 2.0, 0.0]", scan)))
+        assert text in str(info.value) and "\n" not in str(info.value), str(info.value)
 
 
 @pytest.mark.parametrize(("old", "new", "field"), [

@@ -237,7 +237,12 @@ class ScanPoint:
 
 
 def scan_values(path: str, values) -> list:
-    """The values of one scan entry: a list as given, or a range expanded (both ends in)."""
+    """The values of one scan entry: a list as given, or a range expanded (both ends in);
+    numbers must be finite."""
+    given = [values.start, values.stop] if isinstance(values, ScanRange) else values
+    for value in given:
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"sweep.scan.{path}: values must be finite (got {value})")
     if isinstance(values, ScanRange):
         if values.log:
             if not (values.start > 0 and values.stop > 0):
@@ -326,6 +331,11 @@ def scan_points(config: Config) -> list[ScanPoint]:
             continue
         text = json.dumps(_config_data(checked), sort_keys=True)
         points.append(ScanPoint(index, parameters, text))
+    if all(point.error is not None for point in points):  # nothing would run
+        first = points[0]
+        where = ", ".join(f"{path} = {value!r}" for path, value in first.parameters)
+        raise ConfigError(f"sweep.scan: every point of the scan is refused, e.g. {where}: "
+                          f"{first.error.removeprefix('config error: ')}")
     return points
 
 
