@@ -307,6 +307,9 @@ def test_no_command_writes_over_the_file_it_reads(folder, reference):
         assert "is the file this command reads" in message, message
     assert config.read_text() == TINY
     assert trajectory.read_bytes() == reference.read_bytes()
+    nowhere = invoke("run", config, "-o", folder / "no" / "such" / "x.h5", "--quiet")
+    assert nowhere.exit_code == 1 and "the folder" in nowhere.stderr, nowhere.stderr
+    assert "does not exist" in nowhere.stderr and "\n" not in nowhere.stderr.strip()
     for thickness in ("nan", "inf", "0", "-1"):
         result = invoke("export", trajectory, "--xyz", folder / "thick.xyz",
                         "--thickness", thickness)

@@ -237,3 +237,17 @@ def test_constants_beyond_float64_are_refused_in_one_line_naming_them(tmp_path, 
     message = result.stderr.strip()
     assert result.exit_code == 1 and "\n" not in message, message
     assert message.startswith(f"config error: {name} = ") and "float64" in message
+
+
+@pytest.mark.parametrize("line, message", [
+    ("max_spin = 100000000000000000000", "quantum.max_spin must be between 0 and 1000"),
+    ("density_tolerance = true", "quantum.density_tolerance must be a number (got True)")])
+def test_a_huge_shell_limit_or_a_boolean_number_is_refused_naming_the_key(tmp_path, line,
+                                                                          message):
+    """max_spin = 10^20 gave NumPy's 'Maximum allowed dimension exceeded'; true was read as
+    1 (the quantum config was not strict, as the simulator's is): found by fuzzing the CLI."""
+    path = tmp_path / "osc.toml"
+    path.write_text(OSCILLATOR + line + "\n")
+    result = CliRunner().invoke(spectrum, [str(path), "--levels", "3"])
+    assert result.exit_code == 1 and result.stderr.strip().startswith(
+        f"config error: {message}"), result.stderr

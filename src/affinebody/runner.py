@@ -202,6 +202,9 @@ def run_simulation(
     total = config.run.steps if steps is None else int(steps)
     if not 1 <= total <= INT64_MAX:
         raise ConfigError(f"--steps must be >= 1 and <= {INT64_MAX} (got {total})")
+    if not output.parent.is_dir():
+        raise ConfigError(f"-o {output}: the folder {output.parent} does not exist (create it, "
+                          f"or write elsewhere)")
     if not (resume or overwrite) and (output.exists() or checkpoint_path(output).exists()):
         raise ConfigError(f"{output} exists: continue it with --resume, replace it with "
                           f"--overwrite, or write elsewhere with -o")

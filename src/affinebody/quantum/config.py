@@ -42,7 +42,7 @@ KINETIC_NAMES = ("dalembert", "af-is", "is-af", "af-af", "af-J")
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
 class QuantumSystem(_Section):
@@ -86,6 +86,8 @@ def _positive(value: float | None, name: str) -> None:
         raise ConfigError(f"quantum.{name} must be > 0 (got {value})")
 
 
+#: The most shells |spin|, |vorticity| a spectrum may search (n = 2; n = 3 stops at 6).
+MAX_SPIN = 1000
 #: Magnitudes of the physical constants and basis scales the solvers handle in float64 (their
 #: squares, products and inverses stay finite): choose units in which they are nearer 1.
 MAGNITUDES = (1e-100, 1e100)
@@ -135,8 +137,9 @@ def check(config: QuantumConfig) -> QuantumConfig:
     if qc.density_points is not None and not 11 <= qc.density_points <= 100001:
         raise ConfigError(f"quantum.density_points must be between 11 and 100001 (got "
                           f"{qc.density_points})")
-    if qc.max_spin < 0:
-        raise ConfigError(f"quantum.max_spin must be >= 0 (got {qc.max_spin})")
+    if not 0 <= qc.max_spin <= MAX_SPIN:
+        raise ConfigError(f"quantum.max_spin must be between 0 and {MAX_SPIN} (got "
+                          f"{qc.max_spin})")
     if qc.kinetic == "af-af" and "max_spin" not in qc.model_fields_set:
         raise ConfigError("quantum.kinetic = 'af-af' (72) is indefinite: its Hamiltonian has no "
                           "lowest level (the sectors s = -k bind without bound), so a search for "
@@ -234,7 +237,7 @@ def solver_arguments(config: QuantumConfig) -> dict:
 
 
 __all__ = [
-    "KINETIC_NAMES", "MAGNITUDES", "QuantumSystem", "QuantumSection", "QuantumConfig",
+    "KINETIC_NAMES", "MAGNITUDES", "MAX_SPIN", "QuantumSystem", "QuantumSection", "QuantumConfig",
     "VARIABLES_DOC", "invariant_names", "check", "compile_potential", "parse", "load",
     "solver_arguments"
 ]
