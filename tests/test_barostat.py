@@ -302,6 +302,9 @@ def test_barostat_config_errors_are_one_line():
     cases = {
         "tau = 2.0": ("tau = -1.0", "barostat.tau must be > 0"),
         "pressure = 0.1": ("pressure = [[1.0, 0.0]]", "barostat.pressure"),
+        # P0 V beyond float64: validate passed it, the run stopped at once (fuzzing the CLI)
+        "pressure = 0.1\n": ("pressure = -1e308\n", "barostat.pressure = -1e\\+308 times the "
+                                                   "box volume 16.8 is beyond float64"),
         "box = [4.0, 4.2]\n": ("", "barostat needs a periodic box"),
         'coupling = "anisotropic"': ('coupling = "sheared"', "barostat.coupling"),
         "temperature = 0.3\n": ("", "barostat.temperature is required without a"),

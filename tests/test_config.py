@@ -236,6 +236,7 @@ BAD = [
     (swap("dt = 0.01", "dt = true"), "run.dt"),
     (swap('group = "GL+"', 'group = "SL"'), "initial"),
     (swap("n = 2", "n = 2\nbox = [1.0, -2.0]"), "system.box"),
+    (swap("n = 2", "n = 2\nbox = [1e160, 1e160]"), "system.box = [1e+160, 1e+160]: its volume"),
     ("[system\nn = 2", "not valid TOML"),
 ]
 

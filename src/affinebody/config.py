@@ -724,6 +724,9 @@ def check_system(config: Config) -> None:
         box = _array(s.box, "system.box", (s.n,))
         if np.any(box <= 0):
             raise ConfigError(f"system.box edges must all be > 0 (got {s.box})")
+        if not math.prod(s.box) < 1e300:
+            raise ConfigError(f"system.box = {s.box}: its volume is beyond float64 (choose "
+                              f"units in which the edges are moderate numbers)")
     if isinstance(s.bodies, list) and len(set(s.bodies)) != len(s.bodies):
         raise ConfigError("system.bodies labels must be distinct")
 
@@ -917,9 +920,16 @@ def check_barostat(config: Config) -> None:
                               f"ensemble; got {b.temperature} and {thermostat.temperature}): "
                               f"leave barostat.temperature out")
     if isinstance(b.pressure, list):
-        _array(b.pressure, "barostat.pressure", (n, n))
+        largest = float(np.abs(_array(b.pressure, "barostat.pressure", (n, n))).max())
     elif not math.isfinite(b.pressure):
         raise ConfigError(f"barostat.pressure must be finite (got {b.pressure})")
+    else:
+        largest = abs(b.pressure)
+    volume = math.prod(config.system.box)
+    if not largest * volume < 1e300:  # P0 V enters the conserved energy of every step
+        raise ConfigError(f"barostat.pressure = {_show(b.pressure)} times the box volume "
+                          f"{volume:.3g} is beyond float64: give the pressure in units in "
+                          f"which P0 V is a moderate energy")
 
 
 def records_pressure(config: Config) -> bool:
