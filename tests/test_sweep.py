@@ -8,6 +8,7 @@ det phi > 0.9, NaN below, so exactly the samples with T Tr(Omega_hat) < ln 0.9
 (det phi(t) = exp(t Tr Omega_hat)) blow up.
 """
 
+import dataclasses
 import json
 import math
 import textwrap
@@ -378,3 +379,20 @@ def test_binomial_summary_matches_scipy_wilson_interval():
         ci = binomtest(k, m).proportion_ci(confidence_level=0.95, method="wilson")
         np.testing.assert_allclose(summary["interval"], [ci.low, ci.high], atol=1e-9)
         assert summary["error"] == pytest.approx(math.sqrt(k / m * (1 - k / m) / m))
+
+
+def test_a_sweep_whose_results_cannot_fit_in_memory_is_refused_before_any_task():
+    """--samples 10^11 (found by fuzzing the CLI: it spent minutes making 10^9 task objects
+    before failing) is refused at once with the estimate; the estimate is linear in the
+    samples and at least the drawn velocities' float64 numbers."""
+    from affinebody.sweep import results_bytes, run_sweep
+
+    config = load(MIXED)
+    with pytest.raises(ConfigError, match=r"--samples\) at \d+ scan point\(s\) needs about"):
+        run_sweep(config, samples=10**11, workers=0)
+    spec = SweepSpec.from_config(config)
+    bigger = dataclasses.replace(spec, samples=2 * spec.samples)
+    assert results_bytes(config, 3, bigger, 7) == pytest.approx(
+        2 * results_bytes(config, 3, spec, 7), rel=1e-12)
+    n, bodies = config.n, config.bodies_count
+    assert results_bytes(config, 3, spec, 7) >= 3 * spec.samples * bodies * (n * n + n) * 8

@@ -363,6 +363,25 @@ class Task:
         return f"point-{self.point:04d}-batch-{self.batch:05d}"
 
 
+def results_bytes(config: Config, points: int, spec: SweepSpec, columns: int) -> float:
+    """Bytes :func:`run_sweep` holds for its results, estimated before any is allocated: per
+    sample its scalars, its drawn velocities (Omega_hat, dx/dt of every body) and its status,
+    per task its description (a few hundred bytes)."""
+    n, bodies = config.n, config.bodies_count
+    per_sample = 8 * (columns + bodies * (n * n + n) + 2)
+    return float(points) * spec.samples * (per_sample + 500 / spec.batch_size)
+
+
+def _check_results_memory(config: Config, points: int, spec: SweepSpec, columns: int) -> None:
+    from affinebody.config import available_memory, gib
+
+    need, have = results_bytes(config, points, spec, columns), available_memory()
+    if have is not None and need > have:
+        raise ConfigError(f"sweep.samples = {spec.samples} (or --samples) at {points} scan "
+                          f"point(s) needs about {gib(need)} of memory for its results, more "
+                          f"than the {gib(have)} available: ask for fewer samples or points")
+
+
 def make_tasks(points: Sequence[ScanPoint], spec: SweepSpec) -> list[Task]:
     """Tasks for every runnable point (points with a config error get none)."""
     size = spec.batch_size
@@ -1224,6 +1243,7 @@ def run_sweep(
     thermal = config.thermostat is not None
     columns = THERMAL_SCALARS if thermal else SCALARS
     points = scan_points(config)
+    _check_results_memory(config, len(points), spec, len(columns))
     tasks = make_tasks(points, spec)
     horizon = float(config.run.dt * config.run.steps)
     P, S = len(points), spec.samples
@@ -1360,4 +1380,4 @@ __all__ = ("THERMAL_SCALARS", "SweepResult", "SweepSpec", "ScanPoint", "Task", "
            "long_moves_warning", "make_tasks", "prepare_worker", "run_sweep", "run_task",
            "scan_points",
            "summarize_thermal_point", "thermal_results", "thermal_sample",
-           "json_safe", "scan_values", "summarize_point")
+           "json_safe", "scan_values", "summarize_point", "results_bytes")
