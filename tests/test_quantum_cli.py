@@ -251,3 +251,16 @@ def test_a_huge_shell_limit_or_a_boolean_number_is_refused_naming_the_key(tmp_pa
     result = CliRunner().invoke(spectrum, [str(path), "--levels", "3"])
     assert result.exit_code == 1 and result.stderr.strip().startswith(
         f"config error: {message}"), result.stderr
+
+
+@pytest.mark.parametrize("potential", ["log(det)", "exp(trG)"])
+def test_a_potential_infinite_on_the_basis_is_named_in_the_error(tmp_path, potential):
+    """log(det) is -inf where det = 0 and exp(trG) overflows on the far nodes: the Hamiltonian
+    is not finite and LAPACK said only 'array must not contain infs or NaNs' (found by
+    fuzzing the CLI); the message now names quantum.potential and what to do."""
+    path = tmp_path / "osc.toml"
+    path.write_text(OSCILLATOR.replace('potential = "0.5*8.0*trG"', f'potential = "{potential}"'))
+    result = CliRunner().invoke(spectrum, [str(path), "--levels", "3"])
+    message = result.stderr.strip()
+    assert result.exit_code == 1 and "\n" not in message, message
+    assert message.startswith(f"error: quantum.potential = '{potential}' is not finite"), message

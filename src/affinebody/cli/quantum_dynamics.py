@@ -152,6 +152,7 @@ def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: 
 
     from affinebody.quantum import config as qconfig
     from affinebody.quantum import evolution as ev
+    from affinebody.quantum.cli import finite_hamiltonian
 
     cfg = qconfig.load(config)
     n = cfg.system.n
@@ -162,7 +163,8 @@ def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: 
         if n != 2:
             raise ValueError(f"evolve --phi is for n = 2 (got system.n = {n}); for n = 3 give "
                              f"--at Q1,Q2,Q3 (a packet of the sector (0, 0))")
-        return _evolve_matrix(cfg, phi, pi, width, duration, steps, as_json, plot)
+        with finite_hamiltonian(cfg.quantum.potential):
+            return _evolve_matrix(cfg, phi, pi, width, duration, steps, as_json, plot)
     X0 = _numbers(centre, "--at", n)
     P0 = _numbers(",".join(["0"] * n) if momentum is None else momentum, "--momentum", n)
     if not (math.isfinite(duration) and duration > 0):
@@ -192,7 +194,7 @@ def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: 
 
         status = Console(stderr=True).status(
             f"solving the sector (0, 0) with {functions} functions ...")
-    with status:
+    with status, finite_hamiltonian(cfg.quantum.potential):
         if n == 2:
             spectrum = ev.sector_spectrum(model, kwargs["potential"], hbar, settings=settings,
                                           **constants)

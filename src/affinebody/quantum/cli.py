@@ -28,6 +28,7 @@ flagged (``converged: false``, a warning) and the command exits with status 3.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import sys
@@ -36,6 +37,25 @@ import click
 
 from affinebody._checks import enable_x64
 from affinebody.cli.common import EXIT_STOPPED, one_line_errors
+
+
+@contextlib.contextmanager
+def finite_hamiltonian(potential: str):
+    """LAPACK's refusal of a Hamiltonian matrix that is not finite, as a message naming the
+    potential (what makes it so: it is infinite, nan or beyond float64 at a quadrature point
+    of the basis; NumPy's warnings on the way there are left out: the error says it)."""
+    import numpy as np
+
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):
+            yield
+    except ValueError as err:
+        if "must not contain infs or NaNs" not in str(err):
+            raise
+        raise ValueError(f"quantum.potential = {potential!r} is not finite in float64 at some "
+                         f"quadrature point of the basis (e.g. log(det) or 1/det where det -> "
+                         f"0, exp of a growing invariant, a huge coefficient): bound it, or "
+                         f"set quantum.scale to keep the basis where it is finite") from None
 
 
 def solve_config(config_path: str, levels: int | None):
@@ -57,7 +77,7 @@ def solve_config(config_path: str, levels: int | None):
         from rich.console import Console
 
         status = Console(stderr=True).status("solving ...")
-    with status as live:
+    with status as live, finite_hamiltonian(cfg.quantum.potential):
         if live is not None:
             kwargs["progress"] = lambda text: live.update(f"solving {text} ...")
         return solve(**kwargs), kwargs["levels"]
@@ -228,4 +248,4 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
         sys.exit(EXIT_STOPPED)  # densities above the tolerance: written, flagged
 
 
-__all__ = ["solve_config", "spectrum", "density"]
+__all__ = ["finite_hamiltonian", "solve_config", "spectrum", "density"]
