@@ -618,3 +618,60 @@ def test_cells_and_sublattices_found_in_n_log_n_match_the_definition():
     broken = phonons.make_crystal(system_of(defect), x, phi, box)
     assert broken.cells == brute_cells(defect) == (1, 1, 1)
     assert len(broken.basis) == len(x)
+
+
+def test_a_crystal_whose_force_constants_overflow_is_refused_in_one_line(tmp_path):
+    """A dilatation stiffness of 1e308 (the crystal of the phonons tutorial; found by fuzzing
+    the CLI): its second derivatives overflow, LAPACK cannot diagonalise, and the command said
+    only 'Eigenvalues did not converge' after nine overflow warnings: one line now, saying
+    why."""
+    config = tmp_path / "crystal.toml"
+    config.write_text(TUTORIAL_CRYSTAL.replace("stiffness = 5.0", "stiffness = 1e308"),
+                      encoding="utf-8")
+    result = CliRunner().invoke(_main(), ["phonons", str(config), "--no-plot",
+                                          "-o", str(tmp_path / "out")])
+    message = result.stderr.strip()
+    assert result.exit_code == 1 and "\n" not in message, message
+    assert "could not be diagonalised" in message and "too large" in message, message
+
+
+#: The crystal of docs/tutorials/phonons.md (16 bodies of the demo's potential, relaxed).
+TUTORIAL_CRYSTAL = """
+[system]
+n = 2
+bodies = 16
+box = [4.0, 4.0]
+[kinetic]
+internal = "af-is"
+I = 0.5
+A = 0.1
+B = 0.05
+[[potential]]
+kind = "morse"
+depth = 1.0
+alpha = 3.0
+r0 = 1.0
+r_cut = 1.5
+[[potential]]
+kind = "pair"
+expr = "0.5 * exp(-D**2 / 4) * (M1 - 2)**2"
+r_cut = 1.5
+[[potential]]
+kind = "dilatation"
+stiffness = 5.0
+[[potential]]
+kind = "elastic"
+lam = 0.5
+mu = 1.0
+[initial]
+generator = "lattice"
+spacing = 1.0
+shape = [4, 4]
+[run]
+dt = 0.01
+steps = 1
+[phonons]
+relax = true
+points = 5
+mesh = [4, 4]
+"""

@@ -5,6 +5,7 @@ plots, docs/phonons.md)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from pathlib import Path
@@ -41,6 +42,21 @@ def check_phonons(config) -> None:
             raise _error(f"phonons.{name} must be {config.n} positive integers (got {value})")
 
 
+@contextlib.contextmanager
+def _finite_crystal():
+    """LAPACK's failure on force constants or a kinetic metric that are not finite (a
+    parameter such as stiffness = 1e308: its second derivatives overflow), as one line that
+    says so; NumPy's warnings on the way there are left out."""
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):
+            yield
+    except np.linalg.LinAlgError as err:
+        raise _error(f"the crystal's force constants or kinetic metric could not be "
+                     f"diagonalised ({err}): they are not finite in float64 when a potential "
+                     f"or kinetic parameter is too large; use moderate numbers (units in "
+                     f"which they are near 1)") from None
+
+
 def crystal_of(config, built, relax: bool | None = None):
     """The :class:`affinebody.phonons.Crystal` of a built config at its equilibrium: relaxed
     when ``phonons.relax`` (or ``relax``) is true; ConfigError with the residual force otherwise
@@ -61,6 +77,8 @@ def crystal_of(config, built, relax: bool | None = None):
         elif relax:
             crystal = phonons.relax(crystal, tolerance=min(tolerance, 1e-9))
         residual = phonons.residual_forces(crystal)
+    except np.linalg.LinAlgError:
+        raise  # (a ValueError too) not finite: said by compute, _finite_crystal
     except ValueError as err:
         raise _error(str(err)) from None
     worst = float(np.abs(residual).max()) if residual.size else 0.0
@@ -103,6 +121,11 @@ def _check_k_points(crystal, labels, points: int, sizes, dos: bool) -> None:
 
 def compute(config, built, path=None, mesh=None, points=None, relax=None, dos=True) -> dict:
     """The phonon document of a config (what ``--json`` writes, module docstring)."""
+    with _finite_crystal():
+        return _compute(config, built, path, mesh, points, relax, dos)
+
+
+def _compute(config, built, path, mesh, points, relax, dos) -> dict:
     from affinebody import phonons
 
     clock = time.perf_counter()
@@ -118,6 +141,8 @@ def compute(config, built, path=None, mesh=None, points=None, relax=None, dos=Tr
     try:
         fc = phonons.force_constants(crystal)
         k, distance, ticks = phonons.path(crystal, labels, points)
+    except np.linalg.LinAlgError:
+        raise
     except ValueError as err:
         raise _error(str(err)) from None
     spectrum = phonons.solve(fc, k)
