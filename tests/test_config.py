@@ -214,6 +214,9 @@ BAD = [
     (swap('expr = "exp(-D**2) * (M1 - 2)**2"', 'expr = "exp(-D**2).real"'), "potential.0.expr"),
     (swap('expr = "exp(-D**2) * (M1 - 2)**2"', 'expr = "(M7 - 2)**2"'), "potential.0.expr"),
     (swap('expr = "10*(det - 1)**2"', 'expr = "10*(det - 1)**2 + r"'), "potential.1.expr"),
+    # said without the entry, at the first energy (found by fuzzing the CLI)
+    (swap('expr = "10*(det - 1)**2"', 'expr = "10*(det - 1)**2"\n[[potential]]\nkind = '
+          '"elastic"\nlam = -100.0\nmu = 1.0'), "potential.2: elastic needs lam + 2 mu / n > 0"),
     (swap("x = [[0.0, 0.0], [1.0, 0.0]]", "x = [[0.0, 0.0], [1.0]]"), "initial.x"),
     (swap("phi = [[[1.0, 0.0], [0.0, 1.0]], [[1.1, 0.0], [0.0, 0.9]]]",
           "phi = [[[1.0, 0.0], [0.0, 1.0]], [[1.0, 2.0], [0.5, 1.0]]]"), "initial.phi.1"),

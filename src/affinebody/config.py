@@ -60,6 +60,8 @@ AUTO_NEIGHBOR_LIST_BODIES = 500
 #: Configuration groups accepted by system.group (the paper's list plus all matrices "L").
 CONFIG_GROUPS = CONFIGURATION_SPACES
 MAX_DIMENSION = 6
+#: The most k points per segment of a phonon path (phonons.points and --points).
+MOST_PATH_POINTS = 100_000
 #: The largest integer a count or a seed may be: H5MD attributes, NumPy and JAX hold int64.
 INT64_MAX = 2**63 - 1
 #: The names ``system.units`` accepts (``units.UNIT_SYSTEMS``).
@@ -246,7 +248,7 @@ class PhononsSection(_Section):
                                                     "accepted as an equilibrium")
     path: list[str] | None = Field(None, description="high-symmetry points, e.g. "
                                                      "['G', 'X', 'M', 'G']")
-    points: int = Field(50, ge=2, le=100_000, description="k points per path segment")
+    points: int = Field(50, ge=2, le=MOST_PATH_POINTS, description="k points per path segment")
     mesh: list[int] | None = Field(None, description="DOS mesh: n positive integers")
     cells: list[int] | None = Field(None, description="primitive cells per box edge "
                                                       "(default: found from the bodies)")
@@ -801,10 +803,14 @@ def build_potential_entry(entry: PotentialSection, index: int, config: Config):
                               f"(got {', '.join(other)}; use kind = 'one-body')")
         return pot
     try:
-        return potentials.build_potential(entry.kind, params, n=config.n, box=config.system.box,
-                                          field=field)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
+        term = potentials.build_potential(entry.kind, params, n=config.n,
+                                          box=config.system.box, field=field)
+        term.check_dimension(config.n)  # else said at the first energy, without the entry
+        return term
+    except ValueError as err:  # said with the entry's place when the message lacks it
+        message = str(err).removeprefix("config error: ")
+        raise ConfigError(message if message.startswith(field) else
+                          f"{field}: {message}") from None
 
 
 def check_potentials(config: Config) -> None:
@@ -1183,8 +1189,8 @@ def build(config: Config) -> Built:
 
 __all__ = [
     "INTERNAL_MODELS", "TRANSLATIONAL_MODELS", "INTEGRATOR_NAMES", "SPLITTING_INTEGRATORS",
-    "AUTO_NEIGHBOR_LIST_BODIES", "CONFIG_GROUPS", "MAX_DIMENSION", "INT64_MAX", "UnitSystem",
-    "ConfigError",
+    "AUTO_NEIGHBOR_LIST_BODIES", "CONFIG_GROUPS", "MAX_DIMENSION", "INT64_MAX",
+    "MOST_PATH_POINTS", "UnitSystem", "ConfigError",
     "Vector", "Matrix", "Matrices", "Tensor4", "SystemSection", "Constituents", "BodySection",
     "KineticSection", "PotentialSection", "InitialSection", "RunSection", "ThermostatSection",
     "ScanRange", "SweepSection", "ConstraintsSection", "PhononsSection", "BarostatSection",

@@ -240,7 +240,7 @@ def phonons_command(config_path, output, path_, mesh, points, relax, as_json, no
     """Dispersion relations of the crystal of CONFIG_PATH's periodic box: the n acoustic and
     the internal (affine) branches, DOS, sound speeds and elastic constants."""
     enable_x64()
-    from affinebody.config import build, load_config
+    from affinebody.config import MOST_PATH_POINTS, build, load_config
 
     config = load_config(config_path)
     labels = None if path_ is None else [p for p in path_.replace(",", "-").split("-") if p]
@@ -252,8 +252,8 @@ def phonons_command(config_path, output, path_, mesh, points, relax, as_json, no
             raise _error(f"--mesh must be integers like 20 or 20,20,20 (got {mesh!r})") from None
         if len(sizes) == 1:
             sizes = sizes * config.n
-    if points is not None and points < 2:
-        raise _error(f"--points must be >= 2 (got {points})")
+    if points is not None and not 2 <= points <= MOST_PATH_POINTS:
+        raise _error(f"--points must be between 2 and {MOST_PATH_POINTS} (got {points})")
     check_phonons(config)
     built = build(config)
     doc = compute(config, built, labels, sizes, points, relax)
