@@ -211,7 +211,13 @@ def test_af_af_without_a_shell_limit_is_refused_at_once(tmp_path):
 
 @pytest.mark.parametrize("command, flags, name", [(spectrum, ["--levels", "0"], "--levels"),
                                                   (density, ["--state", "-1", "-o", "out"],
-                                                   "--state")])
+                                                   "--state"),
+                                                  # was about --levels 100000001, a flag not
+                                                  # given (found by fuzzing the CLI)
+                                                  (density, ["--state", "100000000", "-o",
+                                                             "out"], "--state must be from 0"),
+                                                  (density, ["--superpose", "5000:1", "-o",
+                                                             "out"], "--superpose: state")])
 def test_out_of_range_counts_are_one_line_exit_1(tmp_path, command, flags, name):
     """A count out of range is bad input (exit 1, one line naming the flag), not click's usage
     error (exit 2), and is refused before any solving."""

@@ -183,6 +183,7 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
         write_densities,
         write_orientation,
     )
+    from affinebody.quantum.spectra import MAX_LEVELS
 
     if sum(v is not None for v in (state, superpose, temperature)) != 1:
         raise ValueError("give exactly one of --state, --superpose and --temperature")
@@ -194,9 +195,10 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
         raise ValueError(f"--temperature must be a finite kT > 0 (got {temperature})")
     if superpose is not None or temperature is not None:
         superposition = None if superpose is None else parse_superposition(superpose)
-        if superposition is not None and min(superposition) < 0:
-            raise ValueError(f"--superpose: state indices must be >= 0 (got "
-                                   f"{min(superposition)})")
+        if superposition is not None and not 0 <= min(superposition) <= max(
+                superposition) < MAX_LEVELS:
+            raise ValueError(f"--superpose: state indices must be from 0 to {MAX_LEVELS - 1} "
+                             f"(got {sorted(superposition)})")
         qc = qconfig.load(config).quantum
         result, _ = solve_config(config, None if superposition is None else max(superposition) + 1)
         payload = write_orientation(result, output, superposition=superposition,
@@ -210,8 +212,9 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
         if payload["warnings"]:
             sys.exit(EXIT_STOPPED)
         return
-    if state < 0:
-        raise ValueError(f"--state must be >= 0 (got {state})")
+    if not 0 <= state < MAX_LEVELS:
+        raise ValueError(f"--state must be from 0 to {MAX_LEVELS - 1}, an index of the "
+                         f"{MAX_LEVELS} lowest states the solver finds (got {state})")
     qc = qconfig.load(config).quantum
     result, _ = solve_config(config, state + 1)
     if orientation:
