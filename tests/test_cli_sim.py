@@ -367,3 +367,24 @@ def test_help_lists_the_commands_as_click_would_without_importing_them(monkeypat
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          check=True).stdout
     assert out.strip() == "[]", out
+
+
+def test_usage_errors_of_the_affinebody_command_are_one_line_with_exit_status_2(folder):
+    """What click refuses before a command runs (a flag's value of the wrong type, an unknown
+    option, a missing argument, flags that exclude each other) was click's four-line usage
+    block (found by fuzzing the CLI): one line naming the flag and where the help is; the
+    help itself is unchanged."""
+    from affinebody.cli import main
+
+    config = folder / "tiny.toml"
+    for args, needle in ((["run", config, "--steps", "abc"], "Invalid value for '--steps'"),
+                         (["run", config, "--bogus"], "No such option '--bogus'"),
+                         (["run"], "Missing argument 'CONFIG.toml'"),
+                         (["run", config, "--resume", "--overwrite"], "give one"),
+                         (["nosuch"], "No such command 'nosuch'")):
+        result = CliRunner().invoke(main, [str(a) for a in args])
+        message = result.stderr.strip()
+        assert result.exit_code == 2 and "\n" not in message, (args, message)
+        assert message.startswith("error: ") and needle in message and "--help" in message
+    helped = CliRunner().invoke(main, ["run", "--help"])
+    assert helped.exit_code == 0 and helped.output.startswith("Usage: main run [OPTIONS]")

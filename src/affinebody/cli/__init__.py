@@ -11,6 +11,7 @@ command turns JAX's float64 mode on for its own process (and XLA's faster compil
 from __future__ import annotations
 
 import importlib
+import sys
 
 import click
 
@@ -79,6 +80,30 @@ class _LazyGroup(click.Group):
         limit = formatter.width - 6 - max(len(name) for name, _ in rows)
         with formatter.section("Commands"):
             formatter.write_dl([(name, c.get_short_help_str(limit)) for name, c in rows])
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True,
+             **extra):
+        """click's main, with a usage error (a flag's value of the wrong type, an unknown
+        option, a missing argument) said in one line on stderr, exit status 2, as every other
+        error of the commands is (:mod:`.common`), instead of click's usage block."""
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, False, **extra)
+        try:
+            code = super().main(args, prog_name, complete_var, False, **extra)
+        except click.UsageError as err:
+            if isinstance(err, getattr(click.exceptions, "NoArgsIsHelpError", ())):
+                err.show()  # no command: the help, as click shows it
+                sys.exit(err.exit_code)
+            where = f" (see {err.ctx.command_path} --help)" if err.ctx is not None else ""
+            click.echo(f"error: {err.format_message()}{where}", err=True)
+            sys.exit(err.exit_code)
+        except click.ClickException as err:
+            err.show()
+            sys.exit(err.exit_code)
+        except click.Abort:
+            click.echo("Aborted!", err=True)
+            sys.exit(1)
+        sys.exit(code if isinstance(code, int) else 0)  # an exit code (--help: 0) or None
 
     def get_command(self, ctx, name):
         if name in COMMANDS:

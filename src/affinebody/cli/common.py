@@ -8,7 +8,9 @@ is one line too, ``warning: ...``), and
 - exit 3 (:data:`EXIT_STOPPED`): a computation that stopped or did not converge, with what it
   produced kept: a run stopped on a non-finite or singular state (frames and the last
   checkpoint are kept), densities above their tolerance (written and flagged);
-- exit 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C); what was written is kept.
+- exit 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C); what was written is kept;
+- exit 2: a usage error that click finds before a command runs (a flag's value of the wrong
+  type, an unknown option, a missing argument), one line too (``affinebody.cli.main``).
 """
 
 from __future__ import annotations
