@@ -402,12 +402,14 @@ def test_cli_evolve_json_and_errors(tmp_path):
                           (["--steps", "1000000"], "--steps must be between"),
                           (["--at", "1.85"], "two finite numbers"),
                           # nan everywhere with exit 0 before (found by fuzzing the CLI)
-                          (["--momentum", "1e308,0"], "expansion in the eigenstates is nan")):
+                          (["--momentum", "1e308,0"], "--momentum: 1e+308 is beyond what")):
         bad = CliRunner().invoke(evolve_command, [*args, *extra])
         assert bad.exit_code == 1, (extra, bad.output)
         assert needle in bad.output and len(bad.output.strip().splitlines()) == 1
     both = CliRunner().invoke(evolve_command, [*args, "--phi", "1.85,0,0,0.45"])
     assert both.exit_code == 1 and "exactly one of --at" in both.output
+    huge = CliRunner().invoke(evolve_command, [str(path), "--phi", "1e308,0,0,1"])
+    assert huge.exit_code == 1 and "--phi: 1e+308 is beyond what" in huge.output
     small = tmp_path / "small.toml"
     small.write_text(CONFIG.replace("hbar = 0.1", "hbar = 1.0").replace("basis_size = 24",
                                                                        "basis_size = 8"))
@@ -430,3 +432,14 @@ def test_cli_evolve_json_and_errors(tmp_path):
     (tmp_path / "big.toml").write_text(CONFIG.replace("basis_size = 24", "basis_size = 80"))
     bad = CliRunner().invoke(evolve_command, [str(tmp_path / "big.toml"), *args[1:]])
     assert bad.exit_code == 1 and "more than evolve solves" in bad.output
+
+
+def test_a_packet_whose_expansion_is_not_finite_is_refused():
+    """nan passed `captured < 1 - CAPTURE` (every comparison with nan is false): a packet
+    beyond float64 gave an evolution of nan with exit 0 (found by fuzzing the CLI)."""
+    from affinebody.quantum import evolution as ev
+
+    for captured in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="expansion in the eigenstates is"):
+            ev.require_captured(captured)
+    ev.require_captured(1.0)  # a packet the basis holds whole

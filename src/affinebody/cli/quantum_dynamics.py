@@ -48,7 +48,20 @@ def _numbers(text: str, flag: str, count: int) -> tuple[float, ...]:
     if len(values) != count or not all(math.isfinite(v) for v in values):
         raise ValueError(f"{flag} takes {word} finite numbers separated by commas (got "
                          f"{text!r})")
+    _within_magnitudes(values, flag)
     return values
+
+
+def _within_magnitudes(values, flag: str) -> None:
+    """A one-line error naming ``flag`` for a number beyond what the solvers handle in float64
+    (``quantum.config.MAGNITUDES``: a momentum of 1e308 made every result nan)."""
+    from affinebody.quantum.config import MAGNITUDES
+
+    largest = max(abs(v) for v in values)
+    if largest > MAGNITUDES[1]:
+        raise ValueError(f"{flag}: {largest:g} is beyond what the solvers handle in float64 "
+                         f"(at most {MAGNITUDES[1]:g} in size): choose units in which it is "
+                         f"nearer 1")
 
 
 @click.command("transitions")
@@ -240,6 +253,7 @@ def _matrix(text: str, flag: str) -> np.ndarray:
         values = []
     if len(values) != 4 or not all(math.isfinite(v) for v in values):
         raise ValueError(f"{flag} takes four finite numbers A11,A12,A21,A22 (got {text!r})")
+    _within_magnitudes(values, flag)
     return np.array(values).reshape(2, 2)
 
 
