@@ -422,7 +422,10 @@ class _NPT:
         stop = None
         if keep < len(finite) or narrow is not None:
             reason = (npt.stop_reason or "non-finite state or box under the barostat: reduce "
-                      "run.dt or raise barostat.tau") if narrow is None else (
+                      "run.dt or raise barostat.tau (a stop in the first moves: check the "
+                      "initial state, e.g. bodies on top of each other, and barostat.pressure, "
+                      "compressibility and the temperature against the system's scale)"
+                      ) if narrow is None else (
                       "the box shrank below twice the pair cut-off (the minimum image is no "
                       "longer exact): lower barostat.pressure or start from a larger system.box")
             keep = keep if narrow is None else narrow
