@@ -396,3 +396,13 @@ def test_a_sweep_whose_results_cannot_fit_in_memory_is_refused_before_any_task()
         2 * results_bytes(config, 3, spec, 7), rel=1e-12)
     n, bodies = config.n, config.bodies_count
     assert results_bytes(config, 3, spec, 7) >= 3 * spec.samples * bodies * (n * n + n) * 8
+
+
+def test_a_local_cluster_of_absurd_size_is_refused_before_starting_a_worker():
+    """--workers 100000 started worker processes until it was killed (found by fuzzing the
+    CLI), and --workers -1 was said to need >= 1 though 0 runs in this process: both refused in
+    one line that gives the range."""
+    for workers in (-1, 100_000):
+        with pytest.raises(ConfigError, match=r"--workers must be 0 \(in this process"):
+            with dask_client(workers=workers):
+                pass

@@ -1029,9 +1029,12 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
         finally:
             client.close()
         return
-    count = (os.cpu_count() or 1) if workers is None else int(workers)
-    if count < 1:
-        raise ConfigError(f"--workers must be >= 1 (got {count})")
+    cores = os.cpu_count() or 1
+    count = cores if workers is None else int(workers)
+    if not 1 <= count <= 4 * cores:  # each worker is a process with its own JAX
+        raise ConfigError(f"--workers must be 0 (in this process, no Dask) or from 1 to "
+                          f"{4 * cores} local processes (4 per core; got {count}): a larger "
+                          f"cluster is one to connect to with --scheduler")
     with dask.config.set({"distributed.worker.multiprocessing-method": "spawn"}):
         cluster = LocalCluster(n_workers=count, threads_per_worker=1, processes=True,
                                dashboard_address=":0", silence_logs=logging.ERROR,
