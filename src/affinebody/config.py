@@ -867,21 +867,29 @@ def available_memory() -> float | None:
         return None
 
 
-def gib(value: float) -> str:
+def _gib(value: float) -> str:
     """A size in bytes as GiB (TiB from 1 TiB on), for messages."""
     return f"{value / 2**30:.3g} GiB" if value < 2**40 else f"{value / 2**40:.3g} TiB"
+
+
+def refuse_beyond_memory(need: float, what: str, fix: str) -> None:
+    """The one policy for work that cannot fit in memory, checked before anything is
+    allocated: a ConfigError ``{what} needs about {need} of memory, more than the {have}
+    available: {fix}`` when ``need`` bytes exceed :func:`available_memory` (nothing where that
+    is unknown)."""
+    have = available_memory()
+    if have is not None and need > have:
+        raise ConfigError(f"{what} needs about {_gib(need)} of memory, more than the "
+                          f"{_gib(have)} available: {fix}")
 
 
 def check_memory(config: Config) -> None:
     """Refuse, before allocating anything, a config whose run cannot fit in memory
     (:func:`estimated_memory` against :func:`available_memory`), with both figures."""
-    need, have = estimated_memory(config), available_memory()
-    if have is not None and need > have:
-        bodies = config.bodies_count
-        hint = ("reduce system.bodies" if config.run.neighbor_list != "off" or bodies < 500
-                else 'reduce system.bodies or use run.neighbor_list = "on"')
-        raise ConfigError(f"system.bodies = {bodies} needs about {gib(need)} of memory, more "
-                          f"than the {gib(have)} available: {hint}")
+    bodies = config.bodies_count
+    hint = ("reduce system.bodies" if config.run.neighbor_list != "off" or bodies < 500
+            else 'reduce system.bodies or use run.neighbor_list = "on"')
+    refuse_beyond_memory(estimated_memory(config), f"system.bodies = {bodies}", hint)
 
 
 def _check_list_memory(config: Config, space, reach: float) -> None:
@@ -892,13 +900,12 @@ def _check_list_memory(config: Config, space, reach: float) -> None:
     if not space.periodic:
         return
     bodies, radius = config.bodies_count, reach + config.run.neighbor_skin
-    need, have = nb.uniform_list_bytes(space, bodies, radius), available_memory()
-    if have is not None and need > have:
-        per_body = 2 * nb.uniform_pair_count(space, bodies, radius) / bodies
-        raise ConfigError(f"system.bodies = {bodies} in system.box = {list(config.system.box)} "
-                          f"puts about {per_body:.3g} bodies within the pair cut-off of each "
-                          f"(a neighbour list of {gib(need)}, more than the {gib(have)} "
-                          f"available): enlarge system.box or lower system.bodies")
+    per_body = 2 * nb.uniform_pair_count(space, bodies, radius) / bodies
+    refuse_beyond_memory(nb.uniform_list_bytes(space, bodies, radius),
+                         f"system.bodies = {bodies} in system.box = {list(config.system.box)} "
+                         f"(about {per_body:.3g} bodies within the pair cut-off of each, a "
+                         f"neighbour list of their pairs)",
+                         "enlarge system.box or lower system.bodies")
 
 
 def check_barostat(config: Config) -> None:
@@ -1198,7 +1205,7 @@ __all__ = [
     "body_inertia", "check_kinetic", "check_thermostat", "build_thermostat", "check_run",
     "uses_neighbor_list", "check_system", "check_initial", "build_potential_entry",
     "check_potentials", "MEMORY_PER_BODY_3D", "MEMORY_BASE", "FRAME_BUFFER_BYTES", "frame_bytes",
-    "estimated_memory", "available_memory", "gib", "check_memory", "check_barostat",
-    "records_pressure", "check_config", "Built", "build_kinetic", "initial_configuration",
-    "initial_state", "build"
+    "estimated_memory", "available_memory", "refuse_beyond_memory", "check_memory",
+    "check_barostat", "records_pressure", "check_config", "Built", "build_kinetic",
+    "initial_configuration", "initial_state", "build"
 ]

@@ -373,13 +373,11 @@ def results_bytes(config: Config, points: int, spec: SweepSpec, columns: int) ->
 
 
 def _check_results_memory(config: Config, points: int, spec: SweepSpec, columns: int) -> None:
-    from affinebody.config import available_memory, gib
+    from affinebody.config import refuse_beyond_memory
 
-    need, have = results_bytes(config, points, spec, columns), available_memory()
-    if have is not None and need > have:
-        raise ConfigError(f"sweep.samples = {spec.samples} (or --samples) at {points} scan "
-                          f"point(s) needs about {gib(need)} of memory for its results, more "
-                          f"than the {gib(have)} available: ask for fewer samples or points")
+    refuse_beyond_memory(results_bytes(config, points, spec, columns),
+                         f"sweep.samples = {spec.samples} (or --samples) at {points} scan "
+                         f"point(s)", "ask for fewer samples or points")
 
 
 def make_tasks(points: Sequence[ScanPoint], spec: SweepSpec) -> list[Task]:

@@ -15,6 +15,7 @@ is one line too, ``warning: ...``), and
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import sys
 import warnings
@@ -67,6 +68,24 @@ def one_line_errors(command):
     return wrapper
 
 
+@contextlib.contextmanager
+def not_finite_as(what: str, fix: str):
+    """LAPACK's refusal of a matrix that is not finite (SciPy's ValueError "... must not
+    contain infs or NaNs", NumPy's LinAlgError) said as one line, ``{what} ({LAPACK's
+    words}): {fix}``; NumPy's overflow and invalid-value warnings on the way there are left
+    out (the error says it)."""
+    import numpy as np
+
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):
+            yield
+    except ValueError as err:
+        if not (isinstance(err, np.linalg.LinAlgError)
+                or "must not contain infs or NaNs" in str(err)):
+            raise
+        raise ValueError(f"{what} ({err}): {fix}") from None
+
+
 def refuse_writing_over(written, read, what: str) -> None:
     """A ValueError (one line) when the file a command would write, ``written``, is a file it
     reads, ``read`` (the same path, or a link to it): writing first would destroy it."""
@@ -79,5 +98,5 @@ def refuse_writing_over(written, read, what: str) -> None:
         raise ValueError(f"{what} {written} is the file this command reads: write elsewhere")
 
 
-__all__ = ["EXIT_BAD_INPUT", "EXIT_INTERRUPTED", "EXIT_STOPPED", "fail", "one_line_errors",
-           "refuse_writing_over"]
+__all__ = ["EXIT_BAD_INPUT", "EXIT_INTERRUPTED", "EXIT_STOPPED", "fail", "not_finite_as",
+           "one_line_errors", "refuse_writing_over"]

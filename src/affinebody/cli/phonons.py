@@ -5,7 +5,6 @@ plots, docs/phonons.md)."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import time
 from pathlib import Path
@@ -14,7 +13,7 @@ import click
 import numpy as np
 
 from affinebody._checks import enable_x64
-from affinebody.cli.common import one_line_errors
+from affinebody.cli.common import not_finite_as, one_line_errors
 
 
 def _error(message: str):
@@ -42,21 +41,6 @@ def check_phonons(config) -> None:
             raise _error(f"phonons.{name} must be {config.n} positive integers (got {value})")
 
 
-@contextlib.contextmanager
-def _finite_crystal():
-    """LAPACK's failure on force constants or a kinetic metric that are not finite (a
-    parameter such as stiffness = 1e308: its second derivatives overflow), as one line that
-    says so; NumPy's warnings on the way there are left out."""
-    try:
-        with np.errstate(over="ignore", invalid="ignore"):
-            yield
-    except np.linalg.LinAlgError as err:
-        raise _error(f"the crystal's force constants or kinetic metric could not be "
-                     f"diagonalised ({err}): they are not finite in float64 when a potential "
-                     f"or kinetic parameter is too large; use moderate numbers (units in "
-                     f"which they are near 1)") from None
-
-
 def crystal_of(config, built, relax: bool | None = None):
     """The :class:`affinebody.phonons.Crystal` of a built config at its equilibrium: relaxed
     when ``phonons.relax`` (or ``relax``) is true; ConfigError with the residual force otherwise
@@ -78,7 +62,7 @@ def crystal_of(config, built, relax: bool | None = None):
             crystal = phonons.relax(crystal, tolerance=min(tolerance, 1e-9))
         residual = phonons.residual_forces(crystal)
     except np.linalg.LinAlgError:
-        raise  # (a ValueError too) not finite: said by compute, _finite_crystal
+        raise  # (a ValueError too) not finite: said by compute, not_finite_as
     except ValueError as err:
         raise _error(str(err)) from None
     worst = float(np.abs(residual).max()) if residual.size else 0.0
@@ -105,23 +89,24 @@ def k_points_bytes(crystal, path_points: int, mesh_sizes) -> tuple[float, float]
 def _check_k_points(crystal, labels, points: int, sizes, dos: bool) -> None:
     """Refuse, before computing, a path or mesh that cannot fit in memory (both figures)."""
     from affinebody import phonons
-    from affinebody.config import available_memory, gib
+    from affinebody.config import refuse_beyond_memory
 
     corners = len(labels) if labels else len(phonons.DEFAULT_PATHS[min(crystal.n, 3)])
     path_bytes, mesh_bytes = k_points_bytes(crystal, max(corners - 1, 1) * points, sizes)
     mesh_bytes = mesh_bytes if dos else 0.0
-    have = available_memory()
-    if have is not None and path_bytes + mesh_bytes > have:
-        named = (f"phonons.mesh = {list(sizes)} (or --mesh)" if mesh_bytes > path_bytes else
-                 f"phonons.points = {points} (or --points)")
-        raise _error(f"{named} needs about {gib(path_bytes + mesh_bytes)} of memory, more than "
-                     f"the {gib(have)} available: use "
-                     f"{'a coarser mesh' if mesh_bytes > path_bytes else 'fewer points'}")
+    if mesh_bytes > path_bytes:
+        what, fix = f"phonons.mesh = {list(sizes)} (or --mesh)", "use a coarser mesh"
+    else:
+        what, fix = f"phonons.points = {points} (or --points)", "use fewer points"
+    refuse_beyond_memory(path_bytes + mesh_bytes, what, fix)
 
 
 def compute(config, built, path=None, mesh=None, points=None, relax=None, dos=True) -> dict:
     """The phonon document of a config (what ``--json`` writes, module docstring)."""
-    with _finite_crystal():
+    with not_finite_as("the crystal's force constants or kinetic metric could not be "
+                       "diagonalised", "they are not finite in float64 when a potential or "
+                       "kinetic parameter is too large; use moderate numbers (units in which "
+                       "they are near 1)"):
         return _compute(config, built, path, mesh, points, relax, dos)
 
 

@@ -53,15 +53,12 @@ def _numbers(text: str, flag: str, count: int) -> tuple[float, ...]:
 
 
 def _within_magnitudes(values, flag: str) -> None:
-    """A one-line error naming ``flag`` for a number beyond what the solvers handle in float64
-    (``quantum.config.MAGNITUDES``: a momentum of 1e308 made every result nan)."""
-    from affinebody.quantum.config import MAGNITUDES
+    """A flag's numbers within what the solvers handle (a momentum of 1e308 made every
+    result nan): :func:`affinebody.quantum.config.check_magnitude`."""
+    from affinebody.quantum.config import check_magnitude
 
     largest = max(abs(v) for v in values)
-    if largest > MAGNITUDES[1]:
-        raise ValueError(f"{flag}: {largest:g} is beyond what the solvers handle in float64 "
-                         f"(at most {MAGNITUDES[1]:g} in size): choose units in which it is "
-                         f"nearer 1")
+    check_magnitude(largest, f"{flag}: {largest:g}", small_too=False)
 
 
 @click.command("transitions")

@@ -28,7 +28,6 @@ flagged (``converged: false``, a warning) and the command exits with status 3.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import sys
@@ -36,26 +35,18 @@ import sys
 import click
 
 from affinebody._checks import enable_x64
-from affinebody.cli.common import EXIT_STOPPED, one_line_errors
+from affinebody.cli.common import EXIT_STOPPED, not_finite_as, one_line_errors
 
 
-@contextlib.contextmanager
 def finite_hamiltonian(potential: str):
-    """LAPACK's refusal of a Hamiltonian matrix that is not finite, as a message naming the
-    potential (what makes it so: it is infinite, nan or beyond float64 at a quadrature point
-    of the basis; NumPy's warnings on the way there are left out: the error says it)."""
-    import numpy as np
-
-    try:
-        with np.errstate(over="ignore", invalid="ignore"):
-            yield
-    except ValueError as err:
-        if "must not contain infs or NaNs" not in str(err):
-            raise
-        raise ValueError(f"quantum.potential = {potential!r} is not finite in float64 at some "
-                         f"quadrature point of the basis (e.g. log(det) or 1/det where det -> "
-                         f"0, exp of a growing invariant, a huge coefficient): bound it, or "
-                         f"set quantum.scale to keep the basis where it is finite") from None
+    """A Hamiltonian that LAPACK refuses as not finite, said as the potential's fault (it is
+    infinite, nan or beyond float64 at a quadrature point of the basis):
+    :func:`affinebody.cli.common.not_finite_as`."""
+    return not_finite_as(f"quantum.potential = {potential!r} is not finite in float64 at some "
+                         f"quadrature point of the basis",
+                         "bound it (log(det) or 1/det where det -> 0, exp of a growing "
+                         "invariant, a huge coefficient), or set quantum.scale to keep the "
+                         "basis where it is finite")
 
 
 def solve_config(config_path: str, levels: int | None):

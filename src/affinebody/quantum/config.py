@@ -94,11 +94,14 @@ MAGNITUDES = (1e-100, 1e100)
 _SCALED = ("hbar", "inertia", "I", "A", "B", "scale", "scale_sigma", "centre")
 
 
-def _in_range(value: float | None, name: str) -> None:
+def check_magnitude(value: float, label: str, *, small_too: bool = True) -> None:
+    """A one-line ConfigError, ``{label} is beyond what the solvers handle ...``, for a
+    nonzero ``value`` outside :data:`MAGNITUDES` (above it only, unless ``small_too``): for
+    the constants of a config and the numbers of a command's flags."""
     low, high = MAGNITUDES
-    if value is not None and value != 0 and not low <= abs(value) <= high:
-        raise ConfigError(f"quantum.{name} = {value:g} is beyond what the solvers handle in "
-                          f"float64 (|{name}| from {low:g} to {high:g}, or 0 where allowed): "
+    if value != 0 and not (low if small_too else 0) <= abs(value) <= high:
+        limits = f"from {low:g} to {high:g} in size, or 0" if small_too else f"at most {high:g}"
+        raise ConfigError(f"{label} is beyond what the solvers handle in float64 ({limits}): "
                           f"choose units in which it is nearer 1")
 
 
@@ -114,7 +117,8 @@ def check(config: QuantumConfig) -> QuantumConfig:
         value = getattr(qc, name)
         if value is not None and not math.isfinite(value):
             raise ConfigError(f"quantum.{name} must be finite (got {value})")
-        _in_range(value, name)
+        if value is not None:
+            check_magnitude(value, f"quantum.{name} = {value:g}")
     if qc.kinetic not in KINETIC_NAMES:
         raise ConfigError(f"quantum.kinetic must be one of {', '.join(KINETIC_NAMES)} "
                           f"(got {qc.kinetic!r})")
@@ -237,7 +241,7 @@ def solver_arguments(config: QuantumConfig) -> dict:
 
 
 __all__ = [
-    "KINETIC_NAMES", "MAGNITUDES", "MAX_SPIN", "QuantumSystem", "QuantumSection", "QuantumConfig",
-    "VARIABLES_DOC", "invariant_names", "check", "compile_potential", "parse", "load",
-    "solver_arguments"
+    "KINETIC_NAMES", "MAGNITUDES", "MAX_SPIN", "check_magnitude", "QuantumSystem",
+    "QuantumSection", "QuantumConfig", "VARIABLES_DOC", "invariant_names", "check",
+    "compile_potential", "parse", "load", "solver_arguments"
 ]
