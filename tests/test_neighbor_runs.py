@@ -148,6 +148,47 @@ def test_a_capacity_too_small_for_the_run_is_reallocated_transparently(monkeypat
     assert_same_motion(trajectory, all_pairs_run())
 
 
+def refuse_to_reallocate(*args, **kwargs):
+    raise nb.NeighborListOverflow("no room for this list (test)")
+
+
+def test_a_list_that_cannot_be_reallocated_stops_the_run_and_keeps_its_frames(monkeypatch):
+    """The one overflow policy (``simulate.ListRestarts``, also barostat.run's: see
+    tests/test_npt_neighbors.py): where the list cannot be reallocated the run stops at the
+    step that overflowed, says why and what to do, and keeps every frame before it (those of
+    the all-pairs run) and the last good state, as for any other stop."""
+    from affinebody import simulate
+
+    system, state = periodic_system()
+    probe_spec, probe = nb.allocate(BOX, state.x, state.phi, R_CUT, "r", SKIN)
+    # room for the pairs of the first ~150 steps (the lattice melts): it overflows mid-run
+    tight = nb.allocate(BOX, state.x, state.phi, R_CUT, "r", SKIN,
+                        capacity=int(probe.count) + 200, cell_capacity=probe_spec.cell_capacity)
+    monkeypatch.setattr(nb, "reallocate", refuse_to_reallocate)
+    trajectory = run(system, state, DT, STEPS, every=EVERY,
+                     observers=("energy", "potential_energy"), neighbors=tight,
+                     on_stop="return")
+    stop = trajectory.stop
+    assert stop is not None and stop.reason == "neighbour list overflow"
+    assert "no room for this list (test)" in stop.message
+    assert stop.message.endswith(simulate.OVERFLOW_FIX)
+    assert trajectory.neighbor_reallocations == 0
+    reference = all_pairs_run()
+    nominal = np.isin(np.round(trajectory.times / DT), np.round(reference.times / DT))
+    frames = int(nominal.sum())
+    assert 5 <= frames < len(reference.times)  # it ran, and stopped before the end
+    assert np.all(trajectory.times[:frames] < stop.step * DT)
+    assert trajectory.times[-1] == pytest.approx((stop.step - 1) * DT)  # the last good state
+    cut = lambda a: a[:frames]  # noqa: E731
+    assert_same_motion(type(trajectory)(cut(trajectory.times), jax.tree.map(cut, trajectory.states),
+                                        {k: cut(v) for k, v in trajectory.observables.items()}),
+                       type(reference)(cut(reference.times), jax.tree.map(cut, reference.states),
+                                       {k: cut(v) for k, v in reference.observables.items()}))
+    with pytest.raises(simulate.IntegrationStopped, match="could not be reallocated"):
+        run(system, state, DT, STEPS, every=EVERY, observers=("energy", "potential_energy"),
+            neighbors=tight)
+
+
 def test_a_stop_after_a_rebuild_keeps_a_list_and_observables_of_the_last_good_state():
     """The loop does not hold the previous list back with the previous state (that cost two
     copies of the list per step): a step that fails has already replaced the list with one

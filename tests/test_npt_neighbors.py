@@ -200,6 +200,42 @@ def test_an_npt_call_computes_no_frame_after_its_list_overflowed(monkeypatch):
                                atol=1e-11 * np.max(np.abs(reference.states.x)))
 
 
+def test_an_npt_list_that_cannot_be_reallocated_stops_the_run_and_keeps_its_frames(
+        monkeypatch):
+    """The NPT run follows the NVE run's overflow policy (``simulate.ListRestarts``): where
+    the list cannot be reallocated it stops at the step that overflowed with the frames
+    before it (those of a run whose list had room) and says why, instead of raising and
+    losing the call's frames (as it did)."""
+    from affinebody import simulate
+
+    n, steps, every = 2, 60, 20
+    system, state, space = shrinking_box()
+    b = barostat.c_rescale(20.0, n, tau=1.0, compressibility=1.0, temperature=0.1)
+
+    def npt(capacity_factor):
+        lists = nb.allocate(space, state.x, state.phi, 1.2, "r", 0.05, cell=space.matrix,
+                            capacity_factor=capacity_factor)
+        return barostat.run(system, state, space, b, 0.005, steps, seed=3, every=every,
+                            neighbors=lists)
+
+    reference = npt(6.0)
+    assert reference.failed_step is None
+
+    def refuse(*args, **kwargs):
+        raise nb.NeighborListOverflow("no room for this list (test)")
+
+    monkeypatch.setattr(nb, "reallocate", refuse)
+    stopped = npt(1.25)  # the box shrinks: more pairs than the list holds
+    assert stopped.failed_step is not None and 0 < stopped.failed_step <= steps
+    assert "could not be reallocated: no room for this list (test)" in stopped.stop_reason
+    assert stopped.stop_reason.endswith(simulate.OVERFLOW_FIX)
+    before = int(np.sum(np.round(stopped.times / 0.005) < stopped.failed_step))
+    assert before >= 1
+    np.testing.assert_allclose(stopped.states.x[:before], reference.states.x[:before], rtol=0,
+                               atol=1e-11 * np.max(np.abs(reference.states.x)))
+    np.testing.assert_allclose(stopped.cells[:before], reference.cells[:before], rtol=1e-12)
+
+
 def test_an_npt_run_that_stops_after_a_rebuild_ends_with_a_list_of_its_last_good_state(
         monkeypatch):
     """The NPT loop does not hold the previous list back with the previous state and cell

@@ -69,7 +69,7 @@ from affinebody import neighbors as nb
 from affinebody import pressure as pressure_module
 from affinebody.integrators import get_integrator
 from affinebody.integrators.splitting import update_neighbors
-from affinebody.simulate import kept_list_or_refit, scan_chunks
+from affinebody.simulate import OVERFLOW_FIX, ListRestarts, kept_list_or_refit, scan_chunks
 from affinebody.space import Space, as_space
 from affinebody.state import State
 
@@ -649,8 +649,8 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
     every = int(every)
     exchanged = (jnp.asarray(float(heat), dtype=state.x.dtype),
                  jnp.asarray(float(work), dtype=state.x.dtype))
-    segments = []  # (times, states, cells, values) of each compiled call, numpy
-    start, in_a_row, failed = int(first_step), 0, -1
+    restarts = ListRestarts()  # the frames of each compiled call, numpy
+    start, failed = int(first_step), -1
     end = int(first_step) + int(steps)
     n_chunks = (end - start) // every  # of every call: a restart runs its last ones
     while True:
@@ -662,36 +662,30 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
             n_chunks=n_chunks, every=every, observers=tuple(observers), spec=spec)
         part = jax.tree.map(lambda a, ran=active + 1: np.asarray(a)[:ran],  # chunks that ran
                             (states, cells, values))
-        first = 0 if not segments else 1  # a restart's frame 0 is the last kept frame
         failed = int(failed)
         if not bool(overflowed):
-            segments.append((start, part, first, len(part[1])))
+            restarts.keep(part)
             break
         aligned = (failed - 1 - start) // every  # the last frame before the overflow
-        segments.append((start, part, first, aligned + 1))
-        in_a_row = in_a_row + 1 if aligned == 0 else 1
-        if in_a_row > nb.MAX_REALLOCATIONS_IN_A_ROW:
-            raise nb.NeighborListOverflow(
-                f"{in_a_row - 1} reallocations of the neighbour list at step "
-                f"{start + aligned * every} did not get past step {failed}")
         state = jax.tree.map(lambda a, j=aligned: jnp.asarray(a[j]), part[0])
         cell = jnp.asarray(part[1][aligned])
+        lists = restarts.restart(part, aligned, state, spec, lost, cell=cell,
+                                 at_step=start + aligned * every, bad_step=failed)
+        if lists is None:
+            break
+        spec, nbrs = lists
         exchanged = tuple(jnp.asarray(part[2][k][aligned]) for k in ("heat", "work"))
-        # a box that keeps shrinking past the new cells' room: coarser cells at each retry
-        spec, nbrs = nb.reallocate(spec, state.x, state.phi, flags=int(lost[0]),
-                                   pairs=int(lost[1]), reach=float(lost[2]), cell=cell,
-                                   box_headroom=nb.BOX_HEADROOM * 2 ** (in_a_row - 1))
         start += aligned * every
-    pieces = [(p, f, u) for _, p, f, u in segments]
-    states = jax.tree.map(lambda *a: np.concatenate([x[f:u] for x, (_, f, u) in
-                                                     zip(a, pieces, strict=True)]),
-                          *[p[0] for p, _, _ in pieces])
-    cells = np.concatenate([p[1][f:u] for p, f, u in pieces])
-    values = {k: np.concatenate([p[2][k][f:u] for p, f, u in pieces]) for k in pieces[0][0][2]}
+    states, cells, values = restarts.joined()
     times = (first_step + np.arange(len(cells)) * every) * float(dt)
-    reason = None if not bool(narrow) else (
-        "the box shrank below twice the neighbour-list radius (reach + skin; the minimum image "
-        "is no longer exact): use a larger box, a lower pressure or a smaller skin")
+    reason = None
+    if restarts.failure is not None:
+        reason = (f"the neighbour list overflowed and could not be reallocated: "
+                  f"{restarts.failure}; {OVERFLOW_FIX}")
+    elif bool(narrow):
+        reason = ("the box shrank below twice the neighbour-list radius (reach + skin; the "
+                  "minimum image is no longer exact): use a larger box, a lower pressure or a "
+                  "smaller skin")
     return NPTTrajectory(times, states, cells, values, None if failed < 0 else failed,
                          None if spec is None else (spec, last_list), reason)
 

@@ -402,11 +402,66 @@ def _initial_neighbors(system, method, state, neighbors, neighbor_skin):
     return spec, lst
 
 
-def _reallocate(spec, state, lost):
-    """:func:`neighbors.reallocate` at ``state`` from what the failed step saw (``lost`` =
-    overflow flags, largest pair count, largest reach)."""
-    return nb.reallocate(spec, state.x, state.phi, flags=int(lost[0]), pairs=int(lost[1]),
-                         reach=float(lost[2]))
+#: What a run whose list cannot be reallocated is told to do (``run``, ``barostat.run``).
+OVERFLOW_FIX = "run without a neighbour list or with a larger box"
+
+
+class ListRestarts:
+    """The one overflow policy of a run's compiled calls (:func:`run` and
+    ``barostat.run``): a call stops computing at the first step whose list overflowed its
+    capacities; its frames up to the last one before that step are kept, the list is
+    reallocated for that frame's state by :func:`neighbors.reallocate` (from what the failed
+    step saw) and the run goes on from that frame, so the frames are those of a run whose
+    list never overflowed. After ``neighbors.MAX_REALLOCATIONS_IN_A_ROW`` reallocations at
+    the same frame, or one that cannot be built (a reach beyond half the box), the run stops
+    there with every frame it has (``failure`` says why), as for any other stop.
+
+    Each call's frames are a pytree ``part`` of arrays with the frame axis first; a restart's
+    frame 0 is the frame it restarted from, already kept."""
+
+    def __init__(self):
+        self.segments = []  # (part, first, upto): frames [first, upto) of each call
+        self.in_a_row = 0  # restarts at the same frame
+        self.count = 0  # reallocations made
+        self.failure: str | None = None  # why the run gave up its list
+
+    def keep(self, part, upto: int | None = None) -> None:
+        """Keep the frames of ``part`` before ``upto`` (default all)."""
+        first = 0 if not self.segments else 1
+        frames = len(jax.tree.leaves(part)[0])
+        self.segments.append((part, first, frames if upto is None else upto))
+
+    def restart(self, part, aligned: int, state: State, spec, lost, *, cell=None,
+                at_step: int, bad_step: int):
+        """After a call (``part``) whose list (``spec``) overflowed at ``bad_step``: keep its
+        frames up to ``aligned``, the last one before that step (at global step ``at_step``,
+        holding ``state``), and return a (spec, list) reallocated for ``state`` from what
+        the failed step saw (``lost`` = overflow flags, largest pair count, largest reach);
+        ``cell``: the cell of a box that moves (its new cells get more room at each restart
+        in a row). None when the run must stop: then every frame of ``part`` is kept."""
+        self.in_a_row = self.in_a_row + 1 if aligned == 0 else 1
+        try:
+            if self.in_a_row > nb.MAX_REALLOCATIONS_IN_A_ROW:
+                raise nb.NeighborListOverflow(
+                    f"{self.in_a_row - 1} reallocations at step {at_step} did not get past "
+                    f"step {bad_step}")
+            lists = nb.reallocate(spec, state.x, state.phi, flags=int(lost[0]),
+                                  pairs=int(lost[1]), reach=float(lost[2]), cell=cell,
+                                  box_headroom=nb.BOX_HEADROOM * 2 ** (self.in_a_row - 1))
+        except ValueError as error:  # NeighborListOverflow, or a reach beyond half the box
+            self.failure = str(error)
+            self.keep(part)
+            return None
+        self.keep(part, aligned + 1)
+        self.count += 1
+        return lists
+
+    def joined(self):
+        """The kept frames of every call, as one ``part``."""
+        bounds = [(first, upto) for _, first, upto in self.segments]
+        return jax.tree.map(lambda *parts: np.concatenate(
+            [p[first:upto] for p, (first, upto) in zip(parts, bounds, strict=True)]),
+            *[part for part, _, _ in self.segments])
 
 
 def _diagnose_non_finite(system, method, initial, state, dt, spec=None) -> str:
@@ -494,11 +549,10 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
     items = _observer_items(observers)
     spec, nbrs = _initial_neighbors(system, method, state, neighbors, neighbor_skin)
     every, n_chunks = int(every), int(steps) // int(every)
-    segments = []  # (frames, values, done) of each compiled call, numpy
+    restarts = ListRestarts()  # the frames of each compiled call, numpy
     start, start_state = 0, state  # start: the chunk the segment starts at
     start_heat = float(heat)
-    reallocations = rebuilds = in_a_row = 0
-    failed_reallocation = None
+    rebuilds = 0
     while True:
         frames, values, done, status, bad_step, bad_body, last_list, more, lost = _compiled_call(
             system, start_state, jnp.asarray(dt), nbrs,
@@ -507,38 +561,24 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
             n_chunks=n_chunks, every=every, method=method, observers=items, spec=spec)
         frames, values, done = jax.tree.map(  # the frames of the chunks that ran
             lambda a, ran=n_chunks - start + 1: np.asarray(a)[:ran], (frames, values, done))
-        done = done + start * every
+        part = (frames, values, done + start * every)
         status, bad_step, bad_body = int(status), int(bad_step) + start * every, int(bad_body)
         rebuilds += int(more)
-        first = 0 if not segments else 1  # a restart's frame 0 is the previous segment's last
         if status != _OVERFLOW:
-            segments.append((frames, values, done, first, len(done)))
+            restarts.keep(part)
             break
-        nominal = (start + np.arange(len(done))) * every
-        aligned = int(np.argmin(done == nominal)) - 1  # the last frame before the stop
-        segments.append((frames, values, done, first, aligned + 1))
-        in_a_row = in_a_row + 1 if aligned == 0 else 1
-        restart_state = jax.tree.map(lambda a, j=aligned: a[j], frames)
-        try:
-            if in_a_row > nb.MAX_REALLOCATIONS_IN_A_ROW:
-                raise nb.NeighborListOverflow(
-                    f"{in_a_row - 1} reallocations at step {(start + aligned) * every} did not "
-                    f"get past step {bad_step}")
-            spec, nbrs = _reallocate(spec, restart_state, lost)
-        except ValueError as error:  # NeighborListOverflow, or a reach beyond half the box
-            failed_reallocation = str(error)
-            segments[-1] = (frames, values, done, first, len(done))
+        nominal = (start + np.arange(len(part[2]))) * every
+        aligned = int(np.argmin(part[2] == nominal)) - 1  # the last frame before the stop
+        restart_state = jax.tree.map(lambda a, j=aligned: a[j], part[0])
+        lists = restarts.restart(part, aligned, restart_state, spec, lost,
+                                 at_step=(start + aligned) * every, bad_step=bad_step)
+        if lists is None:
             break
-        reallocations += 1
+        spec, nbrs = lists
         start, start_state = start + aligned, restart_state
-        if "heat" in values:
-            start_heat = float(values["heat"][aligned])
-    frames = jax.tree.map(lambda *parts: np.concatenate(
-        [p[f:u] for p, (_, _, _, f, u) in zip(parts, segments, strict=True)]),
-        *[seg[0] for seg in segments])
-    values = {k: np.concatenate([seg[1][k][seg[3]:seg[4]] for seg in segments])
-              for k in segments[0][1]}
-    done = np.concatenate([seg[2][seg[3]:seg[4]] for seg in segments])
+        if "heat" in part[1]:
+            start_heat = float(part[1]["heat"][aligned])
+    frames, values, done = restarts.joined()
     keep = slice(None)
     report = None
     if status != _OK:
@@ -564,8 +604,8 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
         elif status == _OVERFLOW:
             reason = "neighbour list overflow"
             message = (f"the neighbour list overflowed at step {step} (t between {t0:.6g} and "
-                       f"{t1:.6g}) and could not be reallocated: {failed_reallocation}; run "
-                       f"without a neighbour list or with a larger box")
+                       f"{t1:.6g}) and could not be reallocated: {restarts.failure}; "
+                       f"{OVERFLOW_FIX}")
         else:
             # the state freezes at the last good one, so frame `last` holds it exactly
             good = jax.tree.map(lambda a: a[last], frames)
@@ -580,7 +620,7 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
         stop=report,
         neighbors=None if spec is None else (spec, last_list),
         neighbor_rebuilds=rebuilds,
-        neighbor_reallocations=reallocations,
+        neighbor_reallocations=restarts.count,
     )
     if report is not None and on_stop == "raise":
         raise IntegrationStopped(report, trajectory)
@@ -610,7 +650,8 @@ def energy_error(trajectory: Trajectory, key: str = "energy") -> np.ndarray:
 
 
 __all__: Sequence[str] = (
-    "IntegrationStopped", "NAMED_OBSERVABLES", "Stop", "StopReport", "Trajectory", "Watched",
+    "IntegrationStopped", "ListRestarts", "NAMED_OBSERVABLES", "OVERFLOW_FIX", "Stop",
+    "StopReport", "Trajectory", "Watched",
     "energy_error", "initial_forces", "kept_list_or_refit", "list_for_kept_state",
     "relative_error", "run",
     "scan_chunks", "watched_step",
