@@ -113,3 +113,32 @@ def test_written_file_parses_with_the_declared_columns(tmp_path):
                                    rtol=1e-12, atol=1e-13)
         deform = values[:, 10:].reshape(bodies, 3, 3).swapaxes(1, 2)  # column by column
         np.testing.assert_array_equal(deform[:, :2, :2], traj.phi[f])
+
+
+def test_a_frame_with_a_non_finite_or_singular_phi_is_named_by_export_and_plot(tmp_path):
+    """A run writes finite frames only; a file changed by other software may hold a nan or a
+    singular phi: export and plot say which frame and body (plot had said "SVD did not
+    converge"), and write nothing past it."""
+    from affinebody import plotting
+    from affinebody.h5md import TrajectoryFileError
+
+    rng = np.random.default_rng(2)
+    frames, bodies = 3, 3
+    phi = rng.normal(size=(frames, bodies, 2, 2)) * 0.1 + np.eye(2)
+    phi[2, 2, 0, 1] = np.nan  # the last frame: every plot of the bodies draws it
+    traj = Trajectory(
+        step=np.array([0, 10, 20]), time=np.array([0.0, 0.1, 0.2]),
+        x=rng.normal(size=(frames, bodies, 2)), phi=phi,
+        p=np.zeros((frames, bodies, 2)), pi=np.zeros((frames, bodies, 2, 2)),
+        mass=np.ones(bodies), radius=np.full(bodies, 0.5), box=None, source="t.h5")
+    named = r"t\.h5: frame 2 \(step 20\) holds a non-finite x or phi of body 2"
+    with pytest.raises(TrajectoryFileError, match=named):
+        write_xyz(traj, tmp_path / "t.xyz")
+    for plot in (plotting.plot_bodies, plotting.plot_deformation):
+        with pytest.raises(TrajectoryFileError, match=named):
+            plot(traj, tmp_path / "t.png")
+    phi[2, 2] = np.eye(2)
+    phi[1, 1] = [[1.0, 2.0], [2.0, 4.0]]  # singular
+    with pytest.raises(ValueError, match=r"frame 1 \(step 10\): phi is singular or not finite at "
+                                         r"batch index \(1,\)"):
+        write_xyz(traj, tmp_path / "t.xyz")

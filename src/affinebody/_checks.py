@@ -136,10 +136,10 @@ def check_invertible(phi: jax.Array, name: str = "phi") -> None:
         det = np.abs(np.linalg.det(a))
     bad = ~np.asarray(is_invertible(a))
     if np.any(bad):
-        where = np.argwhere(np.atleast_1d(bad))[0] if np.ndim(bad) else ()
-        at = f" at batch index {tuple(int(i) for i in where)}" if np.ndim(bad) else ""
+        where = tuple(int(i) for i in np.argwhere(bad)[0]) if np.ndim(bad) else ()
+        at = f" at batch index {where}" if np.ndim(bad) else ""
         raise ValueError(
-            f"{name} is singular or not finite{at} (det {name} = {float(np.ravel(det)[0]):.3g}): "
+            f"{name} is singular or not finite{at} (det {name} = {float(det[where]):.3g}): "
             f"an internal configuration must be an invertible matrix"
         )
 

@@ -149,9 +149,14 @@ def write_xyz(
     with open(path, "w", encoding="ascii") as out:
         for frame in frames:  # one frame in memory at a time (open_trajectory reads lazily)
             lattice = _lattice(trajectory.box if boxes is None else boxes[frame], n)
-            axes, quat, deform = ellipsoids(trajectory.phi[frame], trajectory.radius, thickness)
+            x, phi = trajectory.configuration(frame)
+            try:
+                axes, quat, deform = ellipsoids(phi, trajectory.radius, thickness)
+            except ValueError as err:  # a singular phi: say which frame
+                raise ValueError(f"frame {frame} (step {int(trajectory.step[frame])}): "
+                                 f"{err}") from None
             position = np.zeros((trajectory.bodies, 3))
-            position[:, :n] = trajectory.x[frame]
+            position[:, :n] = x
             out.write(f"{trajectory.bodies}\n")
             out.write(
                 f"{lattice}Properties={PROPERTIES} "

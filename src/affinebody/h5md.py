@@ -192,6 +192,8 @@ class Trajectory:
     boxes: np.ndarray | None = None
     #: the unit system (a key of :data:`UNIT_SYSTEMS`; files without one are "reduced")
     units: str = "reduced"
+    #: the file it was read from (for messages)
+    source: str = ""
 
     @property
     def state(self) -> State:
@@ -213,6 +215,21 @@ class Trajectory:
     def frame(self, k: int) -> State:
         """Frame ``k`` (negative counts from the end) as a :class:`State`."""
         return State(self.x[k], self.phi[k], self.p[k], self.pi[k])
+
+    def configuration(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(x [N, n], phi [N, n, n]) of frame ``k``, what plots and exports draw; a
+        :class:`TrajectoryFileError` naming the frame and the body where either is not
+        finite (a run writes finite frames only: such a file was changed or written by other
+        software)."""
+        x, phi = np.asarray(self.x[k]), np.asarray(self.phi[k])
+        finite = np.all(np.isfinite(x), axis=-1) & np.all(np.isfinite(phi), axis=(-2, -1))
+        if not np.all(finite):
+            k = k % self.frames
+            raise TrajectoryFileError(
+                f"{self.source}: frame {k} (step {int(self.step[k])}) holds a non-finite x or "
+                f"phi of body {int(np.argmin(finite))}: affinebody runs write finite frames "
+                f"only, so the file was changed or written by other software")
+        return x, phi
 
 
 def read_trajectory(path: str | Path) -> Trajectory:
@@ -312,6 +329,7 @@ def open_trajectory(path: str | Path) -> Iterator[Trajectory]:
                 box=box,
                 boxes=boxes,
                 units=system or "reduced",
+                source=str(path),
                 observables=observables,
                 config_text=_read_string(params, "config"),
                 seed=int(params["seed"][()]) if "seed" in params else 0,

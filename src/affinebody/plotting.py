@@ -190,7 +190,7 @@ def plot_deformation(trajectory: Trajectory, path: str | Path) -> Path:
     traced = _sample(bodies, TRACED_BODIES)
     series = []  # per frame: [n + 2, traced] values and [n + 2, 2] min/max over all bodies
     for k in range(trajectory.frames):
-        phi = np.asarray(trajectory.phi[k])
+        _, phi = trajectory.configuration(k)
         invariants = np.asarray(trace_invariants(phi))  # [N, n]
         volumes = np.linalg.det(phi)
         columns = [invariants[:, a] for a in range(n)] + [volumes, volumes / volumes[0]]
@@ -238,7 +238,7 @@ def _limits(trajectory: Trajectory, frames, drawn, cube: bool = False):
     low = np.full(trajectory.n, np.inf)
     high = np.full(trajectory.n, -np.inf)
     for k in frames:
-        x, phi = np.asarray(trajectory.x[k])[drawn], np.asarray(trajectory.phi[k])[drawn]
+        x, phi = (a[drawn] for a in trajectory.configuration(k))
         reach = np.linalg.norm(phi, ord=2, axis=(-2, -1)) * trajectory.radius[drawn]
         low = np.minimum(low, np.min(x - reach[:, None], axis=0))
         high = np.maximum(high, np.max(x + reach[:, None], axis=0))
@@ -250,7 +250,7 @@ def _limits(trajectory: Trajectory, frames, drawn, cube: bool = False):
 
 
 def _draw(ax, trajectory: Trajectory, frame: int, low, high, drawn):
-    x, phi = np.asarray(trajectory.x[frame])[drawn], np.asarray(trajectory.phi[frame])[drawn]
+    x, phi = (a[drawn] for a in trajectory.configuration(frame))
     radius = trajectory.radius[drawn]
     shapes = PolyCollection(body_outlines(x, phi, radius), facecolors="C0",
                             edgecolors="k", alpha=0.55, linewidths=0.8)
@@ -312,7 +312,7 @@ def plot_ellipsoids(trajectory: Trajectory, path: str | Path) -> Path:
     fig = plt.figure(figsize=(11, 5.4))
     for column, frame in enumerate(frames):
         ax = fig.add_subplot(1, 2, column + 1, projection="3d")
-        x, phi = np.asarray(trajectory.x[frame])[drawn], np.asarray(trajectory.phi[frame])[drawn]
+        x, phi = (a[drawn] for a in trajectory.configuration(frame))
         surfaces = ellipsoid_surface(x, phi, trajectory.radius[drawn])
         for i, surface in enumerate(surfaces):
             ax.plot_surface(*surface, color=f"C{i % 10}", lightsource=light, shade=True,
@@ -352,8 +352,7 @@ def animate_bodies(trajectory: Trajectory, path: str | Path, fps: int = 20) -> P
     radius = trajectory.radius[drawn]
 
     def update(frame):
-        x = np.asarray(trajectory.x[frame])[drawn]
-        phi = np.asarray(trajectory.phi[frame])[drawn]
+        x, phi = (a[drawn] for a in trajectory.configuration(frame))
         shapes.set_verts(body_outlines(x, phi, radius))
         axes.set_segments(_axis_segments(x, phi, radius))
         ax.set_title(f"t = {trajectory.time[frame]:.4g}", fontsize=9)
