@@ -147,6 +147,52 @@ def test_log_proposal_is_the_density_of_the_drawn_move():
             np.testing.assert_allclose(logq, exact, rtol=1e-10)
 
 
+def test_move_size_is_the_mean_and_spread_of_the_drawn_moves():
+    """``move_size`` (what a stopped run's advice quotes) against the moves ``propose`` draws:
+    ln det mu over 4000 isotropic draws has mean ``drift`` and standard deviation ``noise``
+    (moves every 3 steps: of length 3 dt); short moves give no advice, long ones name the
+    parameters with their values."""
+    system, state, space = ideal_gas()
+    h = jnp.asarray(space.matrix)
+    dt = 0.02
+    baro = barostat.StochasticCellRescaling(((0.4, 0.0), (0.0, 0.4)), tau=0.7,
+                                            compressibility=1.3, temperature=0.9, interval=3)
+    p_inst = np.asarray(state.p).T @ np.asarray(state.p) / np.linalg.det(space.matrix)
+    drift, noise = baro.move_size(h, p_inst, space, dt)
+
+    @jax.jit
+    @jax.vmap
+    def log_volume_change(key):
+        _, cell, _, _ = baro.propose(system, state, h, space, key, baro.interval * dt)
+        return jnp.log(jnp.linalg.det(cell) / jnp.linalg.det(h))
+
+    draws = np.asarray(log_volume_change(jax.random.split(jax.random.PRNGKey(5), 4000)))
+    assert abs(draws.mean() - drift) < 4 * noise / np.sqrt(len(draws))
+    assert abs(draws.std() / noise - 1) < 4 / np.sqrt(2 * len(draws))
+    assert abs(drift) > 0.01 and 0.05 < noise < barostat.LARGE_MOVE  # a real test of both
+    assert barostat.stop_advice(baro, h, p_inst, space, dt) is None
+    wild = barostat.StochasticCellRescaling(((0.4, 0.0), (0.0, 0.4)), tau=0.7,
+                                            compressibility=1e6, temperature=0.9)
+    advice = barostat.stop_advice(wild, h, p_inst, space, dt)
+    assert "barostat.compressibility 1e+06" in advice and "from the noise" in advice
+
+
+def test_an_npt_run_stopped_by_its_barostat_names_the_parameter_at_fault(tmp_path):
+    """A compressibility of 1e20 throws the box to infinity at the first move: the run stops
+    (frames before it kept) and says which parameter, with its value, instead of only the
+    general advice (found by fuzzing the CLI)."""
+    from affinebody.config import check_config, parse_config
+    from affinebody.h5md import read_trajectory
+    from affinebody.runner import SimulationStopped, run_simulation
+
+    text = NPT_CONFIG.replace("compressibility = 1.0", "compressibility = 1e20")
+    with pytest.raises(SimulationStopped, match=r"barostat.compressibility 1e\+20 / tau 2 x "
+                                                r"\(P - P0\)") as stopped:
+        run_simulation(check_config(parse_config(text)), tmp_path / "npt.h5")
+    assert "body" not in str(stopped.value)  # the box's stop, no one body's (said "body 0")
+    assert read_trajectory(tmp_path / "npt.h5").frames >= 1
+
+
 def test_a_move_every_interval_steps_spans_interval_dt():
     """Bodies at rest and no forces: P = 0, so each move is the deterministic
     d eps = -(beta_T / tau) P0 (its length) up to a noise of kT = 1e-30. With interval = 4

@@ -170,6 +170,7 @@ def test_a_list_that_cannot_be_reallocated_stops_the_run_and_keeps_its_frames(mo
                      on_stop="return")
     stop = trajectory.stop
     assert stop is not None and stop.reason == "neighbour list overflow"
+    assert stop.body == -1  # no one body's stop
     assert "no room for this list (test)" in stop.message
     assert stop.message.endswith(simulate.OVERFLOW_FIX)
     assert trajectory.neighbor_reallocations == 0

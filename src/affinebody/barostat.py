@@ -158,6 +158,16 @@ class StochasticCellRescaling:
         state = state._replace(x=state.x @ mu.T, p=state.p @ mu_inv_t.T)
         return state, new_cell, potential, self._log_density(z, scale, cell, space)
 
+    def move_size(self, cell, p_inst, space: Space, dt: float) -> tuple[float, float]:
+        """(drift, noise) of the next move from ``cell`` at the instantaneous pressure
+        ``p_inst`` with steps of ``dt``: the mean change of ln V, beta_T / tau (P - P0)
+        interval dt with P = Tr p_inst / n, and its standard deviation, sqrt(2 kT beta_T
+        interval dt / (tau V)) (module docstring); anisotropic: of the strain's entries,
+        the largest mean in magnitude."""
+        drift, noise = self._drift(jnp.asarray(cell), jnp.asarray(p_inst), space,
+                                   self.interval * dt)
+        return float(jnp.max(jnp.abs(drift)) * jnp.sign(jnp.sum(drift))), float(noise)
+
     def _drift(self, cell, p_inst, space: Space, dt):
         """(mean, standard deviation) of a move of length ``dt`` from ``cell`` at the
         instantaneous pressure ``p_inst``: of d eps (isotropic) or of the strain d delta
@@ -368,6 +378,40 @@ def long_move_warning(barostat: StochasticCellRescaling, modulus: float, dt: flo
             f"(compressibility K), K = {modulus:.3g} the bulk modulus under a move at the "
             f"last state: {long_move_effect(length, 'the compressibility read off them')}; "
             f"{LONG_MOVE_FIX}")
+
+
+#: How much a move of the box may change ln V before a stopped run's message blames the
+#: barostat's parameters (:func:`stop_advice`): a move should change it by much less than 1.
+LARGE_MOVE = 0.5
+
+
+def stop_advice(barostat: StochasticCellRescaling, cell, p_inst, space: Space,
+                dt: float) -> str | None:
+    """What to change when an NPT run stopped and its next move from the last good state
+    (``cell``, instantaneous pressure ``p_inst``) is large (:meth:`~StochasticCellRescaling.
+    move_size` beyond :data:`LARGE_MOVE`): the parameters at fault with their values, or None
+    when the moves are short (the cause is elsewhere: dt, the initial state)."""
+    drift, noise = barostat.move_size(cell, p_inst, space, dt)
+    if not (abs(drift) > LARGE_MOVE or noise > LARGE_MOVE):  # nan: no advice
+        return None
+    n = np.shape(cell)[-1]
+    volume = float(np.linalg.det(np.asarray(cell)))
+    said = []
+    if abs(drift) > LARGE_MOVE:
+        pressure = float(np.trace(np.asarray(p_inst))) / n
+        said.append(f"{drift:+.3g} from the pressure (barostat.compressibility "
+                    f"{barostat.compressibility:.3g} / tau {barostat.tau:.3g} x (P - P0) x "
+                    f"interval dt, P = {pressure:.3g})")
+    if noise > LARGE_MOVE:
+        said.append(f"+-{noise:.3g} from the noise (sqrt(2 barostat.temperature "
+                    f"{barostat.temperature:.3g} x compressibility x interval dt / (tau V)), "
+                    f"V = {volume:.3g})")
+    nearer = (", or start from a state whose pressure is nearer barostat.pressure"
+              if abs(drift) > LARGE_MOVE else "")
+    return (f"a move of the box from the last good state changes ln V by {' and '.join(said)}"
+            f", where it should change it by much less than 1: lower barostat.compressibility "
+            f"or raise barostat.tau (compressibility sets only the relaxation time "
+            f"tau / (compressibility K), K the bulk modulus){nearer}")
 
 
 #: The barostat's own random stream (folded into the seed), apart from a thermostat's.
@@ -693,5 +737,6 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
 __all__ = ["COUPLINGS", "NPTTrajectory", "STREAM", "StochasticCellRescaling", "advance",
            "LONG_MOVE", "LONG_MOVE_FIX", "c_rescale", "first_narrow_frame", "long_move_effect",
            "long_move_warning",
-           "move_length", "move_modulus", "move_modulus_jit", "run", "step_key",
+           "LARGE_MOVE", "move_length", "move_modulus", "move_modulus_jit", "run", "step_key",
+           "stop_advice",
            "variance_factor"]

@@ -421,16 +421,10 @@ class _NPT:
         narrow = barostat.first_narrow_frame(self.system, npt.cells[:keep])
         stop = None
         if keep < len(finite) or narrow is not None:
-            reason = (npt.stop_reason or "non-finite state or box under the barostat: reduce "
-                      "run.dt or raise barostat.tau (a stop in the first moves: check the "
-                      "initial state, e.g. bodies on top of each other, and barostat.pressure, "
-                      "compressibility and the temperature against the system's scale)"
-                      ) if narrow is None else (
-                      "the box shrank below twice the pair cut-off (the minimum image is no "
-                      "longer exact): lower barostat.pressure or start from a larger system.box")
+            reason = self._stop_reason(npt, keep, narrow)
             keep = keep if narrow is None else narrow
             bad = (npt.failed_step if narrow is None else int(frame_steps[keep])) - step
-            stop = StopReport(bad, (step + bad) * c.run.dt, 0, reason, reason)
+            stop = StopReport(bad, (step + bad) * c.run.dt, -1, reason, reason)
         cut = lambda a: np.asarray(a)[:keep]  # noqa: E731
         trajectory = Trajectory(times=cut(npt.times) - step * c.run.dt,
                                 states=jax.tree.map(cut, npt.states),
@@ -438,6 +432,24 @@ class _NPT:
                                 neighbors=npt.neighbors)
         self.cell = np.asarray(npt.cells[keep - 1])
         return trajectory, np.diagonal(npt.cells[:keep], axis1=1, axis2=2), stop
+
+    def _stop_reason(self, npt, keep: int, narrow: int | None) -> str:
+        """Why the piece ``npt`` stopped after ``keep`` good frames (``narrow``: the first
+        frame whose box is too narrow for the pair cut-off, or None), and what to change: the
+        barostat's parameters named with their values when its next move from the last good
+        frame is large (``barostat.stop_advice``)."""
+        if narrow is not None:
+            return ("the box shrank below twice the pair cut-off (the minimum image is no "
+                    "longer exact): lower barostat.pressure or start from a larger system.box")
+        if npt.stop_reason is not None:
+            return npt.stop_reason
+        advice = None if keep == 0 else barostat.stop_advice(
+            self.barostat, npt.cells[keep - 1], npt.observables["pressure"][keep - 1],
+            self.space, self.config.run.dt)
+        return "non-finite state or box under the barostat: " + (advice or (
+            "reduce run.dt or raise barostat.tau (a stop in the first moves: check the initial "
+            "state, e.g. bodies on top of each other, and barostat.pressure, compressibility "
+            "and the temperature against the system's scale)"))
 
 
 def constant_pressure(config: Config, thermostat):
@@ -480,14 +492,18 @@ class ThermostatHook:
 
 def _stop_message(report, offset: int, dt: float, labels, frames: int, output: Path) -> str:
     step = offset + report.step
-    body = labels[report.body] if report.body < len(labels) else str(report.body)
+    who = ""  # a stop of the box or of the list is no one body's
+    if report.body >= 0:
+        label = labels[report.body] if report.body < len(labels) else str(report.body)
+        who = f", body {report.body} ({label})"
     if report.reason == "left the group":
         cause = ("det phi crossed 0, the body left its configuration group (time step too "
                  "large or potential too weak to keep det phi > 0; group = \"L\" allows it)")
     else:
         cause = report.reason
-    return (f"simulation stopped at step {step} (t = {step * dt:.6g}), body {report.body} "
-            f"({body}): {cause}; the {frames} frames before it are kept in {output}")
+    kept = f"the {frames} frames before it are" if frames != 1 else "the frame before it is"
+    return (f"simulation stopped at step {step} (t = {step * dt:.6g}){who}: {cause}; {kept} "
+            f"kept in {output}")
 
 
 def demo_config_text() -> str:

@@ -85,7 +85,9 @@ _OK, _LEFT_GROUP, _NON_FINITE, _OVERFLOW = (int(s) for s in Stop)
 
 @dataclass(frozen=True)
 class StopReport:
-    """Why and where a run stopped: ``step`` (1-based) failed, the state of step-1 is kept."""
+    """Why and where a run stopped: ``step`` (1-based) failed, the state of step-1 is kept;
+    ``body``: the first body at fault, -1 for a stop that is no one body's (a neighbour-list
+    overflow, the box of an NPT run)."""
 
     step: int
     time: float
@@ -602,7 +604,7 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
                 f"configurations or reduce dt"
             )
         elif status == _OVERFLOW:
-            reason = "neighbour list overflow"
+            reason, body = "neighbour list overflow", -1
             message = (f"the neighbour list overflowed at step {step} (t between {t0:.6g} and "
                        f"{t1:.6g}) and could not be reallocated: {restarts.failure}; "
                        f"{OVERFLOW_FIX}")
