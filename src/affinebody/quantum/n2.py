@@ -36,6 +36,7 @@ from affinebody.quantum.bases import (
     Hermite1D,
     Radial2D,
     inv_x2_minus_inv_sinh2,
+    product_potential_matrix,
     solve_block,
     variational_parameters,
 )
@@ -62,9 +63,7 @@ def lebesgue2_block(potential: Potential, hbar: float, inertia: float, m1: int, 
     r2, B2 = f2.nodes()
     R1, R2 = np.meshgrid(r1, r2, indexing="ij")
     Q = np.stack([R1 + R2, R1 - R2], axis=-1)
-    V = np.asarray(potential(Q), float)
-    B = (B1[:, None, :, None] * B2[None, :, None, :]).reshape(quad * quad, size * size)
-    H = B.T @ (V.reshape(-1, 1) * B)
+    H = product_potential_matrix(B1, B2, potential(Q))
     eye = np.eye(size)
     H += (hbar**2 / (4 * inertia)) * (np.kron(f1.laplacian(), eye) + np.kron(eye, f2.laplacian()))
     return 0.5 * (H + H.T), Basis("lebesgue2", (f1, f2))
@@ -90,8 +89,7 @@ def haar2_block(potential: Potential, hbar: float, inertia: AffineInertia, spin:
     q = np.stack([(S + X) / 2, (S - X) / 2], axis=-1)
     with np.errstate(over="ignore"):  # e^q overflows far out, where V is +inf anyway
         V = np.asarray(potential(np.exp(q)), float) + smooth_x[:, None]
-    B = (Bx[:, None, :, None] * Bs[None, :, None, :]).reshape(qx * qs, nx * ns)
-    H = B.T @ (V.reshape(-1, 1) * B)
+    H = product_potential_matrix(Bx, Bs, V)
     H += np.kron((hbar**2 / M) * fx.laplacian(), np.eye(ns))
     H += np.kron(np.eye(nx), (hbar**2 / inertia.dilatation) * fs.laplacian())
     H += np.eye(nx * ns) * (hbar**2 * rotational * inertia.inv_I_tilde / 2)
