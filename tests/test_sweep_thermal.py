@@ -137,6 +137,30 @@ def test_npt_sweep_follows_the_isobaric_ideal_gas_law():
             assert abs(mean - point[name]) <= 0.06 * error, (name, row)
 
 
+def test_a_negative_move_length_shows_as_unstable_in_the_table():
+    """A point whose bulk modulus under a move is negative (a lattice under tension,
+    docs/pressure.md) has a negative mean move length, which is no length: the table says
+    "unstable" there and the usual mean ± error elsewhere."""
+    quantities = ("mean_total_energy", "mean_translational_temperature",
+                  "mean_internal_temperature", "mean_pressure", "mean_volume", "heat_capacity",
+                  "compressibility", "move_length", "rejected_fraction")
+
+    def point(index, move):
+        values = {k: 1.0 for k in quantities} | {"move_length": move,
+                                                 "rejected_fraction": math.nan}
+        return {"index": index, "parameters": {"barostat.pressure": -7.5 + index},
+                "sampled": 4, "failed": 0, "failures": {},
+                **values, **{k + "_error": 0.1 for k in quantities}}
+
+    summary = {"ensemble": "NPT", "samples": 4, "horizon": 1.0, "equilibration": 10,
+               "points": [point(0, -0.0016), point(1, 0.02)], "total_samples": 8, "failed": 0,
+               "wall_seconds": 1.0, "workers": 1, "scheduler": "local"}
+    table = table_cells(summary_lines(summary))
+    column = table[0].index("move")
+    assert table[1][column] == "unstable (K < 0)"
+    assert float(table[2][column].split(" ± ")[0]) == pytest.approx(0.02)
+
+
 def test_npt_sweep_with_tested_moves_follows_the_law_at_moves_five_times_as_long():
     """dt = 0.05: the volume relaxes at beta_T P / tau = 4 at P0 = 2, a move is 0.2 of that
     time, and the plain moves' boxes run away (by hand: <V> = 30 +- 16 for 2.5); with the

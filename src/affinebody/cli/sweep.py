@@ -64,10 +64,16 @@ def _thermal_lines(summary: dict) -> list[str]:
             shown["rejected_fraction"] = "rejected"
     for name in [*names, "sampled", "failed", *shown.values()]:
         table.add_column(name, justify="right", no_wrap=True)
+    def cell(point, key):
+        if key == "move_length" and point[key] < 0:
+            # a negative bulk modulus under a move (docs/pressure.md): the box is mechanically
+            # unstable there, and a move has no relaxation time to be measured against
+            return "unstable (K < 0)"
+        return _with_error(point[key], point[key + "_error"])
+
     for point in summary["points"]:
         table.add_row(*(str(point["parameters"][k]) for k in names), str(point["sampled"]),
-                      str(point["failed"]),
-                      *(_with_error(point[k], point[k + "_error"]) for k in shown))
+                      str(point["failed"]), *(cell(point, k) for k in shown))
     return _rendered(table, summary, f"{summary['total_samples'] - summary['failed']} samples "
                                      f"({summary['failed']} failed)")
 
