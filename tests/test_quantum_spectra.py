@@ -2,6 +2,7 @@
 levels and degeneracies (n = 2, 3), an independent Cartesian solver in R^4, honesty about
 continuous spectra, densities normalised under the right measure."""
 
+import math
 from itertools import product
 from math import comb
 
@@ -88,6 +89,19 @@ def test_product_potential_matrix_is_the_dense_quadrature_product():
     got = product_potential_matrix(B1, B2, V)
     np.testing.assert_allclose(got, dense, rtol=0, atol=1e-13 * np.max(np.abs(dense)))
     np.testing.assert_allclose(got, got.T, rtol=0, atol=1e-13 * np.max(np.abs(dense)))
+
+
+@pytest.mark.parametrize("hbar,inertia,k", [(0.8, 1.3, 2.0), (1.0, 2.0, 8.0), (0.3, 0.7, 0.5)])
+def test_auto_scale_of_an_oscillator_is_its_length(hbar, inertia, k):
+    """For V = k Tr G / 2 the basis length is the oscillator's, b^2 = hbar / (2 I omega) with
+    omega = sqrt(k / I) (the Gaussian exp(-(|z|^2 + |w|^2) / 2b^2) is the ground state). The
+    small basis's lowest levels are flat in b to round-off there, and its minimum had been
+    round-off's choice (1 % off after a change of summation order)."""
+    from affinebody.quantum.n2 import auto_scale_lebesgue2
+
+    exact = math.sqrt(hbar / (2 * inertia * math.sqrt(k / inertia)))
+    b = auto_scale_lebesgue2(lambda q: 0.5 * k * np.sum(q**2, axis=-1), hbar, inertia)
+    assert abs(b / exact - 1) < 2e-3
 
 
 def test_character_count_matches_invariant_count():
