@@ -670,7 +670,9 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
     ``neighbors.allocate(space, x, phi, cutoff, variable, skin, cell=cell)`` (splitting
     integrators): forces, virial and observables are then summed over the list, which follows
     the box (rebuilt after a drift or a barostat move when it may miss a pair); an overflow of
-    its capacities is recovered by reallocating at the last frame, as in ``simulate.run``.
+    its capacities is recovered by reallocating at the last frame, or stops the run there
+    (``failed_step``, ``stop_reason``) where it cannot be, as in ``simulate.run``
+    (``simulate.ListRestarts``).
     """
     space = pressure_module.check_space(system, as_space(space))
     if not isinstance(barostat, StochasticCellRescaling):
