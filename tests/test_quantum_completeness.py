@@ -320,3 +320,23 @@ def test_cli_json_states_whether_the_list_is_complete(tmp_path):
         dens = CliRunner().invoke(density, [str(path), "--state", str(data["unknown_states"][0]),
                                             "-o", str(tmp_path / "dens2")])
         assert dens.exit_code == 1 and "not converged" in dens.output
+
+
+def test_an_uncertified_search_says_what_could_certify_it():
+    """V = |det phi| does not confine the body (it vanishes on the singular matrices, out to
+    infinity), so its certified bound stays at its infimum 0 at every spin and no search
+    certifies the list. The warning says so and gives the bound; it had told the user to
+    "give the potential as an expression", which it already was. A Python function, which
+    has no bound, is still told that."""
+    settings = Settings(basis_size=8, max_spin=3)
+    kwargs = dict(inertia=1.0, levels=3, settings=settings)
+    expression = sp.solve("dalembert", 2, compile_potential("abs(det)", 2), 1.0, **kwargs)
+    function = sp.solve("dalembert", 2, lambda q: np.abs(np.prod(q, axis=-1)), 1.0, **kwargs)
+    assert not expression.certified and not function.certified
+    [said] = [w for w in expression.warnings if "conditional" in w]
+    assert "give the potential as an expression" not in said
+    bound = float(said.split("the bound beyond the last shell searched is ")[1].split(",")[0])
+    assert -1e-9 < bound <= 0.0  # the infimum of |det phi|, less the rounding of the intervals
+    assert "does not confine" in said
+    [said] = [w for w in function.warnings if "conditional" in w]
+    assert "give the potential as an expression" in said

@@ -241,9 +241,14 @@ def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
         why = reason or "the bound of the sectors not searched does not exceed the K-th level"
         certificate = (f"conditional: {why}; searched every sector up to max_spin = "
                        f"{settings.max_spin}{beyond}")
+        if bounds is None:  # a Python callable, or an expression the bounds do not take
+            fix = "raise quantum.max_spin or give the potential as an expression"
+        else:  # an expression whose bound stays below the K-th level
+            fix = (f"raise quantum.max_spin; the bound beyond the last shell searched is "
+                   f"{bounds.beyond(searched):.6g}, and a potential that does not confine the "
+                   f"body keeps it at its infimum at every spin")
         warnings.append(f"the {levels} lowest states are conditional: {why}; only sectors up "
-                        f"to max_spin = {settings.max_spin} were searched (raise "
-                        f"quantum.max_spin or give the potential as an expression)")
+                        f"to max_spin = {settings.max_spin} were searched ({fix})")
     merged, unconverged = found.levels(levels)
     return Spectrum(merged, unconverged, found.blocks, model, 2, "all", info, bounded, warnings,
                     certified=certified, certificate=certificate, requested=levels)
