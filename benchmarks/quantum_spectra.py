@@ -51,10 +51,12 @@ def main() -> None:
         result, t, mem = measure(lambda s=settings: sp.solve(
             "dalembert", 2, potential, 1.0, inertia=1.0, levels=COUNT, settings=s))
         reduced[size] = (np.array(result.energies(COUNT)), t, mem)
+        print(f"  (reduced, size {size}: {t:.1f} s)", file=sys.stderr, flush=True)
     for size in (12, 16, 20, 24):
         values, t, mem = measure(lambda s=size: cartesian_n2_levels(
             potential, 1.0, 1.0, COUNT, size=s, scale=scale))
         cartesian[size] = (values, t, mem)
+        print(f"  (cartesian, size {size}: {t:.1f} s)", file=sys.stderr, flush=True)
     ref_r = reduced[max(reduced)][0]
     ref_c = cartesian[max(cartesian)][0]
     print(f"lowest {COUNT} levels, n = 2 anharmonic; scale {scale:.6f}")
