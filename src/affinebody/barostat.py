@@ -166,7 +166,8 @@ class StochasticCellRescaling:
         the largest mean in magnitude."""
         drift, noise = self._drift(jnp.asarray(cell), jnp.asarray(p_inst), space,
                                    self.interval * dt)
-        return float(jnp.max(jnp.abs(drift)) * jnp.sign(jnp.sum(drift))), float(noise)
+        drift = jnp.ravel(drift)
+        return float(drift[jnp.argmax(jnp.abs(drift))]), float(noise)
 
     def _drift(self, cell, p_inst, space: Space, dt):
         """(mean, standard deviation) of a move of length ``dt`` from ``cell`` at the

@@ -791,12 +791,18 @@ def solve(fc: ForceConstants, k, vectors: bool = True, chunk: int = 256) -> Spec
     return Spectrum(k, omega2, np.concatenate(vecs), np.concatenate(chars))
 
 
+def path_labels(n: int, labels=None) -> tuple:
+    """The corners of a high-symmetry path: ``labels``, or :data:`DEFAULT_PATHS` for the
+    dimension ``n`` when None."""
+    return tuple(DEFAULT_PATHS[min(n, 3)] if labels is None else labels)
+
+
 def path(crystal: Crystal, labels=None, points: int = 50):
     """k points along the high-symmetry path ``labels`` (names of :data:`POINTS`, default
     :data:`DEFAULT_PATHS`), ``points`` per segment: (k [nk, n] Cartesian, distance [nk],
     ticks [(label, distance)])."""
     n = crystal.n
-    labels = tuple(DEFAULT_PATHS[min(n, 3)] if labels is None else labels)
+    labels = path_labels(n, labels)
     if len(labels) < 2:
         raise ValueError("phonons.path needs at least two points (e.g. ['G', 'X'])")
     corners = []
@@ -953,7 +959,7 @@ def elastic_constants(fc: ForceConstants) -> tuple[np.ndarray, float]:
 
 
 __all__ = [
-    "CHARACTERS", "DEFAULT_PATHS", "POINTS", "Crystal", "ForceConstants", "Spectrum",
+    "CHARACTERS", "DEFAULT_PATHS", "path_labels", "POINTS", "Crystal", "ForceConstants", "Spectrum",
     "algebra_basis", "bonds", "christoffel", "density_of_states", "elastic_constants",
     "find_cells", "force_constants", "kinetic_metric", "make_crystal", "mesh", "path", "relax",
     "relax_cell",

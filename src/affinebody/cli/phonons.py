@@ -91,7 +91,7 @@ def _check_k_points(crystal, labels, points: int, sizes, dos: bool) -> None:
     from affinebody import phonons
     from affinebody.config import refuse_beyond_memory
 
-    corners = len(labels) if labels else len(phonons.DEFAULT_PATHS[min(crystal.n, 3)])
+    corners = len(phonons.path_labels(crystal.n, labels))
     path_bytes, mesh_bytes = k_points_bytes(crystal, max(corners - 1, 1) * points, sizes)
     mesh_bytes = mesh_bytes if dos else 0.0
     if mesh_bytes > path_bytes:
