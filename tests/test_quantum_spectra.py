@@ -13,7 +13,7 @@ from affinebody.quantum import spectra as sp
 from affinebody.quantum.config import ConfigError, compile_potential, parse
 from affinebody.quantum.densities import densities
 from affinebody.quantum.levels import AffineInertia
-from affinebody.quantum.n2 import haar2_block
+from affinebody.quantum.n2 import auto_scale_haar2, haar2_block
 from oracles import cartesian_n2_levels
 
 K_SPRING, INERTIA, HBAR = 1.3, 0.7, 0.9
@@ -151,6 +151,32 @@ def test_free_affine_motion_reports_no_bound_states():
                                       centre=0.0))
     assert s.levels == [] or all(lv.energy > 10 for lv in s.levels)
     assert s.unconverged
+
+
+def test_given_affine_scales_are_used_for_a_potential_that_does_not_confine():
+    """af-is with V = tr G: V -> 0 as det phi -> 0, so the dilatation is free there
+    (continuous spectrum, no level may be claimed). With scale, scale_sigma and centre all
+    given, the solver must use them as given: it ran the automatic search anyway, whose
+    trial scales overflow tr G = e^(2 q1) + e^(2 q2), and stopped on LAPACK's refusal of a
+    non-finite matrix."""
+    s = sp.solve("af-is", 2, compile_potential("trG", 2), 1.0, I=1.0, A=0.2, B=0.3, levels=4,
+                 settings=sp.Settings(basis_size=12, max_spin=1, scale=1.0, scale_sigma=1.0,
+                                      centre=0.0))
+    assert (s.settings["scale"], s.settings["scale_sigma"], s.settings["centre"]) == (1, 1, 0)
+    assert s.levels == [] and s.unconverged
+
+
+def test_auto_scale_of_the_affine_basis_minimises_over_the_scales_not_given():
+    """With some of (scale, scale_sigma, centre) given, the others minimise the same
+    objective with those held: given the full minimiser's scale and centre, the free
+    scale_sigma is the full minimiser's (V = c (q1^2 + q2^2), whose objective sets
+    scale_sigma sharply)."""
+    V = lambda Q: 1.5 * np.sum(np.log(np.abs(Q)) ** 2, axis=-1)
+    inertia = AffineInertia("af-is", 1.0, 0.2, 0.3)
+    full = auto_scale_haar2(V, 1.0, inertia)
+    given = auto_scale_haar2(V, 1.0, inertia, (full[0], None, full[2]))
+    assert (given[0], given[2]) == (full[0], full[2])
+    assert abs(np.log(given[1] / full[1])) < 1e-2
 
 
 def test_confined_affine_model_converges_and_respects_dilatation_separation():

@@ -225,6 +225,16 @@ def level_errors(E: np.ndarray, err: np.ndarray, settings: Settings) -> np.ndarr
     starts = level_starts(E, settings.merge)
     return np.repeat(np.maximum.reduceat(err, starts), np.diff(np.r_[starts, len(E)]))
 
+def lowest_sum(H: np.ndarray, count: int) -> float:
+    """The sum of the ``count`` lowest eigenvalues of ``H``: the objective of the automatic
+    basis scales. +inf where ``H`` is not finite (the potential overflows float64 at a
+    quadrature point of a trial scale, e.g. ``trG`` = e^(2 q) far out): the search then
+    avoids that scale instead of stopping on LAPACK's refusal."""
+    if not np.all(np.isfinite(H)):
+        return np.inf
+    return float(np.sum(linalg.eigvalsh(H)[:count]))
+
+
 def variational_parameters(energy: Callable[[np.ndarray], float], start: np.ndarray
                            ) -> np.ndarray:
     """The basis parameters (log-scales, centre) minimising ``energy`` (Nelder-Mead from
@@ -238,5 +248,5 @@ __all__ = [
     "gauss_basis", "laguerre_jacobi", "hermite_jacobi", "Radial2D", "Hermite1D", "Basis",
     "sqrt_x_over_sinh", "inv_x2_minus_inv_sinh2", "sqrt_x_over_sinh_derivative_ratio",
     "dense_lowest", "product_potential_matrix", "solve_block", "level_errors",
-    "variational_parameters"
+    "lowest_sum", "variational_parameters"
 ]

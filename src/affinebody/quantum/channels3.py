@@ -32,6 +32,7 @@ from scipy import linalg, special
 
 from affinebody.quantum.bases import (
     Basis,
+    lowest_sum,
     solve_block,
     sqrt_x_over_sinh,
     sqrt_x_over_sinh_derivative_ratio,
@@ -468,7 +469,7 @@ def auto_scale_scalar3(potential: Potential, hbar: float, inertia: float) -> flo
     def energy(logb):
         b = float(np.exp(np.clip(logb[0], -2.4, 0.4)))
         H, _ = scalar3_block(potential, hbar, inertia, 4, b, quad)
-        return float(np.sum(linalg.eigvalsh(H)[:2]))
+        return lowest_sum(H, 2)
     return float(np.exp(np.clip(variational_parameters(energy, np.array([-0.5]))[0], -2.4, 0.4)))
 
 
@@ -485,7 +486,7 @@ def auto_scale_haar3(potential: Potential, hbar: float, inertia: AffineInertia
         b, bs = np.exp(np.clip(p[:2], -3, 1.5))
         grid = haar3_grid(b, bs, p[2], 24, 10, 12)
         H, _ = channel3_block("haar3", potential, hbar, inertia, grid, 4, b, bs, p[2])
-        return float(np.sum(linalg.eigvalsh(H)[:2]))
+        return lowest_sum(H, 2)
     p = variational_parameters(energy, np.array([-0.5, -0.5, centre0]))
     b, bs = np.exp(np.clip(p[:2], -3, 1.5))
     return float(b), float(bs), float(p[2])

@@ -29,13 +29,13 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from scipy import linalg
 
 from affinebody.quantum.bases import (
     Basis,
     Hermite1D,
     Radial2D,
     inv_x2_minus_inv_sinh2,
+    lowest_sum,
     product_potential_matrix,
     solve_block,
     variational_parameters,
@@ -108,7 +108,7 @@ def auto_scale_lebesgue2(potential: Potential, hbar: float, inertia: float) -> f
     def energy(logb, size):
         b = float(np.exp(np.clip(logb[0], -6, 6)))
         H, _ = lebesgue2_block(potential, hbar, inertia, 0, 0, size, b, 30)
-        return float(np.sum(linalg.eigvalsh(H)[:3]))
+        return lowest_sum(H, 3)
 
     logb = variational_parameters(lambda p: energy(p, 6), np.array([0.0]))
     lowest = energy(logb, 6)
@@ -118,20 +118,30 @@ def auto_scale_lebesgue2(potential: Potential, hbar: float, inertia: float) -> f
     return float(np.exp(np.clip(logb[0], -6, 6)))
 
 
-def auto_scale_haar2(potential: Potential, hbar: float, inertia: AffineInertia
+def auto_scale_haar2(potential: Potential, hbar: float, inertia: AffineInertia,
+                     given: tuple[float | None, float | None, float | None] = (None,) * 3
                      ) -> tuple[float, float, float]:
-    """(scale_x, scale_sigma, centre_sigma) minimising the sum of low (0,0)-sector levels."""
+    """(scale_x, scale_sigma, centre_sigma) minimising the sum of the 3 lowest (0,0)-sector
+    levels in a basis of 6 x 6 functions, over those of the three that ``given`` leaves None
+    (the others are kept as given)."""
     sig = np.linspace(-8, 8, 161)
     Vline = np.asarray(potential(np.exp(np.stack([sig / 2, sig / 2], -1))), float)
     centre0 = float(sig[np.argmin(np.where(np.isfinite(Vline), Vline, np.inf))])
+    start = (0.0, 0.0, centre0)  # log scale_x, log scale_sigma, centre_sigma
+    free = [i for i, value in enumerate(given) if value is None]
 
-    def energy(p):
-        bx, bs = np.exp(np.clip(p[:2], -5, 3))
-        H, _ = haar2_block(potential, hbar, inertia, 0, 0, (6, 6), (bx, bs), p[2], (30, 30))
-        return float(np.sum(linalg.eigvalsh(H)[:3]))
-    p = variational_parameters(energy, np.array([0.0, 0.0, centre0]))
-    bx, bs = np.exp(np.clip(p[:2], -5, 3))
-    return float(bx), float(bs), float(p[2])
+    def parameters(x):
+        p = list(given)
+        for i, value in zip(free, x, strict=True):
+            p[i] = float(np.exp(np.clip(value, -5, 3))) if i < 2 else float(value)
+        return tuple(p)
+
+    def energy(x):
+        bx, bs, c = parameters(x)
+        H, _ = haar2_block(potential, hbar, inertia, 0, 0, (6, 6), (bx, bs), c, (30, 30))
+        return lowest_sum(H, 3)
+    return parameters(variational_parameters(energy, np.array([start[i] for i in free])))
+
 
 def n2_sectors(key: tuple, model: str) -> tuple[Sector, ...]:
     """The (s, k) sectors sharing the reduced block ``key``."""
@@ -175,10 +185,9 @@ def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
         shell_of = lambda key: key[0] + key[1]
     else:
         inert = affine
-        bx, bs, c0 = auto_scale_haar2(potential, hbar, inert)
-        bx = settings.scale or bx
-        bs = settings.scale_sigma or bs
-        c0 = c0 if settings.centre is None else settings.centre
+        bx, bs, c0 = settings.scale, settings.scale_sigma, settings.centre
+        if bx is None or bs is None or c0 is None:
+            bx, bs, c0 = auto_scale_haar2(potential, hbar, inert, (bx, bs, c0))
         info.update(scale=bx, scale_sigma=bs, centre=c0)
 
         def build_for(s, k):
