@@ -8,7 +8,8 @@ is one line too, ``warning: ...``), and
 - exit 3 (:data:`EXIT_STOPPED`): a computation that stopped or did not converge, with what it
   produced kept: a run stopped on a non-finite or singular state (frames and the last
   checkpoint are kept), densities above their tolerance (written and flagged);
-- exit 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C); what was written is kept;
+- exit 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C); what was written is kept (the
+  first Ctrl-C stops a run: :func:`raise_if_interrupted`);
 - exit 2: a usage error that click finds before a command runs (a flag's value of the wrong
   type, an unknown option, a missing argument), one line too (``affinebody.cli.main``).
 """
@@ -17,7 +18,9 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import signal
 import sys
+import threading
 import warnings
 
 import click
@@ -31,6 +34,41 @@ def fail(message: str, code: int = EXIT_BAD_INPUT):
     """Print the first line of ``message`` on stderr and exit with ``code``."""
     click.echo(message.splitlines()[0] if message else "error", err=True)
     sys.exit(code)
+
+
+#: Set by Ctrl-C while a command runs (:func:`raise_if_interrupted`).
+_INTERRUPTED = threading.Event()
+
+
+def _note_interrupt(signum, frame):
+    """SIGINT: Python's own KeyboardInterrupt, and a note of it for :func:`raise_if_interrupted`."""
+    _INTERRUPTED.set()
+    raise KeyboardInterrupt
+
+
+def raise_if_interrupted() -> None:
+    """KeyboardInterrupt if Ctrl-C was pressed while the command ran. Python drops a
+    KeyboardInterrupt raised inside a garbage-collector callback (JAX registers one: the
+    interrupt was printed as "Exception ignored in: <function _xla_gc_callback ...>" and a run
+    went on until a second Ctrl-C); the long loops of the commands call this between chunks,
+    so the first Ctrl-C stops them."""
+    if _INTERRUPTED.is_set():
+        raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _interrupts_noted():
+    """:func:`_note_interrupt` as the SIGINT handler while the command runs (main thread
+    only: elsewhere Python's handler stays)."""
+    _INTERRUPTED.clear()
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, _note_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):
@@ -47,14 +85,13 @@ def one_line_errors(command):
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
         try:
-            with warnings.catch_warnings():
+            with warnings.catch_warnings(), _interrupts_noted():
                 warnings.showwarning = _one_line_warning
                 return command(*args, **kwargs)
         except SimulationStopped as err:
             fail(f"error: {err}", EXIT_STOPPED)
-        except KeyboardInterrupt:
-            fail("interrupted: what was written so far is kept (affinebody run continues with "
-                 "--resume)", EXIT_INTERRUPTED)
+        except KeyboardInterrupt as err:  # a command may say what it kept: KeyboardInterrupt(text)
+            fail(f"interrupted: {str(err) or 'what was written so far is kept'}", EXIT_INTERRUPTED)
         except ValueError as err:
             text = str(err)
             fail(text if text.startswith(("config error", "error")) else f"error: {text}")
@@ -99,4 +136,4 @@ def refuse_writing_over(written, read, what: str) -> None:
 
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_INTERRUPTED", "EXIT_STOPPED", "fail", "not_finite_as",
-           "one_line_errors", "refuse_writing_over"]
+           "one_line_errors", "raise_if_interrupted", "refuse_writing_over"]

@@ -8,6 +8,7 @@ and prints the summaries.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import click
 
 from affinebody._checks import enable_x64
 from affinebody.checkpoint import checkpoint_path
-from affinebody.cli.common import one_line_errors, refuse_writing_over
+from affinebody.cli.common import one_line_errors, raise_if_interrupted, refuse_writing_over
 from affinebody.config import (
     Config,
     build,
@@ -76,13 +77,29 @@ def _progress_callback(quiet: bool):
 
 
 def _run_with_progress(config: Config, output: Path, steps, resume: bool, quiet: bool,
-                       overwrite: bool = False):
+                       overwrite: bool = False, resumable: bool = True):
+    """``run_simulation`` with the progress bar, stopped by the first Ctrl-C (checked after
+    each chunk, :func:`~affinebody.cli.common.raise_if_interrupted`); an interrupted run
+    (``resumable``: of a command with --resume) says whether it can be resumed."""
     bar, update = _progress_callback(quiet)
-    options = dict(steps=steps, resume=resume, overwrite=overwrite)
-    if bar is None:
-        return run_simulation(config, output, **options)
-    with bar:
-        return run_simulation(config, output, progress=update, **options)
+
+    def progress(step: int, total: int, drift: float) -> None:
+        raise_if_interrupted()
+        if update is not None:
+            update(step, total, drift)
+    try:
+        with bar if bar is not None else contextlib.nullcontext():
+            return run_simulation(config, output, progress=progress, steps=steps,
+                                  resume=resume, overwrite=overwrite)
+    except KeyboardInterrupt:
+        if not resumable:
+            raise
+        if checkpoint_path(output).exists():
+            raise KeyboardInterrupt(f"{output} and its checkpoint are kept: the same command "
+                                    f"with --resume continues the run") from None
+        raise KeyboardInterrupt(f"before the first checkpoint: {output} keeps the frames "
+                                f"written so far, and there is no checkpoint to --resume "
+                                f"from (run again with --overwrite)") from None
 
 
 @click.command("run")
@@ -150,7 +167,8 @@ def demo(output_dir, steps, quiet):
     prepare_process(config)
     output = folder / "demo.h5"
     # the demo's folder is its own: a repeated `make demo` replaces its trajectory
-    summary = _run_with_progress(config, output, steps, False, quiet, overwrite=True)
+    summary = _run_with_progress(config, output, steps, False, quiet, overwrite=True,
+                                 resumable=False)
     trajectory = read_trajectory(output)
     images = plot_all(trajectory, folder)
     xyz = folder / "demo.xyz"

@@ -7,14 +7,13 @@ import contextlib
 import io
 import json
 import math
-import sys
 from pathlib import Path
 
 import click
 
 from affinebody._checks import enable_x64
 from affinebody._host import keep_freed_memory
-from affinebody.cli.common import one_line_errors
+from affinebody.cli.common import one_line_errors, raise_if_interrupted
 from affinebody.sweep import json_safe, run_sweep
 
 
@@ -166,14 +165,18 @@ def sweep(config_file, samples, seed, scheduler, workers, output_dir, as_json):
     folder = Path(output_dir) if output_dir else Path(config_file).with_name(
         Path(config_file).stem + "_sweep")
     bar, update = _progress_bar(True)
+
+    def progress(done: int, total: int) -> None:
+        raise_if_interrupted()  # the first Ctrl-C stops the sweep
+        if update is not None:
+            update(done, total)
     try:
         with bar:
             result = run_sweep(config, samples=samples, seed=seed, scheduler=scheduler,
-                               workers=workers, output=folder, progress=update)
+                               workers=workers, output=folder, progress=progress)
     except KeyboardInterrupt:
-        click.echo(f"interrupted: the task files written so far are kept in {folder / 'tasks'}",
-                   err=True)
-        sys.exit(130)
+        raise KeyboardInterrupt(f"the task files written so far are kept in "
+                                f"{folder / 'tasks'}") from None
     if as_json:
         click.echo(json.dumps(json_safe(result.summary)))
     else:
