@@ -10,6 +10,8 @@ is one line too, ``warning: ...``), and
   checkpoint are kept), densities above their tolerance (written and flagged);
 - exit 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C); what was written is kept (the
   first Ctrl-C stops a run: :func:`raise_if_interrupted`);
+- exit 141 (:data:`EXIT_BROKEN_PIPE`, 128 + SIGPIPE as a shell reports a tool the signal
+  ended): the reader of stdout went away (``affinebody ... | head``); nothing is printed;
 - exit 2: a usage error that click finds before a command runs (a flag's value of the wrong
   type, an unknown option, a missing argument), one line too (``affinebody.cli.main``).
 """
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import os
 import signal
 import sys
 import threading
@@ -28,6 +31,7 @@ import click
 EXIT_BAD_INPUT = 1
 EXIT_STOPPED = 3
 EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141
 
 
 def fail(message: str, code: int = EXIT_BAD_INPUT):
@@ -92,6 +96,9 @@ def one_line_errors(command):
             fail(f"error: {err}", EXIT_STOPPED)
         except KeyboardInterrupt as err:  # a command may say what it kept: KeyboardInterrupt(text)
             fail(f"interrupted: {str(err) or 'what was written so far is kept'}", EXIT_INTERRUPTED)
+        except BrokenPipeError:  # the reader of stdout has gone (`affinebody ... | head`)
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing to flush
+            sys.exit(EXIT_BROKEN_PIPE)
         except ValueError as err:
             text = str(err)
             fail(text if text.startswith(("config error", "error")) else f"error: {text}")
@@ -135,5 +142,5 @@ def refuse_writing_over(written, read, what: str) -> None:
         raise ValueError(f"{what} {written} is the file this command reads: write elsewhere")
 
 
-__all__ = ["EXIT_BAD_INPUT", "EXIT_INTERRUPTED", "EXIT_STOPPED", "fail", "not_finite_as",
-           "one_line_errors", "raise_if_interrupted", "refuse_writing_over"]
+__all__ = ["EXIT_BAD_INPUT", "EXIT_BROKEN_PIPE", "EXIT_INTERRUPTED", "EXIT_STOPPED", "fail",
+           "not_finite_as", "one_line_errors", "raise_if_interrupted", "refuse_writing_over"]
