@@ -320,7 +320,7 @@ def test_npt_run_writes_the_box_pressure_and_volume_and_resumes_bit_for_bit(tmp_
     text = NPT_CONFIG.replace("temperature = 0.3\n", "") + (
         '[thermostat]\nkind = "langevin"\ntemperature = 0.3\nfriction = 1.0\nseed = 5\n')
     config = check_config(parse_config(text))
-    run_simulation(config, tmp_path / "whole.h5")
+    summary = run_simulation(config, tmp_path / "whole.h5")
     run_simulation(config, tmp_path / "resumed.h5", steps=200)
     run_simulation(config, tmp_path / "resumed.h5", resume=True)
     whole, resumed = (read_trajectory(tmp_path / f"{k}.h5") for k in ("whole", "resumed"))
@@ -335,6 +335,11 @@ def test_npt_run_writes_the_box_pressure_and_volume_and_resumes_bit_for_bit(tmp_
     np.testing.assert_allclose(whole.observables["volume"], np.prod(whole.boxes, axis=1),
                                rtol=1e-12)
     assert whole.observables["pressure"].shape == (9, 2, 2)
+    # the summary's energies are the conserved effective energy's, and it says so (it said
+    # "energy", the word for H in a run without a bath)
+    effective = whole.observables["effective_energy"]
+    assert (summary.initial_energy, summary.final_energy) == (effective[0], effective[-1])
+    assert summary.lines()[2].startswith("effective energy ")
     from affinebody.plotting import plot_all
 
     written = plot_all(whole, tmp_path / "plots")

@@ -96,6 +96,9 @@ class RunSummary:
     barostat_moves: tuple[int, int] | None = None
     #: how the pair forces were summed, in words (:func:`pair_forces`; "" without pair terms)
     pair_forces: str = ""
+    #: the observable whose drift the summary gives: "total_energy" or, with a thermostat or
+    #: barostat, "effective_energy" (H less the heat and work put in)
+    energy_observable: str = "total_energy"
 
     @property
     def integrate_seconds(self) -> float:
@@ -117,7 +120,8 @@ class RunSummary:
             f"{done} steps in {self.wall_seconds:.2f} s: compiling {self.compile_seconds:.2f} s, "
             f"integrating {self.integrate_seconds:.2f} s ({rate:.3g} steps/s, "
             f"{rate * self.bodies:.3g} body-steps/s)",
-            f"energy {self.initial_energy:.12g} -> {self.final_energy:.12g}, "
+            f"{self.energy_observable.replace('_', ' ')} {self.initial_energy:.12g} -> "
+            f"{self.final_energy:.12g}, "
             f"max relative error {self.max_relative_energy_error:.3e}",
         ] + ([] if not (self.barostat_moves and self.barostat_moves[1]) else [
             f"barostat: {self.barostat_moves[0]} of {self.barostat_moves[1]} moves rejected "
@@ -365,7 +369,8 @@ def run_simulation(
                       phases=phases.seconds, compile_seconds=compiling.seconds,
                       barostat_moves=None if npt is None or not npt.barostat.metropolis else (
                           rejected, npt.barostat.moves(start, step)),
-                      pair_forces=pair_forces(built.system, config.n, built.neighbor_list))
+                      pair_forces=pair_forces(built.system, config.n, built.neighbor_list),
+                      energy_observable=energy_key)
 
 
 def pair_forces(system, n: int, listed: bool) -> str:
