@@ -190,7 +190,8 @@ def demo(output_dir, steps, quiet):
 @click.option("--fps", type=int, default=20, show_default=True, help="Animation frame rate.")
 @one_line_errors
 def plot(trajectory_file, output_dir, animate, fps):
-    """Plot energy, momentum maps, deformation invariants, volumes and (n = 2) the bodies."""
+    """Plot energy, momentum maps, deformation invariants, temperatures, pressure and volume
+    (NPT), and the bodies (ellipses for n = 2, ellipsoids for n = 3)."""
     from affinebody.plotting import plot_all
 
     enable_x64()
