@@ -161,6 +161,28 @@ def test_a_negative_move_length_shows_as_unstable_in_the_table():
     assert float(table[2][column].split(" ± ")[0]) == pytest.approx(0.02)
 
 
+def test_a_scan_of_the_time_step_shows_each_points_horizon_and_values_as_written():
+    """run.dt scanned over {start, stop, num}: each point runs steps x its own dt, so the
+    table's title may not give one horizon (it gave the base config's) and a column gives
+    each point's; the values show as written (0.15, not 0.15000000000000002)."""
+    quantities = ("mean_total_energy", "mean_translational_temperature",
+                  "mean_internal_temperature", "mean_pressure", "mean_volume", "heat_capacity")
+    dts = np.linspace(0.1, 0.2, 3)
+    assert repr(float(dts[1])) != "0.15"  # the range's arithmetic, as the sweep makes it
+    points = [{"index": i, "parameters": {"run.dt": float(dt)}, "horizon": 200 * float(dt),
+               "sampled": 4, "failed": 0, "failures": {}, **{k: 1.0 for k in quantities},
+               **{k + "_error": 0.1 for k in quantities}} for i, dt in enumerate(dts)]
+    summary = {"ensemble": "NVT", "samples": 4, "horizon": 2.0, "equilibration": 10,
+               "points": points, "total_samples": 12, "failed": 0, "wall_seconds": 1.0,
+               "workers": 1, "scheduler": "local"}
+    lines = summary_lines(summary)
+    assert "horizon per point" in lines[0] and "2 time units" not in lines[0]
+    table = table_cells(lines)
+    assert [row[table[0].index("run.dt")] for row in table[1:]] == ["0.1", "0.15", "0.2"]
+    shown = [float(row[table[0].index("horizon")]) for row in table[1:]]
+    np.testing.assert_allclose(shown, 200 * dts, rtol=1e-6)
+
+
 def test_npt_sweep_with_tested_moves_follows_the_law_at_moves_five_times_as_long():
     """dt = 0.05: the volume relaxes at beta_T P / tau = 4 at P0 = 2, a move is 0.2 of that
     time, and the plain moves' boxes run away (by hand: <V> = 30 +- 16 for 2.5); with the

@@ -21,6 +21,22 @@ def _format(value: float, digits: int = 3) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
 
 
+def _parameter(value) -> str:
+    """A scanned parameter's value as written (0.15, not the 0.15000000000000002 of a
+    ``{start, stop, num}`` range's arithmetic)."""
+    return f"{value:.12g}" if isinstance(value, float) else str(value)
+
+
+def _horizon(summary: dict, phrase: str) -> tuple[str, bool]:
+    """The title's horizon (``phrase`` formatting its value), or "horizon per point" where
+    the points' horizons differ (run.dt or run.steps scanned): then the table has a column."""
+    horizons = {point["horizon"] for point in summary["points"]
+                if math.isfinite(point.get("horizon", math.nan))}
+    if len(horizons) > 1:
+        return "horizon per point", True
+    return phrase.format(summary["horizon"]), False
+
+
 def _with_error(mean: float, error: float) -> str:
     """``mean ± error``: the error to two significant digits and the mean to the same decimal
     place (``0.979 ± 0.014``, ``420 ± 110``), the convention of a measured value; far from 1
@@ -47,12 +63,16 @@ def _thermal_lines(summary: dict) -> list[str]:
     from rich.table import Table
 
     # no vertical rules: the columns of "mean ± error" take less room
+    horizon, per_point = _horizon(summary, "{:.6g} time units")
     table = Table(box=box.SIMPLE_HEAD,
                   title=f"{summary['ensemble']} sweep: {summary['samples']} samples per point, "
-                        f"{summary['horizon']:.6g} time units, averages after "
-                        f"{summary['equilibration']} steps")
+                        f"{horizon}, averages after {summary['equilibration']} steps")
     names = list(summary["points"][0]["parameters"]) if summary["points"] else []
-    shown = {"mean_total_energy": "<E>", "mean_translational_temperature": "<T_tr>",
+    if per_point:
+        shown = {"horizon": "horizon"}
+    else:
+        shown = {}
+    shown |= {"mean_total_energy": "<E>", "mean_translational_temperature": "<T_tr>",
              "mean_internal_temperature": "<T_int>", "mean_pressure": "<P>",
              "mean_volume": "<V>", "heat_capacity": "C"}
     if summary["ensemble"] == "NPT":
@@ -64,6 +84,8 @@ def _thermal_lines(summary: dict) -> list[str]:
     for name in [*names, "sampled", "failed", *shown.values()]:
         table.add_column(name, justify="right", no_wrap=True)
     def cell(point, key):
+        if key == "horizon":
+            return _format(point[key], 6)
         if key == "move_length" and point[key] < 0:
             # a negative bulk modulus under a move (docs/pressure.md): the box is mechanically
             # unstable there, and a move has no relaxation time to be measured against
@@ -71,7 +93,7 @@ def _thermal_lines(summary: dict) -> list[str]:
         return _with_error(point[key], point[key + "_error"])
 
     for point in summary["points"]:
-        table.add_row(*(str(point["parameters"][k]) for k in names), str(point["sampled"]),
+        table.add_row(*(_parameter(point["parameters"][k]) for k in names), str(point["sampled"]),
                       str(point["failed"]), *(cell(point, k) for k in shown))
     return _rendered(table, summary, f"{summary['total_samples'] - summary['failed']} samples "
                                      f"({summary['failed']} failed)")
@@ -101,16 +123,18 @@ def summary_lines(summary: dict) -> list[str]:
     if "ensemble" in summary:
         return _thermal_lines(summary)
 
-    table = Table(title=f"sweep: {summary['samples']} samples per point, horizon "
-                        f"{summary['horizon']:.6g}, bound {summary['bound']:.6g}")
+    horizon, per_point = _horizon(summary, "horizon {:.6g}")
+    table = Table(title=f"sweep: {summary['samples']} samples per point, {horizon}, bound "
+                        f"{summary['bound']:.6g}")
     names = list(summary["points"][0]["parameters"]) if summary["points"] else []
-    for name in [*names, "bounded", "unbounded", "failed", "fraction bounded",
-                 "|dE/E| median", "max rel. volume", "det phi range"]:
+    for name in [*names, *(["horizon"] if per_point else []), "bounded", "unbounded", "failed",
+                 "fraction bounded", "|dE/E| median", "max rel. volume", "det phi range"]:
         table.add_column(name, justify="right")
     for point in summary["points"]:
         fraction = _with_error(point["fraction_bounded"], point["fraction_bounded_error"])
         table.add_row(
-            *(str(point["parameters"][k]) for k in names),
+            *(_parameter(point["parameters"][k]) for k in names),
+            *([_format(point["horizon"], 6)] if per_point else []),
             str(point["bounded"]), str(point["unbounded"]), str(point["failed"]), fraction,
             _format(point["energy_error_median"], 2), _format(point["max_relative_volume"]),
             f"{_format(point['min_det'])} .. {_format(point['max_det'])}")
