@@ -34,6 +34,7 @@ Run: .venv/bin/python benchmarks/evolve_ehrenfest.py [at|phi|n3] [hbar ...]   (d
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -215,9 +216,13 @@ def n3_packets(hbars: list[float]) -> None:
 
 
 def main() -> None:
-    args = sys.argv[1:]
-    kind = args.pop(0) if args and args[0] in ("at", "phi", "n3") else "at"
-    hbars = [float(h) for h in args]
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("kind", nargs="?", choices=("at", "phi", "n3"), default="at",
+                        help="packets of --at (n = 2), of --phi (af-is), or n = 3")
+    parser.add_argument("hbars", nargs="*", type=float, help="hbar values (default: a row each)")
+    args = parser.parse_args()
+    kind, hbars = args.kind, args.hbars
     if kind == "at":
         at_packets(hbars or [0.1, 0.07, 0.05, 0.035, 0.025])
     elif kind == "n3":

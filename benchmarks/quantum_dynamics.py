@@ -16,6 +16,7 @@ Run: .venv/bin/python benchmarks/quantum_dynamics.py
 
 from __future__ import annotations
 
+import argparse
 import os
 import subprocess
 import sys
@@ -111,4 +112,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.parse_args()  # --help: this text, not the benchmark
     main()

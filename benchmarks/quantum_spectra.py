@@ -12,6 +12,7 @@ Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/quantum_spectra.py
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 import tracemalloc
@@ -100,5 +101,8 @@ def classical_limit() -> None:
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.parse_args()  # --help: this text, not the benchmark
     main()
     classical_limit()

@@ -12,6 +12,7 @@ Run: ``.venv/bin/python benchmarks/work_precision.py``
 
 from __future__ import annotations
 
+import argparse
 import time
 
 import jax
@@ -100,4 +101,7 @@ def main():
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.parse_args()  # --help: this text, not the benchmark
     main()
