@@ -389,9 +389,10 @@ LARGE_MOVE = 0.5
 def stop_advice(barostat: StochasticCellRescaling, cell, p_inst, space: Space,
                 dt: float) -> str | None:
     """What to change when an NPT run stopped and its next move from the last good state
-    (``cell``, instantaneous pressure ``p_inst``) is large (:meth:`~StochasticCellRescaling.
-    move_size` beyond :data:`LARGE_MOVE`): the parameters at fault with their values, or None
-    when the moves are short (the cause is elsewhere: dt, the initial state)."""
+    (``cell``, instantaneous pressure ``p_inst``) is large
+    (:meth:`~StochasticCellRescaling.move_size` beyond :data:`LARGE_MOVE`): the parameters at
+    fault with their values, or None when the moves are short (the cause is elsewhere: dt,
+    the initial state)."""
     drift, noise = barostat.move_size(cell, p_inst, space, dt)
     if not (abs(drift) > LARGE_MOVE or noise > LARGE_MOVE):  # nan: no advice
         return None

@@ -67,8 +67,8 @@ class QuantumSection(_Section):
     max_spin: int = 40
     #: n = 3 d'Alembert: radial functions per harmonic of degree <= basis_size (n3.harmonic_block)
     radial_size: int | None = None
-    #: ``affinebody density``: output points per density (default 301 for n = 2, 151 for n = 3)
-    #: and the quadrature error allowed, relative to each density's peak
+    #: ``affinebody density``: output points per density (default densities.POINTS: 301 for
+    #: n = 2, 101 for n = 3) and the quadrature error allowed, relative to each density's peak
     density_points: int | None = None
     density_tolerance: float = 1e-8
 
