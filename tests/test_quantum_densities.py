@@ -331,3 +331,73 @@ def test_n3_harmonic_basis_density_of_an_excited_state_matches_the_chi_squared()
     t = x / 0.5
     chi = t**3.5 * np.exp(-t / 2) / (2**4.5 * special.gamma(4.5)) / 0.5
     assert np.max(np.abs(p - chi * (t / 2 - 4.5) ** 2 / 4.5)) < 1e-8
+
+
+def test_n2_g_components_at_the_default_basis_size_match_closed_forms():
+    """The default n = 2 basis (24) of the oscillator 0.5 tr G (hbar = I = 1, so phi's entries
+    are iid N(0, 1/2)): G11 = |phi e1|^2 is exponential with mean 1 and G12 Laplace
+    e^{-2|y|}, to 1e-6 of their peak 1 as at basis 9 (test_quantum_orientations). The G rule
+    evaluates the basis at rho^2 = y / g with g -> 0 at its end points (rho^2/b^2 up to
+    ~1e17): the plain Laguerre recurrence overflowed there before e^{-t/2} = 0 was applied,
+    and every G density was nan."""
+    from affinebody.quantum.config import compile_potential
+    from affinebody.quantum.densities import g_component_densities, pure_state
+
+    s = sp.solve("dalembert", 2, compile_potential("0.5*trG", 2), 1.0, inertia=1.0, levels=1,
+                 settings=sp.Settings(basis_size=24))
+    g = g_component_densities([(1.0, pure_state(s, {0: 1.0}))], points=13,
+                              components=("G11", "G12"))
+    g11, g12 = g["G11"], g["G12"]
+    assert g11.converged and g12.converged
+    assert np.abs(g11.density - np.exp(-g11.x)).max() < 1e-6
+    assert np.abs(g12.density - np.exp(-2 * np.abs(g12.x))).max() < 1e-6
+
+
+def test_basis_functions_far_outside_their_support_are_zero_not_nan():
+    """Radial2D and Hermite1D at large degree: the closed forms (scipy's Laguerre and Hermite
+    polynomials) where the functions live, exactly 0 far out (e^{-t/2} t^j underflows), with
+    no overflow on the way (the recurrence is rescaled by powers of two)."""
+    from affinebody.quantum.bases import Hermite1D, Radial2D
+
+    m, b, size = 2, 0.8, 60
+    radial = Radial2D(m, size, b, size)
+    r = np.array([0.3, 2.0, 6.0])
+    t = (r / b) ** 2
+    for j in (0, 7, size - 1):
+        norm = math.exp(0.5 * (special.gammaln(j + 1) - special.gammaln(j + m + 1)))
+        ref = math.sqrt(2) / b * t ** (m / 2) * np.exp(-t / 2) * norm \
+            * special.eval_genlaguerre(j, m, t)
+        assert np.max(np.abs(radial.evaluate(r)[:, j] - ref)) < 1e-12
+    hermite = Hermite1D(size, 0.5, 0.3, size)
+    x = np.array([-2.0, 0.3, 1.1])
+    y = (x - 0.3) / 0.5
+    for j in (0, 7, size - 1):
+        ref = np.exp(-y * y / 2 - 0.5 * special.gammaln(j + 1) - j / 2 * math.log(2)) \
+            * special.eval_hermite(j, y) / (math.pi**0.25 * math.sqrt(0.5))
+        assert np.max(np.abs(hermite.evaluate(x)[:, j] - ref)) < 1e-12
+    with np.errstate(over="raise", invalid="raise"):
+        far_r = radial.evaluate(np.array([1e3, 1e9, 1e60, 1e200, np.inf]))
+        far_x = hermite.evaluate(np.array([-np.inf, -1e100, 1e3, 1e9, 1e300]))
+    assert np.all(far_r == 0) and np.all(far_x == 0)
+
+
+def test_density_command_exits_3_on_a_non_finite_g_density(tmp_path, monkeypatch):
+    """A G density that is not finite (as all were at the default n = 2 basis before the
+    recurrence was rescaled) is written flagged, warned in one line and the command exits 3
+    (EXIT_STOPPED), not 0: --state with --orientation took its exit status from the
+    invariants' densities only."""
+    from click.testing import CliRunner
+
+    from affinebody.cli.common import EXIT_STOPPED
+    from affinebody.quantum import densities as dens
+    from affinebody.quantum.cli import density
+
+    path = tmp_path / "osc.toml"
+    path.write_text('[system]\nn = 2\n[quantum]\nkinetic = "dalembert"\ninertia = 1.0\n'
+                    'potential = "0.5*trG"\nbasis_size = 9\ndensity_points = 11\n')
+    monkeypatch.setattr(dens, "_g_density", lambda pure, name, y, nb, nr: np.full(len(y), np.nan))
+    result = CliRunner().invoke(density, [str(path), "--state", "0", "--orientation", "-o",
+                                          str(tmp_path / "o")])
+    assert result.exit_code == EXIT_STOPPED, result.output
+    lines = [line for line in result.output.splitlines() if "not finite" in line]
+    assert len(lines) == 3 and all(line.startswith("warning: density of G") for line in lines)

@@ -44,6 +44,47 @@ def hermite_jacobi(size: int) -> tuple[np.ndarray, np.ndarray]:
     return np.zeros(size), np.sqrt(j / 2)
 
 
+#: the recurrences of :func:`_scaled_recurrence` divide p_j by 2^_RESCALE wherever it exceeds
+#: that (exactly: a power of two) ...
+_RESCALE = 512
+#: ... and take an argument beyond _DEAD (t = r^2/b^2, or |y|) as where every basis function
+#: is 0 in float64 (e^{-t/2} t^j, e^{-y^2/2} y^j underflow for any degree in use); below it
+#: a step grows |p| by at most ~2^401, so p stays below 2^913 before it is rescaled
+_DEAD = 2.0**400
+
+
+def _scaled_recurrence(p0: np.ndarray, step, size: int, weight: np.ndarray,
+                       log_front: np.ndarray, log_constant: float) -> np.ndarray:
+    """Values [P, size] of weight x p_j of a three-term recurrence p_{j+1} = step(j, p_j,
+    p_{j-1}) (p_{-1} = 0) of orthonormal polynomials, ``weight`` = exp(log_front) x
+    exp(log_constant) the Gaussian front factor (0 where the argument is dead).
+
+    Far outside the support of the functions p_j grows like t^j and overflows to inf long
+    before the front factor (0 there) is applied: inf x 0 = nan. Wherever |p_j| passes
+    2^512, p_j and p_{j-1} are divided by 2^512 (exact) and the weight of that point becomes
+    exp(log_front + shifts x 512 ln 2 + log_constant) (tiny or 0 where the function is). Points
+    never rescaled (all points at ordinary arguments) keep ``weight`` itself: their values are
+    those of the plain recurrence bit for bit."""
+    out = np.empty(p0.shape + (size,))
+    p_prev, p = np.zeros_like(p0), p0
+    shifts = None
+    for j in range(size):
+        out[:, j] = p * weight
+        if j + 1 == size:
+            break
+        p_prev, p = p, step(j, p, p_prev)
+        big = np.flatnonzero(np.abs(p) > 2.0**_RESCALE)
+        if big.size:
+            if shifts is None:
+                shifts = np.zeros(p.shape, dtype=np.int64)
+            p[big] *= 2.0**-_RESCALE  # both arrays are this function's own (p0 the caller's
+            p_prev[big] *= 2.0**-_RESCALE  # fresh array): scaled in place
+            shifts[big] += 1
+            weight[big] = np.exp(log_front[big] + shifts[big] * (_RESCALE * math.log(2.0))
+                                 + log_constant)
+    return out
+
+
 @dataclass(frozen=True)
 class Radial2D:
     """2D-radial oscillator functions u_j(r) = sqrt(2) b^-1 (r/b)^m e^{-t/2} l_j(t), t = r^2/b^2.
@@ -67,22 +108,32 @@ class Radial2D:
         return (2 * np.diag(d) - T) / self.scale**2
 
     def evaluate(self, r: np.ndarray) -> np.ndarray:
-        """u_j(r) at arbitrary r >= 0, shape [..., size]."""
-        t = (np.asarray(r, float) / self.scale) ** 2
-        out = np.empty(t.shape + (self.size,))
+        """u_j(r) at arbitrary r >= 0, shape [..., size], by the scaled recurrence of
+        :func:`_scaled_recurrence` (finite and exact to round-off at any r: far out, where
+        l_j(t) ~ t^j overflows long before e^{-t/2} is folded in, the values are the tiny or
+        zero numbers they are, not inf x 0 = nan)."""
+        with np.errstate(over="ignore"):  # r beyond ~1e154: t = inf, dead below
+            t = (np.asarray(r, float) / self.scale) ** 2
+        shape = t.shape
+        t = t.ravel()
+        dead = t > _DEAD  # e^{-t/2} t^j underflows for every j: all functions are 0 there
+        t = np.where(dead, 0.0, t)
         with np.errstate(divide="ignore", invalid="ignore"):
             log_power = np.where(t > 0, 0.5 * self.m * np.log(np.where(t > 0, t, 1.0)),
                                  0.0 if self.m == 0 else -np.inf)
-        front = np.exp(log_power - 0.5 * t - 0.5 * special.gammaln(self.m + 1))
-        p_prev = np.zeros_like(t)
-        p = np.ones_like(t)
-        for j in range(self.size):
-            out[..., j] = p
-            a = 2 * j + self.m + 1
-            b_next = math.sqrt((j + 1) * (j + 1 + self.m))
-            b_here = math.sqrt(j * (j + self.m))
-            p_prev, p = p, ((a - t) * p - b_here * p_prev) / b_next
-        return out * (front * math.sqrt(2) / self.scale)[..., None]
+        log_front = log_power - 0.5 * t - 0.5 * special.gammaln(self.m + 1)
+        weight = np.where(dead, 0.0, np.exp(log_front) * math.sqrt(2) / self.scale)
+        j = np.arange(self.size, dtype=float)
+        a = 2 * j + self.m + 1
+        b_next = np.sqrt((j + 1) * (j + 1 + self.m))
+        b_here = np.sqrt(j * (j + self.m))
+
+        def step(k, p, p_prev):
+            return ((a[k] - t) * p - b_here[k] * p_prev) / b_next[k]
+
+        out = _scaled_recurrence(np.ones_like(t), step, self.size, weight, log_front,
+                                 math.log(math.sqrt(2) / self.scale))
+        return out.reshape(shape + (self.size,))
 
 
 @dataclass(frozen=True)
@@ -108,14 +159,23 @@ class Hermite1D:
         return (2 * np.diag(np.arange(self.size) + 0.5) - X2) / self.scale**2
 
     def evaluate(self, x: np.ndarray) -> np.ndarray:
-        y = (np.asarray(x, float) - self.centre) / self.scale
-        out = np.empty(y.shape + (self.size,))
-        p_prev = np.zeros_like(y)
-        p = np.full_like(y, math.pi**-0.25)
-        for j in range(self.size):
-            out[..., j] = p
-            p_prev, p = p, (math.sqrt(2.0 / (j + 1)) * y * p - math.sqrt(j / (j + 1)) * p_prev)
-        return out * (np.exp(-0.5 * y * y) / math.sqrt(self.scale))[..., None]
+        """h_j(x) at arbitrary x, shape [..., size] (the scaled recurrence of
+        :func:`_scaled_recurrence`: finite at any x)."""
+        with np.errstate(over="ignore"):  # |y| = inf: dead below
+            y = (np.asarray(x, float) - self.centre) / self.scale
+        shape = y.shape
+        y = y.ravel()
+        dead = np.abs(y) > _DEAD
+        y = np.where(dead, 0.0, y)
+        log_front = -0.5 * y * y
+        weight = np.where(dead, 0.0, np.exp(log_front) / math.sqrt(self.scale))
+
+        def step(j, p, p_prev):
+            return math.sqrt(2.0 / (j + 1)) * y * p - math.sqrt(j / (j + 1)) * p_prev
+
+        out = _scaled_recurrence(np.full_like(y, math.pi**-0.25), step, self.size, weight,
+                                 log_front, -0.5 * math.log(self.scale))
+        return out.reshape(shape + (self.size,))
 
 
 # --------------------------------------------------------------------- reduced problems

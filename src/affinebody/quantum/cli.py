@@ -22,8 +22,9 @@ directions of the state, superposition or thermal mixture, quantum.orientations3
 exact marginal densities of the invariants (Q_a or q_a, det phi, Tr G) and of the orientations
 for the k-th state (0-based), each with a quadrature error estimate, written as densities.npz,
 densities.json and one PNG per density; with --json the same JSON object (arrays included) on
-stdout, else a table. Densities whose error exceeds quantum.density_tolerance x their peak are
-flagged (``converged: false``, a warning) and the command exits with status 3.
+stdout, else a table. Densities whose error exceeds quantum.density_tolerance x their peak
+or that are not finite (those of orientation.json with --orientation too) are flagged
+(``converged: false``, a one-line warning each) and the command exits with status 3.
 """
 
 from __future__ import annotations
@@ -208,11 +209,13 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
                          f"{MAX_LEVELS} lowest states the solver finds (got {state})")
     qc = qconfig.load(config).quantum
     result, _ = solve_config(config, state + 1)
+    stopped = False  # an orientation or G density unconverged or not finite: exit 3 below
     if orientation:
         extra = write_orientation(result, output, state=state, points=qc.density_points,
                                   green=green)
         for text in extra["warnings"]:
             click.echo(f"warning: {text}", err=True)
+        stopped = bool(extra["warnings"])
     payload = write_densities(result, state, output, qc.density_points, qc.density_tolerance)
     if not result.complete(state + 1):  # a caveat on the index, not on the densities
         click.echo(f"warning: state {state} is indexed in a list that is not certified "
@@ -240,6 +243,8 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
             for text in payload["warnings"]:
                 click.echo(f"warning: {text}", err=True)
         sys.exit(EXIT_STOPPED)  # densities above the tolerance: written, flagged
+    if stopped:
+        sys.exit(EXIT_STOPPED)  # orientation.json's densities: written, flagged (warned above)
 
 
 __all__ = ["finite_hamiltonian", "solve_config", "spectrum", "density"]

@@ -586,10 +586,10 @@ def marginal_densities(spectrum: Spectrum, level: Level, points: int | None = No
         geometric = name in ("det", "trG") and joint.model.startswith("haar")
         y = _grid(*_trimmed(fn, lo, hi, NODES[n][0], geometric), points, geometric)
         p, err, nodes, ok = _converged(fn, y, NODES[n], tolerance)
+        ok = bool(ok and np.all(np.isfinite(p)))
         details[name] = Marginal(y, p, err, _integral(fn, lo, hi, nodes), nodes, ok)
         if not ok:
-            warnings.append(f"density of {name}: quadrature error {err:.1e} above tolerance "
-                            f"{tolerance:g} x peak {np.max(np.abs(p)):.3g}")
+            warnings.append(_density_warning(name, details[name], tolerance))
     return {"energy": level.energy, "sector": level.sectors[0].as_dict(),
             "variables": "Q" if joint.model.startswith("lebesgue") else "q",
             "normalisation": float(np.sum(mass)), "level_error": level.error,
@@ -876,8 +876,18 @@ def g_component_densities(mixture, points: int = 51, tolerance: float = G_TOLERA
         else:
             integral = float(np.sum((p[1:] + p[:-1]) * np.diff(y)) / 2)
         out[name] = Marginal(y, p, err, integral, nr,
-                             bool(err <= tolerance * np.max(np.abs(p))))
+                             bool(np.all(np.isfinite(p)) and err <= tolerance * np.max(np.abs(p))))
     return out
+
+
+def _density_warning(name: str, m: Marginal, tolerance: float) -> str:
+    """The one-line warning of an unconverged density: not finite, or its error too large."""
+    bad = int(np.sum(~np.isfinite(m.density)))
+    if bad:
+        return (f"density of {name}: not finite at {bad} of {len(m.density)} points "
+                f"(written as they are, flagged converged: false)")
+    return (f"density of {name}: quadrature error {m.error:.1e} above tolerance "
+            f"{tolerance:g} x peak {np.max(np.abs(m.density)):.3g}")
 
 
 def orientation_densities(spectrum: Spectrum, state: int | None = None,
@@ -919,8 +929,7 @@ def orientation_densities(spectrum: Spectrum, state: int | None = None,
     details = g_component_densities(mixture, points, tolerance)
     for name, m in details.items():
         if not m.converged:
-            warnings.append(f"density of {name}: quadrature error {m.error:.1e} above "
-                            f"tolerance {tolerance:g} x peak {np.max(np.abs(m.density)):.3g}")
+            warnings.append(_density_warning(name, m, tolerance))
     return {"kind": kind, "orientation": {"angle": angle, **sums}, "G": details,
             "warnings": warnings}
 
