@@ -100,6 +100,29 @@ scale = {scale}
 """
 
 
+def test_n3_dalembert_spectrum_defaults_to_harmonics_times_radial_functions(tmp_path):
+    """Without quantum.radial_size an n = 3 d'Alembert spectrum over every sector is solved in
+    harmonics x DEFAULT_RADIAL_SIZE radial functions (the Gaussian x polynomial basis, ~50x
+    slower on a non-polynomial potential, with radial_size = 0): the R^9 oscillator's levels
+    hbar w (N + 9/2), multiplicities 1 and 9, exact through the default."""
+    from affinebody.quantum.config import DEFAULT_RADIAL_SIZE, parse, solver_arguments
+
+    text = "[system]\nn = 3\n[quantum]\nhbar = 0.9\ninertia = 0.7\npotential = '0.65*trG'\n"
+    assert solver_arguments(parse(text))["settings"].radial_size == DEFAULT_RADIAL_SIZE
+    chosen = parse(text + "radial_size = 0\n")
+    assert solver_arguments(chosen)["settings"].radial_size is None
+    path = tmp_path / "n3.toml"
+    path.write_text(text)
+    result = CliRunner().invoke(spectrum, [str(path), "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.output)
+    assert data["settings"]["radial_size"] == DEFAULT_RADIAL_SIZE
+    omega, hbar = np.sqrt(1.3 / 0.7), 0.9
+    expected = [hbar * omega * (N + 4.5) for N, m in ((0, 1), (1, 9)) for _ in range(m)]
+    assert np.allclose(data["energies"], expected, atol=1e-9, rtol=0)
+    assert [s["multiplicity"] for s in data["states"]] == [1, 9] and data["certified"]
+
+
 def test_spectrum_n3_spin1_json_and_density(tmp_path):
     """n = 3 oscillator through the CLI: levels 1 (scalar) + 9 (spin 1) + 10 (9 + 1) at
     hbar w (N + 9/2); the JSON says which sectors are computed; a spin-1 state's densities are

@@ -143,7 +143,8 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
                           str(d["vorticity"]), f"{lv.error:.1e}")
         console.print(extra)
         console.print("to converge them: raise quantum.basis_size (n = 2: up to 80, n = 3: up "
-                      "to 16), or accept them with a larger quantum.tolerance")
+                      "to 16; n = 3 d'Alembert also quantum.radial_size, up to 60), or accept "
+                      "them with a larger quantum.tolerance")
 
 
 @click.command("density")
