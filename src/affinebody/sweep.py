@@ -1083,8 +1083,8 @@ def _execute(tasks: list[Task], client, on_done: Callable[[Task, dict], None]) -
 
 
 def json_safe(value):
-    """``value`` with NumPy arrays and scalars as lists and Python numbers (for json.dumps)."""
-    """Plain JSON data (NaN and infinities become null, numpy scalars and arrays lists)."""
+    """Plain JSON data for json.dumps: NumPy arrays and scalars as lists and Python numbers,
+    NaN and infinities as null (which strict JSON readers require)."""
     if isinstance(value, dict):
         return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
