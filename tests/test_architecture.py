@@ -26,8 +26,8 @@ LAYERS = {
     "mechanics": ("constraints", "nonholonomic", "system", "integrators", "simulate", "phonons",
                   "pressure", "barostat", "thermostats"),
     "quantum": ("quantum",),
-    "application": ("_timing", "config", "runner", "sweep", "studies", "h5md", "checkpoint",
-                    "plotting", "export", "examples", "units", "quantum.config",
+    "application": ("_json", "_timing", "config", "runner", "sweep", "studies", "h5md",
+                    "checkpoint", "plotting", "export", "examples", "units", "quantum.config",
                     "quantum.density_files"),
     "cli": ("cli", "quantum.cli", "demo_kinematics"),
 }

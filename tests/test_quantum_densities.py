@@ -401,3 +401,13 @@ def test_density_command_exits_3_on_a_non_finite_g_density(tmp_path, monkeypatch
     assert result.exit_code == EXIT_STOPPED, result.output
     lines = [line for line in result.output.splitlines() if "not finite" in line]
     assert len(lines) == 3 and all(line.startswith("warning: density of G") for line in lines)
+    # the file holds them as null: strict JSON (Python wrote the token NaN, which jq refuses)
+    import json
+
+    def refuse(token):
+        raise ValueError(f"not JSON: {token}")
+
+    written = json.loads((tmp_path / "o" / "orientation.json").read_text(),
+                         parse_constant=refuse)
+    assert written["densities"]["G11"]["density"] == [None] * 11
+    assert written["densities"]["G11"]["converged"] is False

@@ -123,6 +123,7 @@ from typing import Any
 import numpy as np
 
 from affinebody import _host, _xla
+from affinebody._json import json_safe, json_text
 from affinebody.config import Config, ConfigError, ScanRange, check_config
 from affinebody.simulate import Stop, kept_list_or_refit, relative_error
 
@@ -1082,22 +1083,6 @@ def _execute(tasks: list[Task], client, on_done: Callable[[Task, dict], None]) -
         on_done(task, result)
 
 
-def json_safe(value):
-    """Plain JSON data for json.dumps: NumPy arrays and scalars as lists and Python numbers,
-    NaN and infinities as null (which strict JSON readers require)."""
-    if isinstance(value, dict):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [json_safe(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return json_safe(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def _write_task_file(folder: Path, task: Task, point: ScanPoint, result: dict,
                      columns: tuple[str, ...] = SCALARS) -> None:
     rows = []
@@ -1115,7 +1100,7 @@ def _write_task_file(folder: Path, task: Task, point: ScanPoint, result: dict,
             "worker": result["worker"], "rows": rows}
     path = folder / f"{task.name}.json"
     temporary = path.with_suffix(".json.tmp")
-    temporary.write_text(json.dumps(json_safe(data)), encoding="utf-8")
+    temporary.write_text(json_text(data), encoding="utf-8")
     temporary.replace(path)
 
 
@@ -1353,7 +1338,7 @@ def run_sweep(
         "wall_seconds": time.perf_counter() - clock,
     })
     if folder is not None:
-        (folder / "summary.json").write_text(json.dumps(json_safe(summary), indent=1),
+        (folder / "summary.json").write_text(json_text(summary, indent=1),
                                              encoding="utf-8")
         _write_samples_csv(folder / "samples.csv", points, status, failure, data, columns)
     return SweepResult(spec, points, data, status, failure, summary, folder,

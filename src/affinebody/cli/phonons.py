@@ -5,7 +5,6 @@ plots, docs/phonons.md)."""
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import click
 import numpy as np
 
 from affinebody._checks import enable_x64
+from affinebody._json import json_text
 from affinebody.cli.common import not_finite_as, one_line_errors
 
 
@@ -244,11 +244,11 @@ def phonons_command(config_path, output, path_, mesh, points, relax, as_json, no
     doc = compute(config, built, labels, sizes, points, relax)
     out = output or config_path.parent
     out.mkdir(parents=True, exist_ok=True)
-    (out / "phonons.json").write_text(json.dumps(doc), encoding="utf-8")
+    (out / "phonons.json").write_text(json_text(doc), encoding="utf-8")
     if not no_plot:
         plot(doc, out / "dispersion.png")
     if as_json:
-        click.echo(json.dumps(doc))
+        click.echo(json_text(doc))
         return
     crystal = doc["crystal"]
     click.echo(f"crystal: n = {crystal['n']}, {crystal['bodies_per_cell']} bodies per cell, "

@@ -26,7 +26,6 @@ vorticity, a superposition of every sector it populates.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 
@@ -34,6 +33,7 @@ import click
 import numpy as np
 
 from affinebody._checks import enable_x64
+from affinebody._json import json_text
 from affinebody.cli.common import one_line_errors
 
 
@@ -99,7 +99,7 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
         warnings.append(f"the levels are not certified to be the {count} lowest: "
                         f"{result.certificate}")
     if as_json:
-        click.echo(json.dumps({
+        click.echo(json_text({
             "transitions": [t.as_dict() for t in table.transitions],
             "operator": table.operator,
             "selection_rule": table.selection_rule,
@@ -221,7 +221,7 @@ def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: 
         payload.update(model=model, n=n, sector={"spin": 0, "vorticity": 0},
                        hbar=hbar, centre=list(X0), momentum=list(P0), width=w,
                        lines=ev.spectrum_lines(result))
-        click.echo(json.dumps(payload))
+        click.echo(json_text(payload))
         return
     from rich.console import Console
     from rich.table import Table
@@ -292,7 +292,7 @@ def _evolve_matrix(cfg, phi: str, pi: str, width: float | None, duration: float,
     payload.update(model=kwargs["model"], n=2, hbar=hbar, phi=phi0.tolist(), pi=pi0.tolist(),
                    width=packet.width, lines=ev.spectrum_lines(result))
     if as_json:
-        click.echo(json.dumps(payload))
+        click.echo(json_text(payload))
         return
     click.echo(f"packet around phi = {phi0.tolist()}, pi = {pi0.tolist()}, width "
                f"{packet.width:.4g}: {len(result.energies)} states, captured "

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import json
 import math
 from pathlib import Path
 
@@ -13,8 +12,9 @@ import click
 
 from affinebody._checks import enable_x64
 from affinebody._host import keep_freed_memory
+from affinebody._json import json_text
 from affinebody.cli.common import one_line_errors, raise_if_interrupted
-from affinebody.sweep import json_safe, run_sweep
+from affinebody.sweep import run_sweep
 
 
 def _format(value: float, digits: int = 3) -> str:
@@ -202,7 +202,7 @@ def sweep(config_file, samples, seed, scheduler, workers, output_dir, as_json):
         raise KeyboardInterrupt(f"the task files written so far are kept in "
                                 f"{folder / 'tasks'}") from None
     if as_json:
-        click.echo(json.dumps(json_safe(result.summary)))
+        click.echo(json_text(result.summary))
     else:
         for line in summary_lines(result.summary):
             click.echo(line)

@@ -29,13 +29,13 @@ or that are not finite (those of orientation.json with --orientation too) are fl
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 
 import click
 
 from affinebody._checks import enable_x64
+from affinebody._json import json_text
 from affinebody.cli.common import EXIT_STOPPED, not_finite_as, one_line_errors
 
 
@@ -103,7 +103,7 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
             "n": result.n,
             "settings": result.settings,
         }
-        click.echo(json.dumps(payload))
+        click.echo(json_text(payload))
         return
     from rich.console import Console
     from rich.table import Table
@@ -197,7 +197,7 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
         payload = write_orientation(result, output, superposition=superposition,
                                     temperature=temperature, points=qc.density_points,
                                     green=green)
-        click.echo(json.dumps(payload) if as_json else
+        click.echo(json_text(payload) if as_json else
                    f"wrote {output}/orientation.json, orientation.npz, orientation.png "
                    f"({payload['kind']})")
         for text in payload["warnings"]:
@@ -222,7 +222,7 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
         click.echo(f"warning: state {state} is indexed in a list that is not certified "
                    f"complete: {result.certificate}", err=True)
     if as_json:
-        click.echo(json.dumps(payload))
+        click.echo(json_text(payload))
     else:
         from rich.console import Console
         from rich.table import Table

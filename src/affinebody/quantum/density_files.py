@@ -5,11 +5,11 @@ density (the application layer: the library computes, this module writes and plo
 from __future__ import annotations
 
 import cmath
-import json
 from pathlib import Path
 
 import numpy as np
 
+from affinebody._json import json_text
 from affinebody.quantum.densities import DEFAULT_TOLERANCE, VARIABLES, densities
 from affinebody.quantum.spectra import Spectrum
 
@@ -73,7 +73,7 @@ def _save(fig, png: Path, stem: Path, arrays: dict, payload: dict) -> dict:
     fig.savefig(png, dpi=100)
     plt.close(fig)
     np.savez(stem.with_suffix(".npz"), **arrays)
-    stem.with_suffix(".json").write_text(json.dumps(payload))
+    stem.with_suffix(".json").write_text(json_text(payload))
     return payload
 
 
