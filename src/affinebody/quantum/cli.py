@@ -46,8 +46,9 @@ def finite_hamiltonian(potential: str):
     return not_finite_as(f"quantum.potential = {potential!r} is not finite in float64 at some "
                          f"quadrature point of the basis",
                          "bound it (log(det) or 1/det where det -> 0, exp of a growing "
-                         "invariant, a huge coefficient), or set quantum.scale to keep the "
-                         "basis where it is finite")
+                         "invariant, a huge coefficient), or set quantum.scale (n = 2 affine "
+                         "models: also scale_sigma and centre) to keep the basis where it is "
+                         "finite")
 
 
 def solve_config(config_path: str, levels: int | None):
