@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from affinebody.quantum import spectra as sp
+from affinebody.quantum.channels3 import auto_scale_haar3
 from affinebody.quantum.config import ConfigError, compile_potential, parse
 from affinebody.quantum.densities import densities
 from affinebody.quantum.levels import AffineInertia
@@ -166,15 +167,16 @@ def test_given_affine_scales_are_used_for_a_potential_that_does_not_confine():
     assert s.levels == [] and s.unconverged
 
 
-def test_auto_scale_of_the_affine_basis_minimises_over_the_scales_not_given():
+@pytest.mark.parametrize("auto_scale", [auto_scale_haar2, auto_scale_haar3], ids=["n2", "n3"])
+def test_auto_scale_of_the_affine_basis_minimises_over_the_scales_not_given(auto_scale):
     """With some of (scale, scale_sigma, centre) given, the others minimise the same
-    objective with those held: given the full minimiser's scale and centre, the free
-    scale_sigma is the full minimiser's (V = c (q1^2 + q2^2), whose objective sets
-    scale_sigma sharply)."""
+    objective with those held (n = 3 had searched all three and then overridden): given the
+    full minimiser's scale and centre, the free scale_sigma is the full minimiser's
+    (V = c sum q_a^2, whose objective sets scale_sigma sharply)."""
     V = lambda Q: 1.5 * np.sum(np.log(np.abs(Q)) ** 2, axis=-1)
     inertia = AffineInertia("af-is", 1.0, 0.2, 0.3)
-    full = auto_scale_haar2(V, 1.0, inertia)
-    given = auto_scale_haar2(V, 1.0, inertia, (full[0], None, full[2]))
+    full = auto_scale(V, 1.0, inertia)
+    given = auto_scale(V, 1.0, inertia, (full[0], None, full[2]))
     assert (given[0], given[2]) == (full[0], full[2])
     assert abs(np.log(given[1] / full[1])) < 1e-2
 

@@ -63,16 +63,25 @@ def raise_if_interrupted() -> None:
 @contextlib.contextmanager
 def _interrupts_noted():
     """:func:`_note_interrupt` as the SIGINT handler while the command runs (main thread
-    only: elsewhere Python's handler stays)."""
+    only: elsewhere Python's handler stays), and no "Exception ignored ... KeyboardInterrupt"
+    block from Python's default unraisable hook where it dropped one (the command raises it
+    again, :func:`raise_if_interrupted`; a hook installed by someone else still sees it)."""
     _INTERRUPTED.clear()
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, _note_interrupt)
+    previous, previous_hook = signal.signal(signal.SIGINT, _note_interrupt), sys.unraisablehook
+
+    def quiet_interrupts(unraisable):
+        if not (issubclass(unraisable.exc_type, KeyboardInterrupt)
+                and previous_hook is sys.__unraisablehook__):
+            previous_hook(unraisable)
+    sys.unraisablehook = quiet_interrupts
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+        sys.unraisablehook = previous_hook
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):

@@ -68,10 +68,7 @@ def _thermal_lines(summary: dict) -> list[str]:
                   title=f"{summary['ensemble']} sweep: {summary['samples']} samples per point, "
                         f"{horizon}, averages after {summary['equilibration']} steps")
     names = list(summary["points"][0]["parameters"]) if summary["points"] else []
-    if per_point:
-        shown = {"horizon": "horizon"}
-    else:
-        shown = {}
+    shown = {"horizon": "horizon"} if per_point else {}
     shown |= {"mean_total_energy": "<E>", "mean_translational_temperature": "<T_tr>",
              "mean_internal_temperature": "<T_int>", "mean_pressure": "<P>",
              "mean_volume": "<V>", "heat_capacity": "C"}

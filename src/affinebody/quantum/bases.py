@@ -304,9 +304,32 @@ def variational_parameters(energy: Callable[[np.ndarray], float], start: np.ndar
     return res.x
 
 
+
+def variational_scales(energy: Callable[[float, float, float], float], start: tuple,
+                       given: tuple, clip: tuple[float, float]) -> tuple[float, float, float]:
+    """(scale, scale_sigma, centre) of an affine model's basis minimising
+    ``energy(scale, scale_sigma, centre)`` (:func:`variational_parameters` from ``start`` =
+    (log scale, log scale_sigma, centre), the log scales clipped to ``clip``); those that
+    ``given`` sets are held, and the others minimise again from the full minimiser (the
+    objective can be flat to round-off in a scale: a search of the free ones alone from
+    ``start`` stopped where the basis did not converge)."""
+    free = [i for i, value in enumerate(given) if value is None]
+
+    def scales(x, which=(0, 1, 2), held=(None,) * 3):
+        p = list(held)
+        for i, value in zip(which, x, strict=True):
+            p[i] = float(np.exp(np.clip(value, *clip))) if i < 2 else float(value)
+        return tuple(p)
+    full = variational_parameters(lambda x: energy(*scales(x)), np.asarray(start, float))
+    if len(free) == 3:
+        return scales(full)
+    found = variational_parameters(lambda x: energy(*scales(x, free, given)), full[free])
+    return scales(found, free, given)
+
+
 __all__ = [
     "gauss_basis", "laguerre_jacobi", "hermite_jacobi", "Radial2D", "Hermite1D", "Basis",
     "sqrt_x_over_sinh", "inv_x2_minus_inv_sinh2", "sqrt_x_over_sinh_derivative_ratio",
     "dense_lowest", "product_potential_matrix", "solve_block", "level_errors",
-    "lowest_sum", "variational_parameters"
+    "lowest_sum", "variational_parameters", "variational_scales"
 ]

@@ -37,6 +37,7 @@ from affinebody.quantum.bases import (
     sqrt_x_over_sinh,
     sqrt_x_over_sinh_derivative_ratio,
     variational_parameters,
+    variational_scales,
 )
 from affinebody.quantum.levels import (
     AffineInertia,
@@ -473,23 +474,22 @@ def auto_scale_scalar3(potential: Potential, hbar: float, inertia: float) -> flo
     return float(np.exp(np.clip(variational_parameters(energy, np.array([-0.5]))[0], -2.4, 0.4)))
 
 
-def auto_scale_haar3(potential: Potential, hbar: float, inertia: AffineInertia
+def auto_scale_haar3(potential: Potential, hbar: float, inertia: AffineInertia,
+                     given: tuple[float | None, float | None, float | None] = (None,) * 3
                      ) -> tuple[float, float, float]:
     """(scale, scale_sigma, centre) of the n = 3 affine basis minimising the sum of the two
-    lowest scalar levels in a small basis (clipped: a continuous spectrum drives the scales
-    to the clip, where the honesty check flags the pseudo-levels)."""
+    lowest scalar levels in a small basis, over those of the three that ``given`` leaves None
+    (clipped: a continuous spectrum drives the scales to the clip, where the honesty check
+    flags the pseudo-levels)."""
     sig = np.linspace(-12, 12, 241)
     line = np.asarray(potential(np.exp(np.stack([sig / 3] * 3, axis=-1))), float)
     centre0 = float(sig[np.argmin(np.where(np.isfinite(line), line, np.inf))])
 
-    def energy(p):
-        b, bs = np.exp(np.clip(p[:2], -3, 1.5))
-        grid = haar3_grid(b, bs, p[2], 24, 10, 12)
-        H, _ = channel3_block("haar3", potential, hbar, inertia, grid, 4, b, bs, p[2])
+    def energy(b, bs, c):
+        grid = haar3_grid(b, bs, c, 24, 10, 12)
+        H, _ = channel3_block("haar3", potential, hbar, inertia, grid, 4, b, bs, c)
         return lowest_sum(H, 2)
-    p = variational_parameters(energy, np.array([-0.5, -0.5, centre0]))
-    b, bs = np.exp(np.clip(p[:2], -3, 1.5))
-    return float(b), float(bs), float(p[2])
+    return variational_scales(energy, (-0.5, -0.5, centre0), given, (-3, 1.5))
 
 
 # -------------------------------------------------------------------------------- solvers
@@ -544,11 +544,9 @@ def setup3(model: str, potential: Potential, hbar: float, inertia_scalar: float,
                                      atol=1e-12))
         return Setup3("lebesgue3", b, 1.0, 0.0, quad, symmetric,
                       replace(settings, check_widen=1.0))
-    if settings.scale is None or settings.scale_sigma is None or settings.centre is None:
-        b, bs, c0 = auto_scale_haar3(potential, hbar, inertia)
-    b = settings.scale or b
-    bs = settings.scale_sigma or bs
-    c0 = c0 if settings.centre is None else settings.centre
+    b, bs, c0 = settings.scale, settings.scale_sigma, settings.centre
+    if b is None or bs is None or c0 is None:
+        b, bs, c0 = auto_scale_haar3(potential, hbar, inertia, (b, bs, c0))
     # -phi is not in GL+(3): no parity
     return Setup3("haar3", b, bs, c0, None, False,
                   replace(settings, check_widen=min(settings.check_widen, 1.1)))

@@ -39,6 +39,7 @@ from affinebody.quantum.bases import (
     product_potential_matrix,
     solve_block,
     variational_parameters,
+    variational_scales,
 )
 from affinebody.quantum.bounds import haar2_shell_bounds, lebesgue2_shell_bounds
 from affinebody.quantum.intervals import Unsupported
@@ -127,20 +128,11 @@ def auto_scale_haar2(potential: Potential, hbar: float, inertia: AffineInertia,
     sig = np.linspace(-8, 8, 161)
     Vline = np.asarray(potential(np.exp(np.stack([sig / 2, sig / 2], -1))), float)
     centre0 = float(sig[np.argmin(np.where(np.isfinite(Vline), Vline, np.inf))])
-    start = (0.0, 0.0, centre0)  # log scale_x, log scale_sigma, centre_sigma
-    free = [i for i, value in enumerate(given) if value is None]
 
-    def parameters(x):
-        p = list(given)
-        for i, value in zip(free, x, strict=True):
-            p[i] = float(np.exp(np.clip(value, -5, 3))) if i < 2 else float(value)
-        return tuple(p)
-
-    def energy(x):
-        bx, bs, c = parameters(x)
+    def energy(bx, bs, c):
         H, _ = haar2_block(potential, hbar, inertia, 0, 0, (6, 6), (bx, bs), c, (30, 30))
         return lowest_sum(H, 3)
-    return parameters(variational_parameters(energy, np.array([start[i] for i in free])))
+    return variational_scales(energy, (0.0, 0.0, centre0), given, (-5, 3))
 
 
 def n2_sectors(key: tuple, model: str) -> tuple[Sector, ...]:
