@@ -144,6 +144,25 @@ def test_classification_failures_and_volumes_match_the_closed_form(two_workers):
     assert summary["failures"] == {"non-finite state": SAMPLES - classified}
 
 
+def test_each_point_follows_its_own_horizon_and_the_summary_claims_one_only_if_shared(
+        two_workers, tmp_path):
+    """A scan of run.dt: point p is followed for STEPS * dt_p (its bounded samples to exactly
+    that time), so summary.json may not give one horizon (it gave the base config's); a
+    refused point runs nothing and has none. Without such a scan every point shares one."""
+    assert two_workers.summary["horizon"] == pytest.approx(STEPS * DT, rel=1e-15)
+    assert [p["horizon"] for p in two_workers.summary["points"]][:2] == [STEPS * DT] * 2
+    assert math.isnan(two_workers.summary["points"][2]["horizon"])  # kinetic.A = 0: refused
+    text = MIXED.replace('scan = { "kinetic.A" = [1.0, 2.0, 0.0] }',
+                         'scan = { "run.dt" = [0.1, 0.05] }').replace("samples = 20", "samples = 8")
+    result = run_sweep(load(text), workers=0, output=tmp_path)
+    for point, dt in zip(result.summary["points"], (0.1, 0.05), strict=True):
+        assert point["horizon"] == pytest.approx(STEPS * dt, rel=1e-15)
+        bounded = result.status[point["index"]] == "bounded"
+        np.testing.assert_allclose(result.samples["followed_time"][point["index"]][bounded],
+                                   STEPS * dt, rtol=1e-12)
+    assert json.loads((tmp_path / "summary.json").read_text())["horizon"] is None
+
+
 def test_one_worker_and_two_workers_give_identical_results(two_workers, tmp_path):
     out = tmp_path / "one"
     config = tmp_path / "mixed.toml"

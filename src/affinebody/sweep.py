@@ -236,6 +236,15 @@ class ScanPoint:
     def parameter_dict(self) -> dict[str, Any]:
         return dict(self.parameters)
 
+    @property
+    def horizon(self) -> float:
+        """The time this point's samples are followed, ``run.steps * run.dt`` of its own
+        config (a scan may change either); NaN for a refused point, which runs nothing."""
+        if self.config_json is None:
+            return math.nan
+        run = json.loads(self.config_json)["run"]
+        return float(run["dt"]) * int(run["steps"])
+
 
 def scan_values(path: str, values) -> list:
     """The values of one scan entry: a list as given, or a range expanded (both ends in);
@@ -1231,7 +1240,6 @@ def run_sweep(
     points = scan_points(config)
     _check_results_memory(config, len(points), spec, len(columns))
     tasks = make_tasks(points, spec)
-    horizon = float(config.run.dt * config.run.steps)
     P, S = len(points), spec.samples
     n, N = config.n, config.bodies_count
     data = {name: np.full((P, S), np.nan) for name in columns}
@@ -1239,7 +1247,7 @@ def run_sweep(
     data["velocity"] = np.full((P, S, N, n), np.nan)
     status = np.full((P, S), "failed", dtype=object)
     failure = np.full((P, S), "", dtype=object)
-    horizons = np.full(P, horizon)
+    horizons = np.array([point.horizon for point in points])
     for point in points:
         if point.error is not None:
             failure[point.index] = point.error
@@ -1265,8 +1273,6 @@ def run_sweep(
         codes = result["code"]
         status[p, rows] = [STATUS_CODES[int(c)][0] for c in codes]
         failure[p, rows] = result["message"]
-        if math.isfinite(result["horizon"]):
-            horizons[p] = result["horizon"]
         if result["worker"].get("pid") is not None:
             worker_info[result["worker"]["pid"]] = {
                 k: v for k, v in result["worker"].items() if k != "seconds"}
@@ -1328,7 +1334,7 @@ def run_sweep(
     if not thermal:
         summary["bound"] = spec.bound
     summary.update({
-        "horizon": horizon,
+        "horizon": _common(horizons),
         "seed": spec.seed,
         "initial_velocity": spec.initial_velocity,
         "velocity_scale": spec.velocity_scale,
@@ -1343,6 +1349,13 @@ def run_sweep(
         _write_samples_csv(folder / "samples.csv", points, status, failure, data, columns)
     return SweepResult(spec, points, data, status, failure, summary, folder,
                        list(worker_info.values()))
+
+
+def _common(values: np.ndarray) -> float:
+    """The one finite value of ``values`` (the points' horizons), NaN (null in JSON) where
+    they differ, as where a scan changes run.dt or run.steps: each point gives its own."""
+    finite = set(values[np.isfinite(values)].tolist())
+    return finite.pop() if len(finite) == 1 else math.nan
 
 
 def _write_samples_csv(path: Path, points, status, failure, data,
