@@ -172,7 +172,7 @@ class Sizes:
 
 
 def sl2_study(run: Runner, sizes: Sizes = Sizes()) -> dict:
-    """Study 1 (n = 2) and 4: af-af, af-is and is-af geodesics on SL(2).
+    """Studies 1 and 2 of docs/studies.md: af-af, af-is and is-af geodesics on SL(2).
 
     af-af with A = 1: bounded fraction at T/2 and T vs 1 - 1/sqrt 2, and the per-sample rule
     det(Omega_hat) > 0. af-is and is-af with I = 1 and A in {-0.8, -0.5, 0, 0.5, 0.8}:
@@ -222,7 +222,7 @@ def sl2_study(run: Runner, sizes: Sizes = Sizes()) -> dict:
 
 
 def sl3_study(run: Runner, sizes: Sizes = Sizes()) -> dict:
-    """Study 1 (n = 3): af-af, af-is and is-af geodesics on SL(3) for several (I, A).
+    """Study 3 of docs/studies.md: af-af, af-is and is-af geodesics on SL(3) for several (I, A).
 
     The bounded fraction judged at horizons T/8, T/4, T/2, T (exit times of one run to T);
     fraction * T staying roughly constant shows the 1/T decay (no interior). Per-sample check on
@@ -267,7 +267,7 @@ def sl3_study(run: Runner, sizes: Sizes = Sizes()) -> dict:
 
 def gl2_study(run: Runner, sizes: Sizes = Sizes(), depth: float = 1.0, width: float = 1.0,
               scale: float = 1.0) -> dict:
-    """Study 2 and 4: geodesics on GL(2) (unbounded dilatation), then V(det phi).
+    """Study 4 of docs/studies.md: geodesics on GL(2) (unbounded dilatation), then V(det phi).
 
     1. af-af (A = 1, B = 0.5), no potential: bounded fraction at T/4, T/2, T (-> 0 like 1/T);
        ln det phi(T) = T Tr(Omega_hat) exactly.
@@ -370,9 +370,9 @@ SHAPE_POTENTIAL = {"kind": "one-body", "expr": "0.5*(trG/det - 2)"}
 
 def binary_study(run: Runner, sizes: Sizes = Sizes(), scale: float = 0.3,
                  cases: Sequence[str] = ("binary", "binary+dilatation")) -> dict:
-    """Study 3: two af-is bodies (I = 2, A = 0.5, B = 0.3) on GL(2) with a binary affine
-    potential (78) and the volume-neutral shape term :data:`SHAPE_POTENTIAL`, without and with
-    (81) V = (1/2)(ln det phi_K)^2 per body (:data:`BINARY_CASES`).
+    """Study 5 of docs/studies.md: two af-is bodies (I = 2, A = 0.5, B = 0.3) on GL(2) with a
+    binary affine potential (78) and the volume-neutral shape term :data:`SHAPE_POTENTIAL`,
+    without and with (81) V = (1/2)(ln det phi_K)^2 per body (:data:`BINARY_CASES`).
 
     Reported per case: the fraction of samples whose relative volume det Gamma (79) stays in
     (1/bound, bound) and the per-sample energy bound |ln det Gamma| <= sqrt(2 E) (for the
