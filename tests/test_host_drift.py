@@ -70,7 +70,7 @@ def test_host_drift_bits_do_not_depend_on_the_thread_count(monkeypatch):
     monkeypatch.setattr(K, "HOST_DRIFT_THREAD_MIN_ROWS", 0)
     out = {}
     for threads in (1, 2):
-        monkeypatch.setattr(K, "host_drift_threads", lambda threads=threads: threads)
+        monkeypatch.setattr(K._host, "threads", lambda parts, threads=threads: threads)
         out[threads] = [np.asarray(a) for a in K.isotropic_flow_host(phi, pi, coefs, True)]
     assert all(np.array_equal(a, b) for a, b in zip(out[1], out[2], strict=True))
 

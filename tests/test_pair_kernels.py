@@ -284,10 +284,10 @@ def test_host_kernel_over_several_chunks_and_threads_is_the_same_sum(monkeypatch
         kernels = pk._fused_kernel(n, pk._fused_source(potential, n))
         thread = kernels.fused_thread
         monkeypatch.setattr(kernels, "fused_thread",
-                            lambda *a: calls.append(pk.host_threads()) or thread(*a))
-    monkeypatch.setattr(pk, "host_threads", lambda: 1)
+                            lambda *a: calls.append(pk._host.host_threads()) or thread(*a))
+    monkeypatch.setattr(pk._host, "threads", lambda parts: 1)
     one = [chunked(*args, **kind) for kind in kinds]
-    monkeypatch.setattr(pk, "host_threads", lambda: 2)
+    monkeypatch.setattr(pk._host, "threads", lambda parts: 2)
     two = [chunked(*args, **kind) for kind in kinds]
     if fused:
         assert calls.count(1) == 3 * 3 + 3 * 3 and calls.count(2) == 3 * 2
@@ -335,7 +335,7 @@ def test_two_host_threads_neither_hang_nor_raise_on_a_singular_body_or_a_failing
     monkeypatch.setattr(pk, "HOST_THREAD_MIN_ROWS", 0)
     results = {}
     for threads in (1, 2):
-        monkeypatch.setattr(pk, "host_threads", lambda threads=threads: threads)
+        monkeypatch.setattr(pk._host, "threads", lambda parts, threads=threads: threads)
         outcome = _with_timeout(lambda: jax.tree.map(np.asarray, call(*args)))
         assert "error" not in outcome, outcome.get("error")
         results[threads] = outcome["value"]

@@ -74,6 +74,18 @@ def threads(parts: int) -> int:
     return max(1, min(parts, cores()))
 
 
+def host_threads() -> int:
+    """Threads every host kernel uses (pair sums, list builds, drifts): the :func:`cores`
+    this process may run on, at most :data:`PARTS` (``taskset -c 0`` gives one)."""
+    return threads(PARTS)
+
+
+def thread_count(rows: int, fewest: int) -> int:
+    """Threads for ``rows`` units of a host kernel's work: :func:`host_threads`, one below
+    ``fewest`` (the kernel's own threshold, where a second thread costs more than it saves)."""
+    return host_threads() if rows >= fewest else 1
+
+
 @functools.cache
 def _pool(count: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=count, thread_name_prefix="affinebody-host")

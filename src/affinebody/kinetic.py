@@ -759,10 +759,9 @@ HOST_DRIFT_THREAD_MIN_ROWS = 512
 HOST_DRIFT_MIN_BODIES = 512
 
 
-def host_drift_threads() -> int:
-    """Threads the host drift uses: the cores this process may run on, at most
-    :data:`affinebody._host.PARTS`."""
-    return _host.threads(_host.PARTS)
+#: Threads the host drift uses (:func:`affinebody._host.host_threads`, shared by every host
+#: kernel).
+host_drift_threads = _host.host_threads
 
 
 @functools.cache
@@ -773,10 +772,10 @@ def _drift_kernel(n: int):
 
 def _host_isotropic_flow(left: bool, phi, pi, coefs, *, results=None):
     """The callback: the Numba kernel ``_host_kernels/drift.py`` over every body (leading axes
-    flattened), in :data:`affinebody._host.PARTS` parts on up to :func:`host_drift_threads`
-    threads, written into ``results`` (XLA's buffers for phi and pi, ``_host.callback``'s
-    ``fills_results``; new arrays, returned, without them). Bodies are independent: the same
-    bits on any number of threads."""
+    flattened), in :data:`affinebody._host.PARTS` parts on up to
+    :func:`affinebody._host.host_threads` threads, written into ``results`` (XLA's buffers
+    for phi and pi, ``_host.callback``'s ``fills_results``; new arrays, returned, without
+    them). Bodies are independent: the same bits on any number of threads."""
     shape = phi.shape
     n = shape[-1]
     kernel = _drift_kernel(n)
@@ -787,7 +786,7 @@ def _host_isotropic_flow(left: bool, phi, pi, coefs, *, results=None):
         results = np.empty_like(phi), np.empty_like(pi)
     phi_out, pi_out = (out.reshape(phi.shape) for out in results)  # views: C-contiguous
     rows = phi.shape[0]
-    count = host_drift_threads() if rows >= HOST_DRIFT_THREAD_MIN_ROWS else 1
+    count = _host.thread_count(rows, HOST_DRIFT_THREAD_MIN_ROWS)
     _host.in_parts(lambda _, lo, hi: kernel(lo, hi, left, phi, pi, coefs, phi_out, pi_out),
                    rows, _host.PARTS, count)
     return tuple(out.reshape(shape) for out in results)

@@ -344,7 +344,7 @@ def _host_pairs(bodies: int, capacity: int, pairs_i, pairs_j, search) -> int:
         lo, hi = shares[k]
         return search(first, last, lo, hi - lo)
 
-    count = _host.threads(parts) if bodies >= HOST_THREAD_MIN_BODIES else 1
+    count = _host.thread_count(bodies, HOST_THREAD_MIN_BODIES)
     found = _host.in_parts(work, bodies, parts, count)
     if any(f > hi - lo for f, (lo, hi) in zip(found, shares, strict=True)):
         total = search(0, bodies, 0, capacity)

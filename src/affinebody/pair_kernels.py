@@ -562,20 +562,20 @@ def _fused_kernel(n: int, source: str):
                                  failed=kernels.FAILED)
 
 
-def host_threads() -> int:
-    """Threads the host kernel uses: the cores this process may run on, at most
-    :data:`affinebody._host.PARTS` (``taskset -c 0`` gives one)."""
-    return _host.threads(_host.PARTS)
+#: Threads the host kernel uses (:func:`affinebody._host.host_threads`, shared by every host
+#: kernel).
+host_threads = _host.host_threads
 
 
 def _thread_count(rows: int) -> int:
-    """Threads for ``rows`` pairs: :func:`host_threads`, one below HOST_THREAD_MIN_ROWS."""
-    return host_threads() if rows >= HOST_THREAD_MIN_ROWS else 1
+    """Threads for ``rows`` pairs: one below HOST_THREAD_MIN_ROWS."""
+    return _host.thread_count(rows, HOST_THREAD_MIN_ROWS)
 
 
 def _in_parts(work, rows: int) -> list:
     """``work(part, lo, hi)`` over :data:`affinebody._host.PARTS` fixed parts of range(rows),
-    on up to :func:`host_threads` threads (Numba releases the GIL); results in part order."""
+    on up to :func:`affinebody._host.host_threads` threads (Numba releases the GIL); results
+    in part order."""
     return _host.in_parts(work, rows, _host.PARTS, _thread_count(rows))
 
 
@@ -872,7 +872,7 @@ def kernel_in_use(pot, n: int) -> str:
     if host_kernel_in_use():
         f = ("f compiled into it" if fused_on_host(pot, n)
              else "f in XLA between two callbacks")
-        return f"host kernel (Numba, {host_threads()} threads, {f})"
+        return f"host kernel (Numba, {_host.host_threads()} threads, {f})"
     return f"JAX kernel, {pair_program(pot, n)} program"
 
 
