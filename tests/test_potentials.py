@@ -559,3 +559,17 @@ def test_dimension_dependent_parameters_are_checked_against_n():
         PairPotential(lambda M3: M3, ("M3",)).energy(x[:, :2], phi[:, :2, :2])
     with pytest.raises(ValueError, match="lam \\+ 2 mu / n"):
         StVenantKirchhoff(-0.7, 1.0).energy(x, phi)
+
+
+def test_a_traced_family_parameter_is_refused_with_the_way_that_differentiates():
+    """A built-in family's parameter is static: jax.grad over Dilatation(stiffness=k) is
+    refused in one line naming the field and the fix; the fix (a Python function closing
+    over k) gives dV/dk, here V / k = (det phi - 1)^2 / 2 summed, the family at stiffness 1."""
+    x, phi = jnp.zeros((2, 2)), jnp.array([np.diag([1.2, 0.9]), np.diag([0.8, 1.1])])
+    with pytest.raises(ValueError, match="dilatation.stiffness") as refused:
+        jax.grad(lambda k: Dilatation(stiffness=k, form="harmonic").energy(x, phi))(2.0)
+    assert "\n" not in str(refused.value) and "closes over it" in str(refused.value)
+    closed = jax.grad(lambda k: OneBodyPotential(lambda det: 0.5 * k * (det - 1.0) ** 2,
+                                                 ("det",)).energy(x, phi))(2.0)
+    assert float(closed) == pytest.approx(
+        float(Dilatation(stiffness=1.0, form="harmonic").energy(x, phi)), rel=1e-14)

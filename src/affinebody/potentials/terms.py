@@ -79,7 +79,13 @@ class Cutoff:
 
 
 def real_parameter(value: Any, name: str) -> float:
-    """float(value); ValueError naming ``name`` unless a finite real number."""
+    """float(value); ValueError naming ``name`` unless a finite real number (a traced JAX value
+    too: a potential is static data, docs/tutorials/autodiff.md)."""
+    if isinstance(value, jax.core.Tracer):
+        raise ValueError(f"{name} must be a number, not a traced JAX value: the parameters of "
+                         f"the built-in potentials are static; to differentiate with respect "
+                         f"to one, write the term as a Python function that closes over it "
+                         f"(OneBodyPotential, PairPotential; docs/tutorials/autodiff.md)")
     if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
         raise ValueError(f"{name} must be a real number (got {value!r})")
     value = float(value)
