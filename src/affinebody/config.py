@@ -144,9 +144,10 @@ class PotentialSection(BaseModel):
 
 
 class InitialSection(_Section):
-    """``[initial]``: explicit arrays, or a generator (lattice / random) they override."""
+    """``[initial]``: explicit arrays, or a generator (lattice / random) they override, or a
+    frame of a trajectory file (generator "file": :func:`file_frame`)."""
 
-    generator: Literal["explicit", "lattice", "random"] | None = None
+    generator: Literal["explicit", "lattice", "random", "file"] | None = None
     x: Matrix | None = None
     phi: Matrices | None = None
     velocity: Matrix | None = None
@@ -163,6 +164,15 @@ class InitialSection(_Section):
     phi_momentum_scale: float = 0.0
     zero_momentum: bool = True
     seed: int | None = Field(None, ge=0, le=INT64_MAX, description="default: run.seed")
+    file: str | None = Field(None, description="an affinebody H5MD trajectory (a path from the "
+                                               "working directory) whose frame starts the run "
+                                               "(generator 'file', implied)")
+    frame: int = Field(-1, description="the file's frame (negative: from the end)")
+    file_momenta: bool = Field(True, description="take p and pi from the frame (false: from "
+                                                 "the momentum options, as a generator does)")
+    rescale: bool = Field(False, description="map the frame's positions from its box into "
+                                             "system.box (each coordinate times the ratio of "
+                                             "the edges; body shapes phi kept)")
 
 
 class RunSection(_Section):
@@ -451,6 +461,127 @@ def _array(value, field: str, shape: tuple[int, ...]) -> np.ndarray:
     return arr
 
 
+def _initial_generator(i: InitialSection) -> str | None:
+    """The generator of ``[initial]``: as given, else "file" with a file, "explicit" with x."""
+    if i.generator is not None:
+        return i.generator
+    return "file" if i.file is not None else "explicit" if i.x is not None else None
+
+
+@dataclass(frozen=True)
+class FileHeader:
+    """What ``initial.file`` holds, read without its frames (O(frames), not O(N frames))."""
+
+    path: str
+    bodies: int
+    n: int
+    frames: int
+    boxes: np.ndarray | None  # [frames, n] edges of a periodic run, else None
+    units: str
+
+
+def _file_header(path: str | None) -> FileHeader:
+    """The :class:`FileHeader` of ``initial.file``; ConfigError naming the field otherwise."""
+    if path is None:
+        raise ConfigError("initial.file is required when initial.generator = 'file'")
+    try:
+        stat = os.stat(path)
+    except OSError as err:
+        raise ConfigError(f"initial.file: cannot read {path} ({err.strerror}; a path from the "
+                          f"working directory)") from None
+    return _read_file_header(os.path.abspath(path), stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=8)
+def _read_file_header(path: str, mtime_ns: int, size: int) -> FileHeader:
+    from affinebody.h5md import TrajectoryFileError, open_trajectory
+
+    try:
+        with open_trajectory(path) as trajectory:
+            boxes = None if trajectory.boxes is None else np.array(trajectory.boxes)
+            return FileHeader(path, trajectory.bodies, trajectory.n, trajectory.frames, boxes,
+                              trajectory.units)
+    except TrajectoryFileError as err:
+        raise ConfigError(f"initial.file: {err}") from None
+
+
+def _file_frame_index(config: Config) -> int:
+    """``initial.frame`` as an index from 0; ConfigError where the file has no such frame."""
+    i = config.initial
+    header = _file_header(i.file)
+    if header.frames == 0:
+        raise ConfigError(f"initial.file: {i.file} holds no frame yet")
+    if not -header.frames <= i.frame < header.frames:
+        raise ConfigError(f"initial.frame = {i.frame} is beyond the {header.frames} frames of "
+                          f"{i.file} (-1 is the last)")
+    return i.frame % header.frames
+
+
+def file_frame(config: Config) -> tuple[np.ndarray, ...]:
+    """(x [N, n], phi [N, n, n], p [N, n], pi [N, n, n]) of frame ``initial.frame`` of
+    ``initial.file`` (generator "file"), read alone (O(N) memory for any file); with
+    ``initial.rescale`` the positions are mapped from the frame's box into ``system.box``,
+    x_i -> x_i L_i / L'_i, the body shapes phi and the momenta kept (a box change alone: the
+    convention of docs/pressure.md, where phi is not scaled with the box)."""
+    from affinebody.h5md import TrajectoryFileError, open_trajectory
+
+    i = config.initial
+    k = _file_frame_index(config)
+    try:
+        with open_trajectory(i.file) as trajectory:
+            x, phi, p, pi = (np.asarray(getattr(trajectory, name)[k], dtype=np.float64)
+                             for name in ("x", "phi", "p", "pi"))
+            box = None if trajectory.boxes is None else np.asarray(trajectory.boxes[k])
+    except TrajectoryFileError as err:
+        raise ConfigError(f"initial.file: {err}") from None
+    bad = ~(np.all(np.isfinite(x), axis=-1) & np.all(np.isfinite(phi), axis=(-2, -1))
+            & np.all(np.isfinite(p), axis=-1) & np.all(np.isfinite(pi), axis=(-2, -1)))
+    if np.any(bad):
+        raise ConfigError(f"initial.file: frame {k} of {i.file} holds a non-finite state of "
+                          f"body {int(np.argmax(bad))}")
+    if i.rescale:
+        x = x * (np.asarray(config.system.box, dtype=np.float64) / box)
+    return x, phi, p, pi
+
+
+def _check_initial_file(config: Config) -> None:
+    """The frame of ``initial.file`` fits the config: dimension, units, box (its own or
+    ``initial.rescale``), and no array of ``[initial]`` given twice."""
+    i, n = config.initial, config.n
+    header = _file_header(i.file)
+    for name in ("x", "phi"):
+        if getattr(i, name) is not None:
+            raise ConfigError(f"initial.{name} comes from initial.file: remove initial.{name}")
+    for name in ("velocity", "momentum", "phi_velocity", "phi_momentum"):
+        if i.file_momenta and getattr(i, name) is not None:
+            raise ConfigError(f"initial.{name}: the momenta come from initial.file; set "
+                              f"initial.file_momenta = false to give them here")
+    if header.n != n:
+        raise ConfigError(f"initial.file: {i.file} holds bodies in n = {header.n}, but "
+                          f"system.n = {n}")
+    if header.units != config.system.units:
+        raise ConfigError(f"initial.file: {i.file} is in {header.units} units, but "
+                          f"system.units = {config.system.units!r}: set it to "
+                          f"{header.units!r}")
+    k = _file_frame_index(config)
+    box = None if header.boxes is None else header.boxes[k]
+    given = None if config.system.box is None else np.asarray(config.system.box, np.float64)
+    edges = None if box is None else "[" + ", ".join(f"{e:.17g}" for e in box) + "]"
+    if i.rescale:
+        if box is None or given is None:
+            raise ConfigError("initial.rescale maps the frame's periodic box into system.box: "
+                              "it needs both (the file's run had no box, or system.box is "
+                              "not set)")
+        return
+    if box is not None and given is None:
+        raise ConfigError(f"initial.file: frame {k} of {i.file} is in a periodic box: set "
+                          f"system.box = {edges}")
+    if box is not None and not np.allclose(box, given, rtol=1e-12, atol=0.0):
+        raise ConfigError(f"initial.file: frame {k} of {i.file} has the box {edges}, not "
+                          f"system.box: set system.box to it, or initial.rescale = true to "
+                          f"map the positions into system.box")
+
+
 def _body_count(config: Config) -> int:
     """N from system.bodies, [[bodies]], initial.x or initial.shape (checked to agree)."""
     counts: dict[str, int] = {}
@@ -461,6 +592,8 @@ def _body_count(config: Config) -> int:
         counts["bodies"] = len(config.bodies)
     if config.initial.x is not None:
         counts["initial.x"] = len(config.initial.x)
+    if _initial_generator(config.initial) == "file":
+        counts["initial.file"] = _file_header(config.initial.file).bodies
     if not counts:
         raise ConfigError("system.bodies is required (the number of bodies or a list of labels)")
     values = set(counts.values())
@@ -735,6 +868,14 @@ def check_system(config: Config) -> None:
 
 def check_initial(config: Config) -> None:
     i, n, count = config.initial, config.n, config.bodies_count
+    if i.file is not None and _initial_generator(i) != "file":
+        raise ConfigError(f"initial.file is read with initial.generator = 'file' (got "
+                          f"{i.generator!r}): remove one of them")
+    if _initial_generator(i) == "file":
+        _check_initial_file(config)
+    elif i.rescale or i.file_momenta is not True or "frame" in i.model_fields_set:
+        raise ConfigError("initial.frame, initial.file_momenta and initial.rescale apply to "
+                          "initial.file: set it or remove them")
     for name in ("x", "velocity", "momentum"):
         if getattr(i, name) is not None:
             _array(getattr(i, name), f"initial.{name}", (count, n))
@@ -752,7 +893,7 @@ def check_initial(config: Config) -> None:
         if bad.size:
             raise ConfigError(f"initial.phi.{bad[0]} is singular (det = {det[bad[0]]:.3g}): an "
                               f"internal configuration must be invertible")
-    generator = i.generator or ("explicit" if i.x is not None else None)
+    generator = _initial_generator(i)
     if generator is None:
         raise ConfigError("initial.x is required (or set initial.generator = 'lattice' or "
                           "'random')")
@@ -1046,6 +1187,8 @@ def initial_configuration(config: Config) -> tuple[np.ndarray, np.ndarray]:
 
 def _generated_configuration(config: Config) -> tuple[np.ndarray, np.ndarray]:
     i, n, count = config.initial, config.n, config.bodies_count
+    if _initial_generator(i) == "file":
+        return file_frame(config)[:2]
     seed = config.run.seed if i.seed is None else i.seed
     origin = np.zeros(n) if i.origin is None else np.asarray(i.origin, dtype=np.float64)
     if i.x is not None:
@@ -1100,6 +1243,8 @@ def initial_state(config: Config, kinetic):
 
     i, n, count = config.initial, config.n, config.bodies_count
     seed = config.run.seed if i.seed is None else i.seed
+    if _initial_generator(i) == "file" and i.file_momenta:
+        return State(*file_frame(config))
     x, phi = initial_configuration(config)
     if i.momentum is not None:
         p = np.asarray(i.momentum, dtype=np.float64)
@@ -1204,7 +1349,8 @@ __all__ = [
     "Config", "one_line_error", "load_toml", "parse_config", "load_config", "Inertia",
     "body_inertia", "check_kinetic", "check_thermostat", "build_thermostat", "check_run",
     "uses_neighbor_list", "check_system", "check_initial", "build_potential_entry",
-    "check_potentials", "MEMORY_PER_BODY_3D", "MEMORY_BASE", "FRAME_BUFFER_BYTES", "frame_bytes",
+    "check_potentials", "FileHeader", "file_frame", "MEMORY_PER_BODY_3D", "MEMORY_BASE",
+    "FRAME_BUFFER_BYTES", "frame_bytes",
     "estimated_memory", "available_memory", "refuse_beyond_memory", "check_memory",
     "check_barostat", "records_pressure", "check_config", "Built", "build_kinetic",
     "initial_configuration", "initial_state", "build"
