@@ -353,6 +353,29 @@ def test_n2_g_components_at_the_default_basis_size_match_closed_forms():
     assert np.abs(g12.density - np.exp(-2 * np.abs(g12.x))).max() < 1e-6
 
 
+def test_af_is_g12_density_is_shown_converged_at_the_default_tolerance():
+    """The af-is ground state (V = 1.5 (q1^2 + q2^2), hbar = I = 1, A = 0.2, B = 0.3): at the
+    smallest |y| of the G12 grid the rules change by 4.8e-4, 1.6e-6 and 1.9e-10 of the peak
+    (the change estimates the coarser rule's error); with four rules the density was flagged
+    (1.6e-6 > the default 1e-6) though the fourth was accurate to 2e-10. It is converged now,
+    within 1e-9 of the peak of a much finer rule, and symmetric under y -> -y (a sector state
+    with s = k = 0)."""
+    from affinebody.quantum.config import compile_potential
+    from affinebody.quantum.densities import _g_density, g_component_densities, pure_state
+
+    s = sp.solve("af-is", 2, compile_potential("1.5*(q1**2 + q2**2)", 2), 1.0, I=1.0, A=0.2,
+                 B=0.3, levels=1, settings=sp.Settings(basis_size=12, tolerance=1e-3, scale=1.0,
+                                                       scale_sigma=0.93, centre=0.0))
+    pure = pure_state(s, {0: 1.0})
+    g12 = g_component_densities([(1.0, pure)], points=3, components=("G12",))["G12"]
+    peak = np.max(g12.density)
+    assert g12.converged and g12.error <= 1e-6 * peak
+    np.testing.assert_allclose(g12.density, g12.density[::-1], rtol=0, atol=1e-12 * peak)
+    smallest = np.argmin(np.abs(g12.x))
+    fine = _g_density(pure, "G12", g12.x[smallest:smallest + 1], 729, 546)
+    assert abs(g12.density[smallest] - fine[0]) < 1e-9 * peak
+
+
 def test_basis_functions_far_outside_their_support_are_zero_not_nan():
     """Radial2D and Hermite1D at large degree: the closed forms (scipy's Laguerre and Hermite
     polynomials) where the functions live, exactly 0 far out (e^{-t/2} t^j underflows), with
