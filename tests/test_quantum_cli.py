@@ -200,6 +200,22 @@ def test_a_potential_unbounded_below_is_refused_at_once(tmp_path, n, potential):
     assert "\n" not in message and "unbounded below" in message
 
 
+def test_affine_potential_that_does_not_confine_is_refused_naming_the_fix(tmp_path):
+    """trG with af-is tends to 0 as det -> 0: the sum of levels the automatic affine basis
+    minimises has no minimum, and the search drifted until round-off chose (scale at its clip
+    e^3, centre ~ 423, where e^(2q) overflows). One line, exit 1, saying so and naming the
+    settings, not 'trG is not finite ... bound it (log(det) or 1/det ...)', which blamed a
+    finite potential."""
+    path = tmp_path / "trg.toml"
+    path.write_text('[system]\nn = 2\n[quantum]\nkinetic = "af-is"\nI = 1.0\nA = 0.2\n'
+                    'B = 0.3\npotential = "trG"\n')
+    result = CliRunner().invoke(spectrum, [str(path)])
+    assert result.exit_code == 1
+    message = result.stderr.strip()
+    assert "\n" not in message and "does not confine" in message
+    assert all(f"quantum.{name}" in message for name in ("scale", "scale_sigma", "centre"))
+
+
 def test_wells_bounded_below_pass_the_unboundedness_check():
     """Negative but bounded potentials (the shear well of the completeness tests, a Gaussian
     well, a log barrier at det -> 0 that rises at infinity) are not refused."""

@@ -180,6 +180,10 @@ def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
         bx, bs, c0 = settings.scale, settings.scale_sigma, settings.centre
         if bx is None or bs is None or c0 is None:
             bx, bs, c0 = auto_scale_haar2(potential, hbar, inert, (bx, bs, c0))
+            size = (settings.basis_size,) * 2
+            if not np.all(np.isfinite(haar2_block(potential, hbar, inert, 0, 0, size, (bx, bs),
+                                                  c0)[0])):
+                raise ValueError(runaway_message(model, bx, bs, c0))
         info.update(scale=bx, scale_sigma=bs, centre=c0)
 
         def build_for(s, k):
@@ -255,6 +259,19 @@ def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
                     certified=certified, certificate=certificate, requested=levels)
 
 
+def runaway_message(model: str, scale: float, scale_sigma: float, centre: float) -> str:
+    """The one line for automatic affine scales whose basis is not finite (the search of
+    :func:`auto_scale_haar2` ran to where the potential overflows float64). Where V does not
+    confine the body (``trG`` with an affine model tends to 0 as det -> 0) the sum it minimises
+    has no minimum, and the search drifts until round-off (eigenvalues ~ -1e251 of a positive
+    operator) decides where it stops."""
+    return (f"the automatic basis of the n = 2 {model} model ran away (scale {scale:.3g}, "
+            f"scale_sigma {scale_sigma:.3g}, centre {centre:.3g}, where quantum.potential "
+            f"overflows float64): a potential that does not confine the body (e.g. tends to a "
+            f"constant as det -> 0) has no best basis; add a confining term to "
+            f"quantum.potential, or set quantum.scale, quantum.scale_sigma and quantum.centre")
+
+
 def afaf_warning(hbar: float, A: float, max_spin: int, shell_minima: list[float]) -> str:
     """af-af (72) is indefinite: in the sector s = -k the reduced potential (module docstring,
     no rotational term since 1/I~ = 0) is -hbar^2 s^2 / (4 A cosh^2((q1 - q2)/2)), a well
@@ -269,5 +286,5 @@ def afaf_warning(hbar: float, A: float, max_spin: int, shell_minima: list[float]
 
 __all__ = [
     "lebesgue2_block", "haar2_block", "auto_scale_lebesgue2", "auto_scale_haar2", "n2_sectors",
-    "solve_n2", "afaf_warning"
+    "solve_n2", "runaway_message", "afaf_warning"
 ]
