@@ -142,6 +142,9 @@ def test_missing_or_foreign_files_and_stray_keys_are_refused(tmp_path):
     with pytest.raises(ConfigError, match="initial.frame, initial.file_momenta and "
                                           "initial.rescale apply to initial.file"):
         check_config(parse_config(BOX.replace("[initial]\n", "[initial]\nframe = 2\n")))
+    # a config dumped with every field (as a sweep's points are) holds the defaults: accepted
+    dumped = check_config(parse_config(BOX)).model_dump(exclude={"source_text"})
+    check_config(type(check_config(parse_config(BOX))).model_validate(dumped))
 
 
 def test_validate_reads_the_frame_and_names_a_bad_one(first, tmp_path):

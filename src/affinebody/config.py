@@ -873,7 +873,7 @@ def check_initial(config: Config) -> None:
                           f"{i.generator!r}): remove one of them")
     if _initial_generator(i) == "file":
         _check_initial_file(config)
-    elif i.rescale or i.file_momenta is not True or "frame" in i.model_fields_set:
+    elif i.rescale or not i.file_momenta or i.frame != -1:  # values: a dumped config has all
         raise ConfigError("initial.frame, initial.file_momenta and initial.rescale apply to "
                           "initial.file: set it or remove them")
     for name in ("x", "velocity", "momentum"):
