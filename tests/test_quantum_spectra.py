@@ -92,6 +92,42 @@ def test_product_potential_matrix_is_the_dense_quadrature_product():
     np.testing.assert_allclose(got, got.T, rtol=0, atol=1e-13 * np.max(np.abs(dense)))
 
 
+def test_check_bases_find_only_the_lowest_levels_and_agree_with_the_full_spectrum(monkeypatch):
+    """solve_block's nested and widened check bases are diagonalised for their ``count`` lowest
+    eigenvalues only (LAPACK's subset by index; the whole spectrum, cut short, was computed
+    before), and the energies and error estimates are those of the full spectra to 1e-12
+    relative (an anharmonic d'Alembert block, and a count above the nested basis's size)."""
+    from scipy import linalg
+
+    from affinebody.quantum import bases
+    from affinebody.quantum.n2 import lebesgue2_block
+
+    settings = sp.Settings(basis_size=12)
+
+    def build(size, scale):
+        return lebesgue2_block(anharmonic, 1.0, 1.0, 1, 2, size, scale)
+    full_E = linalg.eigvalsh(build(12, 0.7)[0])
+    asked = []
+    plain = linalg.eigvalsh
+
+    def recording(H, *args, **kwargs):
+        window = kwargs.get("subset_by_index")
+        asked.append(H.shape[0] if window is None else window[1] - window[0] + 1)
+        return plain(H, *args, **kwargs)
+    monkeypatch.setattr(bases.linalg, "eigvalsh", recording)
+    for count in (9, 80):  # 80 > the 8 x 8 = 64 functions of the nested check basis
+        E, vec, err, _ = bases.solve_block(build, 12, 0.7, count, settings)
+        shrunk = plain(build(8, 0.7)[0])[:count]
+        widened = plain(build(12, 0.7 * settings.check_widen)[0])[:count]
+        k = min(len(E), len(shrunk))
+        expected = np.full(len(E), np.inf)
+        expected[:k] = np.maximum(np.abs(E[:k] - shrunk[:k]), np.abs(E[:k] - widened[:k]))
+        expected = bases.level_errors(E, expected, settings)
+        np.testing.assert_allclose(E, full_E[:count], rtol=1e-12)
+        np.testing.assert_allclose(err, expected, rtol=1e-9, atol=1e-12 * np.max(np.abs(E)))
+    assert asked and max(asked) <= 80 and asked[:2] == [9, 9]
+
+
 @pytest.mark.parametrize("hbar,inertia,k", [(0.8, 1.3, 2.0), (1.0, 2.0, 8.0), (0.3, 0.7, 0.5)])
 def test_auto_scale_of_an_oscillator_is_its_length(hbar, inertia, k):
     """For V = k Tr G / 2 the basis length is the oscillator's, b^2 = hbar / (2 I omega) with

@@ -243,9 +243,20 @@ def product_potential_matrix(B1: np.ndarray, B2: np.ndarray, V: np.ndarray) -> n
 
 
 def dense_lowest(H: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``count`` lowest eigenpairs of the symmetric ``H`` (all where it has fewer)."""
     count = min(count, H.shape[0])
     w, v = linalg.eigh(H, subset_by_index=[0, count - 1], driver="evr")
     return w, v
+
+
+def lowest_eigenvalues(H: np.ndarray, count: int) -> np.ndarray:
+    """The ``count`` lowest eigenvalues of the symmetric ``H`` (all where it has fewer; none for
+    an empty ``H``), found alone: LAPACK's subset by index, not the whole spectrum cut short."""
+    count = min(count, H.shape[0])
+    if count == 0:
+        return np.zeros(0)
+    return linalg.eigvalsh(H, subset_by_index=[0, count - 1])
+
 
 def solve_block(build: Callable[[int, float], tuple[np.ndarray, Basis]], size: int, scale: float,
                 count: int, settings: Settings
@@ -259,12 +270,12 @@ def solve_block(build: Callable[[int, float], tuple[np.ndarray, Basis]], size: i
         return np.zeros(0), np.zeros((0, 0)), np.zeros(0), basis
     E, vec = dense_lowest(H, count)
     Hs, _ = build(size - settings.check_shrink, scale)
-    Es = linalg.eigvalsh(Hs)[: len(E)] if Hs.size else np.zeros(0)
+    Es = lowest_eigenvalues(Hs, len(E)) if Hs.size else np.zeros(0)
     if settings.check_widen == 1.0:
         Ew = E
     else:
         Hw, _ = build(size, scale * settings.check_widen)
-        Ew = linalg.eigvalsh(Hw)[: len(E)]
+        Ew = lowest_eigenvalues(Hw, len(E))
     err = np.full(len(E), np.inf)
     k = min(len(Es), len(Ew))
     err[:k] = np.maximum(np.abs(E[:k] - Es[:k]), np.abs(E[:k] - Ew[:k]))
@@ -292,7 +303,7 @@ def lowest_sum(H: np.ndarray, count: int) -> float:
     avoids that scale instead of stopping on LAPACK's refusal."""
     if not np.all(np.isfinite(H)):
         return np.inf
-    return float(np.sum(linalg.eigvalsh(H)[:count]))
+    return float(np.sum(lowest_eigenvalues(H, count)))
 
 
 def variational_parameters(energy: Callable[[np.ndarray], float], start: np.ndarray
@@ -330,6 +341,6 @@ def variational_scales(energy: Callable[[float, float, float], float], start: tu
 __all__ = [
     "gauss_basis", "laguerre_jacobi", "hermite_jacobi", "Radial2D", "Hermite1D", "Basis",
     "sqrt_x_over_sinh", "inv_x2_minus_inv_sinh2", "sqrt_x_over_sinh_derivative_ratio",
-    "dense_lowest", "product_potential_matrix", "solve_block", "level_errors",
+    "dense_lowest", "lowest_eigenvalues", "product_potential_matrix", "solve_block", "level_errors",
     "lowest_sum", "variational_parameters", "variational_scales"
 ]
