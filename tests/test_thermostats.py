@@ -340,3 +340,33 @@ def test_the_noise_factors_are_each_bodys_hessian_without_a_batch_of_all_its_col
     if memory is None:
         pytest.skip("this JAX backend reports no memory analysis")
     assert memory.temp_size_in_bytes <= 2.5 * memory.output_size_in_bytes
+
+
+def _calls_eigh(eqn) -> bool:
+    """Whether a jaxpr equation is, or contains, a symmetric eigendecomposition."""
+    if eqn.primitive.name == "eigh":
+        return True
+    inner = [p for p in eqn.params.values() if hasattr(p, "jaxpr") or hasattr(p, "eqns")]
+    return any(_calls_eigh(e) for p in inner for e in getattr(p, "jaxpr", p).eqns)
+
+
+def test_the_two_lapack_batches_of_the_noise_factors_never_run_at_once():
+    """The internal eigendecompositions take the translational factors as an input (through
+    an optimisation barrier), so XLA cannot run the two batched LAPACK kernels at the same
+    time, which can deadlock its CPU pool of two threads (a loop of jax.jit(factors) at 10^4
+    bodies hung when they were independent)."""
+    from jax.extend.core import Literal
+
+    system = HamiltonianSystem(K.KineticEnergy(K.DAlembertTranslational(1.0),
+                                               K.AffineIsotropic(1.0, 0.2, 0.1)))
+    jaxpr = jax.make_jaxpr(lambda s: th.factors(system, s))(rest(5, n=3)).jaxpr
+    eighs = [e for e in jaxpr.eqns if _calls_eigh(e)]
+    assert len(eighs) == 2
+    first, second = eighs
+    reached = set(first.outvars)  # every value computed from the first one's outputs
+    for eqn in jaxpr.eqns:
+        if any(v in reached for v in eqn.invars if not isinstance(v, Literal)):
+            reached.update(eqn.outvars)
+        if eqn is second:
+            break
+    assert any(v in reached for v in second.invars if not isinstance(v, Literal))

@@ -174,7 +174,11 @@ def coordinate_hessian(term, bodies: int, shape: tuple[int, ...]) -> jax.Array:
 def noise_factor(term, bodies: int, shape: tuple[int, ...]) -> jax.Array:
     """F with F F^T = K^-1 = M0 (the covariance of z per unit kT), [bodies, d, d]; NaN where K
     is not positive definite (the caller refuses such models first)."""
-    k = coordinate_hessian(term, bodies, shape)
+    return _factor_of(coordinate_hessian(term, bodies, shape))
+
+
+def _factor_of(k: jax.Array) -> jax.Array:
+    """F with F F^T = k^-1 from the symmetric eigendecomposition of each k (a LAPACK batch)."""
     lam, q = jnp.linalg.eigh(0.5 * (k + transpose(k)))
     return q * jnp.where(lam > 0, lam, jnp.nan)[..., None, :] ** -0.5
 
@@ -227,11 +231,18 @@ def internal_temperature(system, state: State) -> jax.Array:
 
 # ------------------------------------------------------------------ the steps
 def factors(system, state: State) -> tuple[jax.Array, jax.Array]:
-    """(F_tr [N, n, n], F_int [N, n^2, n^2]) of :func:`noise_factor` for the system's terms."""
+    """(F_tr [N, n, n], F_int [N, n^2, n^2]) of :func:`noise_factor` for the system's terms.
+
+    The internal eigendecompositions start after the translational ones have finished (an
+    optimisation barrier): two batched LAPACK kernels at once can deadlock XLA's CPU pool of
+    two threads (README, "Notes and known limits"), which independent ones did here (a loop of
+    ``jax.jit(factors)`` at 10^4 bodies hung)."""
     n, bodies = state.n, state.bodies
     kinetic = system.kinetic
-    return (noise_factor(kinetic.translational, bodies, (n,)),
-            noise_factor(kinetic.internal, bodies, (n, n)))
+    f_tr = noise_factor(kinetic.translational, bodies, (n,))
+    f_tr, k_int = jax.lax.optimization_barrier(
+        (f_tr, coordinate_hessian(kinetic.internal, bodies, (n, n))))
+    return f_tr, _factor_of(k_int)
 
 
 def ornstein_uhlenbeck(system, thermostat, state: State, h, key, noise_factors,
