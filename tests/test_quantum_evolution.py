@@ -443,3 +443,32 @@ def test_a_packet_whose_expansion_is_not_finite_is_refused():
         with pytest.raises(ValueError, match="expansion in the eigenstates is"):
             ev.require_captured(captured)
     ev.require_captured(1.0)  # a packet the basis holds whole
+
+
+def test_evolve_builds_the_basis_spectrum_builds_and_says_when_it_runs_away():
+    """One choice of an affine basis (n2.affine_scales) for spectrum and evolve: with
+    quantum.scale given, the other two are searched with it held (evolve took them from a
+    search of all three, so its basis was another than spectrum's); a potential that does
+    not confine the body is said in one line naming the settings, in evolve too."""
+    from affinebody.quantum.levels import AffineInertia
+    from affinebody.quantum.n2 import solve_n2
+
+    def V(Q):
+        q = np.log(np.abs(Q))
+        s, x = q[..., 0] + q[..., 1], q[..., 0] - q[..., 1]
+        return 0.25 * s * s + 0.5 * x * x
+
+    settings = Settings(basis_size=8, scale=0.4)
+    evolved = sector_spectrum("af-is", V, 0.5, I=0.5, A=0.1, B=0.1, settings=settings).settings
+    solved = solve_n2("af-is", V, 0.5, 1.0, AffineInertia("af-is", 0.5, 0.1, 0.1), 1,
+                      settings).settings
+    assert evolved["scale"] == solved["scale"] == 0.4
+    assert (evolved["scale_sigma"], evolved["centre"]) == (solved["scale_sigma"],
+                                                           solved["centre"])
+    free = sector_spectrum("af-is", V, 0.5, I=0.5, A=0.1, B=0.1,
+                           settings=Settings(basis_size=8)).settings
+    assert free["scale_sigma"] != evolved["scale_sigma"]  # the held scale changed the search
+    with pytest.raises(ValueError, match="ran away.*does not confine.*quantum.scale, "
+                                         "quantum.scale_sigma and quantum.centre"):
+        sector_spectrum("af-is", lambda Q: 0.5 * np.sum(Q**2, axis=-1), 1.0, I=1.0, A=0.2,
+                        B=0.3, settings=Settings(basis_size=8))

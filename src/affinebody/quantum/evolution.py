@@ -50,7 +50,7 @@ from affinebody.quantum.levels import (
     is_converged,
 )
 from affinebody.quantum.n2 import (
-    auto_scale_haar2,
+    affine_scales,
     auto_scale_lebesgue2,
     haar2_block,
     lebesgue2_block,
@@ -96,11 +96,7 @@ def sector_spectrum(model: str, potential: Potential, hbar: float, *, inertia: f
             return lebesgue2_block(potential, hbar, inertia, key[0], key[1], n, s)
     else:
         affine = AffineInertia(model, I, A, B)
-        bx, bs, c0 = settings.scale, settings.scale_sigma, settings.centre
-        if bx is None or bs is None or c0 is None:  # the variational scales, unless all given
-            auto = auto_scale_haar2(potential, hbar, affine)
-            bx, bs = bx or auto[0], bs or auto[1]
-            c0 = auto[2] if c0 is None else c0
+        bx, bs, c0 = affine_scales(model, potential, hbar, affine, settings)  # as spectrum's
         info = {"scale": bx, "scale_sigma": bs, "centre": c0}
 
         def build(n, s):

@@ -128,11 +128,17 @@ def auto_scale_haar2(potential: Potential, hbar: float, inertia: AffineInertia,
     sig = np.linspace(-8, 8, 161)
     Vline = np.asarray(potential(np.exp(np.stack([sig / 2, sig / 2], -1))), float)
     centre0 = float(sig[np.argmin(np.where(np.isfinite(Vline), Vline, np.inf))])
+    return variational_scales(_scale_objective(potential, hbar, inertia), (0.0, 0.0, centre0),
+                              given, (-5, 3))
 
+
+def _scale_objective(potential: Potential, hbar: float, inertia: AffineInertia):
+    """What :func:`auto_scale_haar2` minimises: the sum of the 3 lowest (0,0)-sector levels in
+    a basis of 6 x 6 functions at (scale_x, scale_sigma, centre_sigma)."""
     def energy(bx, bs, c):
         H, _ = haar2_block(potential, hbar, inertia, 0, 0, (6, 6), (bx, bs), c, (30, 30))
         return lowest_sum(H, 3)
-    return variational_scales(energy, (0.0, 0.0, centre0), given, (-5, 3))
+    return energy
 
 
 def n2_sectors(key: tuple, model: str) -> tuple[Sector, ...]:
@@ -177,13 +183,7 @@ def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
         shell_of = lambda key: key[0] + key[1]
     else:
         inert = affine
-        bx, bs, c0 = settings.scale, settings.scale_sigma, settings.centre
-        if bx is None or bs is None or c0 is None:
-            bx, bs, c0 = auto_scale_haar2(potential, hbar, inert, (bx, bs, c0))
-            size = (settings.basis_size,) * 2
-            if not np.all(np.isfinite(haar2_block(potential, hbar, inert, 0, 0, size, (bx, bs),
-                                                  c0)[0])):
-                raise ValueError(runaway_message(model, bx, bs, c0))
+        bx, bs, c0 = affine_scales(model, potential, hbar, inert, settings)
         info.update(scale=bx, scale_sigma=bs, centre=c0)
 
         def build_for(s, k):
@@ -259,15 +259,39 @@ def solve_n2(model: str, potential: Potential, hbar: float, inertia: float,
                     certified=certified, certificate=certificate, requested=levels)
 
 
+def affine_scales(model: str, potential: Potential, hbar: float, inertia: AffineInertia,
+                  settings: Settings) -> tuple[float, float, float]:
+    """(scale, scale_sigma, centre) of the basis of an affine model: those ``settings`` gives,
+    the others by :func:`auto_scale_haar2` with the given ones held; ValueError
+    (:func:`runaway_message`) where the automatic ones leave the basis not finite."""
+    given = settings.scale, settings.scale_sigma, settings.centre
+    if None not in given:
+        return given
+    bx, bs, c0 = auto_scale_haar2(potential, hbar, inertia, given)
+    size = (settings.basis_size,) * 2
+    if not np.all(np.isfinite(haar2_block(potential, hbar, inertia, 0, 0, size, (bx, bs),
+                                          c0)[0])):
+        raise ValueError(runaway_message(model, bx, bs, c0))
+    if settings.centre is None:
+        # A potential that does not confine the body along det phi has no minimum there: the
+        # search drifts to where V underflows and the objective is flat (a centre of -8450
+        # for 0.5 trG with af-is). At a minimum, a shift by one basis width raises the sum.
+        energy = _scale_objective(potential, hbar, inertia)
+        here = energy(bx, bs, c0)
+        if min(energy(bx, bs, c0 - bs), energy(bx, bs, c0 + bs)) <= here + 1e-9 * abs(here):
+            raise ValueError(runaway_message(model, bx, bs, c0))
+    return bx, bs, c0
+
+
 def runaway_message(model: str, scale: float, scale_sigma: float, centre: float) -> str:
-    """The one line for automatic affine scales whose basis is not finite (the search of
-    :func:`auto_scale_haar2` ran to where the potential overflows float64). Where V does not
-    confine the body (``trG`` with an affine model tends to 0 as det -> 0) the sum it minimises
-    has no minimum, and the search drifts until round-off (eigenvalues ~ -1e251 of a positive
-    operator) decides where it stops."""
+    """The one line for automatic affine scales that ran away (:func:`affine_scales`). Where V
+    does not confine the body (``trG`` with an affine model tends to 0 as det -> 0) the sum
+    :func:`auto_scale_haar2` minimises has no minimum, and the search drifts until round-off
+    decides where it stops: where V overflows float64 (eigenvalues ~ -1e251 of a positive
+    operator; trG) or where it underflows to 0 and the sum is flat (0.5 trG)."""
     return (f"the automatic basis of the n = 2 {model} model ran away (scale {scale:.3g}, "
-            f"scale_sigma {scale_sigma:.3g}, centre {centre:.3g}, where quantum.potential "
-            f"overflows float64): a potential that does not confine the body (e.g. tends to a "
+            f"scale_sigma {scale_sigma:.3g}, centre {centre:.3g}, where the search found no "
+            f"minimum): a potential that does not confine the body (e.g. tends to a "
             f"constant as det -> 0) has no best basis; add a confining term to "
             f"quantum.potential, or set quantum.scale, quantum.scale_sigma and quantum.centre")
 
@@ -285,6 +309,7 @@ def afaf_warning(hbar: float, A: float, max_spin: int, shell_minima: list[float]
 
 
 __all__ = [
-    "lebesgue2_block", "haar2_block", "auto_scale_lebesgue2", "auto_scale_haar2", "n2_sectors",
+    "lebesgue2_block", "haar2_block", "auto_scale_lebesgue2", "auto_scale_haar2", "affine_scales",
+    "n2_sectors",
     "solve_n2", "runaway_message", "afaf_warning"
 ]
