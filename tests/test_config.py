@@ -157,6 +157,15 @@ def test_random_positions_fill_the_periodic_box_without_an_extent():
     for edge, column in zip((30.0, 8.0), x.T, strict=True):
         assert abs(column.mean() - edge / 2) < 5 * edge / np.sqrt(12 * len(column))
         assert abs(column.std() / (edge / np.sqrt(12)) - 1) < 0.15
+    # numbered as the lattice numbers its sites (cells of about one body, row by row), so the
+    # bodies near one another lie near one another in memory: the same points as drawn
+    drawn = np.random.default_rng([0, 0]).uniform(0.0, 1.0, (400, 2)) * [30.0, 8.0]
+    np.testing.assert_array_equal(np.sort(x, axis=0), np.sort(drawn, axis=0))
+    cells = np.minimum((x / [30.0, 8.0] * 20).astype(int), 19)
+    row_major = cells[:, 0] * 20 + cells[:, 1]
+    assert np.all(np.diff(row_major) >= 0)
+    steps = np.abs(np.diff(x, axis=0)).sum(axis=1)
+    assert np.median(steps) < 2.0 < np.median(np.abs(np.diff(drawn, axis=0)).sum(axis=1))
 
 
 def test_constituents_give_the_second_moment_of_eq_8():

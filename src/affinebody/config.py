@@ -1201,7 +1201,8 @@ def _generated_configuration(config: Config) -> tuple[np.ndarray, np.ndarray]:
             extent = np.asarray(box, dtype=np.float64)
         else:
             extent = i.spacing * count ** (1 / n)
-        x = origin + _rng(seed, 0).uniform(0.0, 1.0, (count, n)) * extent
+        u = _rng(seed, 0).uniform(0.0, 1.0, (count, n))
+        x = origin + u[_cell_order(u)] * extent
     else:  # lattice
         shape = i.shape or _lattice_shape(count, n)
         sites = np.stack(np.unravel_index(np.arange(count), shape), axis=-1).astype(np.float64)
@@ -1218,6 +1219,17 @@ def _generated_configuration(config: Config) -> tuple[np.ndarray, np.ndarray]:
             noise = i.phi_noise * _rng(seed, 2).standard_normal((count, n, n))
             phi = np.asarray(_exponential_of_algebra(noise, algebra))
     return x, phi
+
+
+def _cell_order(u: np.ndarray) -> np.ndarray:
+    """The order of points ``u`` [N, n] in the unit cube that visits cells of about one point
+    each row by row (the last axis fastest), as the lattice generator numbers its sites. In
+    the order drawn, the bodies a body interacts with lie anywhere in memory, and every step
+    gathers them from there: 2.2x the time per step at 97 336 bodies in 3D."""
+    count, n = u.shape
+    side = max(1, math.ceil(count ** (1 / n)))
+    cells = np.minimum((u * side).astype(np.int64), side - 1)
+    return np.lexsort(cells.T[::-1])
 
 
 @jax.jit
