@@ -698,3 +698,25 @@ def test_a_box_that_blows_up_stops_the_run_before_its_volume_overflows(tmp_path)
     for name in ("volume", "effective_energy", "total_energy"):
         assert np.all(np.isfinite(kept.observables[name])), name
     assert np.all(np.isfinite(kept.boxes))
+
+
+def test_the_thermostat_hook_prepared_once_is_the_hook_of_every_step():
+    """barostat.run computes the thermostat's noise factors once per compiled call
+    (ThermostatHook.prepare; they depend on the kinetic model and the number of bodies only),
+    not in every step: the prepared hook gives the same bits as the hook that computes them."""
+    from affinebody.config import build, check_config, parse_config
+    from affinebody.runner import ThermostatHook
+
+    text = NPT_CONFIG.replace("temperature = 0.3\n", "") + (
+        '[thermostat]\nkind = "langevin"\ntemperature = 0.3\nfriction = 1.0\nseed = 5\n')
+    built = build(check_config(parse_config(text)))
+    hook, key = ThermostatHook(built.thermostat), jax.random.PRNGKey(3)
+    state = built.state
+    for _ in range(2):  # the second from momenta the first drew
+        every = jax.jit(hook, static_argnums=3)(built.system, state, key, 0.01)
+        once = jax.jit(lambda s, k: hook.prepare(built.system, s)(built.system, s, k, 0.01))(
+            state, key)
+        for a, b in zip(jax.tree.leaves(every), jax.tree.leaves(once), strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert np.any(np.asarray(every.p) != np.asarray(state.p))
+        state, key = every, jax.random.split(key)[0]

@@ -435,6 +435,8 @@ def _npt(system, state, cell, first_step, seed, dt, neighbors, exchanged, active
     on after a reallocation runs its remaining chunks through the program of the same
     ``n_chunks``, compiled once for the new list, not once more for its shorter length."""
     p0 = jnp.trace(jnp.asarray(barostat.pressure)) / space.dimension  # may be traced (sweep)
+    if thermostat is not None and hasattr(thermostat, "prepare"):  # once, not every step
+        thermostat = thermostat.prepare(system, state)
 
     def enthalpy(state, cell, nbrs):
         """H + P0 V in ``cell`` (P0 = Tr P0 / n)."""
@@ -651,7 +653,9 @@ def run(system, state: State, space, barostat: StochasticCellRescaling, dt: floa
         work: float = 0.0) -> NPTTrajectory:
     """Integrate ``steps`` steps at constant pressure: each step is one step of the
     integrator in the current box, the ``thermostat`` (a function
-    ``(system, state, key, dt) -> state``, or None) and a barostat move.
+    ``(system, state, key, dt) -> state``, or None; one with a ``prepare(system, state)``
+    method, as ``runner.ThermostatHook``, is replaced by what that returns once per compiled
+    call, for what does not change from step to step) and a barostat move.
 
     Besides ``pressure`` and ``volume`` the frames record the energy exchanged with the baths
     since the start: ``heat``, the kinetic energy the thermostat put in, and ``work``, the

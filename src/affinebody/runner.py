@@ -23,6 +23,7 @@ exit status (:mod:`affinebody.cli.common`), never as a traceback.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 import warnings
@@ -475,11 +476,12 @@ def constant_pressure(config: Config, thermostat):
     return baro, None if thermostat is None else ThermostatHook(thermostat)
 
 
-def thermostat_hook(thermostat, system, state, key, dt):
-    """The ``[thermostat]``'s O(dt) step in the form ``barostat.run`` takes."""
+def thermostat_hook(thermostat, system, state, key, dt, noise=None):
+    """The ``[thermostat]``'s O(dt) step in the form ``barostat.run`` takes; ``noise``: the
+    ``thermostats.factors`` of the system, computed here when not given."""
     from affinebody import thermostats
 
-    noise = thermostats.factors(system, state)
+    noise = thermostats.factors(system, state) if noise is None else noise
     return thermostats.thermostat_step(system, thermostat, state, dt, key, noise)[0]
 
 
@@ -493,6 +495,15 @@ class ThermostatHook:
 
     def __call__(self, system, state, key, dt):
         return thermostat_hook(self.thermostat, system, state, key, dt)
+
+    def prepare(self, system, state):
+        """The hook with the noise factors computed once, what ``barostat.run`` calls before
+        its loop: they depend on the kinetic model and the number of bodies only, and computed
+        in every step they took 0.2-0.28 s of a 1.6 s NPT step at 97 336 bodies."""
+        from affinebody import thermostats
+
+        return functools.partial(thermostat_hook, self.thermostat,
+                                 noise=thermostats.factors(system, state))
 
 
 def _stop_message(report, offset: int, dt: float, labels, frames: int, output: Path) -> str:
