@@ -191,6 +191,34 @@ def test_one_worker_and_two_workers_give_identical_results(two_workers, tmp_path
         np.testing.assert_array_equal(row["omega_hat"], two_workers.samples["omega_hat"][p, k])
 
 
+def test_draws_of_many_numbers_go_beside_the_task_file_bit_for_bit(tmp_path, monkeypatch):
+    """A task whose drawn velocities exceed TASK_JSON_DRAWS numbers (here every task: the
+    limit set to 0) writes them to TASK.npz, named in the JSON's "draws", not as JSON text
+    (GBs for a batch of 10^5 bodies); they are the sweep's draws bit for bit, the rows keep
+    everything else, and a later sweep into the folder leaves no stale side file."""
+    import affinebody.sweep as sweep_module
+
+    monkeypatch.setattr(sweep_module, "TASK_JSON_DRAWS", 0)
+    text = MIXED.replace("samples = 20", "samples = 8")
+    result = run_sweep(load(text), workers=0, output=tmp_path)
+    files = sorted((tmp_path / "tasks").glob("*.json"))
+    assert files and len(list((tmp_path / "tasks").glob("*.npz"))) == len(files)
+    for path in files:
+        data = json.loads(path.read_text())
+        assert "omega_hat" not in data["rows"][0] and "status" in data["rows"][0]
+        draws = np.load(tmp_path / "tasks" / data["draws"])
+        first, stop = data["samples"]
+        np.testing.assert_array_equal(draws["omega_hat"],
+                                      result.samples["omega_hat"][data["point"], first:stop])
+        np.testing.assert_array_equal(draws["velocity"],
+                                      result.samples["velocity"][data["point"], first:stop])
+    monkeypatch.setattr(sweep_module, "TASK_JSON_DRAWS", 10**9)
+    run_sweep(load(text), workers=0, output=tmp_path)
+    assert not list((tmp_path / "tasks").glob("*.npz"))
+    row = json.loads(files[0].read_text())["rows"][0]
+    assert np.shape(row["omega_hat"]) == (1, 2, 2)
+
+
 def test_workers_compute_in_float64_with_one_thread(client, two_workers):
     tasks = sorted((two_workers.output / "tasks").glob("*.json"))
     assert len(tasks) == 2 * math.ceil(SAMPLES / BATCH)  # one file per task
