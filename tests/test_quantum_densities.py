@@ -434,3 +434,16 @@ def test_density_command_exits_3_on_a_non_finite_g_density(tmp_path, monkeypatch
                          parse_constant=refuse)
     assert written["densities"]["G11"]["density"] == [None] * 11
     assert written["densities"]["G11"]["converged"] is False
+
+
+def test_an_unconverged_density_is_said_relative_to_its_peak():
+    """The tolerance is relative to the density's peak: the warning gives the error in that
+    unit (it gave the absolute error next to 'tolerance x peak', as '1.0e-06 above tolerance
+    1e-06 x peak 0.628', which reads as an error within the tolerance)."""
+    from affinebody.quantum import densities as dens
+
+    m = dens.Marginal(np.linspace(0, 1, 3), np.array([0.1, 0.628, 0.2]), 1.02e-6, 1.0, 24,
+                      False)
+    message = dens._density_warning("G12", m, 1e-6)
+    assert "error 1.6e-06 of its peak 0.628, above the tolerance 1e-06" in message
+    assert "\n" not in message

@@ -891,8 +891,9 @@ def _density_warning(name: str, m: Marginal, tolerance: float) -> str:
     if bad:
         return (f"density of {name}: not finite at {bad} of {len(m.density)} points "
                 f"(written as they are, flagged converged: false)")
-    return (f"density of {name}: quadrature error {m.error:.1e} above tolerance "
-            f"{tolerance:g} x peak {np.max(np.abs(m.density)):.3g}")
+    peak = float(np.max(np.abs(m.density)))
+    return (f"density of {name}: quadrature error {m.error / peak:.1e} of its peak "
+            f"{peak:.3g}, above the tolerance {tolerance:g}")
 
 
 def orientation_densities(spectrum: Spectrum, state: int | None = None,

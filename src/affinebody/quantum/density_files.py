@@ -211,9 +211,10 @@ def _write_orientation3(spectrum: Spectrum, directory: Path, state: int | None,
             payload["densities"][name] = m.as_dict()
             limit = green3.TOLERANCE if name in green3.COMPONENTS else green3.OFF_TOLERANCE
             if not m.converged:
+                peak = float(np.max(np.abs(m.density)))
                 payload["warnings"].append(
-                    f"density of {name}: the two rules differ by {m.error:.1e}, above "
-                    f"{limit:g} x peak {np.max(np.abs(m.density)):.3g}")
+                    f"density of {name}: the two rules differ by {m.error / peak:.1e} of its "
+                    f"peak {peak:.3g}, above the tolerance {limit:g}")
     fig, axes = plt.subplots(1, 2 + bool(green), figsize=(5 * (2 + bool(green)), 3.5))
     for name in green:
         m = payload["densities"][name]
