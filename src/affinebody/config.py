@@ -472,7 +472,6 @@ def _initial_generator(i: InitialSection) -> str | None:
 class FileHeader:
     """What ``initial.file`` holds, read without its frames (O(frames), not O(N frames))."""
 
-    path: str
     bodies: int
     n: int
     frames: int
@@ -499,7 +498,7 @@ def _read_file_header(path: str, mtime_ns: int, size: int) -> FileHeader:
     try:
         with open_trajectory(path) as trajectory:
             boxes = None if trajectory.boxes is None else np.array(trajectory.boxes)
-            return FileHeader(path, trajectory.bodies, trajectory.n, trajectory.frames, boxes,
+            return FileHeader(trajectory.bodies, trajectory.n, trajectory.frames, boxes,
                               trajectory.units)
     except TrajectoryFileError as err:
         raise ConfigError(f"initial.file: {err}") from None
@@ -531,7 +530,6 @@ def file_frame(config: Config) -> tuple[np.ndarray, ...]:
         with open_trajectory(i.file) as trajectory:
             x, phi, p, pi = (np.asarray(getattr(trajectory, name)[k], dtype=np.float64)
                              for name in ("x", "phi", "p", "pi"))
-            box = None if trajectory.boxes is None else np.asarray(trajectory.boxes[k])
     except TrajectoryFileError as err:
         raise ConfigError(f"initial.file: {err}") from None
     bad = ~(np.all(np.isfinite(x), axis=-1) & np.all(np.isfinite(phi), axis=(-2, -1))
@@ -539,8 +537,8 @@ def file_frame(config: Config) -> tuple[np.ndarray, ...]:
     if np.any(bad):
         raise ConfigError(f"initial.file: frame {k} of {i.file} holds a non-finite state of "
                           f"body {int(np.argmax(bad))}")
-    if i.rescale:
-        x = x * (np.asarray(config.system.box, dtype=np.float64) / box)
+    if i.rescale:  # _check_initial_file: both boxes are there
+        x = x * (np.asarray(config.system.box, dtype=np.float64) / _file_header(i.file).boxes[k])
     return x, phi, p, pi
 
 

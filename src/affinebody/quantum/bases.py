@@ -270,7 +270,7 @@ def solve_block(build: Callable[[int, float], tuple[np.ndarray, Basis]], size: i
         return np.zeros(0), np.zeros((0, 0)), np.zeros(0), basis
     E, vec = dense_lowest(H, count)
     Hs, _ = build(size - settings.check_shrink, scale)
-    Es = lowest_eigenvalues(Hs, len(E)) if Hs.size else np.zeros(0)
+    Es = lowest_eigenvalues(Hs, len(E))
     if settings.check_widen == 1.0:
         Ew = E
     else:
@@ -313,7 +313,6 @@ def variational_parameters(energy: Callable[[np.ndarray], float], start: np.ndar
     res = optimize.minimize(energy, start, method="Nelder-Mead",
                             options={"xatol": 1e-3, "fatol": 1e-10, "maxiter": 200})
     return res.x
-
 
 
 def variational_scales(energy: Callable[[float, float, float], float], start: tuple,

@@ -310,6 +310,5 @@ def afaf_warning(hbar: float, A: float, max_spin: int, shell_minima: list[float]
 
 __all__ = [
     "lebesgue2_block", "haar2_block", "auto_scale_lebesgue2", "auto_scale_haar2", "affine_scales",
-    "n2_sectors",
-    "solve_n2", "runaway_message", "afaf_warning"
+    "n2_sectors", "solve_n2", "runaway_message", "afaf_warning"
 ]
