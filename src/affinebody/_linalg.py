@@ -194,6 +194,39 @@ def _lapack_solve(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.moveaxis(x, 0, -2)
 
 
+def inverse_cholesky_factor(k) -> jax.Array:
+    """F [..., d, d], upper triangular, with F F^T = k^-1 for symmetric positive definite
+    k [..., d, d] (any small d: the thermostats' d = n^2 <= 9), NaN where k is not positive
+    definite; without LAPACK.
+
+    k = L L^T (Cholesky, column by column, unrolled), then F = L^-T (forward substitution
+    against Id, row by row): F F^T = L^-T L^-1 = (L L^T)^-1. Of k only the lower triangle is
+    read. Why not ``jnp.linalg.eigh`` or ``cholesky``: each is a batched LAPACK kernel, and two
+    of them ready at once in one program deadlock XLA's CPU pool of two threads (module
+    docstring); an ordering between them in the jaxpr (an optimisation barrier) does not
+    survive compilation. Backward stable like LAPACK's potrf; d^3/3 operations per matrix."""
+    k = _square(jnp.asarray(k), "k")
+    d = k.shape[-1]
+    index = jnp.arange(d)
+    columns: list = []  # L[..., :, j]
+    for j in range(d):
+        v = k[..., :, j]
+        for c in columns:
+            v = v - c * c[..., j:j + 1]
+        pivot = v[..., j]
+        root = jnp.sqrt(jnp.where(pivot > 0, pivot, jnp.nan))
+        columns.append(jnp.where(index >= j, v / root[..., None], 0.0))
+    lower = jnp.stack(columns, -1)
+    eye = jnp.eye(d, dtype=k.dtype)
+    rows: list = []  # rows of L^-1
+    for i in range(d):
+        r = eye[i] + jnp.zeros_like(lower[..., i, :])
+        for m, row in enumerate(rows):
+            r = r - lower[..., i, m:m + 1] * row
+        rows.append(r / lower[..., i, i:i + 1])
+    return jnp.swapaxes(jnp.stack(rows, -2), -1, -2)
+
+
 #: Pade [13/13] coefficients of exp (Higham 2005, "The scaling and squaring method for the matrix
 #: exponential revisited"); THETA13: the 1-norm up to which it is accurate to unit roundoff
 #: (also the constants of the host kernel ``_host_kernels/drift.py``).

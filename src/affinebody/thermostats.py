@@ -178,9 +178,9 @@ def noise_factor(term, bodies: int, shape: tuple[int, ...]) -> jax.Array:
 
 
 def _factor_of(k: jax.Array) -> jax.Array:
-    """F with F F^T = k^-1 from the symmetric eigendecomposition of each k (a LAPACK batch)."""
-    lam, q = jnp.linalg.eigh(0.5 * (k + transpose(k)))
-    return q * jnp.where(lam > 0, lam, jnp.nan)[..., None, :] ** -0.5
+    """F with F F^T = k^-1 (k^-1 = L^-T L^-1 from the Cholesky factor L of k), without LAPACK:
+    ``_linalg.inverse_cholesky_factor``."""
+    return linalg.inverse_cholesky_factor(0.5 * (k + transpose(k)))
 
 
 def check_positive_kinetic(system, n: int) -> None:
@@ -233,16 +233,14 @@ def internal_temperature(system, state: State) -> jax.Array:
 def factors(system, state: State) -> tuple[jax.Array, jax.Array]:
     """(F_tr [N, n, n], F_int [N, n^2, n^2]) of :func:`noise_factor` for the system's terms.
 
-    The internal eigendecompositions start after the translational ones have finished (an
-    optimisation barrier): two batched LAPACK kernels at once can deadlock XLA's CPU pool of
-    two threads (README, "Notes and known limits"), which independent ones did here (a loop of
-    ``jax.jit(factors)`` at 10^4 bodies hung)."""
+    No LAPACK kernel: the factors were two batched eigendecompositions, which XLA ran at once
+    and which then deadlocked its CPU pool of two threads (README, "Notes and known limits";
+    an NPT run of 97 336 bodies from Python hung in its first call; an optimisation barrier
+    between them in the jaxpr was gone from the compiled program)."""
     n, bodies = state.n, state.bodies
     kinetic = system.kinetic
-    f_tr = noise_factor(kinetic.translational, bodies, (n,))
-    f_tr, k_int = jax.lax.optimization_barrier(
-        (f_tr, coordinate_hessian(kinetic.internal, bodies, (n, n))))
-    return f_tr, _factor_of(k_int)
+    return (noise_factor(kinetic.translational, bodies, (n,)),
+            noise_factor(kinetic.internal, bodies, (n, n)))
 
 
 def ornstein_uhlenbeck(system, thermostat, state: State, h, key, noise_factors,
