@@ -30,6 +30,9 @@ choice.
 the same f written as an expression, each on one core and on all (``--repeat`` rounds,
 interleaved), printing body-steps/s: a built-in family runs the same fused host kernel.
 
+``--renumbered``: the loop's rate from the lattice and from the same bodies numbered at random
+(``--side``, ``--steps``, ``--repeat``), one core.
+
 ``--npt``: the same lattice (``--side``, ``--steps``) at constant volume and under the
 stochastic cell-rescaling barostat (:data:`BAROSTAT`, isotropic; the neighbour list follows
 the box) moving the box every step and every 10 steps (``--barostat-interval``), all on all
@@ -44,6 +47,7 @@ each interval with the Metropolis test of the moves (``barostat.metropolis = tru
     .venv/bin/python benchmarks/run_scale.py --faults --steps 1000     # page faults per step
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py --families --repeat 3
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_scale.py --repeat 3 --pool-of-cores
+    .venv/bin/python benchmarks/run_scale.py --renumbered --side 46 --steps 40 --repeat 3
 """
 
 from __future__ import annotations
@@ -371,6 +375,42 @@ def generators(side: int, steps: int, repeat: int) -> None:
           f"{random_rate:.3g}, random / lattice {random_rate / lattice_rate:.2f}")
 
 
+def renumbered(side: int, steps: int, repeat: int) -> None:
+    """``--renumbered``: the loop's rate of ``affinebody run`` from a lattice start and from the
+    same bodies numbered at random (a two-step run's last frame, every per-body dataset of its
+    H5MD file permuted alike, started from by ``[initial] file``): a liquid's numbering after
+    it has diffused. One core, ``repeat`` rounds interleaved."""
+    import h5py
+    import numpy as np
+
+    rates: dict[str, list[float]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        lattice = write_config(folder, side, steps, every=steps)
+        seed = write_config(folder, side, 2, every=2, name="seed")
+        ours(seed, folder / "seed.h5", "0", 1)
+        bodies = side ** 3
+        permutation = np.random.default_rng(0).permutation(bodies)
+        with h5py.File(folder / "seed.h5", "r+") as f:
+            for item in f["particles/bodies"].values():
+                if isinstance(item, h5py.Group) and "value" in item:
+                    value = item["value"]
+                    if value.ndim >= 2 and value.shape[1] == bodies:
+                        value[...] = value[...][:, permutation]
+        text = lattice.read_text()
+        initial = text[text.index("[initial]"):text.index("[run]")]
+        shuffled = folder / f"renumbered{side}.toml"
+        shuffled.write_text(text.replace(initial, f'[initial]\nfile = "{folder / "seed.h5"}"\n\n'))
+        for k in range(repeat):
+            for name, config in (("lattice", lattice), ("renumbered", shuffled)):
+                rates.setdefault(name, []).append(
+                    ours(config, folder / f"{name}-{k}.h5", "0", 1)["rate"])
+    first, other = (statistics.median(rates[name]) for name in ("lattice", "renumbered"))
+    print(f"affinebody run, {bodies} bodies, {steps} steps, one core (body-steps/s in the loop, "
+          f"{repeat} runs each, median): lattice start {first:.3g}, the same bodies numbered at "
+          f"random {other:.3g}, renumbered / lattice {other / first:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--side", type=int, default=16)
@@ -391,6 +431,9 @@ def main() -> None:
                              "runner.prepare_process)")
     parser.add_argument("--generators", action="store_true",
                         help="the loop's rate from a lattice start and from a random one")
+    parser.add_argument("--renumbered", action="store_true",
+                        help="the loop's rate from a lattice start and from the same bodies "
+                             "numbered at random (a diffused liquid's numbering)")
     parser.add_argument("--families", action="store_true",
                         help="the Morse pair term as a built-in family and as an expression")
     args = parser.parse_args()
@@ -398,6 +441,8 @@ def main() -> None:
     POOL_OF_CORES = args.pool_of_cores
     if args.generators:
         generators(args.side, args.steps, args.repeat)
+    elif args.renumbered:
+        renumbered(args.side, args.steps, args.repeat)
     elif args.families:
         families(args.side, args.steps, args.repeat)
     elif args.npt:

@@ -275,3 +275,32 @@ def test_host_build_in_parts_on_two_threads_is_the_one_pass_list(kind, monkeypat
         for a, b in ((host.i, reference.i), (host.j, reference.j)):
             np.testing.assert_array_equal(np.asarray(a)[:count], np.asarray(b)[:count])
             assert np.all(np.asarray(a)[count:] == BODIES)
+
+
+@pytest.mark.parametrize("builder", ["host", "jax"])
+def test_the_list_visits_the_bodies_in_an_order_in_space_whatever_their_numbering(builder):
+    """A crystal whose bodies are numbered at random (as a liquid's numbering ends up after it
+    diffuses) gets its pairs with K in an order in space: consecutive bodies K of the list are
+    lattice neighbours (median distance one spacing; visited by number they would be about
+    half the box apart), and the list holds the pairs of the crystal numbered row by row,
+    renamed."""
+    side = 10
+    box = orthorhombic((float(side),) * 3)
+    grid = np.stack(np.meshgrid(*(np.arange(side),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    rows = 0.5 + grid + 0.02 * np.random.default_rng(3).normal(size=grid.shape)
+    number = np.random.default_rng(4).permutation(len(rows))  # body number[k] sits at rows[k]
+    x = np.empty_like(rows)
+    x[number] = rows
+    phi = jnp.broadcast_to(jnp.eye(3), (len(rows), 3, 3))
+    build = jax.jit(nb.build if builder == "host" else nb.build_jax, static_argnums=0)
+    spec, _ = nb.allocate(box, jnp.asarray(x), phi, 1.2, "r", 0.2)
+    listed = nb.pairs_of(build(spec, jnp.asarray(x), phi))
+    first = listed[np.r_[True, listed[1:, 0] != listed[:-1, 0]], 0]  # the K in list order
+    assert len(first) > len(rows) // 2
+    step = x[first[1:]] - x[first[:-1]]
+    step -= side * np.round(step / side)
+    assert np.median(np.linalg.norm(step, axis=-1)) < 1.5
+    spec_rows, _ = nb.allocate(box, jnp.asarray(rows), phi, 1.2, "r", 0.2)
+    by_rows = nb.pairs_of(build(spec_rows, jnp.asarray(rows), phi))
+    renamed = np.sort(number[by_rows], axis=-1)
+    assert pair_set(listed) == pair_set(renamed)

@@ -41,8 +41,12 @@ pairs [capacity], plus a chunk of candidates at a time during the build.
 
 Build (one jitted function, also on a GPU): cell index of every centre (fractional coordinates
 in a box), bodies sorted by cell into a table [N_cells, cell_capacity], then chunks of bodies
-scan the 3^n neighbouring cells, keep partners L > K within rho + skin and write them, in order
-of K, into the pair arrays (``i < j``). Cells are at least rho + skin wide in every lattice
+scan the 3^n neighbouring cells, keep partners L > K within rho + skin and write them into the
+pair arrays (``i < j``), K in an order in space (:func:`visiting_order`: row by row over
+cells of about one body each): consecutive pairs are near one another in space whatever the
+numbering of the bodies, so the pair kernels find their data in cache (with the pairs in
+order of K, a numbering that had lost its order in space, as a liquid's does as it diffuses,
+made a step 2.2x slower at 97 336 bodies). Cells are at least rho + skin wide in every lattice
 direction (wider in a dilute box: at most ``CELLS_PER_BODY`` cells per body), so a pair in
 range is always in neighbouring cells; in free space the grid covers the bounding box at
 allocation and centres outside it are clamped into the edge cells, which keeps that property
@@ -174,8 +178,11 @@ def spatial_reach(cutoff: float, variable: str, phi: jax.Array) -> jax.Array:
 # cells
 
 
-def _cell_coordinates(spec: NeighborSpec, x: jax.Array, cell=None) -> jax.Array:
-    grid = jnp.asarray(spec.grid)
+def _cell_coordinates(spec: NeighborSpec, x: jax.Array, cell=None, refine: int = 1
+                      ) -> jax.Array:
+    """Integer cell coordinates [N, n] of the centres in the grid of ``spec``, each cell cut
+    into ``refine`` parts along every axis."""
+    grid = jnp.asarray(spec.grid) * refine
     if cell is not None:
         s = x @ linalg.inv(cell).T
         s = s - jnp.floor(s)
@@ -185,13 +192,36 @@ def _cell_coordinates(spec: NeighborSpec, x: jax.Array, cell=None) -> jax.Array:
         s = s - jnp.floor(s)
         c = jnp.floor(s * grid).astype(jnp.int32)
     else:
-        c = jnp.floor((x - jnp.asarray(spec.origin)) / jnp.asarray(spec.cell_size))
+        c = jnp.floor((x - jnp.asarray(spec.origin)) / (jnp.asarray(spec.cell_size) / refine))
         c = c.astype(jnp.int32)
     return jnp.clip(c, 0, grid - 1)
 
 
+def visiting_refinement(spec: NeighborSpec) -> int:
+    """How many parts a cell is cut into along each axis for :func:`visiting_order`: cells of
+    about one body each (3 for a crystal in cells of rho + skin; 1 in a dilute box)."""
+    per_cell = spec.bodies / max(1, int(np.prod(spec.grid)))
+    return max(1, round(per_cell ** (1.0 / len(spec.grid))))
+
+
+def visiting_order(spec: NeighborSpec, x: jax.Array, cell=None) -> tuple[jax.Array, int]:
+    """(flat index [N] of every centre's cell in the refined grid of
+    :func:`visiting_refinement`, row by row (the last axis fastest), and the number of such
+    cells): the builds visit the bodies K in order of it, then of index. Row by row over cells
+    of one body, as the lattice generator numbers its sites, so a crystal is visited in about
+    the order of its numbers (with cells of rho + skin, ~24 bodies, a crystal of 97 336 ran 5 %
+    slower per step than visited by number), and a diffused numbering in an order in space."""
+    refine = visiting_refinement(spec)
+    grid = tuple(g * refine for g in spec.grid)
+    coords = _cell_coordinates(spec, x, cell, refine)
+    return coords @ jnp.asarray(_strides(grid)), int(np.prod(grid))
+
+
 def _strides(grid: tuple[int, ...]) -> np.ndarray:
-    return np.cumprod((1,) + grid[:-1]).astype(np.int32)
+    """Strides of the flat cell index, the last axis fastest (row by row, as the lattice
+    generator numbers its sites): the build visits the bodies of a lattice in about the order
+    of their numbers."""
+    return np.cumprod((1,) + tuple(grid[::-1])[:-1])[::-1].astype(np.int32)
 
 
 def _stencil(spec: NeighborSpec) -> np.ndarray:
@@ -259,8 +289,8 @@ def build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> Neighb
 
 
 def build_jax(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> NeighborList:
-    """:func:`build` in JAX (a GPU: no host round trip). Pairs in order of K, then of the
-    stencil cell, then of L within a cell."""
+    """:func:`build` in JAX (a GPU: no host round trip). Pairs in order of K
+    (:func:`visiting_order`, then index), then of the stencil cell, then of L within a cell."""
     bodies, n = x.shape
     reach = spatial_reach(spec.cutoff, spec.variable, phi)
     radius = reach + spec.skin
@@ -271,14 +301,16 @@ def build_jax(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> Ne
     width = stencil.shape[0] * spec.cell_capacity
     chunk = max(1, min(bodies, candidates_per_chunk() // width))
     chunks = -(-bodies // chunk)
+    visit = jnp.argsort(visiting_order(spec, x, cell)[0]).astype(jnp.int32)  # stable
     ids = jnp.arange(chunks * chunk, dtype=jnp.int32).reshape(chunks, chunk)
+    order_pad = jnp.concatenate([visit, jnp.full((1,), bodies, jnp.int32)])
     x_pad = jnp.concatenate([x, x[:1]])
     coords_pad = jnp.concatenate([coords, coords[:1]])
     capacity = spec.capacity
 
     def scan_chunk(carry, body):
         pairs_i, pairs_j, total = carry
-        body = jnp.minimum(body, bodies)  # the padding body N has no partners
+        body = order_pad[jnp.minimum(body, bodies)]  # the padding body N has no partners
         neighbour = coords_pad[body][:, None, :] + stencil[None]
         if spec.space.periodic:
             inside = jnp.ones(neighbour.shape[:2], dtype=bool)
@@ -331,12 +363,13 @@ def _host_kernels(n: int, periodic: bool):
 
 def _host_pairs(bodies: int, capacity: int, pairs_i, pairs_j, search) -> int:
     """Fill pairs_i, pairs_j (padded with ``bodies``) by ``search(first, last, offset, room)``
-    (the pairs of bodies first..last-1, written from row ``offset`` while they fit in ``room``
-    rows; returns how many there are) over :data:`affinebody._host.PARTS` fixed parts of the
-    bodies, on up to as many threads: part k writes into its share of the rows, then the parts
-    are moved together in order, so the list is the one-pass list whatever the thread count.
-    Where a part has more pairs than its share (an uneven system), the bodies are searched
-    again in one pass. Returns the number of pairs (more than ``capacity``: overflow)."""
+    (the pairs of the bodies at positions first..last-1 of the visiting order, written from
+    row ``offset`` while they fit in ``room`` rows; returns how many there are) over
+    :data:`affinebody._host.PARTS` fixed parts of the bodies, on up to as many threads: part k
+    writes into its share of the rows, then the parts are moved together in order, so the
+    list is the one-pass list whatever the thread count. Where a part has more pairs than its
+    share (an uneven system), the bodies are searched again in one pass. Returns the number
+    of pairs (more than ``capacity``: overflow)."""
     parts = _host.PARTS
     shares = _host.part_ranges(capacity, parts)
 
@@ -361,7 +394,8 @@ def _host_pairs(bodies: int, capacity: int, pairs_i, pairs_j, search) -> int:
 
 def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> NeighborList:
     """:func:`build` with compiled CPU loops through ``_host.callback``: a counting sort of
-    the bodies by cell (no cell capacity), then, for each body K in order, the cells of the
+    the bodies by cell (no cell capacity), then, for each body K in the order of
+    :func:`visiting_order` (another counting sort), the cells of the
     stencil in order and their bodies L > K in index order, as :func:`build_jax` (the bodies
     in fixed parts on up to two threads, :func:`_host_pairs`)."""
     bodies, n = x.shape
@@ -369,6 +403,7 @@ def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> 
     radius = reach + spec.skin
     coords = _cell_coordinates(spec, x, cell)
     flat = coords @ jnp.asarray(_strides(spec.grid))
+    fine, fine_cells = visiting_order(spec, x, cell)
     space = spec.space
     if cell is not None:  # the current cell, an operand (the general minimum image)
         mode, h, h_inv, edges = 2, cell, linalg.inv(cell), np.ones(n)
@@ -381,9 +416,10 @@ def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> 
                               _strides(spec.grid).astype(np.int64),
                               _stencil(spec).astype(np.int64))
 
-    def host(flat, coords, x, radius, h, h_inv):
+    def host(flat, fine, coords, x, radius, h, h_inv):
         kernels = _host_kernels(n, space.periodic)
         start, order = kernels.order_by_cell(np.asarray(flat, np.int64), int(np.prod(grid)))
+        visit = kernels.order_by_cell(np.asarray(fine, np.int64), fine_cells)[1]
         coords, x = np.asarray(coords, np.int64), np.asarray(x)
         h, h_inv = np.asarray(h, np.float64), np.asarray(h_inv, np.float64)
         radius2 = float(radius) ** 2
@@ -391,8 +427,8 @@ def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> 
         pairs_j = np.empty(spec.capacity, np.int32)
 
         def search(first, last, offset, room):
-            return kernels.pairs(first, last, coords, x, start, order, grid, strides, stencil,
-                                 mode, h, h_inv, np.asarray(edges, np.float64), radius2,
+            return kernels.pairs(first, last, visit, coords, x, start, order, grid, strides,
+                                 stencil, mode, h, h_inv, np.asarray(edges, np.float64), radius2,
                                  offset, room, pairs_i, pairs_j)
 
         total = _host_pairs(bodies, spec.capacity, pairs_i, pairs_j, search)
@@ -401,7 +437,7 @@ def _host_build(spec: NeighborSpec, x: jax.Array, phi: jax.Array, cell=None) -> 
     shapes = (jax.ShapeDtypeStruct((spec.capacity,), jnp.int32),) * 2 + (
         jax.ShapeDtypeStruct((), jnp.int32),)
     pairs_i, pairs_j, total = _host.callback(
-        host, shapes, flat, coords, x, radius, jnp.asarray(h, x.dtype),
+        host, shapes, flat, fine, coords, x, radius, jnp.asarray(h, x.dtype),
         jnp.asarray(h_inv, x.dtype), vmap_method="sequential")
     overflow = (jnp.where(total > spec.capacity, PAIR_OVERFLOW, 0)
                 | jnp.where(_reach_overflow(spec, radius, cell), REACH_OVERFLOW, 0)
@@ -699,7 +735,8 @@ def pairs_of(neighbors: NeighborList) -> np.ndarray:
 __all__ = [
     "BOX_HEADROOM", "REACH_HEADROOM", "SIZE_FIELDS", "candidates_per_chunk", "resized", "sizes",
     "NeighborList", "NeighborSpec",
-    "largest_singular_values", "spatial_reach", "cell_table", "perpendicular_widths", "build",
+    "largest_singular_values", "spatial_reach", "cell_table", "visiting_refinement",
+    "visiting_order", "perpendicular_widths", "build",
     "build_jax", "build_jit", "needs_rebuild", "fits_box", "update", "NeighborListOverflow",
     "check", "allocate", "MAX_REALLOCATIONS_IN_A_ROW", "reallocate", "list_at",
     "uniform_pair_count", "uniform_list_bytes", "CAPACITY_FACTOR", "brute_force_pairs", "pairs_of"

@@ -1,6 +1,6 @@
 """Numba kernel of the host neighbour-list build (:mod:`affinebody.neighbors`): a counting sort
-of the bodies by cell, then for each body the cells of the stencil and their bodies of larger
-index, in the same order as the JAX build.
+of the bodies by cell, then for each body in an order in space, the cells of the stencil and
+their bodies of larger index, in the same order as the JAX build.
 
 ``N`` (the dimension) and ``PERIODIC`` are module constants, compiled as constants so the loops
 unroll; :func:`affinebody._host.specialized` writes this module once per (N, PERIODIC) to a
@@ -40,15 +40,19 @@ def order_by_cell(flat, cells):
 
 
 @_jit
-def pairs(first, last, coords, x, start, order, grid, strides, stencil, mode, h, h_inv, edges,
-          radius2, offset, room, pairs_i, pairs_j):
-    """The pairs (k, l > k) closer than sqrt(radius2) of the bodies k = first..last-1, in
-    order (k, then the stencil's cells, then the cell's bodies by index), written from
-    pairs_i[offset] on while they fit in ``room`` rows; returns how many there are."""
+def pairs(first, last, visit, coords, x, start, order, grid, strides, stencil, mode, h, h_inv,
+          edges, radius2, offset, room, pairs_i, pairs_j):
+    """The pairs (k, l > k) closer than sqrt(radius2) of the bodies k = visit[first..last-1],
+    in order (k, then the stencil's cells, then the cell's bodies by index), written from
+    pairs_i[offset] on while they fit in ``room`` rows; returns how many there are. ``visit``
+    is an order in space (``neighbors.visiting_order``), not by index: consecutive pairs then
+    touch bodies near one another, whose data stays in cache, however the bodies are
+    numbered (a liquid's numbering loses its order in space as it diffuses)."""
     u = np.empty(N)
     s = np.empty(N)
     total = 0
-    for k in range(first, last):
+    for position in range(first, last):
+        k = visit[position]
         for o in range(stencil.shape[0]):
             cell = 0
             inside = True
