@@ -720,3 +720,34 @@ def test_the_thermostat_hook_prepared_once_is_the_hook_of_every_step():
             np.testing.assert_array_equal(a, b)
         assert np.any(np.asarray(every.p) != np.asarray(state.p))
         state, key = every, jax.random.split(key)[0]
+
+
+def test_the_compiled_thermostatted_npt_loop_calls_no_lapack_kernel():
+    """The NPT loop with the runner's Langevin hook (its noise factors computed inside the
+    program, ``ThermostatHook.prepare``), af-is bodies, compiled: no LAPACK custom call. Two
+    batched LAPACK kernels ready at once deadlock XLA's CPU pool of two threads, which the
+    thermostat's two eigendecompositions did (a 97 336-body run hung in its first call)."""
+    import re
+
+    from affinebody import thermostats as th
+    from affinebody.config import build, check_config, parse_config
+    from affinebody.runner import ThermostatHook
+
+    text = NPT_CONFIG.replace('internal = "dalembert"', 'internal = "af-is"\nI = 1.0\n'
+                              'A = 0.2\nB = 0.1')
+    built = build(check_config(parse_config(text)))
+    space = orthorhombic((4.0, 4.2))
+    baro = barostat.c_rescale(0.1, 2, tau=2.0, compressibility=1.0, temperature=0.3)
+    hook = ThermostatHook(th.Langevin(0.3, 1.0, seed=5))
+
+    def npt(seed):
+        return barostat.advance(built.system, built.state, jnp.asarray(space.matrix),
+                                jnp.asarray(0), seed, 0.01, steps=3,
+                                method=get_integrator("strang"), barostat=baro, space=space,
+                                thermostat=hook)
+
+    compiled = jax.jit(npt).lower(jnp.asarray(1)).compile().as_text()
+    targets = re.findall(r'custom_call_target="([^"]*)"', compiled)
+    assert not [t for t in targets if "lapack" in t.lower()], targets
+    state, cell, *_ = jax.jit(npt)(jnp.asarray(1))
+    assert np.all(np.isfinite(np.asarray(state.pi))) and np.all(np.isfinite(np.asarray(cell)))
