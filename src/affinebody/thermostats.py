@@ -18,7 +18,8 @@ Langevin step O(h) is the exact solution of dz = -gamma z dt + sqrt(2 gamma kT) 
 
     z' = c z + sqrt((1 - c^2) kT) M0^(1/2) xi,   c = exp(-gamma h),   xi ~ N(0, Id),
 
-mapped back to the momenta and projected with ``HamiltonianSystem.constrain`` (the Frobenius
+(M0^(1/2): any F with F F^T = M0; here F = L^-T, L the Cholesky factor of M0^-1), mapped
+back to the momenta and projected with ``HamiltonianSystem.constrain`` (the Frobenius
 projection that keeps the covector class on SL, UL, SO, O, R+SO, R+O, the kinetic-metric
 projection onto admissible momenta under a rotationless constraint): the restriction of the
 Gaussian covector to the constrained velocities is the Gaussian of the restricted metric, so
