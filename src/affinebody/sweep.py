@@ -373,19 +373,21 @@ class Task:
         return f"point-{self.point:04d}-batch-{self.batch:05d}"
 
 
-def results_bytes(config: Config, points: int, spec: SweepSpec, columns: int) -> float:
+def results_bytes(config: Config, points: int, spec: SweepSpec, columns: int,
+                  keep_draws: bool = True) -> float:
     """Bytes :func:`run_sweep` holds for its results, estimated before any is allocated: per
-    sample its scalars, its drawn velocities (Omega_hat, dx/dt of every body) and its status,
-    per task its description (a few hundred bytes)."""
+    sample its scalars, its status and (``keep_draws``) its drawn velocities (Omega_hat,
+    dx/dt of every body), per task its description (a few hundred bytes)."""
     n, bodies = config.n, config.bodies_count
-    per_sample = 8 * (columns + bodies * (n * n + n) + 2)
+    per_sample = 8 * (columns + (bodies * (n * n + n) if keep_draws else 0) + 2)
     return float(points) * spec.samples * (per_sample + 500 / spec.batch_size)
 
 
-def _check_results_memory(config: Config, points: int, spec: SweepSpec, columns: int) -> None:
+def _check_results_memory(config: Config, points: int, spec: SweepSpec, columns: int,
+                          keep_draws: bool) -> None:
     from affinebody.config import refuse_beyond_memory
 
-    refuse_beyond_memory(results_bytes(config, points, spec, columns),
+    refuse_beyond_memory(results_bytes(config, points, spec, columns, keep_draws),
                          f"sweep.samples = {spec.samples} (or --samples) at {points} scan "
                          f"point(s)", "ask for fewer samples or points")
 
@@ -1002,7 +1004,8 @@ def _failure_result(task: Task, message: str, info: dict | None = None) -> dict[
 @dataclass
 class SweepResult:
     """Everything a sweep produced. ``samples[name]`` has shape [points, samples] (omega_hat
-    [points, samples, N, n, n], velocity [points, samples, N, n]; NaN where not computed),
+    [points, samples, N, n, n], velocity [points, samples, N, n], absent when run without
+    ``keep_draws``; NaN where not computed),
     ``status`` and ``failure`` are string arrays of the same leading shape."""
 
     spec: SweepSpec
@@ -1244,6 +1247,7 @@ def run_sweep(
     workers: int | None = None,
     output: str | Path | None = None,
     progress: Callable[[int, int], None] | None = None,
+    keep_draws: bool = True,
 ) -> SweepResult:
     """Run the sweep of ``config`` (its ``[sweep]`` table, with ``samples``/``seed`` overrides).
 
@@ -1251,19 +1255,24 @@ def run_sweep(
     cluster of ``workers`` processes (default all cores; 0: in this process, no Dask).
     ``output``: folder for the task files, ``samples.csv`` and ``summary.json``.
     ``progress(done_samples, total_samples)`` is called as tasks complete.
+    ``keep_draws``: whether the result holds every sample's drawn velocities of every body
+    (``samples["omega_hat"]``, ``samples["velocity"]``); without them it holds O(samples)
+    numbers, not O(samples x bodies) (the task files of ``output`` hold the draws either
+    way: ``affinebody sweep`` keeps none).
     """
     clock = time.perf_counter()
     spec = SweepSpec.from_config(config, samples, seed)
     thermal = config.thermostat is not None
     columns = THERMAL_SCALARS if thermal else SCALARS
     points = scan_points(config)
-    _check_results_memory(config, len(points), spec, len(columns))
+    _check_results_memory(config, len(points), spec, len(columns), keep_draws)
     tasks = make_tasks(points, spec)
     P, S = len(points), spec.samples
     n, N = config.n, config.bodies_count
     data = {name: np.full((P, S), np.nan) for name in columns}
-    data["omega_hat"] = np.full((P, S, N, n, n), np.nan)
-    data["velocity"] = np.full((P, S, N, n), np.nan)
+    if keep_draws:
+        data["omega_hat"] = np.full((P, S, N, n, n), np.nan)
+        data["velocity"] = np.full((P, S, N, n), np.nan)
     status = np.full((P, S), "failed", dtype=object)
     failure = np.full((P, S), "", dtype=object)
     horizons = np.array([point.horizon for point in points])
@@ -1288,7 +1297,7 @@ def run_sweep(
         for name in columns:
             data[name][p, rows] = result[name]
         for name in ("omega_hat", "velocity"):
-            if result.get(name) is not None:
+            if keep_draws and result.get(name) is not None:
                 data[name][p, rows] = result[name]
         codes = result["code"]
         status[p, rows] = [STATUS_CODES[int(c)][0] for c in codes]

@@ -194,7 +194,8 @@ def sweep(config_file, samples, seed, scheduler, workers, output_dir, as_json):
     try:
         with bar:
             result = run_sweep(config, samples=samples, seed=seed, scheduler=scheduler,
-                               workers=workers, output=folder, progress=progress)
+                               workers=workers, output=folder, progress=progress,
+                               keep_draws=False)  # the task files hold them
     except KeyboardInterrupt:
         raise KeyboardInterrupt(f"the task files written so far are kept in "
                                 f"{folder / 'tasks'}") from None
