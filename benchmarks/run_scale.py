@@ -353,23 +353,30 @@ def families(side: int, steps: int, repeat: int) -> None:
         print(f"family / expression, {count} core(s): {family / expression:.2f}")
 
 
+def one_core_medians(folder: Path, configs: dict[str, Path], repeat: int) -> list[float]:
+    """The median body-steps/s in the loop of ``affinebody run`` on one core for each config,
+    ``repeat`` rounds of all of them in turn (interleaved, so drifts of the machine fall on
+    every config alike), in the order of ``configs``."""
+    rates: dict[str, list[float]] = {name: [] for name in configs}
+    for k in range(repeat):
+        for name, config in configs.items():
+            rates[name].append(ours(config, folder / f"{name}-{k}.h5", "0", 1)["rate"])
+    return [statistics.median(rates[name]) for name in configs]
+
+
 def generators(side: int, steps: int, repeat: int) -> None:
     """The same crystal's config started by ``generator = "lattice"`` and by ``"random"``
     (positions drawn in the box, numbered cell by cell as the lattice numbers its sites), on
     one core, ``repeat`` rounds interleaved: the loop's rate should not depend on the start
     (numbered in the order drawn, the random start ran 2.4x slower at 46^3 bodies)."""
-    rates: dict[str, list[float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         lattice = write_config(folder, side, steps, every=steps)
         random = folder / f"random{side}.toml"
         random.write_text(lattice.read_text().replace('generator = "lattice"',
                                                       'generator = "random"'))
-        for k in range(repeat):
-            for name, config in (("lattice", lattice), ("random", random)):
-                rates.setdefault(name, []).append(
-                    ours(config, folder / f"{name}-{k}.h5", "0", 1)["rate"])
-    lattice_rate, random_rate = (statistics.median(rates[name]) for name in ("lattice", "random"))
+        lattice_rate, random_rate = one_core_medians(
+            folder, {"lattice": lattice, "random": random}, repeat)
     print(f"affinebody run, {side**3} bodies, {steps} steps, one core (body-steps/s in the loop, "
           f"{repeat} runs each, median): lattice start {lattice_rate:.3g}, random start "
           f"{random_rate:.3g}, random / lattice {random_rate / lattice_rate:.2f}")
@@ -383,7 +390,6 @@ def renumbered(side: int, steps: int, repeat: int) -> None:
     import h5py
     import numpy as np
 
-    rates: dict[str, list[float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         lattice = write_config(folder, side, steps, every=steps)
@@ -401,11 +407,8 @@ def renumbered(side: int, steps: int, repeat: int) -> None:
         initial = text[text.index("[initial]"):text.index("[run]")]
         shuffled = folder / f"renumbered{side}.toml"
         shuffled.write_text(text.replace(initial, f'[initial]\nfile = "{folder / "seed.h5"}"\n\n'))
-        for k in range(repeat):
-            for name, config in (("lattice", lattice), ("renumbered", shuffled)):
-                rates.setdefault(name, []).append(
-                    ours(config, folder / f"{name}-{k}.h5", "0", 1)["rate"])
-    first, other = (statistics.median(rates[name]) for name in ("lattice", "renumbered"))
+        first, other = one_core_medians(folder, {"lattice": lattice, "renumbered": shuffled},
+                                        repeat)
     print(f"affinebody run, {bodies} bodies, {steps} steps, one core (body-steps/s in the loop, "
           f"{repeat} runs each, median): lattice start {first:.3g}, the same bodies numbered at "
           f"random {other:.3g}, renumbered / lattice {other / first:.2f}")

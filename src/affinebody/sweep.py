@@ -1125,13 +1125,18 @@ def _write_task_file(folder: Path, task: Task, point: ScanPoint, result: dict,
             "worker": result["worker"], "rows": rows}
     if draws and not inline:
         side = folder / f"{task.name}.npz"
-        with open(side.with_suffix(".npz.tmp"), "wb") as handle:
-            np.savez(handle, **draws)
-        side.with_suffix(".npz.tmp").replace(side)
+        _write_replacing(side, lambda handle: np.savez(handle, **draws))
         data["draws"] = side.name
-    path = folder / f"{task.name}.json"
-    temporary = path.with_suffix(".json.tmp")
-    temporary.write_text(json_text(data), encoding="utf-8")
+    _write_replacing(folder / f"{task.name}.json",
+                     lambda handle: handle.write(json_text(data).encode("utf-8")))
+
+
+def _write_replacing(path: Path, write: Callable) -> None:
+    """``write(handle)`` into ``path`` under a temporary name, then renamed into place: a
+    reader never sees a half-written task file."""
+    temporary = path.with_name(path.name + ".tmp")
+    with open(temporary, "wb") as handle:
+        write(handle)
     temporary.replace(path)
 
 

@@ -175,13 +175,8 @@ def coordinate_hessian(term, bodies: int, shape: tuple[int, ...]) -> jax.Array:
 def noise_factor(term, bodies: int, shape: tuple[int, ...]) -> jax.Array:
     """F with F F^T = K^-1 = M0 (the covariance of z per unit kT), [bodies, d, d]; NaN where K
     is not positive definite (the caller refuses such models first)."""
-    return _factor_of(coordinate_hessian(term, bodies, shape))
-
-
-def _factor_of(k: jax.Array) -> jax.Array:
-    """F with F F^T = k^-1 (k^-1 = L^-T L^-1 from the Cholesky factor L of k), without LAPACK:
-    ``_linalg.inverse_cholesky_factor``."""
-    return linalg.inverse_cholesky_factor(0.5 * (k + transpose(k)))
+    k = coordinate_hessian(term, bodies, shape)
+    return linalg.inverse_cholesky_factor(0.5 * (k + transpose(k)))  # F = L^-T, no LAPACK
 
 
 def check_positive_kinetic(system, n: int) -> None:
