@@ -378,9 +378,11 @@ def test_n2_g_grid_reaches_the_peak_at_zero_and_refines_only_the_points_that_nee
     assert np.abs(g11.density - np.exp(-g11.x)).max() < 1e-8
     assert np.abs(g12.density - np.exp(-2 * np.abs(g12.x))).max() < 1e-8
     assert g11.converged and g12.converged and g11.error <= 1e-6 * np.max(g11.density)
+    for m in (g11, g12):  # the whole mass, y = 0 included (the points' trapezoid gave 0.94)
+        assert abs(m.integral - 1) <= m.integral_error < 1e-5
     far = g11.x[-10:]  # the tail stopped on a coarser rule than the points near 0
     used = [nr for nb, nr in ORIENTATION_NODES[1:]
-            if np.array_equal(_g_density(pure, "G11", far, nb, nr), g11.density[-10:])]
+            if np.array_equal(_g_density([(1.0, pure)], "G11", far, nb, nr), g11.density[-10:])]
     assert used and used[0] < g11.nodes
 
 
@@ -401,9 +403,10 @@ def test_af_is_g12_density_is_shown_converged_at_the_default_tolerance():
     g12 = g_component_densities([(1.0, pure)], points=3, components=("G12",))["G12"]
     peak = np.max(g12.density)
     assert g12.converged and g12.error <= 1e-6 * peak
+    assert abs(g12.integral - 1) <= g12.integral_error < 1e-4  # through y = 0, 3 points
     np.testing.assert_allclose(g12.density, g12.density[::-1], rtol=0, atol=1e-12 * peak)
     smallest = np.argmin(np.abs(g12.x))
-    fine = _g_density(pure, "G12", g12.x[smallest:smallest + 1], 729, 546)
+    fine = _g_density([(1.0, pure)], "G12", g12.x[smallest:smallest + 1], 729, 546)
     assert abs(g12.density[smallest] - fine[0]) < 1e-9 * peak
 
 
@@ -478,3 +481,24 @@ def test_an_unconverged_density_is_said_relative_to_its_peak():
     message = dens._density_warning("G12", m, 1e-6)
     assert "error 1.6e-06 of its peak 0.628, above the tolerance 1e-06" in message
     assert "\n" not in message
+
+
+def test_kronrod_panels_are_exact_to_their_degrees():
+    """The (7, 15) Gauss-Kronrod pair of the G-density integrals on two uneven panels: the
+    Kronrod sum exact for every monomial up to degree 22, the Gauss sum up to 13 and not at
+    14 (so their difference is an error estimate), the Gauss rule's nodes among the Kronrod
+    ones with numpy's Gauss-Legendre weights."""
+    from affinebody.quantum.densities import kronrod_panels
+
+    x, wk, wg = kronrod_panels([-0.5, 0.25, 2.0])
+    for degree in range(23):
+        exact = (2.0 ** (degree + 1) - (-0.5) ** (degree + 1)) / (degree + 1)
+        assert abs(np.sum(wk * x**degree) - exact) < 1e-14 * max(1.0, abs(exact))
+        if degree <= 13:
+            assert abs(np.sum(wg * x**degree) - exact) < 1e-14 * max(1.0, abs(exact))
+    exact14 = (2.0**15 - 0.5**15) / 15
+    assert abs(np.sum(wg * x**14) - exact14) > 1e-10 * exact14
+    gx, gw = np.polynomial.legendre.leggauss(7)
+    on = wg[0] != 0
+    np.testing.assert_allclose(x[0][on], -0.5 + 0.75 * (gx + 1) / 2, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(wg[0][on], 0.75 * gw / 2, rtol=0, atol=1e-15)

@@ -12,6 +12,7 @@ from click.testing import CliRunner
 from affinebody.quantum import spectra as sp
 from affinebody.quantum.cli import density
 from affinebody.quantum.densities import (
+    _g_density,
     angle_densities,
     g_component_densities,
     orientation_densities,
@@ -95,6 +96,12 @@ def test_thermal_mixture(oscillator):
     exact = np.exp(-g11.x / (2 * s2t)) / (2 * s2t)
     peak = 1 / (2 * s2t)  # the density at y = 0
     assert g11.converged and np.abs(g11.density - exact).max() < 1e-6 * peak
+    assert abs(g11.integral - 1) <= g11.integral_error < 1e-5
+    # the states evaluated together (basis values shared) = each alone, weighted
+    mixture = list(zip(weights, states, strict=True))
+    together = _g_density(mixture, "G11", g11.x, 96, 72)
+    alone = sum(w * _g_density([(1.0, pure)], "G11", g11.x, 96, 72) for w, pure in mixture)
+    np.testing.assert_allclose(together, alone, rtol=1e-13, atol=1e-15 * peak)
     with pytest.raises(ValueError, match="exactly one"):
         orientation_densities(oscillator, state=0, temperature=1.0)
 

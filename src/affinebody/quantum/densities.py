@@ -90,6 +90,35 @@ def _on(lo, hi, n: int) -> tuple[np.ndarray, np.ndarray]:
     return lo + (hi - lo) * s, (hi - lo) * w
 
 
+#: the Gauss-Kronrod (7, 15) pair on [-1, 1] (QUADPACK's qk15): the 8 nonnegative Kronrod
+#: nodes, the odd-numbered of which are the Gauss nodes, and their Kronrod weights
+_KRONROD_NODES = (0.991455371120812639206854697526329, 0.949107912342758524526189684047851,
+                  0.864864423359769072789712788640926, 0.741531185599394439863864773280788,
+                  0.586087235467691130294144838258730, 0.405845151377397166906606412076961,
+                  0.207784955007898467600689403773245, 0.0)
+_KRONROD_WEIGHTS = (0.022935322010529224963732008058970, 0.063092092629978553290700663189204,
+                    0.104790010322250183839876322541518, 0.140653259715525918745189590510238,
+                    0.169004726639267902826583426598550, 0.190350578064785409913256402421014,
+                    0.204432940075298892414161999234649, 0.209482141084727828012999174891714)
+
+
+def kronrod_panels(edges) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nodes [P, 15], Kronrod weights and Gauss weights (0 at the nodes the 7-point Gauss rule
+    does not have) of the 15-point Gauss-Kronrod rule on each of the P intervals between
+    ``edges``: the Kronrod sum is exact for polynomials of degree 22, the Gauss sum for degree
+    13, and their difference estimates the error of the Gauss sum (so bounds the Kronrod one's
+    where the integrand is resolved)."""
+    half = np.asarray(_KRONROD_NODES)
+    x = np.concatenate([-half, half[-2::-1]])
+    wk = np.concatenate([_KRONROD_WEIGHTS, _KRONROD_WEIGHTS[-2::-1]])
+    _, gauss_w = np.polynomial.legendre.leggauss(7)
+    wg = np.zeros(15)
+    wg[1::2] = gauss_w  # x[1::2] are the Gauss nodes gauss_x, in the same order
+    edges = np.asarray(edges, float)
+    lo, width = edges[:-1, None], np.diff(edges)[:, None]
+    return lo + width * (x + 1) / 2, width * wk / 2, width * wg / 2
+
+
 def _square(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Tensor Gauss rule on [0, 1]^2: s [n*n], t [n*n], weights [n*n]."""
     s, w = _unit_rule(n)
@@ -138,6 +167,31 @@ def measure(model: str, x: np.ndarray) -> np.ndarray:
     return np.prod([np.sinh(x[..., a] - x[..., b]) for a, b in pairs], axis=0)
 
 
+@dataclass(frozen=True, eq=False)
+class _Separable:
+    """f(x) = sum_ij C_ij u_i(x_0) v_j(x_1): an n = 2 eigenvector in its product basis (u, v
+    the two factors, ``coefficients`` C). Called with a dict ``evaluated``, it shares the
+    values of a factor at a column of x with every other amplitude called with the same dict
+    and the same points (the states of a mixture at the points of one G density)."""
+
+    first: object
+    second: object
+    coefficients: np.ndarray
+
+    def __call__(self, x: np.ndarray, evaluated: dict | None = None) -> np.ndarray:
+        values = []
+        for column, factor in enumerate((self.first, self.second)):
+            key = (factor, column)
+            if evaluated is None or key not in evaluated:
+                value = factor.evaluate(x[:, column])
+                if evaluated is None:
+                    values.append(value)
+                    continue
+                evaluated[key] = value
+            values.append(evaluated[key])
+        return np.einsum("pi,ij,pj->p", values[0], self.coefficients, values[1], optimize=True)
+
+
 def joint_density(spectrum: Spectrum, level: Level) -> Joint:
     """The :class:`Joint` of a level's eigenvector (the first of its sectors)."""
     block = spectrum.blocks[level.block]
@@ -151,10 +205,8 @@ def joint_density(spectrum: Spectrum, level: Level) -> Joint:
         r, w = _on(0.0, R, 96)
         R1, R2 = np.meshgrid(r, r, indexing="ij")
         nodes = np.stack([R1.ravel(), R2.ravel()], -1)
-        return Joint("lebesgue2",
-                     lambda x: np.einsum("pi,ij,pj->p", f1.evaluate(x[:, 0]), C,
-                                         f2.evaluate(x[:, 1]), optimize=True),
-                     np.array([[0.0, R], [0.0, R]]), nodes, np.outer(w, w).ravel())
+        return Joint("lebesgue2", _Separable(f1, f2, C), np.array([[0.0, R], [0.0, R]]),
+                     nodes, np.outer(w, w).ravel())
     if basis.kind == "haar2":
         fx, fs = basis.factors
         C = coeff.reshape(fx.size, fs.size)
@@ -163,9 +215,7 @@ def joint_density(spectrum: Spectrum, level: Level) -> Joint:
         x, wx = _on(0.0, X, 96)
         s, ws = _on(fs.centre - S, fs.centre + S, 96)
         XX, SS = np.meshgrid(x, s, indexing="ij")
-        return Joint("haar2",
-                     lambda p: np.einsum("pi,ij,pj->p", fx.evaluate(p[:, 0]), C,
-                                         fs.evaluate(p[:, 1]), optimize=True),
+        return Joint("haar2", _Separable(fx, fs, C),
                      np.array([[0.0, X], [fs.centre - S, fs.centre + S]]),
                      np.stack([XX.ravel(), SS.ravel()], -1), np.outer(wx, ws).ravel())
     if basis.kind == "scalar3":
@@ -463,10 +513,15 @@ class Marginal:
     integral: float
     nodes: int
     converged: bool
+    #: the integral's own error estimate, where it has one (the components of G)
+    integral_error: float | None = None
 
     def as_dict(self) -> dict:
-        return {"x": self.x.tolist(), "density": self.density.tolist(), "error": self.error,
-                "integral": self.integral, "nodes": self.nodes, "converged": self.converged}
+        out = {"x": self.x.tolist(), "density": self.density.tolist(), "error": self.error,
+               "integral": self.integral, "nodes": self.nodes, "converged": self.converged}
+        if self.integral_error is not None:
+            out["integral_error"] = self.integral_error
+        return out
 
 
 def _converged(fn, y: np.ndarray, sizes: tuple[int, ...], tolerance: float):
@@ -715,11 +770,13 @@ def _union_box(joints) -> np.ndarray:
     return np.stack([boxes[:, :, 0].min(0), boxes[:, :, 1].max(0)], axis=-1)
 
 
-def _cross_terms(pure: PureState, x: np.ndarray) -> list:
-    """(c_i^* c_j, s_j - s_i, k_j - k_i, f_i f_j measure at x [..., 2]) per ordered pair."""
+def _cross_terms(pure: PureState, x: np.ndarray, evaluated: dict | None = None) -> list:
+    """(c_i^* c_j, s_j - s_i, k_j - k_i, f_i f_j measure at x [..., 2]) per ordered pair
+    (``evaluated``: basis values shared between calls at the same x, :class:`_Separable`)."""
     model = pure.joints[0].model
     flat = x.reshape(-1, x.shape[-1])
-    amps = [np.asarray(j.amplitude(flat)).reshape(x.shape[:-1]) for j in pure.joints]
+    amps = [np.asarray(j.amplitude(flat, evaluated)).reshape(x.shape[:-1])
+            for j in pure.joints]
     mu = measure(model, x)
     out = []
     for i, ci in enumerate(pure.amplitudes):
@@ -770,8 +827,15 @@ def _graded(edges, n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(nodes), np.concatenate(weights)
 
 
-def _g_density(pure: PureState, name: str, y: np.ndarray, nb: int, nr: int) -> np.ndarray:
-    """Density of the component ``name`` of G at the values y. G is homogeneous of degree 2 in
+#: points (values x rule nodes) evaluated at once by :func:`_g_density`: the basis values of
+#: every factor of a mixture at them are held together (2^16 x 8 bytes x the basis size each)
+G_CHUNK = 2**16
+
+
+def _g_density(mixture, name: str, y: np.ndarray, nb: int, nr: int) -> np.ndarray:
+    """Density of the component ``name`` of G at the values y for a mixture [(probability,
+    PureState)], the states evaluated together at the same points (the basis values of a
+    factor shared between them, :class:`_Separable`). G is homogeneous of degree 2 in
     Q, so the delta of G - y fixes the scale exactly and leaves a smooth integral over the
     angle beta of R (trapezoid rule, periodic) and one shape coordinate (Gauss):
 
@@ -781,9 +845,9 @@ def _g_density(pure: PureState, name: str, y: np.ndarray, nb: int, nr: int) -> n
     * lebesgue2 (r1 = rho cos theta, r2 = rho sin theta; Q1 = r1 + r2, Q2 = r1 - r2):
       A = rho^2, B = rho^2 sin 2theta, G = rho^2 g(theta, beta): rho^2 = y / g, and
       rho d rho d theta with dG/drho = 2 y / rho gives the factor rho^2 / (2 y)."""
-    model = pure.joints[0].model
+    model = mixture[0][1].joints[0].model
     beta, wbeta = _graded(np.pi / 2 * np.arange(5), nb)
-    box = _union_box(pure.joints)
+    box = _union_box([joint for _, pure in mixture for joint in pure.joints])
     if model == "haar2":
         t, wt = _graded(np.array([0.0, box[0, 1]]), nr)
         even, odd = np.cosh(t)[:, None], np.sinh(t)[:, None]
@@ -795,8 +859,9 @@ def _g_density(pure: PureState, name: str, y: np.ndarray, nb: int, nr: int) -> n
     y = np.asarray(y, float)
     out = np.zeros(len(y))
     phase = {}
-    for lo in range(0, len(y), 8):  # a few values at a time: [values, nr, nb] arrays
-        value = y[lo:lo + 8][:, None, None]
+    step = max(1, G_CHUNK // g.size)
+    for lo in range(0, len(y), step):  # a few values at a time: [values, nr, nb] arrays
+        value = y[lo:lo + step][:, None, None]
         with np.errstate(divide="ignore", invalid="ignore"):
             scale = value / g[None]  # e^sigma or rho^2; no solution where <= 0 or infinite
         ok = np.isfinite(scale) & (scale > 0) & (value != 0)
@@ -810,27 +875,29 @@ def _g_density(pure: PureState, name: str, y: np.ndarray, nb: int, nr: int) -> n
             coords = np.stack([rho * np.cos(t)[None, :, None], rho * np.sin(t)[None, :, None]],
                               -1)
             factor = scale / (2 * np.where(value != 0, np.abs(value), 1.0))
-        total = np.zeros(scale.shape)
-        for coef, _, dk, values in _cross_terms(pure, coords):
-            if dk not in phase:
-                phase[dk] = np.exp(-1j * dk * beta)[None, None, :]
-            total += (coef * phase[dk]).real * values
+        total, evaluated = np.zeros(scale.shape), {}
+        for probability, pure in mixture:
+            for coef, _, dk, values in _cross_terms(pure, coords, evaluated):
+                if dk not in phase:
+                    phase[dk] = np.exp(-1j * dk * beta)[None, None, :]
+                total += probability * (coef * phase[dk]).real * values
         total = np.where(ok, total * factor, 0.0)
-        out[lo:lo + 8] = np.einsum("vrb,r,b->v", total, wt, wbeta) / (2 * np.pi)
+        out[lo:lo + step] = np.einsum("vrb,r,b->v", total, wt, wbeta) / (2 * np.pi)
     return out
 
 
 def g_component_densities(mixture, points: int = 51, tolerance: float = G_TOLERANCE,
                           components=G_COMPONENTS) -> dict[str, Marginal]:
     """Densities of the ``components`` (of G11, G22, G12; G = phi^T phi) of a mixture
-    [(probability, PureState)] (n = 2): :func:`_g_density` summed with the probabilities on
+    [(probability, PureState)] (n = 2): :func:`_g_density` on
     ``points`` values over the support (Tr G bounds |G_ab|; for the Lebesgue measure graded
     towards y = 0, :data:`GRADING`), each rule of :data:`ORIENTATION_NODES` checked against
     the one before point by point (:func:`_converged_g_density`; ``error``: the largest last
     change).
     States whose probability is below 1e-3 ``tolerance`` x the largest are left out.
-    ``integral``: the trapezoid integral over the points (y = 0 and the tails beyond the
-    support excluded)."""
+    ``integral``: int p dy over the whole range, y = 0 included, by its own quadrature
+    (:func:`_g_integral`, not the output points), with its error estimate
+    ``integral_error``."""
     top_weight = max(w for w, _ in mixture)
     mixture = [(w, pure) for w, pure in mixture if w >= 1e-3 * tolerance * top_weight]
     # the range: Tr G (which bounds |G_ab|) below which all but 1e-10 of each state's mass
@@ -870,16 +937,15 @@ def g_component_densities(mixture, points: int = 51, tolerance: float = G_TOLERA
             y = np.concatenate([-half[::-1], half])
         else:
             y = hi * (np.arange(1, points + 1) / points) ** GRADING
-        p, err, nr = _converged_g_density(mixture, name, y, tolerance)
-        if geometric:  # trapezoid in ln|y| on each side of 0
-            integral = sum(float(np.sum((f[1:] + f[:-1]) * np.diff(np.log(t))) / 2)
-                           for t, f in ((np.abs(y[y > 0]), (y * p)[y > 0]),
-                                        (np.abs(y[y < 0])[::-1], np.abs(y * p)[y < 0][::-1]))
-                           if len(t) > 1)
-        else:
-            integral = float(np.sum((p[1:] + p[:-1]) * np.diff(y)) / 2)
+        p, change, nr = _converged_g_density(mixture, name, y, tolerance)
+        err = float(np.max(change))
+        a, b = (-hi / 2, hi / 2) if name == "G12" else (low if geometric else 0.0, hi)
+        integral, integral_error = _g_integral(
+            mixture, name, a, b, low if geometric else hi * 4.0**-ZERO_PANELS,
+            INTEGRAL_SLACK * tolerance)
         out[name] = Marginal(y, p, err, integral, nr,
-                             bool(np.all(np.isfinite(p)) and err <= tolerance * np.max(np.abs(p))))
+                             bool(np.all(np.isfinite(p)) and err <= tolerance * np.max(np.abs(p))),
+                             integral_error)
     return out
 
 
@@ -887,28 +953,72 @@ def g_component_densities(mixture, points: int = 51, tolerance: float = G_TOLERA
 GRADING = 1.5
 
 
-def _converged_g_density(mixture, name: str, y: np.ndarray, tolerance: float
-                         ) -> tuple[np.ndarray, float, int]:
-    """(p at y, error, node count nr of the finest rule used) of :func:`_g_density` summed over
-    the mixture: each rule of :data:`ORIENTATION_NODES` against the one before, point by point;
-    a point whose value changed by at most ``tolerance`` x the peak keeps it, the others go on
-    to the next rule (the points near y = 0 need finer rules than the rest). ``error``: the
-    largest last change over the points."""
-    def density(points, nb, nr):
-        return sum(w * _g_density(pure, name, points, nb, nr) for w, pure in mixture)
-
+def _converged_g_density(mixture, name: str, y: np.ndarray, tolerance: float,
+                         weights: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, int]:
+    """(p at y, the last change of each point, node count nr of the finest rule used) of
+    :func:`_g_density` summed over the mixture: each rule of :data:`ORIENTATION_NODES` against
+    the one before, point by point; a point whose value changed by at most ``tolerance`` x the
+    peak keeps it, the others go on to the next rule (the points near y = 0 need finer rules
+    than the rest). With quadrature ``weights`` w in y, a point is done when w x change is at
+    most ``tolerance`` x I / (2 x number of points) (I = sum |w p| on the first rule) or its
+    change at most ``tolerance`` x |p| / 2: either way the sum of w x value (an integral)
+    changes by at most about ``tolerance`` x I, and a point of small weight (near y = 0,
+    where the rules converge slowly) stops early."""
     (nb, nr), *finer = ORIENTATION_NODES
-    p = density(y, nb, nr)
+    p = _g_density(mixture, name, y, nb, nr)
+    total = np.sum(np.abs(weights) * np.abs(p)) if weights is not None else None
     change = np.full(len(y), np.inf)
     active = np.ones(len(y), dtype=bool)
     for nb, nr in finer:
-        finer_p = density(y[active], nb, nr)
+        finer_p = _g_density(mixture, name, y[active], nb, nr)
         change[active] = np.abs(finer_p - p[active])
         p[active] = finer_p
-        active = ~(change <= tolerance * np.max(np.abs(p)))  # nan stays active
+        if weights is None:
+            active = ~(change <= tolerance * np.max(np.abs(p)))  # nan stays active
+        else:  # half the budget spread over the points, half in proportion to w x value
+            active = ~((np.abs(weights) * change <= tolerance * total / (2 * len(y)))
+                       | (change <= tolerance * np.abs(p) / 2))
         if not active.any():
             break
-    return p, float(np.max(change)), nr
+    return p, change, nr
+
+
+#: the integral of a G density is refined to this multiple of the densities' tolerance (x the
+#: integral): a check that the density holds the whole mass (its error estimate is
+#: pessimistic: 1e-6 stated where the oscillator's integrals are within 1e-8 of 1)
+INTEGRAL_SLACK = 10
+#: panels of the integrals of the G densities: ratio-4 panels from each end of the range
+#: towards y = 0, for the Lebesgue measure ZERO_PANELS of them, then one panel to 0 (G11 and
+#: G22 tend to a limit at 0, G12 to a logarithmic peak)
+ZERO_PANELS = 3
+
+
+def _panel_edges(a: float, b: float, inner: float) -> np.ndarray:
+    """Edges of ratio-4 panels on [a, b] (one side of 0): geometric from the end away from 0
+    down to ``inner`` and one panel from there to 0 where 0 is an end, else geometric."""
+    if a == 0.0 or b == 0.0:
+        end = abs(a or b)
+        count = max(1, int(np.ceil(np.log(end / inner) / np.log(4.0))))
+        return np.sign(a or b) * np.concatenate([[0.0], np.geomspace(inner, end, count + 1)])
+    return np.geomspace(a, b, max(1, int(np.ceil(np.log(b / a) / np.log(4.0)))) + 1)
+
+
+def _g_integral(mixture, name: str, lo: float, hi: float, inner: float, tolerance: float
+                ) -> tuple[float, float]:
+    """(int_lo^hi p dy, its error estimate) for the density p of the component ``name`` of G:
+    15-point Gauss-Kronrod panels (:func:`kronrod_panels`) of ratio 4 on each side of 0, down
+    to |y| = ``inner`` and then one panel to 0 where 0 is an end of [lo, hi] or inside it,
+    else geometric from lo > 0 to hi (the affine models' G11 and G22). The values are refined
+    by :func:`_converged_g_density` with the panel weights until the sum changes by at most
+    ``tolerance`` x the integral. Error: |Kronrod - Gauss| plus the sum of weight x last change
+    of each value (the rules' own error)."""
+    sides = [(lo, 0.0), (0.0, hi)] if lo < 0 < hi else [(lo, hi)]
+    nodes, wk, wg = (np.concatenate(parts).ravel() for parts in zip(
+        *(kronrod_panels(np.sort(_panel_edges(a, b, inner))) for a, b in sides), strict=True))
+    p, change, _ = _converged_g_density(mixture, name, nodes, tolerance, wk)
+    kronrod, gauss = float(np.sum(wk * p)), float(np.sum(wg * p))
+    return kronrod, abs(kronrod - gauss) + float(np.sum(np.abs(wk) * change))
 
 
 def _density_warning(name: str, m: Marginal, tolerance: float) -> str:
@@ -969,7 +1079,8 @@ def orientation_densities(spectrum: Spectrum, state: int | None = None,
 __all__ = [
     "NODES", "POINTS", "DEFAULT_TOLERANCE", "VARIABLES", "SUPPORT", "Joint", "measure",
     "joint_density", "Marginal", "density_at", "densities", "marginal_densities", "orientation",
-    "ORIENTATION_NODES", "G_TOLERANCE", "G_COMPONENTS", "GRADING", "PureState", "sector_joint",
+    "ORIENTATION_NODES", "G_TOLERANCE", "G_COMPONENTS", "GRADING", "INTEGRAL_SLACK",
+    "ZERO_PANELS", "G_CHUNK", "kronrod_panels", "PureState", "sector_joint",
     "state_components", "pure_state", "thermal_states", "angle_densities", "g_component_densities",
     "orientation_densities", "projected_triangle"
 ]
