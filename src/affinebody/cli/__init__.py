@@ -105,6 +105,14 @@ class _LazyGroup(click.Group):
             sys.exit(1)
         sys.exit(code if isinstance(code, int) else 0)  # an exit code (--help: 0) or None
 
+    def invoke(self, ctx):
+        """The subcommand, exiting 141 where the reader of its output has gone
+        (``affinebody ... | head``) however it printed (:func:`.common.broken_pipe_exits`)."""
+        from affinebody.cli.common import broken_pipe_exits
+
+        with broken_pipe_exits():
+            return super().invoke(ctx)
+
     def get_command(self, ctx, name):
         if name in COMMANDS:
             module, attribute = COMMANDS[name].split(":")
@@ -123,11 +131,12 @@ def main() -> None:
 def kinematics_demo() -> None:
     """Print a worked example of the kinematics of one affine body (paper §1)."""
     from affinebody._checks import enable_x64
+    from affinebody.cli.common import output_console
     from affinebody.demo_kinematics import print_worked_example
 
     enable_x64()
 
-    print_worked_example()
+    print_worked_example(output_console())
 
 
 def entry() -> None:

@@ -90,6 +90,44 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     click.echo(f"warning: {text.splitlines()[0] if text else category.__name__}", err=True)
 
 
+def exit_broken_pipe():
+    """Exit :data:`EXIT_BROKEN_PIPE`, silently: the reader of stdout has gone. What is left in
+    stdout's buffer goes to the null device (flushed to the closed pipe at exit, it raised
+    again: "Exception ignored ... BrokenPipeError", exit 120)."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    sys.exit(EXIT_BROKEN_PIPE)
+
+
+@contextlib.contextmanager
+def broken_pipe_exits():
+    """Around a whole command: a BrokenPipeError, raised while it prints or when its output is
+    flushed at the end, exits :data:`EXIT_BROKEN_PIPE` (click's own handling exits 1)."""
+    try:
+        yield
+        sys.stdout.flush()
+    except BrokenPipeError:
+        exit_broken_pipe()
+
+
+@functools.cache
+def _console_class():
+    from rich.console import Console
+
+    class ExitingConsole(Console):
+        """rich's Console, whose broken pipe exits :data:`EXIT_BROKEN_PIPE` (rich's own
+        ``on_broken_pipe`` exits 1, which read as a failed command)."""
+
+        def on_broken_pipe(self) -> None:
+            exit_broken_pipe()
+
+    return ExitingConsole
+
+
+def output_console(**options):
+    """The rich Console of a command's output (``options`` as rich's)."""
+    return _console_class()(**options)
+
+
 def one_line_errors(command):
     """Turn every exception of a command into one line on stderr and a non-zero exit, and
     every warning into one line ``warning: ...`` on stderr (no source line)."""
@@ -106,8 +144,7 @@ def one_line_errors(command):
         except KeyboardInterrupt as err:  # a command may say what it kept: KeyboardInterrupt(text)
             fail(f"interrupted: {str(err) or 'what was written so far is kept'}", EXIT_INTERRUPTED)
         except BrokenPipeError:  # the reader of stdout has gone (`affinebody ... | head`)
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing to flush
-            sys.exit(EXIT_BROKEN_PIPE)
+            exit_broken_pipe()
         except ValueError as err:
             text = str(err)
             fail(text if text.startswith(("config error", "error")) else f"error: {text}")

@@ -34,7 +34,7 @@ import numpy as np
 
 from affinebody._checks import enable_x64
 from affinebody._json import json_text
-from affinebody.cli.common import one_line_errors
+from affinebody.cli.common import one_line_errors, output_console
 
 
 def _numbers(text: str, flag: str, count: int) -> tuple[float, ...]:
@@ -110,7 +110,6 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
             "warnings": warnings,
         }))
         return
-    from rich.console import Console
     from rich.table import Table
 
     out = Table(title=f"|<F|{operator}|{initial}>|^2 summed over the states of F, averaged over "
@@ -122,7 +121,7 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
         strength = f"{t.strength:.6e}" if t.allowed else "0 (forbidden)"
         out.add_row(str(t.final), f"{t.E_final:.10g}", f"{t.E_final - t.E_initial:.6g}",
                     strength, sectors)
-    console = Console()
+    console = output_console()
     console.print(out)
     console.print(f"selection rule: {table.selection_rule}")
     console.print(f"energy-weighted sum over these levels: {tr.trk_sum(table):.10g}")
@@ -236,7 +235,7 @@ def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: 
         table.add_row(f"{times[k]:.4g}",
                       *(f"{result.mean[n][k]:.6g} +- {result.spread[n][k]:.3g}" for n in names),
                       f"{result.survival[k]:.6f}")
-    console = Console()
+    console = output_console()
     console.print(table)
     console.print(f"norm {result.norm[0]:.15f} (spread over t {np.ptp(result.norm):.1e}), "
                   f"energy {result.energy[0]:.12g} (spread {np.ptp(result.energy):.1e}), "

@@ -16,7 +16,12 @@ import click
 
 from affinebody._checks import enable_x64
 from affinebody.checkpoint import checkpoint_path
-from affinebody.cli.common import one_line_errors, raise_if_interrupted, refuse_writing_over
+from affinebody.cli.common import (
+    one_line_errors,
+    output_console,
+    raise_if_interrupted,
+    refuse_writing_over,
+)
 from affinebody.config import (
     Config,
     build,
@@ -31,9 +36,8 @@ from affinebody.runner import demo_config_text, prepare_process, run_simulation
 
 def _progress_callback(quiet: bool):
     """A rich progress bar (steps/s, ETA, energy drift), or None when quiet or not a TTY."""
-    from rich.console import Console
 
-    console = Console()
+    console = output_console()
     if quiet or not console.is_terminal:
         return None, None
     from rich.progress import (

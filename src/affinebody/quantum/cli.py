@@ -36,7 +36,7 @@ import click
 
 from affinebody._checks import enable_x64
 from affinebody._json import json_text
-from affinebody.cli.common import EXIT_STOPPED, not_finite_as, one_line_errors
+from affinebody.cli.common import EXIT_STOPPED, not_finite_as, one_line_errors, output_console
 
 
 def finite_hamiltonian(potential: str):
@@ -106,7 +106,6 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
         }
         click.echo(json_text(payload))
         return
-    from rich.console import Console
     from rich.table import Table
 
     title = f"{result.model}, n = {result.n}, sectors: {result.sectors}"
@@ -120,7 +119,7 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
         table.add_row(str(first), energy, str(lv.multiplicity), str(d["spin"]),
                       str(d["vorticity"]), str(d["parity"]), f"{lv.error:.1e}")
         first += lv.multiplicity
-    console = Console()
+    console = output_console()
     console.print(table)
     if len(energies) < count:
         console.print(f"only {len(energies)} of {count} states found")
@@ -225,7 +224,6 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
     if as_json:
         click.echo(json_text(payload))
     else:
-        from rich.console import Console
         from rich.table import Table
 
         table = Table(title=f"state {state}, E = {payload['energy']:.12g}, variables "
@@ -236,7 +234,7 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
             table.add_row(name, f"{d['x'][0]:.4g}", f"{d['x'][-1]:.4g}",
                           f"{max(d['density']):.6g}", f"{d['error']:.1e}",
                           f"{d['integral']:.12f}")
-        console = Console()
+        console = output_console()
         console.print(table)
         for text in payload["warnings"]:
             console.print(f"[bold red]warning:[/] {text}")
