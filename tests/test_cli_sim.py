@@ -168,6 +168,49 @@ def test_a_blow_up_stops_with_step_body_and_cause_and_keeps_the_frames(folder):
     assert all(np.all(np.isfinite(a)) for a in traj.state)
 
 
+def test_a_body_sheared_singular_stops_the_run_with_exit_3_not_as_a_bad_initial_state(folder):
+    """A free d'Alembert body sheared at a constant rate: phi = [[1, 1e5 t], [0, 1]], det phi = 1
+    throughout, so no step fails the loop's checks (finite, det of its sign), but past t = 84
+    phi is singular to float64. The run stops there with exit 3, the step, the body and the
+    cause, and keeps the last checkpoint, which holds an invertible phi; the next chunk refused
+    that state as a bad initial state ("start on the group"), exit 1."""
+    from affinebody._checks import SINGULAR_RTOL, reciprocal_condition
+    from affinebody.cli.common import EXIT_STOPPED
+
+    (folder / "shear.toml").write_text(textwrap.dedent("""
+        [system]
+        n = 2
+        bodies = 1
+        [body]
+        mass = 1.0
+        inertia = 1.0
+        [kinetic]
+        translational = "dalembert"
+        internal = "dalembert"
+        [initial]
+        x = [[0.0, 0.0]]
+        phi_momentum = [[[0.0, 1.0e5], [0.0, 0.0]]]
+        [run]
+        dt = 1.0
+        steps = 400
+        every = 10
+        checkpoint = 10
+    """))
+    out = folder / "shear.h5"
+    result = invoke("run", folder / "shear.toml", "-o", out, "--quiet")
+    assert result.exit_code == EXIT_STOPPED, result.stderr
+    message = result.stderr.strip()
+    assert "\n" not in message and "start on the group" not in message
+    assert "body 0" in message and "singular" in message
+    stopped = int(message.split("simulation stopped at step ")[1].split()[0])
+    assert 84 < stopped <= 100  # sigma_min / sigma_max ~ (1e5 t)^-2 < 64 eps: t > 84
+    saved = load_checkpoint(checkpoint_path(out))
+    assert saved.step < stopped
+    assert float(reciprocal_condition(np.asarray(saved.state.phi[0]))) > SINGULAR_RTOL
+    traj = read_trajectory(out)
+    assert all(np.all(np.isfinite(a)) for a in traj.state)
+
+
 def test_a_warning_of_a_command_is_one_line_and_its_errors_keep_their_exit_codes():
     """What a command warns (e.g. the GPU's Triton kernels not building, pair_kernels) reaches
     stderr as one line "warning: ..." without the source line Python adds; the command

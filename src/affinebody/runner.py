@@ -37,7 +37,7 @@ import numpy as np
 
 from affinebody import _host, _xla, barostat, pair_kernels, pressure
 from affinebody import neighbors as nb
-from affinebody._checks import enable_x64
+from affinebody._checks import enable_x64, reciprocal_condition
 from affinebody._timing import CompileClock, Phases
 from affinebody.checkpoint import Checkpoint, checkpoint_path, load_checkpoint, save_checkpoint
 from affinebody.config import (
@@ -59,7 +59,7 @@ from affinebody.h5md import (
     copy_frames_from_file,
 )
 from affinebody.potentials import PairTerm, terms_of
-from affinebody.simulate import NAMED_OBSERVABLES, relative_error
+from affinebody.simulate import NAMED_OBSERVABLES, StopReport, relative_error
 from affinebody.space import as_space
 from affinebody.state import State
 
@@ -337,10 +337,12 @@ def run_simulation(
                     rejected += int(np.sum(trajectory.observables["rejected_moves"][first:]))
                 max_error = max(max_error, float(np.max(relative_error(energy, initial_energy))))
                 last_energy = float(energy[-1])
+                state = State(*(np.asarray(a)[-1] for a in trajectory.states))
+                if stop is None:  # finite and det phi of the same sign, but still a body?
+                    stop = _singular_stop(built.system, state, length, dt, step)
                 if stop is not None:
                     raise SimulationStopped(_stop_message(stop, step, dt, built.inertia.labels,
                                                           writer.frames, output))
-                state = State(*(np.asarray(a)[-1] for a in trajectory.states))
                 if "heat" in trajectory.observables:
                     heat = float(trajectory.observables["heat"][-1])
                 lists = trajectory.neighbors
@@ -412,7 +414,7 @@ class _NPT:
         current cell, or None. ``exchanged``: the heat and the barostat's work before
         ``step`` (one sum, what the checkpoint keeps as its heat); the trajectory's ``heat``
         is that sum too."""
-        from affinebody.simulate import StopReport, Trajectory
+        from affinebody.simulate import Trajectory
 
         c = self.config
         npt = barostat.run(self.system, state, self.space, self.barostat, c.run.dt, length,
@@ -504,6 +506,27 @@ class ThermostatHook:
 
         return functools.partial(thermostat_hook, self.thermostat,
                                  noise=thermostats.factors(system, state))
+
+
+def _singular_stop(system, state: State, length: int, dt: float, offset: int):
+    """A StopReport where a body of the state a chunk ended with is out of its configuration
+    group though the loop's checks passed: on GL+ and GL, phi singular to float64 with det phi
+    still of its sign (the body flattened or sheared without bound). The next chunk would
+    have refused that state as if it were the run's initial state."""
+    body = system.outside_group(state.phi)
+    if body is None:
+        return None
+    phi = np.asarray(state.phi[body])
+    if system.group in ("GL", "GL+"):
+        reason = (f"phi is singular as far as float64 resolves (reciprocal condition number "
+                  f"{float(reciprocal_condition(phi)):.1e}, det phi "
+                  f"{float(np.linalg.det(phi)):.3g}): the body flattened or sheared without "
+                  f"bound by this step (reduce run.dt, check the potential and the initial "
+                  f"data)")
+    else:
+        reason = (f"phi drifted off {system.group}(n) beyond the tolerance 1e-9 by this step "
+                  f"(reduce run.dt)")
+    return StopReport(length, (offset + length) * dt, body, reason, reason)
 
 
 def _stop_message(report, offset: int, dt: float, labels, frames: int, output: Path) -> str:

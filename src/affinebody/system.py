@@ -277,9 +277,8 @@ class HamiltonianSystem:
             )
         state = State(x, phi, p, pi)
         if is_concrete(phi):
-            member = np.asarray(is_member_jit(phi, group=self.group, tol=1e-9))
-            if not np.all(member):
-                body = int(np.argwhere(~np.atleast_1d(member))[0][-1])
+            body = self.outside_group(phi)
+            if body is not None:
                 raise ValueError(
                     f"state.phi of body {body} is not in {self.group}(n) (tolerance 1e-9): "
                     f"start on the group (e.g. groups.project(phi, {self.group!r}))"
@@ -287,6 +286,13 @@ class HamiltonianSystem:
             if self.constrained:
                 self._check_drifts_preserve_group(phi.shape[-1])
         return _constrain(self, state)
+
+    def outside_group(self, phi) -> int | None:
+        """The first body whose phi [N, n, n] is not in the configuration group to tolerance
+        1e-9 (:func:`groups.is_member`: on GL and GL+, singular as far as float64 resolves),
+        or None."""
+        member = np.atleast_1d(np.asarray(is_member_jit(phi, group=self.group, tol=1e-9)))
+        return None if np.all(member) else int(np.argwhere(~member)[0][-1])
 
     def _check_drifts_preserve_group(self, n: int) -> None:
         """Refuse kinetic terms with no constrained drift (unknown types: a numeric probe)."""
