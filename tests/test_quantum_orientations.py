@@ -12,6 +12,7 @@ from click.testing import CliRunner
 from affinebody.quantum import spectra as sp
 from affinebody.quantum.cli import density
 from affinebody.quantum.densities import (
+    ORIENTATION_NODES,
     _g_density,
     angle_densities,
     g_component_densities,
@@ -55,7 +56,12 @@ def test_sector_states_have_uniform_orientations_and_gaussian_g(oscillator):
     assert np.abs(g11.density - exact11).max() < 1e-6 * peak
     exact12 = np.exp(-np.abs(g12.x) / S2) / (2 * S2)
     assert np.abs(g12.density - exact12).max() < 1e-6 * peak
-    assert np.abs(d["G"]["G22"].density - g11.density).max() < 1e-9 * exact11.max()
+    # G22 of a sector state is G11's (R uniform), taken from it: against G22 itself
+    for k in (0, 7):
+        pure = pure_state(oscillator, {k: 1.0})
+        g = g_component_densities([(1.0, pure)], points=9, components=("G11", "G22"))["G22"]
+        direct = _g_density([(1.0, pure)], "G22", g.x, *ORIENTATION_NODES[2])
+        assert np.abs(direct - g.density).max() < 1e-6 * np.max(g.density), k
     table = state_components(oscillator, 14)
     angle = np.linspace(0, 2 * np.pi, 73)
     for k in (1, 7, 14):
@@ -79,6 +85,16 @@ def test_superposition_across_sectors(oscillator):
     assert abs(abs(_fourier(angle, d["L_angle"], 2)) - np.pi / 8) < 1e-9
     assert np.abs(d["R_angle"] - 1 / (2 * np.pi)).max() < 1e-12
     assert d["L_angle"].min() > 0
+    # with the (0, 2) state instead the vorticities differ: R is not uniform, G22's law is not
+    # G11's, and G22 is computed, not taken from G11
+    k02 = next(k for k, (_, sec) in enumerate(table) if (sec.spin, sec.vorticity) == (0, 2))
+    pure = pure_state(oscillator, {0: 1.0, k02: 1.0})
+    g = g_component_densities([(1.0, pure)], points=5, components=("G11", "G22"))
+    peak = np.max(g["G11"].density)
+    assert np.abs(g["G11"].density - g["G22"].density).max() > 0.1 * peak
+    direct = _g_density([(1.0, pure)], "G22", g["G22"].x, *ORIENTATION_NODES[2])
+    assert np.abs(direct - g["G22"].density).max() < 1e-6 * peak
+    assert abs(g["G22"].integral - 1) <= g["G22"].integral_error
 
 
 def test_thermal_mixture(oscillator):

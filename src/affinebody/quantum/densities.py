@@ -922,7 +922,13 @@ def g_component_densities(mixture, points: int = 51, tolerance: float = G_TOLERA
                 hi, low = (max(hi, value), low) if upper else (hi, min(low, value))
     geometric = mixture[0][1].joints[0].model == "haar2"
     out = {}
+    # a mixture of sector states has R uniform and independent of the shape, so G22 (beta
+    # turned by a quarter) has the law of G11 (computed once) and G12 that of -G12
+    uniform_r = all(len(pure.joints) == 1 for _, pure in mixture)
     for name in components:
+        if name == "G22" and uniform_r and "G11" in out:
+            out[name] = out["G11"]
+            continue
         # y = 0 (where the densities of G11, G22 are limits and that of G12 has a logarithmic
         # peak) is left out of the grid; the Lebesgue grid is graded towards it (y ~ k^1.5),
         # where a d'Alembert ground state has its peak (e^-y, e^-2|y| for the oscillator: on
@@ -937,12 +943,18 @@ def g_component_densities(mixture, points: int = 51, tolerance: float = G_TOLERA
             y = np.concatenate([-half[::-1], half])
         else:
             y = hi * (np.arange(1, points + 1) / points) ** GRADING
-        p, change, nr = _converged_g_density(mixture, name, y, tolerance)
+        inner = low if geometric else hi * 4.0**-ZERO_PANELS
+        if name == "G12" and uniform_r:  # beta -> -beta: an even density, computed for y > 0
+            p, change, nr = _converged_g_density(mixture, name, half, tolerance)
+            p, change = np.concatenate([p[::-1], p]), np.concatenate([change[::-1], change])
+            integral, integral_error = (2 * v for v in _g_integral(
+                mixture, name, 0.0, hi / 2, inner, INTEGRAL_SLACK * tolerance))
+        else:
+            p, change, nr = _converged_g_density(mixture, name, y, tolerance)
+            a, b = (-hi / 2, hi / 2) if name == "G12" else (low if geometric else 0.0, hi)
+            integral, integral_error = _g_integral(mixture, name, a, b, inner,
+                                                   INTEGRAL_SLACK * tolerance)
         err = float(np.max(change))
-        a, b = (-hi / 2, hi / 2) if name == "G12" else (low if geometric else 0.0, hi)
-        integral, integral_error = _g_integral(
-            mixture, name, a, b, low if geometric else hi * 4.0**-ZERO_PANELS,
-            INTEGRAL_SLACK * tolerance)
         out[name] = Marginal(y, p, err, integral, nr,
                              bool(np.all(np.isfinite(p)) and err <= tolerance * np.max(np.abs(p))),
                              integral_error)
