@@ -249,6 +249,21 @@ def test_plot_writes_nonempty_images(folder, reference):
         assert float(np.std(image[..., :3])) > 0.01  # something is drawn
 
 
+def test_plot_of_a_file_without_its_energies_is_one_line(folder, reference):
+    """A file whose total_energy was deleted (an edited or foreign file): one line naming what
+    is missing, exit 1, no plot written (was "internal error: KeyError: 'total_energy'")."""
+    import shutil
+
+    edited = folder / "edited.h5"
+    shutil.copy(reference, edited)
+    with h5py.File(edited, "a") as f:
+        del f["observables/total_energy"]
+    result = invoke("plot", edited, "-o", folder / "edited-plots")
+    assert result.exit_code == 1
+    assert "lacks the observables total_energy" in result.stderr
+    assert "\n" not in result.stderr.strip() and "internal error" not in result.stderr
+
+
 def test_plot_can_animate(folder, reference):
     result = invoke("plot", reference, "-o", folder / "anim", "--animate", "gif")
     assert result.exit_code == 0, result.stderr

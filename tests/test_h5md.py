@@ -174,6 +174,12 @@ def test_checkpoint_round_trip_is_bit_exact_and_atomic(tmp_path):
     path.write_bytes(path.read_bytes()[:100])
     with pytest.raises(CheckpointError, match="unreadable"):
         load_checkpoint(path)
+    # garbage, which NumPy takes for pickled data: no advice to load it unsafely, the fix named
+    path.write_bytes(b"not a checkpoint\n" * 10)
+    with pytest.raises(CheckpointError, match="unreadable") as info:
+        load_checkpoint(path)
+    assert "pickled" in str(info.value) and "unsafely" not in str(info.value)
+    assert "without --resume" in str(info.value)
     with pytest.raises(CheckpointError, match="no checkpoint"):
         load_checkpoint(tmp_path / "none.npz")
 

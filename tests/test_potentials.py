@@ -536,6 +536,7 @@ def test_box_requires_cut_off_within_half_the_box():
         ("gaussian", {"amplitude": "big", "width": 1}, "real number"),
         ("pair", {"expr": "__import__('os')"}, "potential.2.expr"),
         ("pair", {"expr": "q * r"}, "unknown name 'q'"),
+        ("pair", {"expr": "0"}, "must depend on the pair's variables"),  # crashed at energy
         ("one-body", {"expr": "M1"}, "unknown name 'M1'"),
         ("dilatation", {"stiffness": 1, "form": "cubic"}, "form must be"),
         ("elastic", {"lam": 1, "mu": 0}, "mu must be > 0"),
@@ -547,6 +548,23 @@ def test_bad_config_parameters_are_refused_naming_the_field(kind, params, messag
         build_potential(kind, params, n=2, field="potential.2")
     assert str(info.value).startswith("config error: potential.2")
     assert message in str(info.value)
+
+
+def test_elastic_in_one_dimension_is_refused_with_the_same_energy_as_a_one_body_expression():
+    """n = 1: elastic's Tr(E^2) is not a variable of its own (the command failed with "variable
+    'E2' does not exist"); the refusal names the one-body expression of the same energy, and
+    that expression gives lam/2 (Tr E)^2 + mu Tr(E^2) with E = (phi^2 - 1)/2."""
+    import re
+
+    lam, mu = 0.7, 1.3
+    with pytest.raises(ValueError, match="one-body") as info:
+        StVenantKirchhoff(lam, mu).check_dimension(1)
+    expr = re.search(r'expr = "([^"]+)"', str(info.value)).group(1)
+    term = build_potential("one-body", {"expr": expr}, n=1)
+    phi = np.array([[[1.3]], [[0.6]]])
+    E = (phi[:, 0, 0] ** 2 - 1) / 2
+    assert float(term.energy(np.zeros((2, 1)), phi)) == pytest.approx(
+        np.sum(lam / 2 * E**2 + mu * E**2), rel=1e-14)
 
 
 def test_dimension_dependent_parameters_are_checked_against_n():

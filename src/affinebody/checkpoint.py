@@ -126,8 +126,12 @@ def load_checkpoint(path: str | Path, config_hash: str | None = None) -> Checkpo
     except CheckpointError:
         raise
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        # the first sentence only: NumPy's refusal of pickled data goes on to say how to
+        # load such a file unsafely, which is no advice for a damaged checkpoint
+        detail = str(err).split(". ")[0]
         raise CheckpointError(
-            f"{path}: unreadable checkpoint ({type(err).__name__}: {err})"
+            f"{path}: unreadable checkpoint ({type(err).__name__}: {detail}): run without "
+            f"--resume to start afresh"
         ) from None
     if config_hash is not None and checkpoint.config_hash != config_hash:
         raise CheckpointError(

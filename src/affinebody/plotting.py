@@ -364,6 +364,12 @@ def animate_bodies(trajectory: Trajectory, path: str | Path, fps: int = 20) -> P
     return path
 
 
+#: the observables :func:`plot_all` draws in every case (pressure, volume and the
+#: temperatures only where the file has them)
+PLOTTED_OBSERVABLES = ("total_energy", "kinetic_energy", "potential_energy", "linear_momentum",
+                       "affine_momentum", "angular_momentum")
+
+
 def plot_all(trajectory: Trajectory, folder: str | Path, *, animate: str | None = None,
              fps: int = 20) -> list[Path]:
     """Write every plot into ``folder``; returns the paths written."""
@@ -371,6 +377,10 @@ def plot_all(trajectory: Trajectory, folder: str | Path, *, animate: str | None 
     folder.mkdir(parents=True, exist_ok=True)
     if trajectory.frames == 0:
         raise ValueError("the trajectory has no frames to plot")
+    missing = [name for name in PLOTTED_OBSERVABLES if name not in trajectory.observables]
+    if missing:  # every affinebody run writes them: an edited or foreign file
+        raise ValueError(f"the trajectory lacks the observables {', '.join(missing)} (every "
+                         f"affinebody run writes them: plot a file affinebody run wrote)")
     if animate and trajectory.n != 2:
         raise ValueError(f"--animate needs n = 2 (got n = {trajectory.n})")
     if animate and not 1 <= fps <= 1000:
@@ -397,5 +407,6 @@ def plot_all(trajectory: Trajectory, folder: str | Path, *, animate: str | None 
 __all__ = [
     "DPI", "TRACED_BODIES", "DRAWN_BODIES", "DRAWN_ELLIPSOIDS", "AXES", "plot_energy",
     "plot_pressure", "plot_temperature", "plot_momenta", "plot_deformation", "body_outlines",
-    "plot_bodies", "ellipsoid_surface", "plot_ellipsoids", "animate_bodies", "plot_all"
+    "plot_bodies", "ellipsoid_surface", "plot_ellipsoids", "animate_bodies", "plot_all",
+    "PLOTTED_OBSERVABLES"
 ]

@@ -130,6 +130,12 @@ class PairPotential(PairTerm):
     ) -> PairPotential:
         """Pair potential from a config expression in :func:`pair_variable_names`."""
         expression = compile_expression(text, pair_variable_names(n), field=field)
+        if not expression.used:
+            raise ValueError(
+                f"config error: {field}: a pair expression must depend on the pair's "
+                f"variables (r, D, det, K1.., M1.., ...; got the constant {text!r}): a "
+                f"constant per pair is a step at the cut-off; for no pair interaction leave "
+                f"the term out")
         if box is not None and not isinstance(box, Space):
             box = tuple(tuple(row) if isinstance(row, Sequence) else row for row in box)
         return cls(expression, expression.used, cutoff, box)
@@ -174,6 +180,11 @@ class StVenantKirchhoff(OneBodyTerm):
     variables = ("E1", "E2")
 
     def check_dimension(self, n: int) -> None:
+        if n == 1:  # E2 = Tr(E^2) is not a variable of its own there (it is E1^2)
+            raise ValueError(
+                f"elastic is for n >= 2; in one dimension the same energy is kind = "
+                f"\"one-body\" with expr = \"{0.5 * self.lam + self.mu:.17g}*E1**2\" "
+                f"((lam/2 + mu) (Tr E)^2)")
         if not self.lam + 2.0 * self.mu / n > 0:  # E = eps Id must cost energy
             raise ValueError(
                 f"elastic needs lam + 2 mu / n > 0 in n = {n} (got lam={self.lam}, mu={self.mu})"
