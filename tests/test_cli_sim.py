@@ -264,6 +264,24 @@ def test_plot_of_a_file_without_its_energies_is_one_line(folder, reference):
     assert "\n" not in result.stderr.strip() and "internal error" not in result.stderr
 
 
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(folder, reference):
+    """-o and --xyz into a folder that does not exist: one line naming the flag, exit 1, before
+    the run or the export (the errors said "No such file or directory" without the flag); an
+    evolve --plot with a suffix matplotlib does not write is refused before the evolution
+    (it failed after it, "Format 'txt' is not supported")."""
+    from affinebody.cli.common import check_output_file
+
+    missing = folder / "no-such-folder"
+    result = invoke("run", folder / "tiny.toml", "-o", missing / "x.h5", "--quiet")
+    assert result.exit_code == 1 and result.stderr.startswith("error: -o ")
+    assert "does not exist" in result.stderr and not missing.exists()
+    result = invoke("export", reference, "--xyz", missing / "o.xyz")
+    assert result.exit_code == 1 and result.stderr.startswith("error: --xyz ")
+    with pytest.raises(ValueError, match="--plot .*suffixes .*png"):
+        check_output_file(folder / "means.txt", "--plot", image=True)
+    check_output_file(folder / "means.png", "--plot", image=True)  # accepted
+
+
 def test_plot_can_animate(folder, reference):
     result = invoke("plot", reference, "-o", folder / "anim", "--animate", "gif")
     assert result.exit_code == 0, result.stderr

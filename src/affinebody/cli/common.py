@@ -188,5 +188,25 @@ def refuse_writing_over(written, read, what: str) -> None:
         raise ValueError(f"{what} {written} is the file this command reads: write elsewhere")
 
 
+def check_output_file(path, what: str, image: bool = False) -> None:
+    """A ValueError (one line, naming the flag ``what``) before any work when the file a
+    command will write cannot be: its folder missing or not a folder, or, for an ``image``,
+    a suffix matplotlib does not write (found after the whole computation otherwise)."""
+    from pathlib import Path
+
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise ValueError(f"{what} {path}: the folder {folder} does not exist (create it first)")
+    if image:
+        from matplotlib.backend_bases import FigureCanvasBase
+
+        formats = FigureCanvasBase.get_supported_filetypes()
+        if path.suffix.lstrip(".").lower() not in formats:
+            raise ValueError(f"{what} {path}: an image needs one of the suffixes "
+                             f"{', '.join('.' + k for k in sorted(formats))}")
+
+
 __all__ = ["EXIT_BAD_INPUT", "EXIT_BROKEN_PIPE", "EXIT_INTERRUPTED", "EXIT_STOPPED", "fail",
-           "not_finite_as", "one_line_errors", "raise_if_interrupted", "refuse_writing_over"]
+           "not_finite_as", "one_line_errors", "raise_if_interrupted", "refuse_writing_over",
+           "check_output_file", "exit_broken_pipe", "broken_pipe_exits", "output_console"]

@@ -34,7 +34,7 @@ import numpy as np
 
 from affinebody._checks import enable_x64
 from affinebody._json import json_text
-from affinebody.cli.common import one_line_errors, output_console
+from affinebody.cli.common import check_output_file, one_line_errors, output_console
 
 
 def _numbers(text: str, flag: str, count: int) -> tuple[float, ...]:
@@ -163,6 +163,8 @@ def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: 
     from affinebody.quantum import evolution as ev
     from affinebody.quantum.cli import finite_hamiltonian
 
+    if plot is not None:
+        check_output_file(plot, "--plot", image=True)
     cfg = qconfig.load(config)
     n = cfg.system.n
     if (centre is None) == (phi is None):

@@ -17,6 +17,7 @@ import click
 from affinebody._checks import enable_x64
 from affinebody.checkpoint import checkpoint_path
 from affinebody.cli.common import (
+    check_output_file,
     one_line_errors,
     output_console,
     raise_if_interrupted,
@@ -130,6 +131,7 @@ def run(config_file, output, steps, resume, overwrite, quiet, verbose):
     if resume and overwrite:
         raise click.UsageError("--resume continues OUTPUT and --overwrite replaces it: give one")
     refuse_writing_over(output, config_file, "-o")
+    check_output_file(output, "-o")
     refuse_writing_over(checkpoint_path(output), config_file, "-o's checkpoint")
     summary = _run_with_progress(config, output, steps, resume, quiet, overwrite)
     if not quiet:
@@ -221,6 +223,7 @@ def export(trajectory_file, xyz_file, every, thickness):
 
     enable_x64()
     refuse_writing_over(xyz_file, trajectory_file, "--xyz")
+    check_output_file(xyz_file, "--xyz")
     with open_trajectory(trajectory_file) as trajectory:  # frames read one at a time
         count = write_xyz(trajectory, xyz_file, every=every, thickness=thickness)
     click.echo(f"wrote {count} frames to {xyz_file}")
