@@ -158,6 +158,7 @@ density_points = 11
     # found by fuzzing the CLI); an amplitude of nan is not "zero"
     for flags, needle in ((["--superpose", "0:inf"], "--superpose: the amplitude of state 0"),
                           (["--superpose", "0:1,1:nan"], "--superpose: the amplitude of state 1"),
+                          (["--superpose", "0:1,0:1"], "--superpose: state 0 is given twice"),
                           (["--temperature", "inf"], "--temperature must be a finite kT > 0"),
                           (["--temperature", "0"], "--temperature must be a finite kT > 0")):
         bad = tmp_path / "refused"

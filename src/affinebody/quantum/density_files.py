@@ -84,7 +84,12 @@ def parse_superposition(text: str) -> dict[int, complex]:
     try:
         for item in text.split(","):
             index, amplitude = item.split(":")
+            if int(index) in out:
+                raise KeyError(int(index))
             out[int(index)] = complex(amplitude.replace(" ", ""))
+    except KeyError as repeated:  # the last would have silently replaced the first
+        raise ValueError(f"--superpose: state {repeated.args[0]} is given twice (give each "
+                         f"state once, with the sum of its amplitudes)") from None
     except ValueError:
         raise ValueError(f"--superpose must be index:amplitude pairs like 0:1,8:0.5j (got "
                          f"{text!r})") from None
