@@ -163,13 +163,14 @@ max_spin = 4
 def test_af_af_spectrum_says_unbounded_below(tmp_path):
     path = tmp_path / "afaf.toml"
     path.write_text(AF_AF)
+    # none of the levels of this small basis converges: written, then exit 3
     result = CliRunner().invoke(spectrum, [str(path), "--levels", "3", "--json"])
-    assert result.exit_code == 0, result.output
-    data = json.loads(result.output)
+    assert result.exit_code == 3, result.output
+    data = json.loads(result.stdout)
     assert data["bounded_below"] is False
     assert any("unbounded below" in w for w in data["warnings"])
     table = CliRunner().invoke(spectrum, [str(path), "--levels", "3"])
-    assert table.exit_code == 0 and "unbounded below" in table.output
+    assert table.exit_code == 3 and "unbounded below" in table.output
 
 
 UNBOUNDED = """
@@ -309,3 +310,19 @@ def test_a_potential_infinite_on_the_basis_is_named_in_the_error(tmp_path, poten
     message = result.stderr.strip()
     assert result.exit_code == 1 and "\n" not in message, message
     assert message.startswith(f"error: quantum.potential = '{potential}' is not finite"), message
+
+
+def test_a_spectrum_with_no_converged_level_exits_3(tmp_path):
+    """V = 0: a free body has a continuous spectrum, so every candidate of a finite basis is
+    unconverged. The command still writes its output (strict JSON, energies null) and then
+    warns in one line and exits 3, as density does for an unconverged state (it exited 0)."""
+    from affinebody.cli.common import EXIT_STOPPED
+
+    path = tmp_path / "free.toml"
+    path.write_text(UNBOUNDED.format(potential="0.0*trG") + "basis_size = 8\n")
+    result = CliRunner().invoke(spectrum, [str(path), "--levels", "2", "--json"])
+    assert result.exit_code == EXIT_STOPPED, result.output
+    data = json.loads(result.stdout)
+    assert data["energies"] == [None, None]
+    assert result.stderr.startswith("warning: no level converged") and \
+        result.stderr.count("\n") == 1

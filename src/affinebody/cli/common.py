@@ -7,7 +7,8 @@ is one line too, ``warning: ...``), and
   any unexpected error ("internal error: ...");
 - exit 3 (:data:`EXIT_STOPPED`): a computation that stopped or did not converge, with what it
   produced kept: a run stopped on a non-finite or singular state (frames and the last
-  checkpoint are kept), densities above their tolerance (written and flagged);
+  checkpoint are kept), densities above their tolerance (written and flagged), a spectrum
+  with no converged level (written);
 - exit 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C); what was written is kept (the
   first Ctrl-C stops a run: :func:`raise_if_interrupted`);
 - exit 141 (:data:`EXIT_BROKEN_PIPE`, 128 + SIGPIPE as a shell reports a tool the signal

@@ -88,6 +88,12 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
     energies = result.energies(count)
     unknown = result.unknown_states(count)
     complete = result.complete(count)
+    if not energies or len(unknown) == len(energies):  # exit 3 after the output
+        result.warnings.append("no level converged: raise quantum.basis_size, or check that the "
+                               "potential binds (a continuous spectrum has no levels)")
+        stopped = True
+    else:
+        stopped = False
     if as_json:
         payload = {
             "energies": [None if i in unknown else e for i, e in enumerate(energies)],
@@ -105,6 +111,9 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
             "settings": result.settings,
         }
         click.echo(json_text(payload))
+        if stopped:
+            click.echo(f"warning: {result.warnings[-1]}", err=True)
+            sys.exit(EXIT_STOPPED)
         return
     from rich.table import Table
 
@@ -145,6 +154,8 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
         console.print("to converge them: raise quantum.basis_size (n = 2: up to 80, n = 3: up "
                       "to 16; n = 3 d'Alembert also quantum.radial_size, up to 60), or accept "
                       "them with a larger quantum.tolerance")
+    if stopped:
+        sys.exit(EXIT_STOPPED)
 
 
 @click.command("density")
