@@ -65,6 +65,9 @@ MIXED = textwrap.dedent(f'''
     batch = {BATCH}
     scan = {{ "kinetic.A" = [1.0, 2.0, 0.0] }}
 ''')
+#: MIXED without its refused point (kinetic.A = 0 for af-af), which ``affinebody sweep``
+#: refuses as a whole: the same points 0 and 1, the same samples
+RUNNABLE = MIXED.replace("[1.0, 2.0, 0.0]", "[1.0, 2.0]")
 CLI = click.Group("affinebody", commands={"sweep": sweep})
 
 
@@ -166,21 +169,23 @@ def test_each_point_follows_its_own_horizon_and_the_summary_claims_one_only_if_s
 def test_one_worker_and_two_workers_give_identical_results(two_workers, tmp_path):
     out = tmp_path / "one"
     config = tmp_path / "mixed.toml"
-    config.write_text(MIXED)
+    config.write_text(RUNNABLE)
     result = CliRunner().invoke(CLI, ["sweep", str(config), "--workers", "1", "-o", str(out),
                                       "--json"])
     assert result.exit_code == 0, result.output
     summary = json.loads(result.output)  # stdout is exactly one JSON object
     assert summary["workers"] == 1 and two_workers.summary["workers"] == 2
     assert summary["scheduler"].startswith("tcp://")  # the local cluster it started, not null
-    for name in ("fraction_bounded", "samples", "total_samples", "failed"):
+    for name in ("fraction_bounded", "samples"):
         assert summary[name] == two_workers.summary[name]
+    assert summary["total_samples"] == two_workers.summary["total_samples"] - SAMPLES
+    assert summary["failed"] == two_workers.summary["failed"] - SAMPLES  # less the refused
     rows = {}
     for path in (out / "tasks").glob("point-*.json"):
         data = json.loads(path.read_text())
         for row in data["rows"]:
             rows[data["point"], row["sample"]] = row
-    assert len(rows) == 2 * SAMPLES  # point 2 has no tasks (config error)
+    assert len(rows) == 2 * SAMPLES
     for (p, k), row in rows.items():
         assert row["status"] == two_workers.status[p, k]
         for name in ("exit_time", "followed_time", "max_spread", "energy_error", "final_energy",
@@ -251,7 +256,7 @@ def test_a_raising_task_is_recorded_not_fatal(client, two_workers):
 
 def test_cli_on_a_running_cluster_prints_one_json_object(client, two_workers, tmp_path):
     config = tmp_path / "mixed.toml"
-    config.write_text(MIXED)
+    config.write_text(RUNNABLE)
     address = client.scheduler.address
     result = CliRunner().invoke(CLI, ["sweep", str(config), "--scheduler", address, "--json",
                                       "--samples", str(SAMPLES), "-o", str(tmp_path / "o")])
@@ -264,9 +269,8 @@ def test_cli_on_a_running_cluster_prints_one_json_object(client, two_workers, tm
         assert record["scheduler"] == address
         assert record["workers"] == len(client.scheduler_info()["workers"]) == 2
         assert 1 <= record["worker_processes"] <= 2
-    assert [p["parameters"] for p in summary["points"]] == [
-        {"kinetic.A": 1.0}, {"kinetic.A": 2.0}, {"kinetic.A": 0.0}]
-    assert summary["points"][2]["config_error"].startswith("config error: kinetic.A")
+    assert [p["parameters"] for p in summary["points"]] == [{"kinetic.A": 1.0}, {"kinetic.A": 2.0}]
+    assert [p["config_error"] for p in summary["points"]] == [None, None]
     text = CliRunner().invoke(CLI, ["sweep", str(config), "--scheduler", address,
                                     "--samples", str(BATCH), "-o", str(tmp_path / "t")])
     assert text.exit_code == 0 and "fraction bounded" in text.output
@@ -343,11 +347,11 @@ def test_scan_points_expand_ranges_in_order_and_check_each_point():
     data = json.loads(points[4].config_json)
     assert data["kinetic"]["B"] == 1.25 and data["run"]["steps"] == 100
     assert isinstance(data["run"]["steps"], int)
-    for scan, field in (('{ "kinetic.Q" = [1.0] }', "sweep.scan.kinetic.Q"),
-                        ('{ "potential.3.expr" = ["det"] }', "sweep.scan.potential.3.expr"),
-                        ('{ "kinetic.A" = [] }', "sweep.scan.kinetic.A"),
+    for scan, field in (('{ "kinetic.Q" = [1.0] }', 'sweep.scan."kinetic.Q"'),
+                        ('{ "potential.3.expr" = ["det"] }', 'sweep.scan."potential.3.expr"'),
+                        ('{ "kinetic.A" = [] }', 'sweep.scan."kinetic.A"'),
                         ('{ "run.dt" = { start = 0.0, stop = 1.0, num = 2, log = true } }',
-                         "sweep.scan.run.dt")):
+                         'sweep.scan."run.dt"')):
         with pytest.raises(ConfigError) as info:
             scan_points(load(MIXED.replace('{ "kinetic.A" = [1.0, 2.0, 0.0] }', scan)))
         assert field in str(info.value) and "\n" not in str(info.value)
@@ -356,7 +360,7 @@ def test_scan_points_expand_ranges_in_order_and_check_each_point():
     # a scan none of whose points can run, or with a value that is not finite, is refused as
     # a whole (it ran, exit 0, with every sample failed or nan: found by fuzzing the CLI)
     for scan, text in (('["x"]', "every point of the scan is refused, e.g. kinetic.A = 'x'"),
-                       ("[1.0, nan]", "sweep.scan.kinetic.A: values must be finite (got nan)"),
+                       ("[1.0, nan]", 'sweep.scan."kinetic.A": values must be finite (got nan)'),
                        ("{ start = 1.0, stop = inf, num = 3 }", "must be finite (got inf)")):
         with pytest.raises(ConfigError) as info:
             scan_points(load(MIXED.replace("[1.0, 2.0, 0.0]", scan)))
@@ -379,6 +383,103 @@ def test_the_sweep_table_does_not_change_the_run_hash():
     plain = load(MIXED.split("[sweep]")[0])
     assert plain.sweep is None and load(MIXED).hash() == plain.hash()
     assert SweepSpec.from_config(plain) == SweepSpec()
+
+
+AF_IS = (MIXED.replace('internal = "af-af"\nA = 1.0\nB = 0.5',
+                      'internal = "af-is"\nI = 1.0\nA = 0.5')
+         .replace("samples = 20", "samples = 4"))
+assert 'internal = "af-is"' in AF_IS
+
+
+@pytest.mark.parametrize(("scan", "line"), [
+    ('{ "kinetic.A" = [-0.5, 5.0] }',
+     'config error: sweep.scan."kinetic.A" = 5.0 (point 1): kinetic.I must be > |kinetic.A| '
+     'for af-is to be positive definite (got I=1.0, A=5.0)'),
+    ('{ "run.dt" = [0.25, -1.0] }', 'sweep.scan."run.dt" = -1.0 (point 1): run.dt must be > 0'),
+    ('{ "run.steps" = [10.5, 20] }',
+     'sweep.scan."run.steps" = 10.5 (point 0): run.steps must be an integer (got 10.5)'),
+    ('{ "system.n" = [2, 3] }',
+     'sweep.scan."system.n" = 3 (point 1): initial.x must have shape [1, 3]'),
+    ('{ "kinetic.internal" = ["af-is", "dalembert"] }',
+     'sweep.scan."kinetic.internal" = "dalembert" (point 1): kinetic.I is not a parameter of '
+     "the internal model 'dalembert'"),
+    # of two scanned keys the one refused on its own
+    ('{ "run.dt" = [0.1, 0.2], "kinetic.A" = [0.5, 5.0] }',
+     'config error: sweep.scan."kinetic.A" = 5.0 (point 1): kinetic.I must be'),
+    # refused only when built, as `affinebody validate` builds (phi off GL+)
+    ('{ "initial.phi.0.0.0" = [1.0, -1.0] }',
+     'sweep.scan."initial.phi.0.0.0" = -1.0 (point 1): initial: state.phi of body 0 is not in '
+     'GL+(n)'),
+])
+def test_a_refused_scan_point_stops_the_command_before_any_sample(scan, line, tmp_path):
+    """Every point of a scan is checked as `affinebody validate` checks a config before any
+    sample runs, and the first refused one ends the command in one line naming the scanned
+    key, its value, the point and the problem, exit 1 (each such point ran: its samples
+    recorded as failed with that reason, exit 0; found by a CLI audit). Nothing is written."""
+    text = AF_IS.replace('{ "kinetic.A" = [1.0, 2.0, 0.0] }', scan).replace(
+        "x = [[0.0, 0.0]]", "x = [[0.0, 0.0]]\nphi = [[[1.0, 0.0], [0.0, 1.0]]]")
+    config = tmp_path / "bad.toml"
+    config.write_text(text)
+    result = CliRunner().invoke(CLI, ["sweep", str(config), "--workers", "0",
+                                      "-o", str(tmp_path / "out")])
+    assert result.exit_code == 1, result.output
+    assert result.stdout == "" and result.stderr.count("\n") == 1, result.stderr
+    assert result.stderr.startswith("config error: sweep.scan.")
+    assert line in result.stderr, result.stderr
+    assert not (tmp_path / "out").exists()  # refused before any task
+    # from Python the point is recorded as failed samples, and the others run (as before)
+    if "phi" not in scan:
+        errors = [p.error for p in scan_points(load(text))]
+        assert any(errors) and not all(errors) and "\n" not in "".join(filter(None, errors))
+
+
+def test_a_scan_range_error_names_the_scanned_key_not_the_class(tmp_path):
+    """pydantic's location of an error inside a {start, stop, num} range held the union
+    member's class, "sweep.scan.ScanRange.num", and dropped the key "kinetic.A" (not a bare
+    TOML key): the key is named, quoted as TOML writes it."""
+    for scan, line in (
+            ('{ "kinetic.A" = { start = 1.0, stop = 2.0, num = 0 } }',
+             'config error: sweep.scan."kinetic.A".num must be >= 1 (got 0)'),
+            ('{ "kinetic.A" = { start = 1.0, num = 2 } }',
+             'config error: sweep.scan."kinetic.A".stop is required'),
+            ('{ "kinetic.A" = { start = 1.0, stop = 2.0, num = 2, lg = true } }',
+             'config error: sweep.scan."kinetic.A".lg: unknown key'),
+            ('{ "kinetic.A" = [[1.0]] }',
+             'config error: sweep.scan."kinetic.A".0 must be a number or a string')):
+        with pytest.raises(ConfigError) as info:
+            parse_config(MIXED.replace('{ "kinetic.A" = [1.0, 2.0, 0.0] }', scan))
+        assert str(info.value).startswith(line) and "ScanRange" not in str(info.value), info.value
+    path = tmp_path / "range.toml"
+    path.write_text(MIXED.replace('{ "kinetic.A" = [1.0, 2.0, 0.0] }',
+                                  '{ "kinetic.A" = { start = 1.0, stop = 2.0, num = 0 } }'))
+    result = CliRunner().invoke(CLI, ["sweep", str(path), "--workers", "0"])
+    assert result.exit_code == 1
+    assert result.stderr == 'config error: sweep.scan."kinetic.A".num must be >= 1 (got 0)\n'
+
+
+def test_a_sweep_whose_every_sample_failed_exits_3_and_keeps_its_results(tmp_path):
+    """Failed samples are results of a sweep (exit 0), but a sweep none of whose samples
+    could be measured exits 3 (a computation that stopped, cli.common), after its table
+    and files, with one line on stderr (it exited 0). Here every sample's first step is
+    NaN: the force of 0*sqrt(det - 1) at det = 1 is 0 * inf."""
+    from affinebody.cli.common import EXIT_STOPPED
+    from affinebody.cli.sweep import exit_code
+
+    config = tmp_path / "nan.toml"
+    config.write_text(AF_IS.replace("det - 0.9", "det - 1.0").replace(
+        '{ "kinetic.A" = [1.0, 2.0, 0.0] }', '{ "kinetic.A" = [0.25, 0.5] }'))
+    result = CliRunner().invoke(CLI, ["sweep", str(config), "--workers", "0",
+                                      "-o", str(tmp_path / "out")])
+    assert result.exit_code == EXIT_STOPPED == 3, result.output
+    assert result.stderr == (f"error: all 8 samples of the sweep failed (non-finite state: 8 "
+                             f"of 8); the results are in {tmp_path / 'out'}\n")
+    assert "point 1: 4 failed: non-finite state" in result.stdout
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["failed"] == summary["total_samples"] == 8
+    assert exit_code(summary) == EXIT_STOPPED
+    # one sample measured is a result: exit 0, the failures in the table
+    assert exit_code({**summary, "failed": 7}) == 0
+    assert exit_code({**summary, "failed": 0}) == 0
 
 
 def test_draws_are_seeded_projected_standard_normal_and_go_through_the_legendre_map(
@@ -486,7 +587,7 @@ def test_a_sweep_without_its_draws_in_memory_gives_the_same_results(tmp_path, mo
         run_sweep(config, workers=0)
     monkeypatch.setattr(config_module, "estimated_memory", lambda config: 0.0)  # one body's run
     path = tmp_path / "sweep.toml"
-    path.write_text(text)
+    path.write_text(text.replace("[1.0, 2.0, 0.0]", "[1.0, 2.0]"))  # the command refuses A = 0
     result = CliRunner().invoke(CLI, ["sweep", str(path), "--workers", "0", "-o",
                                       str(tmp_path / "out"), "--json"])
     assert result.exit_code == 0, result.output

@@ -358,16 +358,39 @@ _TYPE_WORDS = {
 }
 
 
+def _model_names() -> set[str]:
+    """The class names of the pydantic models defined so far: the tag pydantic puts in an
+    error's location for a model member of a union (``ScanRange``)."""
+    seen: set[type] = set()
+    stack = [BaseModel]
+    while stack:
+        for sub in stack.pop().__subclasses__():
+            if sub not in seen:
+                seen.add(sub)
+                stack.append(sub)
+    return {cls.__name__ for cls in seen}
+
+
 def _location(loc: tuple) -> str:
-    """Dotted field name from a pydantic location, dropping union-member tags."""
-    parts = []
+    """Dotted field name from a pydantic location, as TOML writes it: union-member tags
+    dropped (a type, ``float``, ``list[list[float]]``, or a model's class name, ``ScanRange``),
+    and a table key that is not a bare TOML key quoted (``sweep.scan."kinetic.A".num``)."""
+    parts: list[str] = []
+    models = None
     for item in loc:
         if isinstance(item, int):
             parts.append(str(item))
-        elif isinstance(item, str) and (item.isidentifier() or item.replace("-", "").isalnum()):
-            if item in ("int", "float", "str", "bool", "list", "dict") and parts:
+            continue
+        if not isinstance(item, str) or ("[" in item and item.endswith("]")):
+            continue  # a type's tag ("list[union[float,str]]") or a dict key's ("[key]")
+        if parts and item in ("int", "float", "str", "bool", "list", "dict"):
+            continue
+        if parts and item.isidentifier():
+            models = _model_names() if models is None else models
+            if item in models:
                 continue
-            parts.append(item)
+        bare = item and all(c.isascii() and (c.isalnum() or c in "_-") for c in item)
+        parts.append(item if bare else json.dumps(item, ensure_ascii=False))
     return ".".join(parts) or "config"
 
 

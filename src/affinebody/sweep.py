@@ -30,8 +30,14 @@ parameter point sees the same initial velocities (common random numbers).
 Scan. ``scan`` maps a dotted config field (``"kinetic.A"``, ``"potential.0.expr"``,
 ``"initial.phi.0.1.1"``, ``"run.dt"``) to a list of values or a range
 ``{start, stop, num, log}`` (both ends included; geometric with ``log = true``); the points are
-the Cartesian product, in the order the fields are given. A point whose config is refused
-(e.g. af-is with I <= |A|) is recorded with the reason, and the others still run.
+the Cartesian product, in the order the fields are given. Every point's config is checked
+as a config file is (pydantic and :func:`~affinebody.config.check_config`) before anything
+runs. From Python (:func:`run_sweep`'s default) a point whose config is refused (e.g. af-is
+with I <= |A|) is recorded with the reason, and the others still run; ``affinebody sweep``
+(``refuse_bad_points=True``) refuses the sweep instead, in one line naming the scanned key,
+its value, the point and the problem (exit 1), and for small sweeps (points x bodies up to
+:data:`BUILD_CHECK_LIMIT`) also builds every point's system first, as ``affinebody validate``
+does.
 
 Classification (over the horizon run.steps * run.dt, checked after every step): a sample is
 ``bounded`` when max_t max_K max(sigma_max(phi_K), sigma_max(phi_K^-1)) < ``bound``, and
@@ -39,7 +45,9 @@ Classification (over the horizon run.steps * run.dt, checked after every step): 
 followed until the horizon, or until that spread reaches bound^2 (certainly unbounded: stopping
 keeps the numbers finite), or until it fails: ``failed`` with the reason "non-finite state",
 "left the group" (det phi crossed 0 on GL+/GL) or "non-finite initial energy"; a point whose
-build fails and a task that raises are recorded as failed samples too. Never fatal. Also
+build fails and a task that raises are recorded as failed samples too. Never fatal: the
+sweep goes on, and ``affinebody sweep`` exits 0 with failed samples among its results, but 3
+(``EXIT_STOPPED``) when every sample failed (nothing was measured; the results are written). Also
 reported per sample: the final relative energy error |E - E0| / |E0|, the largest relative
 volume det Gamma[phi_K, phi_L] (79) and the smallest and largest det phi_K (over bodies and the
 followed time), and the drawn Omega_hat and dx/dt.
@@ -246,24 +254,42 @@ class ScanPoint:
         return float(run["dt"]) * int(run["steps"])
 
 
+def scan_key(path: str) -> str:
+    """The config key of the scan entry ``path``, as TOML writes it: ``sweep.scan."kinetic.A"``
+    (the dotted field is one quoted key of the table)."""
+    return f"sweep.scan.{json.dumps(path, ensure_ascii=False)}"
+
+
+def _written(value) -> str:
+    """A scanned value as the config writes it: ``5.0``, ``0.15`` (not the
+    0.15000000000000002 of a range's arithmetic), ``"af-is"``."""
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float) and math.isfinite(value):
+        return repr(float(f"{value:.12g}"))
+    return str(value)
+
+
 def scan_values(path: str, values) -> list:
     """The values of one scan entry: a list as given, or a range expanded (both ends in);
     numbers must be finite."""
     given = [values.start, values.stop] if isinstance(values, ScanRange) else values
     for value in given:
         if isinstance(value, float) and not math.isfinite(value):
-            raise ConfigError(f"sweep.scan.{path}: values must be finite (got {value})")
+            raise ConfigError(f"{scan_key(path)}: values must be finite (got {value})")
     if isinstance(values, ScanRange):
         if values.log:
             if not (values.start > 0 and values.stop > 0):
-                raise ConfigError(f"sweep.scan.{path}: a log range needs start > 0 and stop > 0 "
+                raise ConfigError(f"{scan_key(path)}: a log range needs start > 0 and stop > 0 "
                                   f"(got start={values.start}, stop={values.stop})")
             grid = np.geomspace(values.start, values.stop, values.num)
         else:
             grid = np.linspace(values.start, values.stop, values.num)
         return [float(v) for v in grid]
     if not values:
-        raise ConfigError(f"sweep.scan.{path}: give at least one value")
+        raise ConfigError(f"{scan_key(path)}: give at least one value")
     return list(values)
 
 
@@ -271,8 +297,9 @@ def _config_data(config: Config) -> dict:
     return config.model_dump(exclude={"source_text": True, "sweep": True})
 
 
-def _set_field(data: dict, path: str, value) -> None:
-    """Set the dotted ``path`` of the config data to ``value``; ConfigError if no such field."""
+def _set_field(data: dict, path: str, value):
+    """Set the dotted ``path`` of the config data to ``value`` and return what was set (an
+    integral float as an int in an integer field); ConfigError if no such field."""
     parts = path.split(".")
     if parts[0] == "sweep":
         raise ConfigError(f"sweep.scan: cannot scan the [sweep] table itself ({path!r})")
@@ -282,62 +309,123 @@ def _set_field(data: dict, path: str, value) -> None:
         last = depth == len(parts) - 1
         if isinstance(node, list):
             if not part.isdigit() or int(part) >= len(node):
-                raise ConfigError(f"sweep.scan.{path}: {where} has {len(node)} entries "
+                raise ConfigError(f"{scan_key(path)}: {where} has {len(node)} entries "
                                   f"(index {part!r} is not one of them)")
             key: Any = int(part)
         elif isinstance(node, dict):
             # potential entries take any parameter of their kind; other tables have fixed keys
             if part not in node and not (where.startswith("potential.") and last):
-                raise ConfigError(f"sweep.scan.{path}: {part!r} is not a field of {where} (scan "
+                raise ConfigError(f"{scan_key(path)}: {part!r} is not a field of {where} (scan "
                                   f"a config field, e.g. 'kinetic.A' or 'potential.0.expr')")
             key = part
         else:
-            raise ConfigError(f"sweep.scan.{path}: {where} is a value, not a table or array")
+            raise ConfigError(f"{scan_key(path)}: {where} is a value, not a table or array")
         if last:
             old = node[key] if (isinstance(node, list) or key in node) else None
             if isinstance(old, int) and not isinstance(old, bool) and isinstance(value, float) \
                     and abs(value - round(value)) <= 1e-9 * max(1.0, abs(value)):
                 value = int(round(value))
             node[key] = value
-            return
+            return value
         if node[key] is None:
-            raise ConfigError(f"sweep.scan.{path}: {where}.{part} is not set in the config "
+            raise ConfigError(f"{scan_key(path)}: {where}.{part} is not set in the config "
                               f"(give it a value to scan inside it)")
         node = node[key]
         where = part if where == "config" else f"{where}.{part}"
 
 
-def scan_points(config: Config) -> list[ScanPoint]:
-    """The parameter points of ``config``'s scan (a single point without one), each checked.
+#: ``affinebody sweep`` builds every scan point's system before running (what ``affinebody
+#: validate`` does after the checks: the models, the initial state on its group, its finite
+#: energy) while points x bodies is at most this; above it only the config of each point is
+#: checked (pydantic and :func:`~affinebody.config.check_config`, no JAX, O(points)), and a
+#: point whose build fails fails its samples at run time.
+BUILD_CHECK_LIMIT = 1000
 
-    A malformed scan (unknown field, empty list) raises ConfigError; a point whose config is
-    refused is returned with ``error`` set, to be recorded as failed samples.
-    """
+
+def _checked(data: dict) -> tuple[Config | None, str | None]:
+    """``data`` validated as a config the way a config file is (pydantic, then
+    :func:`~affinebody.config.check_config`): (config, None), or (None, why) in one line."""
     from pydantic import ValidationError
 
-    from affinebody.config import Config as ConfigModel
     from affinebody.config import one_line_error
 
+    try:
+        return check_config(Config.model_validate(data)), None
+    except ValidationError as err:
+        return None, one_line_error(err)
+    except ConfigError as err:
+        return None, str(err).removeprefix("config error: ")
+
+
+def _refusal(base: dict, parameters: tuple, index: int, why: str, refused) -> ConfigError:
+    """The one-line refusal of scan point ``index`` (``parameters``: its (path, value)s):
+    the scanned key(s) whose value is refused, the value(s), the point and ``why``. With
+    several scanned keys, those refused on their own (each set alone in ``base``, by
+    ``refused(data)``); all of them where none is (the values are refused together)."""
+    written, alone = [], []
+    for path, value in parameters:
+        data = copy.deepcopy(base)
+        written.append((path, _set_field(data, path, value)))  # 3, not 3.0, in an int field
+        if len(parameters) > 1 and refused(data):
+            alone.append(written[-1])
+    culprits = alone or written
+    where = ", ".join(f"{scan_key(path) if k == 0 else json.dumps(path, ensure_ascii=False)} "
+                      f"= {_written(value)}"
+                      for k, (path, value) in enumerate(culprits))
+    return ConfigError(f"{where} (point {index}): {why}")
+
+
+def _build_error(config: Config) -> str | None:
+    """Why :func:`affinebody.config.build` refuses ``config`` (one line), or None."""
+    from affinebody.config import build
+
+    try:
+        build(config)
+    except ValueError as err:
+        return str(err).removeprefix("config error: ")
+    return None
+
+
+def scan_points(config: Config, *, refuse: bool = False) -> list[ScanPoint]:
+    """The parameter points of ``config``'s scan (a single point without one), each checked
+    as a config file is (pydantic, then :func:`~affinebody.config.check_config`).
+
+    A malformed scan (unknown field, empty list) raises ConfigError. A point whose config is
+    refused is returned with ``error`` set, to be recorded as failed samples; with ``refuse``
+    (``affinebody sweep``) the first such point raises ConfigError instead, one line naming
+    the scanned key, its value, the point and the problem, and while points x bodies is at
+    most :data:`BUILD_CHECK_LIMIT` every point's system is built too (as ``affinebody
+    validate`` does; needs JAX's float64 mode).
+    """
     scan = {} if config.sweep is None else dict(config.sweep.scan)
     base = _config_data(config)
     paths = list(scan)
     grids = [scan_values(p, scan[p]) for p in paths]
     for path in paths:  # structural check once, on a copy
         _set_field(copy.deepcopy(base), path, grids[paths.index(path)][0])
+    build_each = refuse and math.prod(map(len, grids)) * config.bodies_count <= BUILD_CHECK_LIMIT
+    if build_each:
+        from affinebody._checks import require_x64
+
+        require_x64()
+
+    def refused(data: dict) -> bool:
+        checked, why = _checked(data)
+        return why is not None or (build_each and _build_error(checked) is not None)
+
     points = []
     for index, combination in enumerate(itertools.product(*grids)):
         data = copy.deepcopy(base)
         for path, value in zip(paths, combination, strict=True):
             _set_field(data, path, value)
         parameters = tuple(zip(paths, combination, strict=True))
-        try:
-            checked = check_config(ConfigModel.model_validate(data))
-        except ValidationError as err:
-            points.append(ScanPoint(index, parameters, None,
-                                    f"config error: {one_line_error(err)}"))
-            continue
-        except ConfigError as err:
-            points.append(ScanPoint(index, parameters, None, str(err)))
+        checked, why = _checked(data)
+        if why is None and build_each:
+            why = _build_error(checked)
+        if why is not None:
+            if refuse:
+                raise _refusal(base, parameters, index, why, refused)
+            points.append(ScanPoint(index, parameters, None, f"config error: {why}"))
             continue
         text = json.dumps(_config_data(checked), sort_keys=True)
         points.append(ScanPoint(index, parameters, text))
@@ -1253,6 +1341,7 @@ def run_sweep(
     output: str | Path | None = None,
     progress: Callable[[int, int], None] | None = None,
     keep_draws: bool = True,
+    refuse_bad_points: bool = False,
 ) -> SweepResult:
     """Run the sweep of ``config`` (its ``[sweep]`` table, with ``samples``/``seed`` overrides).
 
@@ -1264,12 +1353,15 @@ def run_sweep(
     (``samples["omega_hat"]``, ``samples["velocity"]``); without them it holds O(samples)
     numbers, not O(samples x bodies) (the task files of ``output`` hold the draws either
     way: ``affinebody sweep`` keeps none).
+    ``refuse_bad_points``: a scan point whose config is refused raises ConfigError before any
+    task runs (``affinebody sweep``; :func:`scan_points` with ``refuse``), instead of being
+    recorded as failed samples while the other points run.
     """
     clock = time.perf_counter()
     spec = SweepSpec.from_config(config, samples, seed)
     thermal = config.thermostat is not None
     columns = THERMAL_SCALARS if thermal else SCALARS
-    points = scan_points(config)
+    points = scan_points(config, refuse=refuse_bad_points)
     _check_results_memory(config, len(points), spec, len(columns), keep_draws)
     tasks = make_tasks(points, spec)
     P, S = len(points), spec.samples
@@ -1408,8 +1500,9 @@ def _write_samples_csv(path: Path, points, status, failure, data,
                                  *(repr(float(data[s][point.index, k])) for s in columns)])
 
 
-__all__ = ("THERMAL_SCALARS", "TASK_JSON_DRAWS", "SweepResult", "SweepSpec", "ScanPoint", "Task",
-           "WORKER_ENV", "binomial_summary", "check_thermal", "dask_client",
+__all__ = ("BUILD_CHECK_LIMIT", "THERMAL_SCALARS", "TASK_JSON_DRAWS", "SweepResult", "SweepSpec",
+           "ScanPoint", "Task", "WORKER_ENV", "binomial_summary", "check_thermal", "dask_client",
            "draw_initial_state", "follow", "long_moves_warning", "make_tasks", "prepare_worker",
-           "run_sweep", "run_task", "scan_points", "summarize_thermal_point", "thermal_results",
-           "thermal_sample", "json_safe", "scan_values", "summarize_point", "results_bytes")
+           "run_sweep", "run_task", "scan_key", "scan_points", "summarize_thermal_point",
+           "thermal_results", "thermal_sample", "json_safe", "scan_values", "summarize_point",
+           "results_bytes")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+from collections import Counter
 from pathlib import Path
 
 import click
@@ -13,7 +14,7 @@ import click
 from affinebody._checks import enable_x64
 from affinebody._host import keep_freed_memory
 from affinebody._json import json_text
-from affinebody.cli.common import one_line_errors, raise_if_interrupted
+from affinebody.cli.common import EXIT_STOPPED, fail, one_line_errors, raise_if_interrupted
 from affinebody.sweep import run_sweep
 
 
@@ -142,6 +143,25 @@ def summary_lines(summary: dict) -> list[str]:
                      f"({summary['failed']} failed)")
 
 
+def exit_code(summary: dict) -> int:
+    """The exit status of a sweep that ran: 0, with failed samples among its results (README:
+    a failed sample is recorded, not fatal), but :data:`~affinebody.cli.common.EXIT_STOPPED`
+    (3) when every sample failed: nothing was measured."""
+    total = summary["total_samples"]
+    return EXIT_STOPPED if total and summary["failed"] == total else 0
+
+
+def _all_failed(summary: dict, folder: Path) -> str:
+    """The one line of a sweep whose every sample failed: how many, the commonest reason."""
+    reasons = Counter()
+    for point in summary["points"]:
+        reasons.update(point["failures"])
+    reason, count = reasons.most_common(1)[0] if reasons else ("unknown", summary["failed"])
+    total = summary["total_samples"]
+    return (f"error: all {total} samples of the sweep failed ({reason}: {count} of {total}); "
+            f"the results are in {folder}")
+
+
 def _progress_bar(enabled: bool):
     from rich.console import Console
 
@@ -195,7 +215,8 @@ def sweep(config_file, samples, seed, scheduler, workers, output_dir, as_json):
         with bar:
             result = run_sweep(config, samples=samples, seed=seed, scheduler=scheduler,
                                workers=workers, output=folder, progress=progress,
-                               keep_draws=False)  # the task files hold them
+                               keep_draws=False,  # the task files hold them
+                               refuse_bad_points=True)  # before any sample runs, exit 1
     except KeyboardInterrupt:
         raise KeyboardInterrupt(f"the task files written so far are kept in "
                                 f"{folder / 'tasks'}") from None
@@ -205,8 +226,10 @@ def sweep(config_file, samples, seed, scheduler, workers, output_dir, as_json):
         for line in summary_lines(result.summary):
             click.echo(line)
         click.echo(f"results: {folder}")
+    if exit_code(result.summary):
+        fail(_all_failed(result.summary, folder), exit_code(result.summary))
 
 
 __all__ = [
-    "summary_lines", "sweep"
+    "exit_code", "summary_lines", "sweep"
 ]
