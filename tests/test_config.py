@@ -489,3 +489,23 @@ def test_a_toml_nested_too_deeply_or_with_a_byte_order_mark_is_read_or_refused_i
     marked = tmp_path / "bom.toml"
     marked.write_bytes(b"\xef\xbb\xbf" + demo_config_text().encode("utf-8"))
     assert load_config(marked) == parse_config(demo_config_text())
+
+
+def test_a_trajectory_or_binary_file_given_as_the_config_is_named_so(tmp_path):
+    """An H5MD file passed where the config goes (``affinebody validate out.h5``) is said to
+    be one, and any other non-UTF-8 file says so in one line, not "'utf-8' codec can't
+    decode byte 0x89 in position 0"."""
+    import h5py
+
+    from affinebody.config import load_config
+
+    trajectory = tmp_path / "out.h5"
+    with h5py.File(trajectory, "w") as f:
+        f["h5md"] = 1
+    with pytest.raises(ConfigError, match="is an HDF5 file .*not a TOML config"):
+        load_config(trajectory)
+    binary = tmp_path / "bytes.toml"
+    binary.write_bytes(bytes(range(128, 256)))
+    with pytest.raises(ConfigError, match="not a UTF-8 text file") as info:
+        load_config(binary)
+    assert "codec" not in str(info.value)

@@ -460,10 +460,17 @@ def load_config(path: str | Path) -> Config:
     """Read, parse and check a config file (both passes); raises :class:`ConfigError`."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read {path}: {err.strerror if hasattr(err, 'strerror') else err}"
-                          ) from None
+        raw = path.read_bytes()
+    except OSError as err:
+        raise ConfigError(f"cannot read {path}: {err.strerror}") from None
+    if raw.startswith(b"\x89HDF\r\n\x1a\n"):
+        raise ConfigError(f"{path} is an HDF5 file (a trajectory?), not a TOML config: give the "
+                          f"config the run was made from")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"cannot read {path}: not a UTF-8 text file ({err.reason} at byte "
+                          f"{err.start})") from None
     config = parse_config(text, str(path))
     check_config(config)
     return config
