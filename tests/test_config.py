@@ -452,6 +452,8 @@ KINETIC_OVERFLOW = (r"kinetic energy of the initial state is (inf|nan): lower "
     ("phi_momentum_scale", "5.1e307", KINETIC_OVERFLOW),
     ("phi_noise", "5.1e307", r"initial\.phi_noise = 5\.1e\+307 is too large"),
     ("spacing", "1e308", r"generated positions are not finite in float64 \(spacing 1e\+308"),
+    # was accepted, and the run stopped at its first step blaming the potential
+    ("jitter", "1e308", r"initial\.jitter is a fraction of initial\.spacing and must be <= 1"),
 ])
 def test_generated_states_beyond_float64_are_refused_in_one_line_naming_the_keys(key, value,
                                                                                  message):
@@ -509,3 +511,18 @@ def test_a_trajectory_or_binary_file_given_as_the_config_is_named_so(tmp_path):
     with pytest.raises(ConfigError, match="not a UTF-8 text file") as info:
         load_config(binary)
     assert "codec" not in str(info.value)
+
+
+def test_a_key_of_the_other_generator_is_refused_not_ignored():
+    """initial.extent with the lattice generator, shape or jitter with the random one: read by
+    the other generator only, they were accepted and silently ignored (found by a CLI audit)."""
+    from affinebody.runner import demo_config_text
+
+    text = demo_config_text()
+    assert 'generator = "lattice"' in text and "\njitter = " in text
+    with pytest.raises(ConfigError, match="initial.extent is not read by generator = 'lattice'"):
+        check_config(parse_config(text.replace("\njitter = ", "\nextent = 3.0\njitter = ")))
+    random = text.replace('generator = "lattice"', 'generator = "random"')
+    with pytest.raises(ConfigError, match="initial.jitter is not read by generator = 'random'"):
+        check_config(parse_config(random))
+    check_config(parse_config(re.sub(r"\njitter = [^\n]*", "", random)))  # accepted

@@ -927,11 +927,22 @@ def check_initial(config: Config) -> None:
                           "'random')")
     if generator == "explicit" and i.x is None:
         raise ConfigError("initial.x is required when initial.generator = 'explicit'")
+    if i.x is None:  # a key of the other generator would be silently ignored
+        other = {"lattice": [("extent", i.extent is not None)],
+                 "random": [("shape", i.shape is not None), ("jitter", i.jitter != 0)]}
+        for name, given in other.get(generator, []):
+            if given:
+                raise ConfigError(f"initial.{name} is not read by generator = '{generator}' "
+                                  f"(it belongs to the other generator): remove it")
     for name in ("spacing", "jitter", "phi_noise", "momentum_scale", "phi_momentum_scale"):
         value = getattr(i, name)
         if not (math.isfinite(value) and value >= 0) or (name == "spacing" and value == 0):
             raise ConfigError(f"initial.{name} must be {'> 0' if name == 'spacing' else '>= 0'} "
                               f"(got {value})")
+    if i.jitter > 1:  # x moves by jitter x spacing x U(-1, 1): beyond 1 the lattice is gone
+        raise ConfigError(f"initial.jitter is a fraction of initial.spacing and must be <= 1 "
+                          f"(got {i.jitter}); for bodies placed at random use "
+                          f"initial.generator = 'random'")
     if i.extent is not None:
         _positive(i.extent, "initial.extent")
     if i.shape is not None:
