@@ -526,3 +526,18 @@ def test_a_key_of_the_other_generator_is_refused_not_ignored():
     with pytest.raises(ConfigError, match="initial.jitter is not read by generator = 'random'"):
         check_config(parse_config(random))
     check_config(parse_config(re.sub(r"\njitter = [^\n]*", "", random)))  # accepted
+
+
+def test_an_initial_phi_beyond_float64_is_one_line_without_warnings():
+    """An entry of initial.phi of 1e200: its determinant overflows. One line saying so, no
+    NumPy overflow warnings before it (there were two, then "singular (det = inf)")."""
+    import warnings
+
+    from affinebody.runner import demo_config_text
+
+    text = demo_config_text().replace("phi_noise = ", "phi = [[[1e200, 0.0], [0.0, 1.0]]" +
+                                      ", [[1.0, 0.0], [0.0, 1.0]]" * 8 + "]\nphi_noise = ")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ConfigError, match=r"initial\.phi\.0 is beyond float64"):
+            check_config(parse_config(text))

@@ -915,8 +915,13 @@ def check_initial(config: Config) -> None:
     if i.phi_velocity is not None and i.phi_momentum is not None:
         raise ConfigError("initial: give either phi_velocity or phi_momentum, not both")
     if i.phi is not None:
-        det = np.linalg.det(np.asarray(i.phi))
-        scale = np.prod(np.linalg.norm(np.asarray(i.phi), axis=-2), axis=-1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            det = np.linalg.det(np.asarray(i.phi))
+            scale = np.prod(np.linalg.norm(np.asarray(i.phi), axis=-2), axis=-1)
+        huge = np.flatnonzero(~(np.isfinite(det) & np.isfinite(scale)))
+        if huge.size:
+            raise ConfigError(f"initial.phi.{huge[0]} is beyond float64 (its determinant "
+                              f"overflows): give phi in units in which its entries are moderate")
         bad = np.flatnonzero(~(np.abs(det) > 1e-12 * scale))
         if bad.size:
             raise ConfigError(f"initial.phi.{bad[0]} is singular (det = {det[bad[0]]:.3g}): an "
