@@ -209,6 +209,8 @@ def test_a_body_sheared_singular_stops_the_run_with_exit_3_not_as_a_bad_initial_
     assert float(reciprocal_condition(np.asarray(saved.state.phi[0]))) > SINGULAR_RTOL
     traj = read_trajectory(out)
     assert all(np.all(np.isfinite(a)) for a in traj.state)
+    assert traj.step[-1] == stopped  # its frame is written: "up to it", not "before it"
+    assert f"the {traj.frames} frames up to it are kept" in message
 
 
 def test_a_warning_of_a_command_is_one_line_and_its_errors_keep_their_exit_codes():

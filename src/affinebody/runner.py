@@ -338,11 +338,12 @@ def run_simulation(
                 max_error = max(max_error, float(np.max(relative_error(energy, initial_energy))))
                 last_energy = float(energy[-1])
                 state = State(*(np.asarray(a)[-1] for a in trajectory.states))
-                if stop is None:  # finite and det phi of the same sign, but still a body?
-                    stop = _singular_stop(built.system, state, length, dt, step)
-                if stop is not None:
-                    raise SimulationStopped(_stop_message(stop, step, dt, built.inertia.labels,
-                                                          writer.frames, output))
+                singular = None if stop is not None else _singular_stop(
+                    built.system, state, length, dt, step)  # finite, det of its sign: a body?
+                if stop is not None or singular is not None:
+                    raise SimulationStopped(_stop_message(
+                        stop or singular, step, dt, built.inertia.labels, writer.frames, output,
+                        through=singular is not None))
                 if "heat" in trajectory.observables:
                     heat = float(trajectory.observables["heat"][-1])
                 lists = trajectory.neighbors
@@ -529,7 +530,10 @@ def _singular_stop(system, state: State, length: int, dt: float, offset: int):
     return StopReport(length, (offset + length) * dt, body, reason, reason)
 
 
-def _stop_message(report, offset: int, dt: float, labels, frames: int, output: Path) -> str:
+def _stop_message(report, offset: int, dt: float, labels, frames: int, output: Path,
+                  through: bool = False) -> str:
+    """The one line of a stopped run; ``through``: the last frame kept is at the stop (a
+    state found singular at the end of a chunk), not before it."""
     step = offset + report.step
     who = ""  # a stop of the box or of the list is no one body's
     if report.body >= 0:
@@ -540,7 +544,8 @@ def _stop_message(report, offset: int, dt: float, labels, frames: int, output: P
                  "large or potential too weak to keep det phi > 0; group = \"L\" allows it)")
     else:
         cause = report.reason
-    kept = f"the {frames} frames before it are" if frames != 1 else "the frame before it is"
+    when = "up to" if through else "before"
+    kept = f"the {frames} frames {when} it are" if frames != 1 else f"the frame {when} it is"
     return (f"simulation stopped at step {step} (t = {step * dt:.6g}){who}: {cause}; {kept} "
             f"kept in {output}")
 
