@@ -308,7 +308,8 @@ def test_cli_json_states_whether_the_list_is_complete(tmp_path):
     known = [i for i, e in enumerate(data["energies"]) if e is not None]
     dens = CliRunner().invoke(density, [str(path), "--state", str(known[0]), "-o",
                                         str(tmp_path / "dens")])
-    assert dens.exit_code == 0 and "not certified complete" in dens.output
+    assert dens.exit_code == 0 and "the sector search is not certified (conditional" in \
+        dens.output
     trans = CliRunner().invoke(transitions_command, [str(path), "--operator", "det",
                                                      "--levels", "8", "--json"])
     assert trans.exit_code == 0, trans.output
@@ -340,3 +341,26 @@ def test_an_uncertified_search_says_what_could_certify_it():
     assert "does not confine" in said
     [said] = [w for w in function.warnings if "conditional" in w]
     assert "give the potential as an expression" in said
+
+
+def test_an_incomplete_list_says_why():
+    """Spectrum.incomplete_because: a certified list with an unconverged state among the first
+    ones names those states (the density command's warning gave the certificate, which reads
+    as complete there: "no level below 7.77 > the 101-th candidate 7"); uncertified: the
+    certificate; fewer states than asked: how many; all known: None (and complete())."""
+    from affinebody.quantum.levels import Level, Sector, Spectrum
+
+    sector = Sector(0, 0, 1, 1)
+
+    def level(energy, converged=True):
+        return Level(energy, 1, (sector,), 1e-9, ("b",), 0, converged)
+
+    s = Spectrum([level(1.0), level(3.0)], [level(2.0, False)], {}, "dalembert", 2, "all",
+                 certified=True, certificate="certified: no level below 7.77")
+    assert s.incomplete_because(1) is None and s.complete(1)
+    assert s.incomplete_because(3) == "states [1] among them are unconverged candidates"
+    assert s.incomplete_because(4) == "only 3 states were computed"
+    s.certified = False
+    assert "not certified (certified: no level" in s.incomplete_because(1)
+    s.certified, s.bounded_below = True, False
+    assert "unbounded below" in s.incomplete_because(1) and not s.complete(1)

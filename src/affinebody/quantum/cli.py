@@ -229,9 +229,10 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
             click.echo(f"warning: {text}", err=True)
         stopped = bool(extra["warnings"])
     payload = write_densities(result, state, output, qc.density_points, qc.density_tolerance)
-    if not result.complete(state + 1):  # a caveat on the index, not on the densities
-        click.echo(f"warning: state {state} is indexed in a list that is not certified "
-                   f"complete: {result.certificate}", err=True)
+    why = result.incomplete_because(state + 1)
+    if why is not None:  # a caveat on the index, not on the densities
+        click.echo(f"warning: state {state} is indexed in a list of states 0..{state} that is "
+                   f"not known to be complete: {why}", err=True)
     if as_json:
         click.echo(json_text(payload))
     else:

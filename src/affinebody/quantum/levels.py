@@ -129,10 +129,23 @@ class Spectrum:
     def complete(self, count: int | None = None) -> bool:
         """The first ``count`` (default ``requested``) states are all known: the search is
         certified, the body bounded below, and each of them converged."""
+        return self.incomplete_because(count) is None
+
+    def incomplete_because(self, count: int | None = None) -> str | None:
+        """Why the first ``count`` (default ``requested``) states are not all known, in a few
+        words (None when they are, :meth:`complete`)."""
         count = count if count is not None else self.requested
         values = self.energies(count)
-        return bool(self.certified and self.bounded_below and count is not None
-                    and len(values) >= count and not any(math.isnan(v) for v in values))
+        if not self.bounded_below:
+            return "the body's energy is unbounded below"
+        if not self.certified:
+            return f"the sector search is not certified ({self.certificate})"
+        if count is None or len(values) < count:
+            return f"only {len(values)} states were computed"
+        unknown = [i for i, v in enumerate(values) if math.isnan(v)]
+        if unknown:
+            return f"states {unknown} among them are unconverged candidates"
+        return None
 
     def level_of_state(self, k: int) -> Level:
         """The level holding the k-th entry (0-based) of :meth:`energies`."""
