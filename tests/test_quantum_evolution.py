@@ -402,7 +402,9 @@ def test_cli_evolve_json_and_errors(tmp_path):
                           (["--steps", "1000000"], "--steps must be between"),
                           (["--at", "1.85"], "two finite numbers"),
                           # nan everywhere with exit 0 before (found by fuzzing the CLI)
-                          (["--momentum", "1e308,0"], "--momentum: 1e+308 is beyond what")):
+                          (["--momentum", "1e308,0"], "--momentum: 1e+308 is beyond what"),
+                          # finite means of round-off with exit 0 before (a CLI audit)
+                          (["--time", "1e300"], "--time 1e+300: the phases")):
         bad = CliRunner().invoke(evolve_command, [*args, *extra])
         assert bad.exit_code == 1, (extra, bad.output)
         assert needle in bad.output and len(bad.output.strip().splitlines()) == 1
@@ -418,6 +420,9 @@ def test_cli_evolve_json_and_errors(tmp_path):
                                                "4", "--json"])
     assert spin.exit_code == 0, spin.output
     data = json.loads(spin.output)
+    long = CliRunner().invoke(evolve_command, [str(small), "--phi", "0.3,0.05,0,0.2", "--time",
+                                               "1e300", "--steps", "4"])  # the --phi path
+    assert long.exit_code == 1 and "--time 1e+300: the phases" in long.output
     assert np.ptp(data["norm"]) < 1e-13 and np.ptp(data["energy"]) < 1e-13
     crowded = tmp_path / "crowded.toml"  # a given scale: no variational search before
     crowded.write_text(small.read_text() + "scale = 1.0\n")

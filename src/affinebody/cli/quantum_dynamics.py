@@ -215,6 +215,7 @@ def evolve(config: str, centre: str | None, phi: str | None, pi: str, momentum: 
             sector = ev3.scalar_sector3(model, kwargs["potential"], hbar, settings=settings,
                                         reach=reach, **constants)
             result = ev3.evolve3(sector, X0, P0, w, times, hbar)
+    ev.check_phases(result, hbar)
     if plot is not None:
         _plot(result, plot, model)
     if as_json:
@@ -287,6 +288,7 @@ def _evolve_matrix(cfg, phi: str, pi: str, width: float | None, duration: float,
             kwargs["potential"], hbar, kwargs.get("inertia", 1.0), settings, packet, times,
             progress, model=kwargs["model"], I=kwargs.get("I", 1.0), A=kwargs.get("A", 0.0),
             B=kwargs.get("B", 0.0))
+    ev.check_phases(result, hbar)
     if plot is not None:
         _plot(result, plot, kwargs["model"])
     payload = result.as_dict()

@@ -182,6 +182,24 @@ def require_captured(captured: float) -> None:
                          f"minimum")
 
 
+#: the largest phase (E_n - E_0) t / hbar, in radians, an evolution reports: float64 resolves
+#: a phase to eps x its size, 2e-3 rad at 1e13, beyond which the means and the survival
+#: probability are noise
+MAX_PHASE = 1e13
+
+
+def check_phases(evolution: Evolution, hbar: float) -> None:
+    """ValueError (one line) when the phases of ``evolution`` at its last time exceed
+    :data:`MAX_PHASE`: its numbers would be round-off, printed as if they were results."""
+    spread = float(np.ptp(evolution.energies)) if len(evolution.energies) else 0.0
+    phase = spread * float(evolution.times[-1]) / hbar
+    if not phase <= MAX_PHASE:
+        raise ValueError(f"--time {evolution.times[-1]:.6g}: the phases (E_n - E_0) t / hbar "
+                         f"reach {phase:.1e} rad, which float64 holds only to "
+                         f"{phase * 2.2e-16:.1e} rad (the results would be round-off): give "
+                         f"--time up to {MAX_PHASE * hbar / spread:.3g}")
+
+
 @dataclass(frozen=True)
 class Evolution:
     times: np.ndarray
@@ -496,5 +514,5 @@ __all__ = ["MAX_BASIS", "MAX_STEPS", "MAX_WORK", "VARIABLES", "sector_spectrum",
            "evolve", "spectrum_lines", "MatrixPacket", "packet_harmonics",
            "evolve_matrix_packet", "PACKET_ANGLES", "MAX_BLOCKS", "block_of",
            "check_matrix_packet",
-           "block_functions",
+           "block_functions", "MAX_PHASE", "check_phases",
 ]
