@@ -71,6 +71,22 @@ def test_demo_system_is_an_array_pytree_and_two_runs_compile_once(demo):
     assert moved[1] < moved[0]
 
 
+def test_mismatched_state_arrays_and_an_empty_state_are_one_line_errors(demo):
+    """H of a state whose arrays disagree on N (x of 2 bodies, phi of 3) raised a JAX
+    broadcasting TypeError; run of a state with no bodies failed inside NumPy (an argmax of
+    an empty sequence). Both are one ValueError naming the state, also under jit for H (the
+    shapes are static). Found by an audit of the API."""
+    system, state = demo.system, demo.state
+    short = State(state.x[:2], state.phi[:3], state.p[:2], state.pi[:3])
+    for energy in (system.hamiltonian, jax.jit(system.hamiltonian)):
+        with pytest.raises(ValueError, match="state shapes disagree"):
+            energy(short)
+    empty = State(*(a[:0] for a in state))
+    with pytest.raises(ValueError, match="at least one body"):
+        simulate.run(system, empty, 0.01, 2)
+    assert np.isfinite(float(system.hamiltonian(state)))  # the good state still passes
+
+
 def _registered_models(n: int = 2) -> list:
     """One instance of every registered kinetic model and potential family."""
     rng = np.random.default_rng(0)

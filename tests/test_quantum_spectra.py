@@ -268,3 +268,19 @@ def test_config_errors_are_one_line(text, fragment):
         parse(text)
     message = str(err.value)
     assert fragment in message and "\n" not in message and message.startswith("config error")
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"hbar": 0.0}, "hbar must be a finite number > 0"),  # returned unconverged candidates
+    ({"hbar": float("nan")}, "hbar must be a finite number > 0"),  # a SciPy message before
+    ({"inertia": 0.0}, "inertia must be > 0"),  # a ZeroDivisionError before
+    ({"A": float("inf")}, "quantum.A must be finite"),
+    ({"levels": 0}, "levels must be >= 1"),
+])
+def test_solve_refuses_bad_constants_naming_them(kwargs, needle):
+    """From Python (affinebody.solve_spectrum): constants that have no spectrum are refused
+    at once in one line naming them (found by an audit of the API)."""
+    args = {"hbar": 1.0, **kwargs}
+    hbar = args.pop("hbar")
+    with pytest.raises(ValueError, match=needle):
+        sp.solve("dalembert", 2, lambda q: 0.5 * np.sum(np.exp(2 * q), axis=-1), hbar, **args)

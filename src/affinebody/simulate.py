@@ -545,6 +545,8 @@ def run(system: HamiltonianSystem, state: State, dt: float, steps: int, integrat
     if thermostat is not None:
         method = _thermostatted(system, method, thermostat, state)
     state = system.check(state)
+    if state.phi.ndim == 3 and state.phi.shape[0] == 0:  # failed inside NumPy (an argmax)
+        raise ValueError("run needs at least one body (the state has N = 0)")
     if state.phi.ndim != 3:
         raise ValueError(f"run integrates one system: state.phi must be [N, n, n] "
                          f"(got {tuple(state.phi.shape)}); vmap for ensembles")

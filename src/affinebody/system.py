@@ -84,6 +84,15 @@ def project_momentum(phi: jax.Array, pi: jax.Array, group: str) -> jax.Array:
     return pi - transpose(linalg.solve(transpose(phi), transpose(removed)))
 
 
+def _shapes_agree(state: State) -> None:
+    """ValueError (one line) unless x, p are [..., N, n] and phi, pi [..., N, n, n] with the
+    same leading axes (a mismatch reached H as a JAX broadcasting TypeError)."""
+    x, phi, p, pi = (tuple(jnp.shape(a)) for a in state)
+    if x != p or phi != pi or x[:-1] != phi[:-2]:
+        raise ValueError(f"state shapes disagree: x {x}, p {p} must be [N, n] and phi {phi}, "
+                         f"pi {pi} [N, n, n] with the same N, n")
+
+
 @pytree.dataclass
 class HamiltonianSystem:
     """H(x, phi, p, pi) = T(kinetic) + V(potential) on the configuration space ``group``.
@@ -163,6 +172,7 @@ class HamiltonianSystem:
 
     def hamiltonian(self, state: State, neighbors=None) -> jax.Array:
         """H = T + V (75a); ``neighbors`` as in :meth:`potential_energy`."""
+        _shapes_agree(state)  # static shapes: also under jit, at no cost
         return self.kinetic_energy(state) + self.potential_energy(state, neighbors)
 
     # ----------------------------------------------------------------- dynamics
@@ -270,12 +280,8 @@ class HamiltonianSystem:
         phi = as_matrix(state.phi, "state.phi")
         p = as_vector(state.p, "state.p", n=phi.shape[-1])
         pi = as_matrix(state.pi, "state.pi", n=phi.shape[-1])
-        if x.shape != p.shape or phi.shape != pi.shape or x.shape[:-1] != phi.shape[:-2]:
-            raise ValueError(
-                f"state shapes disagree: x {tuple(x.shape)}, p {tuple(p.shape)} must be [N, n] "
-                f"and phi {tuple(phi.shape)}, pi {tuple(pi.shape)} [N, n, n] with the same N, n"
-            )
         state = State(x, phi, p, pi)
+        _shapes_agree(state)
         if is_concrete(phi):
             body = self.outside_group(phi)
             if body is not None:

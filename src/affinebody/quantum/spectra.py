@@ -25,6 +25,7 @@ Partition functions and the classical limit (n = 2, af-is / is-af) are in
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -105,6 +106,15 @@ def solve(model: str, n: int, potential: Potential, hbar: float, *, inertia: flo
     settings = settings or Settings()
     if model not in MODELS:
         raise ValueError(f"quantum.kinetic must be one of {MODELS} (got {model!r})")
+    if not (math.isfinite(hbar) and hbar > 0):  # hbar = 0 returned unconverged candidates
+        raise ValueError(f"quantum.hbar must be a finite number > 0 (got {hbar})")
+    for name, value in (("inertia", inertia), ("I", I), ("A", A), ("B", B)):
+        if not math.isfinite(value):
+            raise ValueError(f"quantum.{name} must be finite (got {value})")
+    if model == "dalembert" and not inertia > 0:  # was a ZeroDivisionError
+        raise ValueError(f"quantum.inertia must be > 0 for d'Alembert (got {inertia})")
+    if not levels >= 1:
+        raise ValueError(f"levels must be >= 1 (got {levels})")
     if n not in (2, 3):
         raise ValueError(f"system.n must be 2 or 3 for quantum spectra (got {n})")
     if levels > MAX_LEVELS:
