@@ -429,6 +429,11 @@ def test_no_nan_in_gradients_for_coincident_bodies_or_singular_terms_beyond_cuto
         gx, gphi = gradient(pot, x, phi)
         assert bool(jnp.all(jnp.isfinite(gx)) and jnp.all(jnp.isfinite(gphi)))
         np.testing.assert_allclose(jnp.sum(gx, axis=0), 0.0, atol=1e-12)
+    # a NaN centre is NaN, not the coincident value (r = D = 0 read a NaN |u|^2 as 0: the
+    # energy of exp(-D**2) was 1.0, found by an audit of the API)
+    bad = x.at[0, 0].set(jnp.nan)
+    for expr in ("exp(-r**2)", "exp(-D**2)"):
+        assert np.isnan(float(PairPotential.from_expression(expr, n).energy(bad, phi))), expr
     # log(M1) is NaN for Gamma = -Id (M1 = -2); those pairs lie beyond the cut-off, so they
     # must contribute exactly zero energy and zero, finite forces
     pot = PairPotential.from_expression("log(M1) * exp(-r)", n, cutoff=Cutoff(1.0))

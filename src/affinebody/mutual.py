@@ -128,11 +128,12 @@ def affine_distance_squared(x_k, phi_k, x_l, phi_l) -> jax.Array:
 def affine_distance(x_k, phi_k, x_l, phi_l) -> jax.Array:
     """The affinely invariant distance D of eq. (75); invariant under (A x, A phi), eq. (76).
 
-    Its gradient at coincident centres (D = 0) is taken as 0 rather than NaN.
+    Its gradient at coincident centres (D = 0) is taken as 0 rather than NaN; a NaN centre
+    gives NaN (the fallback 0 x d2, not 0: a NaN fails ``d2 > 0`` and read as D = 0).
     """
     d2 = affine_distance_squared(x_k, phi_k, x_l, phi_l)
     positive = d2 > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, d2, 1.0)), 0.0)
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, d2, 1.0)), 0.0 * d2)
 
 
 def relative_volume(phi_k, phi_l) -> jax.Array:

@@ -135,10 +135,11 @@ def pair_symmetry(names: Iterable[str], *, periodic: bool = False) -> frozenset[
 
 
 def _safe_norm(u: jax.Array) -> jax.Array:
-    """|u| over the last axis with gradient 0 (not NaN) at u = 0 (double-where)."""
+    """|u| over the last axis with gradient 0 (not NaN) at u = 0 (double-where); NaN for a
+    NaN u (the fallback is 0 x |u|^2, not 0: a NaN fails ``s2 > 0`` and read as r = 0)."""
     s2 = jnp.sum(u * u, axis=-1)
     positive = s2 > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, s2, 1.0)), 0.0)
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, s2, 1.0)), 0.0 * s2)
 
 
 def one_body_variables(names: Iterable[str], x: jax.Array, phi: jax.Array) -> dict[str, jax.Array]:
