@@ -434,6 +434,8 @@ def test_no_nan_in_gradients_for_coincident_bodies_or_singular_terms_beyond_cuto
     bad = x.at[0, 0].set(jnp.nan)
     for expr in ("exp(-r**2)", "exp(-D**2)"):
         assert np.isnan(float(PairPotential.from_expression(expr, n).energy(bad, phi))), expr
+        cut = PairPotential.from_expression(expr, n, cutoff=Cutoff(1.5, variable=expr[5]))
+        assert np.isnan(float(cut.energy(bad, phi))), expr  # not a pair beyond the cut-off
     # log(M1) is NaN for Gamma = -Id (M1 = -2); those pairs lie beyond the cut-off, so they
     # must contribute exactly zero energy and zero, finite forces
     pot = PairPotential.from_expression("log(M1) * exp(-r)", n, cutoff=Cutoff(1.0))

@@ -287,7 +287,9 @@ class PairTerm(AbstractPotentialTerm):
                 safe[name] = jnp.where(
                     mask, value, _masked_pair_value(name, value, n, self.cutoff.r_cut)
                 )
-            total = total + jnp.where(inside, self.term(safe) * switch, 0.0)
+            # beyond the cut-off 0 x s: 0 with gradient 0, but NaN for a NaN s (which fails
+            # s < r_cut and read as a pair beyond the cut-off)
+            total = total + jnp.where(inside, self.term(safe) * switch, 0.0 * s)
         return total / len(orders)
 
     def pair_energies(self, x, phi, cell=None) -> jax.Array:
