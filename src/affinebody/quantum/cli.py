@@ -88,12 +88,10 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
     energies = result.energies(count)
     unknown = result.unknown_states(count)
     complete = result.complete(count)
-    if not energies or len(unknown) == len(energies):  # exit 3 after the output
+    stopped = not energies or len(unknown) == len(energies)  # exit 3 after the output
+    if stopped:
         result.warnings.append("no level converged: raise quantum.basis_size, or check that the "
                                "potential binds (a continuous spectrum has no levels)")
-        stopped = True
-    else:
-        stopped = False
     if as_json:
         payload = {
             "energies": [None if i in unknown else e for i, e in enumerate(energies)],

@@ -179,17 +179,12 @@ class _Separable:
     coefficients: np.ndarray
 
     def __call__(self, x: np.ndarray, evaluated: dict | None = None) -> np.ndarray:
-        values = []
+        cache = {} if evaluated is None else evaluated
         for column, factor in enumerate((self.first, self.second)):
-            key = (factor, column)
-            if evaluated is None or key not in evaluated:
-                value = factor.evaluate(x[:, column])
-                if evaluated is None:
-                    values.append(value)
-                    continue
-                evaluated[key] = value
-            values.append(evaluated[key])
-        return np.einsum("pi,ij,pj->p", values[0], self.coefficients, values[1], optimize=True)
+            if (factor, column) not in cache:
+                cache[factor, column] = factor.evaluate(x[:, column])
+        return np.einsum("pi,ij,pj->p", cache[self.first, 0], self.coefficients,
+                         cache[self.second, 1], optimize=True)
 
 
 def joint_density(spectrum: Spectrum, level: Level) -> Joint:

@@ -80,23 +80,21 @@ def _save(fig, png: Path, stem: Path, arrays: dict, payload: dict) -> dict:
 def parse_superposition(text: str) -> dict[int, complex]:
     """``"0:1,8:0.5j"`` -> {0: 1, 8: 0.5j} (state index: amplitude, Python complex syntax);
     ValueError with the expected form otherwise."""
-    out: dict[int, complex] = {}
     try:
-        for item in text.split(","):
-            index, amplitude = item.split(":")
-            if int(index) in out:
-                raise KeyError(int(index))
-            out[int(index)] = complex(amplitude.replace(" ", ""))
-    except KeyError as repeated:  # the last would have silently replaced the first
-        raise ValueError(f"--superpose: state {repeated.args[0]} is given twice (give each "
-                         f"state once, with the sum of its amplitudes)") from None
+        pairs = [(int(index), complex(amplitude.replace(" ", "")))
+                 for index, amplitude in (item.split(":") for item in text.split(","))]
     except ValueError:
         raise ValueError(f"--superpose must be index:amplitude pairs like 0:1,8:0.5j (got "
                          f"{text!r})") from None
-    for index, amplitude in out.items():
+    out: dict[int, complex] = {}
+    for index, amplitude in pairs:
+        if index in out:  # a dict would keep the last silently
+            raise ValueError(f"--superpose: state {index} is given twice (give each state "
+                             f"once, with the sum of its amplitudes)")
         if not cmath.isfinite(amplitude):
             raise ValueError(f"--superpose: the amplitude of state {index} must be finite (got "
                              f"{amplitude})")
+        out[index] = amplitude
     return out
 
 
