@@ -133,6 +133,30 @@ def test_resume_reproduces_the_uninterrupted_run_bit_for_bit(folder, reference):
     assert_bitwise_equal(out, reference)
 
 
+def test_a_resume_refused_says_what_changed_and_which_steps_to_give(folder, reference):
+    import shutil
+
+    out = folder / "edited.h5"
+    shutil.copy(reference, out)
+    shutil.copy(checkpoint_path(reference), checkpoint_path(out))
+    # dt edited in the config: the refusal names the setting with both values
+    edited = folder / "edited.toml"
+    edited.write_text(TINY.replace("dt = 0.01", "dt = 0.02"))
+    result = invoke("run", edited, "-o", out, "--resume", "--quiet")
+    assert result.exit_code == 1
+    assert "(changed: run.dt = 0.01 -> 0.02)" in result.stderr, result.stderr
+    assert "[initial] file" in result.stderr
+    # a run extended with --steps beyond run.steps: the config's steps is named as such, not
+    # as a --steps the user never gave, and the count that continues it is given
+    short = folder / "short.toml"
+    short.write_text(TINY.replace("steps = 20000", "steps = 10000"))
+    result = invoke("run", short, "-o", out, "--resume", "--quiet")
+    assert result.exit_code == 1
+    assert "run.steps = 10000 is before the checkpoint at step 20000" in result.stderr
+    assert "--steps 20000 or more" in result.stderr
+    assert "--steps 10000" not in result.stderr
+
+
 def test_a_run_killed_with_sigkill_resumes_bit_for_bit(folder, reference):
     out = folder / "killed.h5"
     code = (f"from affinebody.cli.run import run; run.main([{str(folder / 'tiny.toml')!r}, "

@@ -16,6 +16,7 @@ import io
 import os
 import tempfile
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -103,8 +104,11 @@ def _fsync_directory(folder: Path) -> None:
         os.close(descriptor)
 
 
-def load_checkpoint(path: str | Path, config_hash: str | None = None) -> Checkpoint:
-    """Read a checkpoint; with ``config_hash``, refuse one written for another configuration."""
+def load_checkpoint(path: str | Path, config_hash: str | None = None,
+                    changes: Callable[[], list[str]] | None = None) -> Checkpoint:
+    """Read a checkpoint; with ``config_hash``, refuse one written for another configuration.
+    ``changes``: called only then, the settings that differ from the run's config (the
+    refusal names them, e.g. ``["run.dt = 0.005 -> 0.004"]``)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}: run without --resume to start afresh")
@@ -134,9 +138,12 @@ def load_checkpoint(path: str | Path, config_hash: str | None = None) -> Checkpo
             f"--resume to start afresh"
         ) from None
     if config_hash is not None and checkpoint.config_hash != config_hash:
+        changed = changes() if changes is not None else []
+        what = f" (changed: {'; '.join(changed)})" if changed else ""
         raise CheckpointError(
-            f"{path} was written for a different configuration; resume with the same config "
-            "(only run.steps / --steps may change) or run without --resume"
+            f"{path} was written for a different configuration{what}; resume with the same "
+            "config (only run.steps / --steps may change), run without --resume, or start a "
+            "new run from the output's last frame with [initial] file"
         )
     return checkpoint
 

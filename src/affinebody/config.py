@@ -324,11 +324,16 @@ class Config(_Section):
             return self.run.checkpoint
         return self.run.every * 10
 
+    def _meaning(self) -> dict:
+        """The config's values that change a single run: all but run.steps (so a run can be
+        extended) and the [sweep] and [phonons] tables."""
+        return self.model_dump(exclude={"source_text": True, "sweep": True, "phonons": True,
+                                        "run": {"steps"}})
+
     def hash(self) -> str:
         """SHA-256 of the config's meaning, ignoring run.steps (so a run can be extended) and
         the [sweep] and [phonons] tables (which do not change a single run)."""
-        data = self.model_dump(exclude={"source_text": True, "sweep": True, "phonons": True,
-                                        "run": {"steps"}})
+        data = self._meaning()
         for key, default in (("neighbor_list", "auto"), ("neighbor_skin", 0.3),
                              ("pressure", False)):
             if data["run"][key] == default:  # hashes of configs written before these keys
@@ -341,6 +346,32 @@ class Config(_Section):
             del data["thermostat"]
         canonical = json.dumps(data, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()
+
+    def changes_from(self, other: Config) -> list[str]:
+        """The settings in which this config differs from ``other`` where :meth:`hash` sees
+        them, each as ``"run.dt = 0.005 -> 0.004"`` (``other``'s value first); empty when
+        they mean the same run (run.steps, [sweep] and [phonons] are never listed)."""
+        return [f"{key} = {_shown(old)} -> {_shown(new)}"
+                for key, old, new in _changed_leaves(other._meaning(), self._meaning(), "")]
+
+
+def _changed_leaves(old, new, key: str):
+    """(dotted key, old value, new value) of every leaf of two model dumps that differs; a
+    list of another length, or a table present on one side only, is one leaf."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for name in sorted(old.keys() | new.keys()):
+            yield from _changed_leaves(old.get(name), new.get(name),
+                                       f"{key}.{name}" if key else name)
+    elif isinstance(old, list) and isinstance(new, list) and len(old) == len(new):
+        for i, (a, b) in enumerate(zip(old, new, strict=True)):
+            yield from _changed_leaves(a, b, f"{key}[{i}]")
+    elif old != new:
+        yield key, old, new
+
+
+def _shown(value) -> str:
+    """A config value as a message shows it: TOML-like, None as "(not set)"."""
+    return "(not set)" if value is None else json.dumps(value, separators=(", ", " = "))
 
 
 # --------------------------------------------------------------------------- parsing

@@ -48,6 +48,7 @@ from affinebody.config import (
     build,
     build_potential_entry,
     frame_bytes,
+    parse_config,
     records_pressure,
     uses_neighbor_list,
 )
@@ -57,6 +58,7 @@ from affinebody.h5md import (
     PERIODIC_OBSERVABLES,
     H5MDWriter,
     copy_frames_from_file,
+    open_trajectory,
 )
 from affinebody.potentials import PairTerm, terms_of
 from affinebody.simulate import NAMED_OBSERVABLES, StopReport, relative_error
@@ -242,10 +244,13 @@ def run_simulation(
                        thermostat=_tracks_heat(config, built),
                        barostat_test=config.barostat is not None and config.barostat.metropolis)
     if resume:
-        checkpoint = load_checkpoint(ckpt_file, config_hash)
+        checkpoint = load_checkpoint(ckpt_file, config_hash,
+                                     changes=lambda: _changes_since(output, config))
         if checkpoint.step > total:
-            raise ConfigError(f"--steps {total} is before the checkpoint at step "
-                              f"{checkpoint.step}; nothing to resume")
+            given = f"--steps {total}" if steps is not None else f"run.steps = {total}"
+            raise ConfigError(f"{given} is before the checkpoint at step {checkpoint.step} "
+                              f"(the run was extended with --steps): give --steps "
+                              f"{checkpoint.step} or more to continue it")
         temporary = output.with_name(output.name + ".resume.tmp")
         writer = H5MDWriter(temporary, **writer_args)
         try:
@@ -375,6 +380,18 @@ def run_simulation(
                           rejected, npt.barostat.moves(start, step)),
                       pair_forces=pair_forces(built.system, config.n, built.neighbor_list),
                       energy_observable=energy_key)
+
+
+def _changes_since(output: Path, config: Config) -> list[str]:
+    """The settings in which ``config`` differs from the config stored in ``output`` (the run
+    being resumed), for the refusal of a checkpoint of another configuration; empty when the
+    file or its config cannot be read."""
+    try:
+        with open_trajectory(output) as trajectory:
+            text = trajectory.config_text
+        return config.changes_from(parse_config(text)) if text else []
+    except (OSError, ValueError):  # a damaged file: the refusal without the list
+        return []
 
 
 def pair_forces(system, n: int, listed: bool) -> str:
