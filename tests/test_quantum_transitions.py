@@ -475,3 +475,35 @@ def test_cli_transitions_json_and_errors(tmp_path):
     bad = CliRunner().invoke(transitions_command, [str(n3), "--operator", "exp(G12) * foo"])
     assert bad.exit_code == 1 and "unknown name 'foo'" in bad.output
     assert len(bad.output.strip().splitlines()) == 1
+
+
+def test_levels_and_states_are_numbered_alike_by_spectrum_transitions_and_density(tmp_path):
+    """The oscillator's levels 0, 1, 2 hold the states 0, 1-4, 5-14: spectrum's table gives
+    both numbers of each level, transitions (which counts levels) says which states its
+    levels are, and density (which counts states) which level its state is in. Before, the
+    table's '#' was the first state (0, 1, 5) and transitions --from 5 read it as a level."""
+    from affinebody.quantum.cli import density as density_command
+    from affinebody.quantum.cli import spectrum as spectrum_command
+
+    path = tmp_path / "osc.toml"
+    path.write_text(CONFIG.replace("levels = 15", "levels = 5"))
+    table = CliRunner().invoke(spectrum_command, [str(path)])
+    assert table.exit_code == 0, table.output
+    rows = [line.split("│")[1:3] for line in table.output.splitlines() if "│" in line]
+    assert [[c.strip() for c in row] for row in rows] == [["0", "0"], ["1", "1-4"]]
+    assert "transitions --from" in table.output and "density --state" in table.output
+    text = CliRunner().invoke(transitions_command, [str(path), "--operator", "phi11", "--from",
+                                                    "1"])
+    assert text.exit_code == 0, text.output
+    assert "level 1 (states 1-4" in " ".join(text.output.split())
+    final = [line.split("│")[1:3] for line in text.output.splitlines() if "│" in line]
+    assert [[c.strip() for c in row] for row in final if row[0].strip()] == [
+        ["0", "0"], ["1", "1-4"]]  # (a row's sectors may wrap onto a line of its own)
+    data = json.loads(CliRunner().invoke(transitions_command, [
+        str(path), "--operator", "phi11", "--from", "1", "--json"]).output)
+    assert [(r["states_initial"], r["states_final"]) for r in data["transitions"]] == [
+        ([1, 2, 3, 4], [0]), ([1, 2, 3, 4], [1, 2, 3, 4])]
+    dens = CliRunner().invoke(density_command, [str(path), "--state", "3", "-o",
+                                                str(tmp_path / "d")])
+    assert dens.exit_code == 0, dens.output
+    assert "state 3 (level 1: transitions --from 1)" in " ".join(dens.output.split())

@@ -6,10 +6,12 @@ reduced strengths B(I -> F) = (1/d_I) sum |<f|O|i>|^2 of the operator EXPR (in q
 trG, K1..Kn, det, and the components phi11.., G11.., C11..: any smooth expression, projected
 numerically on the angles where it is not a polynomial in the components) from level I
 (default 0; levels numbered as the ``states`` of ``affinebody spectrum --json``, the converged
-levels ascending) to each of the levels computed; with --json one object
+levels ascending, the ``level`` column of its table; a level of multiplicity m holds m
+states, which ``density --state`` numbers, the table's ``states`` column) to each of the levels
+computed; with --json one object
 ``{"transitions": [{"initial", "final", "E_initial", "E_final", "strength", "sector_final",
-"sector_initial", "allowed"}, ...], "operator", "selection_rule", "energy_weighted_sum",
-"projection_error", ...}``.
+"sector_initial", "allowed", "states_initial", "states_final"}, ...], "operator",
+"selection_rule", "energy_weighted_sum", "projection_error", ...}``.
 
 ``affinebody evolve CONFIG.toml --at X1,X2 [--momentum P1,P2] [--width W] [--time T]
 [--steps N] [--json] [--plot FILE.png]`` (n = 2; n = 3 with --at X1,X2,X3 and --momentum
@@ -67,7 +69,9 @@ def _within_magnitudes(values, flag: str) -> None:
               help="expression in q1..qn, Q1..Qn, trG, K1..Kn, det and phi11.., G11.., C11.. "
                    "(any smooth expression)")
 @click.option("--levels", "levels", type=int, default=None, help="number of states K")
-@click.option("--from", "initial", type=int, default=0, help="initial level (0: the ground)")
+@click.option("--from", "initial", type=int, default=0,
+              help="initial level (0: the ground): the 'level' column of spectrum's table, "
+                   "not a state number # of density --state")
 @click.option("--json", "as_json", is_flag=True, help="print one JSON object")
 @one_line_errors
 def transitions(config: str, operator: str, levels: int | None, initial: int,
@@ -100,7 +104,11 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
                         f"{result.certificate}")
     if as_json:
         click.echo(json_text({
-            "transitions": [t.as_dict() for t in table.transitions],
+            # with the state numbers of each level, as density --state numbers states
+            "transitions": [{**t.as_dict(),
+                             "states_initial": list(result.state_range(t.initial)),
+                             "states_final": list(result.state_range(t.final))}
+                            for t in table.transitions],
             "operator": table.operator,
             "selection_rule": table.selection_rule,
             "energy_weighted_sum": tr.trk_sum(table),
@@ -112,15 +120,19 @@ def transitions(config: str, operator: str, levels: int | None, initial: int,
         return
     from rich.table import Table
 
+    from affinebody.quantum.levels import states_text
+
     out = Table(title=f"|<F|{operator}|{initial}>|^2 summed over the states of F, averaged over "
-                      f"those of level {initial} ({result.model}, n = {result.n})")
-    for col in ("F", "E_F", "E_F - E_I", "strength", "sectors of F"):
+                      f"those of level {initial} (states "
+                      f"{states_text(result.state_range(initial))}, E = "
+                      f"{result.levels[initial].energy:.10g}; {result.model}, n = {result.n})")
+    for col in ("F", "states", "E_F", "E_F - E_I", "strength", "sectors of F"):
         out.add_column(col, justify="right")
     for t in table.transitions:
         sectors = " ".join(f"({s.spin},{s.vorticity})" for s in t.sector_final)
         strength = f"{t.strength:.6e}" if t.allowed else "0 (forbidden)"
-        out.add_row(str(t.final), f"{t.E_final:.10g}", f"{t.E_final - t.E_initial:.6g}",
-                    strength, sectors)
+        out.add_row(str(t.final), states_text(result.state_range(t.final)), f"{t.E_final:.10g}",
+                    f"{t.E_final - t.E_initial:.6g}", strength, sectors)
     console = output_console()
     console.print(out)
     console.print(f"selection rule: {table.selection_rule}")

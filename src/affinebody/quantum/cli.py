@@ -115,19 +115,23 @@ def spectrum(config: str, levels: int | None, as_json: bool) -> None:
         return
     from rich.table import Table
 
+    from affinebody.quantum.levels import states_text
+
     title = f"{result.model}, n = {result.n}, sectors: {result.sectors}"
     table = Table(title=title)
-    for col in ("#", "energy", "mult.", "spin", "vorticity", "parity", "error"):
+    for col in ("level", "#", "energy", "mult.", "spin", "vorticity", "parity", "error"):
         table.add_column(col, justify="right")
-    first = 0
-    for lv in result.states():
+    for level, states, lv in result.numbered():
         d = lv.as_dict()
         energy = f"{lv.energy:.12g}" if lv.converged else f"unconverged (~{lv.energy:.6g})"
-        table.add_row(str(first), energy, str(lv.multiplicity), str(d["spin"]),
-                      str(d["vorticity"]), str(d["parity"]), f"{lv.error:.1e}")
-        first += lv.multiplicity
+        table.add_row("-" if level is None else str(level), states_text(states), energy,
+                      str(lv.multiplicity), str(d["spin"]), str(d["vorticity"]),
+                      str(d["parity"]), f"{lv.error:.1e}")
     console = output_console()
     console.print(table)
+    console.print("level: the number of transitions --from and F (the index in --json's "
+                  "'states'); #: the states of the level, as density --state and --superpose "
+                  "number them")
     if len(energies) < count:
         console.print(f"only {len(energies)} of {count} states found")
     if unknown:
@@ -236,7 +240,9 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
     else:
         from rich.table import Table
 
-        table = Table(title=f"state {state}, E = {payload['energy']:.12g}, variables "
+        level = next(number for number, states, _ in result.numbered() if state in states)
+        table = Table(title=f"state {state} (level {level}: transitions --from {level}), "
+                            f"E = {payload['energy']:.12g}, variables "
                             f"{payload['variables']} ({output})")
         for col in ("density", "from", "to", "peak", "error", "integral"):
             table.add_column(col, justify="right")

@@ -147,12 +147,30 @@ class Spectrum:
             return f"states {unknown} among them are unconverged candidates"
         return None
 
+    def numbered(self) -> list[tuple[int | None, range, Level]]:
+        """Each entry of :meth:`states` with its two numbers: its level number, its index in
+        :attr:`levels` (as ``affinebody transitions`` numbers levels, ``--from`` and ``F``,
+        and ``spectrum --json`` lists them as ``states``; None for an unconverged candidate),
+        and its state numbers, its indices into :meth:`energies` (as ``density --state`` and
+        ``--superpose`` number states: a level of multiplicity m holds m of them)."""
+        out, level, first = [], 0, 0
+        for lv in self.states():
+            out.append((level if lv.converged else None,
+                        range(first, first + lv.multiplicity), lv))
+            level += lv.converged
+            first += lv.multiplicity
+        return out
+
+    def state_range(self, level: int) -> range:
+        """The state numbers (indices into :meth:`energies`) of ``self.levels[level]``."""
+        return next(states for number, states, _ in self.numbered() if number == level)
+
     def level_of_state(self, k: int) -> Level:
         """The level holding the k-th entry (0-based) of :meth:`energies`."""
         seen = 0
-        for lv in self.states():
-            seen += lv.multiplicity
-            if k < seen:
+        for _, states, lv in self.numbered():
+            seen = states.stop
+            if k in states:
                 if not lv.converged:
                     raise ValueError(
                         f"--state {k} is not converged: its candidate at {lv.energy:.9g} has the "
@@ -217,6 +235,11 @@ def same_level(E: float, level_energy: float, merge: float) -> bool:
     (its first, lowest state's): |E - level_energy| <= merge * max(1, |E|), with
     ``merge`` = :attr:`Settings.merge`. The one rule that joins states into levels."""
     return abs(E - level_energy) <= merge * max(1.0, abs(E))
+
+
+def states_text(states: range) -> str:
+    """State numbers as the tables print them: ``3`` or ``3-4``."""
+    return str(states.start) if len(states) == 1 else f"{states.start}-{states.stop - 1}"
 
 
 def level_starts(energies: np.ndarray, merge: float) -> np.ndarray:
@@ -330,6 +353,6 @@ class LevelCollector:
 
 __all__ = [
     "Potential", "MODELS", "Sector", "state_count", "Level", "Block", "Spectrum", "Settings",
-    "AffineInertia", "is_converged", "same_level", "level_starts", "merge_levels", "kth_energy",
-    "truncate_levels", "eigen_parity", "LevelCollector"
+    "AffineInertia", "is_converged", "same_level", "states_text", "level_starts", "merge_levels",
+    "kth_energy", "truncate_levels", "eigen_parity", "LevelCollector"
 ]
