@@ -21,6 +21,7 @@ from affinebody.quantum.orientations3 import (
     multiplet_state,
     orientation_densities3,
     side_terms,
+    state_mixture,
     terms_density,
 )
 from affinebody.quantum.tensor_operators3 import euler_quadrature, reduced_matrix, wigner
@@ -405,6 +406,29 @@ def test_green_offdiagonal_densities_against_closed_form_and_transition_elements
         assert abs(np.sum(wy * y**power * p) - element) < tolerance * abs(element)
 
 
+def test_green_integrals_carry_an_error_that_bounds_them(oscillator3, monkeypatch):
+    """The integral of each n = 3 G density (green3.g_densities3) comes with integral_error,
+    which bounds |integral - 1| for the ground state (on 11 and 21 points) and a state of the
+    multiplet (1, 1) (on 11) and shrinks with the points for an off-diagonal component (the
+    trapezoid in xi over its points; a diagonal one has its own INTEGRAL_NODES). Smaller rules
+    than the defaults, for speed: their larger difference enters the error (the old trapezoid
+    over the points had no error, and for a diagonal component it left out [0, y1]: 0.32 for
+    the ground state's G11 on 11 points)."""
+    monkeypatch.setattr(green3, "RULES", ((6, 24, 12), (8, 32, 16)))
+    monkeypatch.setattr(green3, "OFF_RULES", ((6, 4, 32, 10), (8, 6, 48, 12)))
+    errors = []
+    for state, points, components in ((0, 11, ("G22", "G13")), (0, 21, ("G13",)),
+                                      (3, 11, ("G22", "G13"))):
+        mixture, *_ = state_mixture(oscillator3, state)
+        out = green3.g_densities3(oscillator3, mixture, points, components=components)
+        for m in out.values():
+            assert abs(m.integral - 1) <= m.integral_error, (state, points, m.integral)
+            assert m.as_dict()["integral_error"] == m.integral_error
+        errors.append(out["G13"].integral_error)
+    assert errors[1] < min(errors[0] / 2, 0.05), errors
+    assert out["G22"].integral_error < 1e-2
+
+
 def test_density_command_n3_green_components(tmp_path):
     """--g-components for n = 3: orientation.json holds the densities of G33 and G12 of the
     thermal mixture at low T (the ground state's: U x chi-square(3) and the variance-gamma law
@@ -422,10 +446,13 @@ def test_density_command_n3_green_components(tmp_path):
     y = np.array(g["x"])
     exact = np.sqrt(y) * np.exp(-y / (2 * U)) / (math.gamma(1.5) * (2 * U) ** 1.5)
     np.testing.assert_allclose(g["density"], exact, atol=1e-4 * exact.max())
+    # its integral by its own nodes (the 11 points start past the peak: 0.32 over them)
+    assert abs(g["integral"] - 1) <= g["integral_error"] < 1e-2
     g = doc["densities"]["G12"]
     y, p = np.array(g["x"]), np.array(g["density"])
     assert y[5] == 0 and g["converged"] and not doc["warnings"]
     assert abs(g["integral"] - 1) < 0.05  # 11 points across the cusp-like peak: 1.03
+    assert abs(g["integral"] - 1) <= g["integral_error"] < 0.3
     np.testing.assert_allclose(p, p[::-1], rtol=1e-12)
     with np.errstate(invalid="ignore"):
         exact = np.where(y == 0, 1 / (math.pi * U), np.abs(y) * special.k1(np.abs(y) / U)

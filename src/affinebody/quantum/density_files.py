@@ -147,13 +147,20 @@ def write_orientation(spectrum: Spectrum, directory: str | Path, state: int | No
     axes[0, 0].set_ylabel("probability density")
     axes[0, 0].legend()
     for name, m in data["G"].items():
-        axes[0, 1].plot(m.x, m.density, label=f"{name} (error {m.error:.1e})")
+        axes[0, 1].plot(m.x, m.density, label=_g_label(name, m))
     if data["G"]:
         axes[0, 1].set_xlabel("component of G")
         axes[0, 1].legend()
     fig.suptitle(f"{data['kind']}" + (f" {state}" if state is not None else "")
                  + (f", T = {temperature:g}" if temperature is not None else ""))
     return _save(fig, directory / "orientation.png", directory / "orientation", arrays, payload)
+
+
+def _g_label(name: str, m) -> str:
+    """The legend of a G-component density (n = 2 and 3): its error and its integral with the
+    integral's error."""
+    return (f"{name} (error {m.error:.1e}; integral {m.integral:.6f} "
+            f"\u00b1 {m.integral_error:.0e})")
 
 
 #: n = 3: the most (points x components) of G densities one request may ask for
@@ -206,10 +213,11 @@ def _write_orientation3(spectrum: Spectrum, directory: Path, state: int | None,
                         "m_prime": data["m_prime"], "weights_L": data["weights_L"].tolist(),
                         "weights_R": data["weights_R"].tolist()})
     arrays = {"angle": orient["angle"], "t": orient["t"]}
+    g_marginals = {}
     if green:
         mixture, *_ = state_mixture(spectrum, state, superposition, temperature)
-        for name, m in green3.g_densities3(spectrum, mixture, points,
-                                           components=green).items():
+        g_marginals = green3.g_densities3(spectrum, mixture, points, components=green)
+        for name, m in g_marginals.items():
             arrays[f"{name}_x"], arrays[f"{name}_density"] = m.x, m.density
             payload["densities"][name] = m.as_dict()
             limit = green3.TOLERANCE if name in green3.COMPONENTS else green3.OFF_TOLERANCE
@@ -219,9 +227,8 @@ def _write_orientation3(spectrum: Spectrum, directory: Path, state: int | None,
                     f"density of {name}: the two rules differ by {m.error / peak:.1e} of its "
                     f"peak {peak:.3g}, above the tolerance {limit:g}")
     fig, axes = plt.subplots(1, 2 + bool(green), figsize=(5 * (2 + bool(green)), 3.5))
-    for name in green:
-        m = payload["densities"][name]
-        axes[2].plot(m["x"], m["density"], label=f"{name} (error {m['error']:.1e})")
+    for name, m in g_marginals.items():
+        axes[2].plot(m.x, m.density, label=_g_label(name, m))
     if green:
         axes[2].set_xlabel("component of G")
     for key, values in orient.items():

@@ -41,6 +41,12 @@ at y = 0): the sphere rule (:func:`octant_sphere`) is Duffy-mapped to them and g
 them, which keeps the density finite and the rule convergent down to y = 0. The scale
 integral depends on u only through b; it is tabulated per chamber direction on a grid in ln b
 and interpolated to the sphere's nodes.
+
+The integral of a density (:func:`g_densities3`, docs/theory/densities.md, "Integral (n = 3)")
+is the trapezoid rule in a variable xi in which p dy/dxi is smooth: over the output points
+y = c sinh(xi) (off-diagonal), or over :data:`INTEGRAL_NODES` nodes of its own y = c sinh^2(xi)
+from xi = 0 (diagonal: a d'Alembert density is sqrt(y) x a smooth function of y), with an
+error estimate (:func:`_xi_integral`).
 """
 
 from __future__ import annotations
@@ -80,6 +86,12 @@ GRADES = 2
 #: default tolerance (x the peak) of the difference between the two rules (the integrand has
 #: square-root end points on the walls of the chamber: the rules converge algebraically)
 TOLERANCE = 1e-4
+#: the mass beyond the largest output value of a diagonal component (the Tr G above which it
+#: lies, :func:`support`: G_aa <= Tr G) and of an off-diagonal one ((P_max - P_min)/2 >= |G_ab|)
+TAIL_TRG = 1e-10
+TAIL_SPREAD = 1e-6
+#: the nodes y = c sinh^2(xi) (xi uniform from 0) of the integral of a diagonal component
+INTEGRAL_NODES = 12
 _EU = np.array([1.0, -1.0, 0.0]) / math.sqrt(2)
 _EV = np.array([1.0, 1.0, -2.0]) / math.sqrt(6)
 #: rotations taking the body axis k to the third axis (S_k e_k = e_3), det 1
@@ -247,13 +259,15 @@ def directions(model: str, n: int, r_max: float) -> Directions:
     return Directions(model, q, w, np.exp(2 * q), 1.5, 0.0)
 
 
-def support(model: str, pair_list) -> tuple[float, float, float, float, float, float]:
-    """(s_lo, s_hi, r_max, trg, spread, median): the scale range (and, affine, the traceless
-    radius) outside which the mixture has less than 1e-14 of its largest density, the Tr G
-    below which all but 1e-10 of its mass lies, the (P_max - P_min)/2 (>= |G_ab|, a != b)
-    below which all but 1e-6 lies (a bound, so the tail of G_ab beyond it holds less still) and
-    its median, from a coarse scan of |Psi|^2 (the scale grid's mass summed over the
-    directions)."""
+def support(model: str, pair_list
+            ) -> tuple[float, float, float, float, float, float, float]:
+    """(s_lo, s_hi, r_max, trg, spread, median, diagonal): the scale range (and, affine, the
+    traceless radius) outside which the mixture has less than 1e-14 of its largest density, the
+    Tr G below which all but :data:`TAIL_TRG` of its mass lies (so G_aa <= Tr G beyond it holds
+    less still), the (P_max - P_min)/2 (>= |G_ab|, a != b) below which all but
+    :data:`TAIL_SPREAD` lies (a bound, so the tail of G_ab beyond it holds less still), its
+    median and the median of Tr G / 3 (the scale of the diagonal components), from a coarse scan
+    of |Psi|^2 (the scale grid's mass summed over the directions)."""
     if model == "lebesgue3":
         dirs, s = directions(model, 6, 1.0), np.linspace(-8.0, 4.0, 241)
     else:
@@ -273,7 +287,9 @@ def support(model: str, pair_list) -> tuple[float, float, float, float, float, f
         r_max = float(min(radius[keep.any(0)].max() * 1.25 + 0.5, 12.0))
     tops = []
     spread = (dirs.P0.max(-1) - dirs.P0.min(-1)) / 2
-    for g, level in ((np.sum(dirs.P0, -1), 1 - 1e-10), (spread, 1 - 1e-6), (spread, 0.5)):
+    trg = np.sum(dirs.P0, -1)
+    for g, level in ((trg, 1 - TAIL_TRG), (spread, 1 - TAIL_SPREAD), (spread, 0.5),
+                     (trg / 3, 0.5)):
         value = (np.exp(s / dirs.kappa)[:, None] * g[None, :]).ravel()
         order = np.argsort(value)
         below = np.cumsum(mass.ravel()[order]) / mass.sum()
@@ -479,6 +495,24 @@ def component_axes(name: str) -> tuple[int, int]:
     return int(name[1]) - 1, int(name[2]) - 1
 
 
+def _xi_integral(f: np.ndarray, change: np.ndarray, h: float, tail: float
+                 ) -> tuple[float, float]:
+    """(I, error) of int f dxi over uniform nodes of step h (f = p dy/dxi at the nodes, the
+    first and last the ends of the range): I the trapezoid rule T_h and error
+    = |T_h - T_2h| (T_2h the rule of step 2h on the even-numbered nodes, up to the last of
+    them) + sum_k w_k |change_k| (w the trapezoid weights, ``change`` the difference of the two
+    density rules times dy/dxi: the density's own quadrature error) + ``tail`` (the mass beyond
+    the grid). T_h converges at least as fast as T_2h, so |T_h - T_2h| bounds its error once
+    the rules resolve the density (docs/theory/densities.md, "Integral (n = 3)")."""
+    w = np.full(len(f), h)
+    w[[0, -1]] = h / 2
+    even = f[::2]
+    w2 = np.full(len(even), 2 * h)
+    w2[[0, -1]] = h
+    integral = float(w @ f)
+    return integral, abs(integral - float(w2 @ even)) + float(w @ np.abs(change)) + tail
+
+
 def g_densities3(spectrum, mixture, points: int = 51, tolerance: float = TOLERANCE,
                  components=COMPONENTS, off_tolerance: float = OFF_TOLERANCE
                  ) -> dict[str, Marginal]:
@@ -486,10 +520,19 @@ def g_densities3(spectrum, mixture, points: int = 51, tolerance: float = TOLERAN
     [MultipletState])] (quantum.orientations3) of an n = 3 spectrum, each with the difference
     between the two rules of :data:`RULES` (diagonal) or :data:`OFF_RULES` (off-diagonal) as
     its error, flagged unconverged above ``tolerance`` (``off_tolerance`` for the
-    off-diagonal ones) x the peak. Diagonal: ``points`` values in (0, max Tr G], ``integral``
-    by the trapezoid rule over them (from y = 0, where the density vanishes); off-diagonal:
+    off-diagonal ones) x the peak. Diagonal: ``points`` values in (0, max Tr G]; off-diagonal:
     ``points`` values y = c sinh(xi) in [-m, m] (xi uniform, m = max (P_max - P_min)/2, c its
-    median: :func:`support`), ``integral`` by the trapezoid rule in xi."""
+    median: :func:`support`). ``integral``: the trapezoid rule in xi, with ``integral_error``
+    (:func:`_xi_integral`: the difference from the rule on every other node, the density's own
+    error and the mass beyond the nodes, :data:`TAIL_TRG`, :data:`TAIL_SPREAD`); off-diagonal
+    over the output points, diagonal over :data:`INTEGRAL_NODES` nodes of its own,
+    y = c sinh^2(xi) with xi uniform from 0 to the largest value (c the median of Tr G / 3:
+    y ~ c xi^2 at 0, where a d'Alembert density is sqrt(y) x a smooth function of y, so
+    p dy/dxi is smooth, even in xi and 0 at xi = 0; y ~ e^{2 xi} in the tail), as the output
+    points start too far from 0 to resolve the density there."""
+    if points < 3:
+        raise ValueError(f"n = 3 G densities need at least 3 points (got {points}): the "
+                         f"integral's error compares the rule on every other point")
     model = "lebesgue3" if spectrum.model == "dalembert" else "haar3"
     pair_list = pairs(mixture)
     bounds = support(model, pair_list)
@@ -498,33 +541,38 @@ def g_densities3(spectrum, mixture, points: int = 51, tolerance: float = TOLERAN
         a, b = component_axes(name)
         if a == b:
             y = np.linspace(0.0, bounds[3], points + 1)[1:]
-            first, second = (diagonal_density(pair_list, model, a, y, rule, bounds)
-                             for rule in RULES)
-            limit, nodes = tolerance, RULES[-1][2]
+            # the integral's own nodes y = c sinh^2(xi), xi uniform from 0 (module docstring)
+            c = bounds[6]
+            xi = math.asinh(math.sqrt(bounds[3] / c)) * np.arange(INTEGRAL_NODES + 1) \
+                / INTEGRAL_NODES
+            jacobian = c * np.sinh(2 * xi)  # dy/dxi, 0 at xi = 0 (where no node is needed)
+            first, second = (diagonal_density(pair_list, model, a, np.concatenate(
+                [y, c * np.sinh(xi[1:]) ** 2]), rule, bounds) for rule in RULES)
+            f, change = (np.concatenate([[0.0], v[points:] * jacobian[1:]])
+                         for v in (second, second - first))
+            first, second = first[:points], second[:points]
+            limit, nodes, tail = tolerance, RULES[-1][2], TAIL_TRG
         else:
             # y = c sinh(xi), xi uniform and symmetric (y = 0 exactly for an odd count), c the
             # median bound: points gather at the peak and still reach the tails
             c = bounds[5]
             xi = math.asinh(bounds[4] / c) * (2 * np.arange(points) - points + 1) / (points - 1)
-            y = c * np.sinh(xi)
+            y, jacobian = c * np.sinh(xi), c * np.cosh(xi)
             rules = OFF_RULES if model == "lebesgue3" else tuple(
                 (n, *rule[1:]) for n, rule in zip(OFF_AFFINE_DIRECTIONS, OFF_RULES, strict=True))
             first, second = (offdiagonal_density(pair_list, model, (a, b), y, rule, bounds)
                              for rule in rules)
-            limit, nodes = off_tolerance, rules[-1][3]
+            f, change = second * jacobian, (second - first) * jacobian
+            limit, nodes, tail = off_tolerance, rules[-1][3], TAIL_SPREAD
         err = float(np.max(np.abs(second - first)))
-        if a == b:
-            integral = float(np.sum((second[1:] + second[:-1]) * np.diff(y)) / 2
-                             + y[0] * second[0] / 2)
-        else:  # the trapezoid rule in xi, dy = c cosh(xi) dxi
-            f = second * c * np.cosh(xi)
-            integral = float(np.sum(f[1:] + f[:-1]) * (xi[1] - xi[0]) / 2)
+        integral, integral_error = _xi_integral(f, change, float(xi[1] - xi[0]), tail)
         out[name] = Marginal(y, second, err, integral, nodes,
-                             bool(err <= limit * np.max(np.abs(second))))
+                             bool(err <= limit * np.max(np.abs(second))), integral_error)
     return out
 
 
 __all__ = ["RULES", "COMPONENTS", "TOLERANCE", "OFF_DIAGONAL", "OFF_RULES",
-           "OFF_AFFINE_DIRECTIONS", "OFF_TOLERANCE", "SPAN", "GRADES", "Pair", "pairs",
+           "OFF_AFFINE_DIRECTIONS", "OFF_TOLERANCE", "SPAN", "GRADES", "TAIL_TRG",
+           "TAIL_SPREAD", "INTEGRAL_NODES", "Pair", "pairs",
            "weight_matrix", "Directions", "directions", "support", "diagonal_density",
            "octant_sphere", "offdiagonal_density", "component_axes", "g_densities3"]
