@@ -217,6 +217,26 @@ def test_affine_potential_that_does_not_confine_is_refused_naming_the_fix(tmp_pa
     assert all(f"quantum.{name}" in message for name in ("scale", "scale_sigma", "centre"))
 
 
+def test_n3_affine_potential_that_does_not_confine_is_refused_before_the_density(tmp_path):
+    """README's n = 3 potential with af-is (tests/test_quantum_n3.py, README_N3): `density
+    --state 0` searched every sector (over 12 min of CPU with the default max_spin) and then
+    refused the ground state as not converged (error 7e-3). It is refused at the choice of the
+    basis, before any sector or density, in one line naming the keys to change, exit 1 as for
+    n = 2 (max_spin = 0 keeps the search short where it would still run); nothing is written."""
+    from test_quantum_n3 import README_N3
+
+    path = tmp_path / "afis3.toml"
+    path.write_text(f'[system]\nn = 3\n[quantum]\nkinetic = "af-is"\nI = 1.0\nA = 0.2\n'
+                    f'B = 0.1\npotential = "{README_N3}"\nmax_spin = 0\n')
+    out = tmp_path / "dens"
+    result = CliRunner().invoke(density, [str(path), "--state", "0", "-o", str(out)])
+    message = result.stderr.strip()
+    assert result.exit_code == 1 and "\n" not in message, result.output
+    assert message.startswith("error: the automatic basis of the n = 3 af-is model ran away")
+    assert "does not confine" in message and "quantum.potential" in message
+    assert not out.exists()
+
+
 def test_wells_bounded_below_pass_the_unboundedness_check():
     """Negative but bounded potentials (the shear well of the completeness tests, a Gaussian
     well, a log barrier at det -> 0 that rises at infinity) are not refused."""

@@ -277,6 +277,38 @@ def test_every_sector_of_a_continuous_spectrum_is_flagged():
     assert len(s.unconverged) >= 6 and min(lv.error for lv in s.unconverged) > 1e-3
 
 
+#: README's n = 3 potential: with an affine kinetic energy it tends to 0.8 as det phi -> 0
+#: (trG -> 0) and is at least 0.8 everywhere (0.5 x + 0.8 e^(-x/2) >= 0.8 for x = trG >= 0),
+#: so the body collapses freely in sigma = ln det phi: a continuous spectrum, no level
+README_N3 = "0.5*trG + 0.8*exp(-trG/2) + 0.5*det**2*exp(-trG/2)"
+
+
+def test_affine_potential_that_does_not_confine_is_refused_before_any_sector():
+    """af-is with README's n = 3 potential: the automatic basis drifts to the clip of its
+    scales and a centre of -124 (a flat objective), and the search over every sector used
+    over 12 min of CPU to report the ground state 'not converged' (error 7e-3, a
+    pseudo-level). Now refused before any sector is solved (progress never called), in one
+    line naming what to change; the same potential with a confining term in ln det phi is not
+    refused."""
+    import re
+
+    lines = []
+    with pytest.raises(ValueError) as err:
+        sp.solve("af-is", 3, compile_potential(README_N3, 3), 1.0, I=1.0, A=0.2, B=0.1,
+                 levels=1, settings=sp.Settings(basis_size=8, check_shrink=2, max_spin=0),
+                 progress=lines.append)
+    message = str(err.value)
+    assert lines == [] and "\n" not in message
+    assert message.startswith("the automatic basis of the n = 3 af-is model ran away")
+    assert all(f"quantum.{key}" in message for key in ("potential", "scale", "scale_sigma",
+                                                        "centre"))
+    assert float(re.search(r"centre (\S+),", message).group(1)) < -50
+    confined = ch3.setup3("af-is", compile_potential(README_N3 + " + 0.5*log(det)**2", 3), 1.0,
+                          1.0, AffineInertia("af-is", 1.0, 0.2, 0.1),
+                          sp.Settings(basis_size=8, check_shrink=2, scale=0.85, scale_sigma=1.0))
+    assert abs(confined.centre) < 3  # automatic, a minimum: -1.2
+
+
 @pytest.mark.parametrize("model", ["dalembert", "af-is", "is-af", "af-af"])
 def test_sector_weak_form_is_the_reduced_operator_of_reduction_py(model):
     """The centrifugal and Casimir part of the weak form (r x r matrices on the M-fixed

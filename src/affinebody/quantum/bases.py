@@ -337,9 +337,43 @@ def variational_scales(energy: Callable[[float, float, float], float], start: tu
     return scales(found, free, given)
 
 
+def centre_runs_away(energy: Callable[[float, float, float], float], scale: float,
+                     scale_sigma: float, centre: float) -> bool:
+    """True where the automatic centre of an affine basis is no minimum of ``energy(scale,
+    scale_sigma, centre)`` (the objective of :func:`variational_scales`): a shift by one basis
+    width ``scale_sigma`` either way does not raise it (to 1e-9 relative). A potential that
+    does not confine the dilatation sigma = ln det phi (V tends to a constant as det -> 0, e.g.
+    0.5 trG: the spectrum is continuous there) gives an objective with no minimum in the
+    centre, and the search drifts until round-off stops it where V underflows and the objective
+    is flat (a centre of -8450 for 0.5 trG with n = 2 af-is, -124 for README's n = 3 potential
+    with af-is); at a minimum the shift raises the sum by a finite amount."""
+    here = energy(scale, scale_sigma, centre)
+    shifted = min(energy(scale, scale_sigma, centre - scale_sigma),
+                  energy(scale, scale_sigma, centre + scale_sigma))
+    return not shifted > here + 1e-9 * abs(here)
+
+
+def runaway_message(model: str, scale: float, scale_sigma: float, centre: float,
+                    n: int = 2) -> str:
+    """The one line for automatic affine scales that ran away (:func:`centre_runs_away`, or a
+    basis not finite at the scales found). Where V does not confine the body (``trG`` with an
+    affine model tends to 0 as det -> 0) the sum :func:`variational_scales` minimises has no
+    minimum, and the search drifts until round-off decides where it stops: where V overflows
+    float64 (eigenvalues ~ -1e251 of a positive operator; trG) or where it underflows to 0 and
+    the sum is flat (0.5 trG). Where V is nowhere below its limit at det -> 0 (README's n = 3
+    potential with af-is: 0.5 x + 0.8 e^{-x/2} >= 0.8 for x = trG >= 0) the spectrum is
+    continuous from its bottom and no basis size converges a level."""
+    return (f"the automatic basis of the n = {n} {model} model ran away (scale {scale:.3g}, "
+            f"scale_sigma {scale_sigma:.3g}, centre {centre:.3g}, where the search found no "
+            f"minimum): a potential that does not confine the body (e.g. tends to a "
+            f"constant as det -> 0) has no best basis; add a confining term to "
+            f"quantum.potential, or set quantum.scale, quantum.scale_sigma and quantum.centre")
+
+
 __all__ = [
     "gauss_basis", "laguerre_jacobi", "hermite_jacobi", "Radial2D", "Hermite1D", "Basis",
     "sqrt_x_over_sinh", "inv_x2_minus_inv_sinh2", "sqrt_x_over_sinh_derivative_ratio",
     "dense_lowest", "lowest_eigenvalues", "product_potential_matrix", "solve_block", "level_errors",
-    "lowest_sum", "variational_parameters", "variational_scales"
+    "lowest_sum", "variational_parameters", "variational_scales", "centre_runs_away",
+    "runaway_message"
 ]

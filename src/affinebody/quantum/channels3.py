@@ -32,7 +32,9 @@ from scipy import linalg, special
 
 from affinebody.quantum.bases import (
     Basis,
+    centre_runs_away,
     lowest_sum,
+    runaway_message,
     solve_block,
     sqrt_x_over_sinh,
     sqrt_x_over_sinh_derivative_ratio,
@@ -480,16 +482,23 @@ def auto_scale_haar3(potential: Potential, hbar: float, inertia: AffineInertia,
     """(scale, scale_sigma, centre) of the n = 3 affine basis minimising the sum of the two
     lowest scalar levels in a small basis, over those of the three that ``given`` leaves None
     (clipped: a continuous spectrum drives the scales to the clip, where the honesty check
-    flags the pseudo-levels)."""
+    flags the pseudo-levels; a centre with no minimum, V not confining det phi, is refused by
+    :func:`setup3`, :func:`~affinebody.quantum.bases.centre_runs_away`)."""
     sig = np.linspace(-12, 12, 241)
     line = np.asarray(potential(np.exp(np.stack([sig / 3] * 3, axis=-1))), float)
     centre0 = float(sig[np.argmin(np.where(np.isfinite(line), line, np.inf))])
+    return variational_scales(_haar3_objective(potential, hbar, inertia), (-0.5, -0.5, centre0),
+                              given, (-3, 1.5))
 
+
+def _haar3_objective(potential: Potential, hbar: float, inertia: AffineInertia):
+    """What :func:`auto_scale_haar3` minimises: the sum of the two lowest scalar levels in the
+    basis of degree 4 at (scale, scale_sigma, centre)."""
     def energy(b, bs, c):
         grid = haar3_grid(b, bs, c, 24, 10, 12)
         H, _ = channel3_block("haar3", potential, hbar, inertia, grid, 4, b, bs, c)
         return lowest_sum(H, 2)
-    return variational_scales(energy, (-0.5, -0.5, centre0), given, (-3, 1.5))
+    return energy
 
 
 # -------------------------------------------------------------------------------- solvers
@@ -547,6 +556,12 @@ def setup3(model: str, potential: Potential, hbar: float, inertia_scalar: float,
     b, bs, c0 = settings.scale, settings.scale_sigma, settings.centre
     if b is None or bs is None or c0 is None:
         b, bs, c0 = auto_scale_haar3(potential, hbar, inertia, (b, bs, c0))
+    if settings.centre is None and centre_runs_away(_haar3_objective(potential, hbar, inertia),
+                                                    b, bs, c0):
+        # V does not confine det phi: every level a basis finds is a pseudo-level, so say so
+        # now rather than after the search over every sector (README's potential with af-is:
+        # over 12 min of CPU, then 'not converged')
+        raise ValueError(runaway_message(model, b, bs, c0, n=3))
     # -phi is not in GL+(3): no parity
     return Setup3("haar3", b, bs, c0, None, False,
                   replace(settings, check_widen=min(settings.check_widen, 1.1)))

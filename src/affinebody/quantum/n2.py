@@ -34,9 +34,11 @@ from affinebody.quantum.bases import (
     Basis,
     Hermite1D,
     Radial2D,
+    centre_runs_away,
     inv_x2_minus_inv_sinh2,
     lowest_sum,
     product_potential_matrix,
+    runaway_message,
     solve_block,
     variational_parameters,
     variational_scales,
@@ -272,28 +274,10 @@ def affine_scales(model: str, potential: Potential, hbar: float, inertia: Affine
     if not np.all(np.isfinite(haar2_block(potential, hbar, inertia, 0, 0, size, (bx, bs),
                                           c0)[0])):
         raise ValueError(runaway_message(model, bx, bs, c0))
-    if settings.centre is None:
-        # A potential that does not confine the body along det phi has no minimum there: the
-        # search drifts to where V underflows and the objective is flat (a centre of -8450
-        # for 0.5 trG with af-is). At a minimum, a shift by one basis width raises the sum.
-        energy = _scale_objective(potential, hbar, inertia)
-        here = energy(bx, bs, c0)
-        if min(energy(bx, bs, c0 - bs), energy(bx, bs, c0 + bs)) <= here + 1e-9 * abs(here):
-            raise ValueError(runaway_message(model, bx, bs, c0))
+    if settings.centre is None and centre_runs_away(
+            _scale_objective(potential, hbar, inertia), bx, bs, c0):
+        raise ValueError(runaway_message(model, bx, bs, c0))
     return bx, bs, c0
-
-
-def runaway_message(model: str, scale: float, scale_sigma: float, centre: float) -> str:
-    """The one line for automatic affine scales that ran away (:func:`affine_scales`). Where V
-    does not confine the body (``trG`` with an affine model tends to 0 as det -> 0) the sum
-    :func:`auto_scale_haar2` minimises has no minimum, and the search drifts until round-off
-    decides where it stops: where V overflows float64 (eigenvalues ~ -1e251 of a positive
-    operator; trG) or where it underflows to 0 and the sum is flat (0.5 trG)."""
-    return (f"the automatic basis of the n = 2 {model} model ran away (scale {scale:.3g}, "
-            f"scale_sigma {scale_sigma:.3g}, centre {centre:.3g}, where the search found no "
-            f"minimum): a potential that does not confine the body (e.g. tends to a "
-            f"constant as det -> 0) has no best basis; add a confining term to "
-            f"quantum.potential, or set quantum.scale, quantum.scale_sigma and quantum.centre")
 
 
 def afaf_warning(hbar: float, A: float, max_spin: int, shell_minima: list[float]) -> str:
