@@ -142,3 +142,34 @@ def test_a_frame_with_a_non_finite_or_singular_phi_is_named_by_export_and_plot(t
     with pytest.raises(ValueError, match=r"frame 1 \(step 10\): phi is singular or not finite at "
                                          r"batch index \(1,\)"):
         write_xyz(traj, tmp_path / "t.xyz")
+    # nothing of the failed exports is left: no partial file, no temporary
+    assert list(tmp_path.iterdir()) == []
+    # and an earlier export to the same name survives a failed one intact
+    good = Trajectory(**{**traj.__dict__, "phi": np.broadcast_to(np.eye(2), phi.shape)})
+    assert write_xyz(good, tmp_path / "t.xyz") == 3
+    before = (tmp_path / "t.xyz").read_bytes()
+    with pytest.raises(ValueError, match=r"frame 1 \(step 10\)"):
+        write_xyz(traj, tmp_path / "t.xyz")
+    assert (tmp_path / "t.xyz").read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["t.xyz"]
+
+
+def test_n1_bodies_export_as_rods_along_x(tmp_path):
+    """n = 1 (README: n = 1, 2, 3): semi-axis r |phi| along x, two thin axes, no rotation,
+    deform phi (+) 1 (+) 1, the box edge on x; export had refused it after creating an empty
+    file."""
+    phi = np.array([[[[1.2]], [[0.7]]], [[[1.1]], [[0.8]]]])
+    traj = Trajectory(
+        step=np.array([0, 10]), time=np.array([0.0, 0.1]), x=np.array([[[0.0], [1.0]]] * 2),
+        phi=phi, p=np.zeros((2, 2, 1)), pi=np.zeros((2, 2, 1, 1)), mass=np.ones(2),
+        radius=np.array([0.5, 1.0]), box=np.array([4.0]))
+    axes, quat, deform = ellipsoids(phi[0], traj.radius, thickness=0.1)
+    np.testing.assert_allclose(axes, [[0.6, 0.05, 0.05], [0.7, 0.1, 0.1]], rtol=1e-15)
+    np.testing.assert_array_equal(quat, [[0, 0, 0, 1.0]] * 2)
+    np.testing.assert_array_equal(deform[0], np.diag([1.2, 1.0, 1.0]))
+    assert write_xyz(traj, tmp_path / "rods.xyz") == 2
+    (header, rows), _ = parse_xyz(tmp_path / "rods.xyz")
+    assert 'Lattice="4 0 0 0 1 0 0 0 1" pbc="T F F"' in header
+    assert [float(v) for v in rows[1][1:4]] == [1.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match=r"phi is singular or not finite at batch index \(1,\)"):
+        ellipsoids(np.array([[[1.0]], [[0.0]]]), np.ones(2))

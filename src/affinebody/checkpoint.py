@@ -17,6 +17,7 @@ import os
 import tempfile
 import zipfile
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,17 +79,35 @@ def save_checkpoint(path: str | Path, checkpoint: Checkpoint) -> None:
         **{f"{_SIZES}{name}": np.asarray(value)
            for name, value in (checkpoint.neighbor_sizes or {}).items()},
     )
-    descriptor, temporary = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    with replaced_atomically(path, "wb", durable=True) as handle:
+        handle.write(buffer.getvalue())
+
+
+@contextmanager
+def replaced_atomically(path: str | Path, mode: str = "w", durable: bool = False,
+                        permissions: int | None = None):
+    """An open file (``mode``: "w" text in ASCII, or "wb") whose contents replace ``path``
+    only when the block completes: written under a temporary name in the same folder and
+    renamed into place (``os.replace``, atomic on POSIX), so an error or a kill leaves the
+    previous file, or none, never a part. ``durable``: fsync the file and the folder first.
+    ``permissions``: the file's mode bits (default: those of a temporary file, 0o600)."""
+    path = Path(path)
+    descriptor, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp",
+                                             dir=path.parent)
     try:
-        with os.fdopen(descriptor, "wb") as handle:
-            handle.write(buffer.getvalue())
-            handle.flush()
-            os.fsync(handle.fileno())
+        with os.fdopen(descriptor, mode, **({} if "b" in mode else {"encoding": "ascii"})) as f:
+            yield f
+            f.flush()
+            if durable:
+                os.fsync(f.fileno())
+        if permissions is not None:
+            os.chmod(temporary, permissions)
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
-    _fsync_directory(path.parent)
+    if durable:
+        _fsync_directory(path.parent)
 
 
 def _fsync_directory(folder: Path) -> None:
@@ -150,5 +169,5 @@ def load_checkpoint(path: str | Path, config_hash: str | None = None,
 
 __all__ = [
     "FORMAT_VERSION", "CheckpointError", "Checkpoint", "checkpoint_path", "save_checkpoint",
-    "load_checkpoint"
+    "load_checkpoint", "replaced_atomically"
 ]

@@ -23,10 +23,12 @@ earlier versions had phi row by row, which OVITO read as phi^T). A periodic box 
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 
+from affinebody.checkpoint import replaced_atomically
 from affinebody.h5md import Trajectory
 
 PROPERTIES = "species:S:1:pos:R:3:aspherical_shape:R:3:orientation:R:4:deform:R:9"
@@ -76,38 +78,46 @@ def rotation_from_quaternion(q: np.ndarray) -> np.ndarray:
 
 
 def embed3(matrix: np.ndarray) -> np.ndarray:
-    """n x n matrices (n = 2 or 3) as 3 x 3: 2D blocks get a 1 in the zz entry."""
+    """n x n matrices (n = 1, 2 or 3) as 3 x 3: the axes beyond n get a 1 on the diagonal."""
     matrix = np.asarray(matrix, dtype=np.float64)
     n = matrix.shape[-1]
     if n == 3:
         return matrix
     out = np.zeros(matrix.shape[:-2] + (3, 3))
     out[..., :n, :n] = matrix
-    out[..., 2, 2] = 1.0
+    for a in range(n, 3):
+        out[..., a, a] = 1.0
     return out
 
 
 def ellipsoids(phi: np.ndarray, radius: np.ndarray, thickness: float = 0.05):
     """Semi-axes [..., 3], orientation quaternions [..., 4] and 3x3 deform [..., 3, 3] of bodies.
 
-    ``phi`` [..., N, n, n] with n = 2 or 3, ``radius`` [N]. Uses phi = L diag(exp q) R^T
+    ``phi`` [..., N, n, n] with n = 1, 2 or 3, ``radius`` [N]. Uses phi = L diag(exp q) R^T
     (:func:`affinebody.polar.two_polar`, L in SO(n)); the quaternion is that of L (embedded as
-    a rotation about z for n = 2).
+    a rotation about z for n = 2, the identity for n = 1). The axes beyond n are thin:
+    ``thickness`` x the radius.
     """
     from affinebody.polar import two_polar
 
     phi = np.asarray(phi, dtype=np.float64)
     n = phi.shape[-1]
-    if n not in (2, 3):
-        raise ValueError(f"export needs n = 2 or 3 (got n = {n})")
-    decomposition = two_polar(phi)
-    rotation = np.asarray(decomposition.L)
+    if n not in (1, 2, 3):
+        raise ValueError(f"export needs n = 1, 2 or 3 (got n = {n})")
     radius = np.asarray(radius, dtype=np.float64)
-    axes = np.exp(np.asarray(decomposition.q)) * radius[:, None]
-    if n == 2:
-        axes = np.concatenate([axes, thickness * np.broadcast_to(radius[:, None],
-                                                                 axes.shape[:-1] + (1,))], -1)
-    return axes, quaternion_from_rotation(embed3(rotation)), embed3(phi)
+    if n == 1:  # phi = |phi| sign(phi): L = 1
+        bad = ~np.isfinite(phi[..., 0, 0]) | (phi[..., 0, 0] == 0)
+        if np.any(bad):
+            raise ValueError(f"phi is singular or not finite at batch index "
+                             f"{tuple(int(i) for i in np.argwhere(bad)[0])}")
+        axes, rotation = np.abs(phi[..., 0]) * radius[:, None], np.ones(phi.shape)
+    else:
+        decomposition = two_polar(phi)
+        rotation = np.asarray(decomposition.L)
+        axes = np.exp(np.asarray(decomposition.q)) * radius[:, None]
+    thin = thickness * np.broadcast_to(radius[:, None], axes.shape[:-1] + (3 - n,))
+    return (np.concatenate([axes, thin], -1), quaternion_from_rotation(embed3(rotation)),
+            embed3(phi))
 
 
 def deform_columns(deform: np.ndarray) -> np.ndarray:
@@ -122,8 +132,7 @@ def _lattice(box: np.ndarray | None, n: int) -> str:
         return ""
     edges = np.zeros(3)
     edges[:n] = np.asarray(box, dtype=np.float64)[:n]
-    if n == 2:
-        edges[2] = 1.0
+    edges[n:] = 1.0
     cell = np.diag(edges).ravel()
     pbc = " ".join("T" if a < n else "F" for a in range(3))
     return f'Lattice="{" ".join(f"{v:.17g}" for v in cell)}" pbc="{pbc}" '
@@ -146,27 +155,43 @@ def write_xyz(
     n = trajectory.n
     frames = range(0, trajectory.frames, every)
     boxes = trajectory.boxes
-    with open(path, "w", encoding="ascii") as out:
-        for frame in frames:  # one frame in memory at a time (open_trajectory reads lazily)
-            lattice = _lattice(trajectory.box if boxes is None else boxes[frame], n)
-            x, phi = trajectory.configuration(frame)
-            try:
-                axes, quat, deform = ellipsoids(phi, trajectory.radius, thickness)
-            except ValueError as err:  # a singular phi: say which frame
-                raise ValueError(f"frame {frame} (step {int(trajectory.step[frame])}): "
-                                 f"{err}") from None
-            position = np.zeros((trajectory.bodies, 3))
-            position[:, :n] = x
-            out.write(f"{trajectory.bodies}\n")
-            out.write(
-                f"{lattice}Properties={PROPERTIES} "
-                f"Time={trajectory.time[frame]:.17g} Step={int(trajectory.step[frame])}\n"
-            )
-            rows = np.concatenate(
-                [position, axes, quat, deform_columns(deform)], axis=-1)
-            fmt = species + " " + " ".join(["%.17g"] * rows.shape[1])
-            np.savetxt(out, rows, fmt=fmt)
+    target = Path(path).resolve()
+    if target.exists() and not target.is_file():  # a device or a pipe: written as it goes
+        with open(target, "w", encoding="ascii") as out:
+            _write_frames(trajectory, out, frames, boxes, n, thickness, species)
+        return len(frames)
+    # a file: written under a temporary name and renamed into place once complete, so a frame
+    # that cannot be exported (a singular phi) leaves no partial file, and a previous export
+    # to the same name intact
+    mask = os.umask(0)
+    os.umask(mask)
+    with replaced_atomically(target, "w", permissions=0o666 & ~mask) as out:
+        _write_frames(trajectory, out, frames, boxes, n, thickness, species)
     return len(frames)
+
+
+def _write_frames(trajectory: Trajectory, out, frames: range, boxes, n: int, thickness: float,
+                  species: str) -> None:
+    """The extended XYZ lines of ``frames`` to the open text file ``out``."""
+    for frame in frames:  # one frame in memory at a time (open_trajectory reads lazily)
+        lattice = _lattice(trajectory.box if boxes is None else boxes[frame], n)
+        x, phi = trajectory.configuration(frame)
+        try:
+            axes, quat, deform = ellipsoids(phi, trajectory.radius, thickness)
+        except ValueError as err:  # a singular phi: say which frame
+            raise ValueError(f"frame {frame} (step {int(trajectory.step[frame])}): "
+                             f"{err}") from None
+        position = np.zeros((trajectory.bodies, 3))
+        position[:, :n] = x
+        out.write(f"{trajectory.bodies}\n")
+        out.write(
+            f"{lattice}Properties={PROPERTIES} "
+            f"Time={trajectory.time[frame]:.17g} Step={int(trajectory.step[frame])}\n"
+        )
+        rows = np.concatenate(
+            [position, axes, quat, deform_columns(deform)], axis=-1)
+        fmt = species + " " + " ".join(["%.17g"] * rows.shape[1])
+        np.savetxt(out, rows, fmt=fmt)
 
 
 __all__ = [
