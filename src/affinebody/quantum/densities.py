@@ -618,8 +618,8 @@ def densities(spectrum: Spectrum, state: int, points: int | None = None,
     affine models), ``normalisation`` (int rho over the reduced domain), ``marginals``
     (name -> (x, density)), ``details`` (name -> :class:`Marginal`), ``orientation``,
     ``warnings`` (densities whose error exceeds ``tolerance`` x their peak)."""
-    level: Level = spectrum.level_of_state(state)
-    return marginal_densities(spectrum, level, points, tolerance)
+    level, sector = spectrum.state_eigenvector(state)
+    return {**marginal_densities(spectrum, level, points, tolerance), "sector": sector.as_dict()}
 
 
 def marginal_densities(spectrum: Spectrum, level: Level, points: int | None = None,
@@ -691,18 +691,6 @@ class PureState:
     vorticities: np.ndarray
 
 
-def sector_joint(spectrum: Spectrum, level: Level, sector) -> Joint:
-    """The :class:`Joint` of the reduced eigenfunction of ``sector`` (one of ``level.sectors``):
-    the eigenvector of energy ``level.energy`` in the block that holds the sector."""
-    for key, block in spectrum.blocks.items():
-        if sector in block.sectors and len(block.energies):
-            index = int(np.argmin(np.abs(np.asarray(block.energies) - level.energy)))
-            if abs(block.energies[index] - level.energy) <= 1e-6 * max(1.0, abs(level.energy)):
-                return joint_density(spectrum, replace(level, block=key, index=index))
-    raise ValueError(f"densities: no block holds sector {sector.as_dict()} at E = "
-                     f"{level.energy:.9g}")
-
-
 def state_components(spectrum: Spectrum, state: int) -> list[tuple[Level, object]]:
     """The (level, sector) of every state of :meth:`Spectrum.energies` up to ``state``, in that
     order (a degenerate level contributes one entry per state of each of its sectors)."""
@@ -728,16 +716,12 @@ def pure_state(spectrum: Spectrum, amplitudes: dict[int, complex]) -> PureState:
         raise ValueError("a superposition needs at least one state")
     if min(amplitudes) < 0:
         raise ValueError(f"state indices must be >= 0 (got {min(amplitudes)})")
-    table = state_components(spectrum, max(amplitudes))
     c = np.asarray([complex(v) for v in amplitudes.values()])
     if not np.sum(np.abs(c) ** 2) > 0:
         raise ValueError("a superposition needs a nonzero amplitude")
-    chosen = [table[k] for k in amplitudes]
-    for k, (level, _) in zip(amplitudes, chosen, strict=True):
-        if not level.converged:
-            raise ValueError(f"state {k} is not converged (raise quantum.basis_size)")
+    chosen = [spectrum.state_eigenvector(k) for k in amplitudes]
     return PureState(c / np.sqrt(np.sum(np.abs(c) ** 2)),
-                     tuple(sector_joint(spectrum, lv, sec) for lv, sec in chosen),
+                     tuple(joint_density(spectrum, lv) for lv, _ in chosen),
                      np.asarray([sec.spin for _, sec in chosen]),
                      np.asarray([sec.vorticity for _, sec in chosen]))
 
@@ -1087,7 +1071,7 @@ __all__ = [
     "NODES", "POINTS", "DEFAULT_TOLERANCE", "VARIABLES", "SUPPORT", "Joint", "measure",
     "joint_density", "Marginal", "density_at", "densities", "marginal_densities", "orientation",
     "ORIENTATION_NODES", "G_TOLERANCE", "G_COMPONENTS", "GRADING", "INTEGRAL_SLACK",
-    "ZERO_PANELS", "G_CHUNK", "kronrod_panels", "PureState", "sector_joint",
+    "ZERO_PANELS", "G_CHUNK", "kronrod_panels", "PureState",
     "state_components", "pure_state", "thermal_states", "angle_densities", "g_component_densities",
     "orientation_densities", "projected_triangle"
 ]

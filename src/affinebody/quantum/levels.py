@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -58,6 +58,15 @@ class Level:
     block: tuple  # key of the reduced block the eigenvector lives in
     index: int  # index of the eigenvector within that block
     converged: bool = True
+    #: (block key, index, sectors) of every eigenvector merged into the level, in the order of
+    #: ``sectors`` (empty: the one eigenvector ``block``, ``index`` of all of them). A level
+    #: can hold two eigenvectors of one block: the R^4 oscillator's N = 2 level has two of
+    #: the sector (0, 0), |z|^2 and |w|^2 in their combinations
+    parts: tuple = ()
+
+    def eigenvectors(self) -> tuple[tuple[tuple, int, tuple[Sector, ...]], ...]:
+        """(block key, index, sectors) of each eigenvector of the level (:attr:`parts`)."""
+        return self.parts or ((self.block, self.index, self.sectors),)
 
     def as_dict(self) -> dict:
         first = self.sectors[0]
@@ -179,6 +188,23 @@ class Spectrum:
                 return lv
         raise ValueError(f"--state {k} is beyond the {seen} states computed")
 
+    def state_eigenvector(self, k: int) -> tuple[Level, Sector]:
+        """The k-th state (0-based, as :meth:`energies` counts them) as the level of its own
+        eigenvector (``block``, ``index``; ``sectors`` those of that eigenvector, the level's
+        energy and error) and its own sector. The states of a level are its eigenvectors'
+        sectors in order (:meth:`Level.eigenvectors`), each repeated by its dimension; a
+        state is never another state's eigenvector, even where one block holds two of them
+        at the level's energy. ValueError as :meth:`level_of_state`."""
+        level = self.level_of_state(k)
+        offset = k - next(states for _, states, lv in self.numbered() if lv is level).start
+        for key, index, sectors in level.eigenvectors():
+            for sector in sectors:
+                if offset < sector.dimension:
+                    return replace(level, multiplicity=state_count(sectors), sectors=sectors,
+                                   block=key, index=index, parts=()), sector
+                offset -= sector.dimension
+        raise AssertionError(f"level at {level.energy} holds fewer states than its multiplicity")
+
 
 # ------------------------------------------------------------------------- solver
 @dataclass(frozen=True)
@@ -263,7 +289,7 @@ def merge_levels(entries: list[tuple[float, float, tuple[Sector, ...], tuple, in
             last = levels[-1]
             levels[-1] = Level(last.energy, last.multiplicity + state_count(sectors),
                                last.sectors + sectors, max(last.error, err), last.block,
-                               last.index)
+                               last.index, parts=last.eigenvectors() + ((key, idx, sectors),))
         else:
             levels.append(Level(E, state_count(sectors), sectors, err, key, idx))
     return levels
