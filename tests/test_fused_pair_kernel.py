@@ -15,6 +15,10 @@ through this kernel against the all-pairs autodiff, and checks that its fixed pa
 same bits on one thread or two."""
 
 import math
+import os
+import subprocess
+import sys
+import textwrap
 
 import jax
 import jax.numpy as jnp
@@ -133,3 +137,62 @@ def test_fused_kernel_with_a_cut_off_on_D_equals_all_pairs():
     _, nbrs = list_for(fused, x, phi)
     assert_same(pk.energy_and_gradients_host(fused, fused.space, x, phi, nbrs.i, nbrs.j,
                                              nbrs.count), all_pairs(fused, x, phi))
+
+
+#: A child process's energies, forces and virials of a 2D expression term (the pair term of a
+#: run with run.pressure; with some other expressions the two copies below had agreed) at 40
+#: random states, of 4 bodies over all pairs and of 40 over a list, saved to argv[1], and
+#: whether its kernel was compiled there or loaded from the cache.
+_KERNEL_BITS = textwrap.dedent("""
+    import sys
+    import jax
+    import numpy as np
+    jax.config.update("jax_enable_x64", True)
+    from affinebody import neighbors as nb
+    from affinebody import pair_kernels as pk
+    from affinebody.potentials import Cutoff, PairPotential
+    from affinebody.space import orthorhombic
+    box = orthorhombic((4.0, 4.2))
+    term = PairPotential.from_expression("exp(-D**2) + 0.5*exp(-r**2)", 2, cutoff=Cutoff(1.0),
+                                         box=box)
+    virial = jax.jit(pk.pair_virial, static_argnums=(0, 1), static_argnames=("energy",))
+    rng = np.random.default_rng(0)
+    out = []
+    for bodies in [4] * 20 + [40] * 20:
+        x = rng.uniform(0.0, 4.0, size=(bodies, 2))
+        phi = np.eye(2) + 0.25 * rng.normal(size=(bodies, 2, 2))
+        phi[np.linalg.det(phi) < 0, 0] *= -1
+        if bodies == 4:
+            i, j = (np.asarray(a, np.int32) for a in np.triu_indices(bodies, 1))
+            pairs = (x, phi, i, j, len(i))
+        else:
+            lst = nb.allocate(box, x, phi, 1.0, "r", 0.3, capacity=780, cell_capacity=40)[1]
+            pairs = (x, phi, lst.i, lst.j, lst.count)
+        out += [np.ravel(a) for a in virial(term, box, *pairs, energy=True)]
+        out += [np.ravel(a) for a in pk.energy_and_gradients_host(term, box, *pairs)]
+    np.save(sys.argv[1], np.concatenate(out))
+    stats = pk._fused_kernel(2, pk._fused_source(term, 2)).fused_thread.stats
+    print("compiled" if stats.cache_misses else "loaded" if stats.cache_hits else "?")
+""")
+
+
+@pytest.mark.skipif(not _host.in_use(), reason="the host kernels run on a CPU with Numba")
+def test_the_process_that_compiles_the_kernel_gives_the_bits_of_those_that_load_it(tmp_path):
+    """The fused kernel's machine code is the same in the process whose Numba compiled it
+    and in every later one, which loads it from the cache. Its f and pair loop (FMA
+    contraction allowed) had been functions of their own that the kernel called: the process
+    that compiled them called their own copies, later processes the copies linked into the
+    kernel's module, which LLVM had contracted differently: a run's pressure (and, over a
+    neighbour list, its forces) an ulp apart depending on whether it was the first run of the
+    expression on the machine (frame 34 of 41 of a 400-step run, against a 600-step one)."""
+    env = {**os.environ, "AFFINEBODY_CACHE_DIR": str(tmp_path / "kernels")}
+    results = []
+    for k, how in enumerate(("compiled", "loaded")):
+        out = tmp_path / f"{k}.npy"
+        done = subprocess.run([sys.executable, "-c", _KERNEL_BITS, str(out)], env=env,
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.split() == [how]
+        results.append(np.load(out))
+    assert results[0].size == 40 * (1 + 2 * 2) + 20 * (1 + 4 * 6) + 20 * (1 + 40 * 6)
+    np.testing.assert_array_equal(results[0], results[1])

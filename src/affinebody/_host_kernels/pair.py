@@ -32,6 +32,14 @@ _jit = numba.njit(fastmath=False, boundscheck=False, nogil=True, cache=CACHE)
 # together ~12 % off the demo's pair loop (measured at 4096 bodies, docs/performance.md)
 _jit_loop = numba.njit(fastmath={"contract", "arcp"}, error_model="numpy", boundscheck=False,
                        nogil=True, cache=CACHE)
+# what a _jit_loop function calls that computes (the fused kernel's _f and _fused): inlined by
+# Numba into its caller, compiled with the caller's flags and nowhere on its own. A callee
+# compiled on its own was a second copy of its code: the caller's machine code called the copy
+# linked into its own module where loaded from the cache, but the callee's own library in the
+# process that compiled it, and the two copies' FMA contractions differed (a run's pressure an
+# ulp apart, frame 34 of 41, between the process that compiled the kernel and every later one)
+_inline_loop = numba.njit(fastmath={"contract", "arcp"}, error_model="numpy", boundscheck=False,
+                          nogil=True, inline="always")
 
 
 @intrinsic
@@ -174,7 +182,7 @@ def _merge_finish(start, stop, gx_parts, gphi_parts, gb_parts, gdet_parts, binv,
 PREPARE, PAIRS, MERGE = 1, 2, 4
 
 
-@_jit
+@_jit_loop
 def _fused_thread(k, phases, arrived, lo, hi, start, stop, i, j, x, phi, binv, det, mode, h,
                   h_inv, edges, gradients, virial, gx, gphi, gb, gdet, w, g_x, g_phi):
     """Part k of a fused evaluation, in three phases: PREPARE zeroes part k's sums and
