@@ -133,6 +133,24 @@ def test_resume_reproduces_the_uninterrupted_run_bit_for_bit(folder, reference):
     assert_bitwise_equal(out, reference)
 
 
+def test_a_resume_of_a_finished_run_says_nothing_was_integrated(folder, reference):
+    """--resume of a run already at its last step integrates nothing: the summary said
+    "0 steps in 4.43 s: ... integrating 4.43 s", the copying and set-up given as integration."""
+    import shutil
+
+    out = folder / "finished.h5"
+    shutil.copy(reference, out)
+    shutil.copy(checkpoint_path(reference), checkpoint_path(out))
+    result = invoke("run", folder / "tiny.toml", "-o", out, "--resume")
+    assert result.exit_code == 0, result.stderr
+    lines = result.output.splitlines()
+    assert lines[0].endswith(f"steps 0..{TOTAL} (resumed at step {TOTAL}), to {out}")
+    assert lines[1].startswith(f"nothing integrated: the run was already complete at step "
+                               f"{TOTAL} (")
+    assert "integrating" not in result.output and "steps/s" not in result.output
+    assert_bitwise_equal(out, reference)
+
+
 def test_a_resume_refused_says_what_changed_and_which_steps_to_give(folder, reference):
     import shutil
 

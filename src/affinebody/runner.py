@@ -105,12 +105,16 @@ class RunSummary:
 
     @property
     def integrate_seconds(self) -> float:
-        """Seconds in the compiled loop, compilation excluded."""
-        return max(self.phases.get("integrate", self.wall_seconds) - self.compile_seconds, 0.0)
+        """Seconds in the compiled loop, compilation excluded (0 where nothing was integrated:
+        a resumed run that was already complete; its seconds went to copying its frames)."""
+        return max(self.phases.get("integrate", 0.0) - self.compile_seconds, 0.0)
 
     @property
     def steps_per_second(self) -> float:
+        """Steps integrated per second of :attr:`integrate_seconds` (0 where none were)."""
         done = self.steps - self.start_step
+        if done == 0:
+            return 0.0
         seconds = self.integrate_seconds
         return done / seconds if seconds > 0 else math.inf
 
@@ -118,11 +122,14 @@ class RunSummary:
         resumed = f" (resumed at step {self.start_step})" if self.start_step else ""
         done = self.steps - self.start_step
         rate = self.steps_per_second
+        work = (f"{done} steps in {self.wall_seconds:.2f} s: compiling "
+                f"{self.compile_seconds:.2f} s, integrating {self.integrate_seconds:.2f} s "
+                f"({rate:.3g} steps/s, {rate * self.bodies:.3g} body-steps/s)") if done else (
+            f"nothing integrated: the run was already complete at step {self.steps} "
+            f"({self.wall_seconds:.2f} s to check it and copy its frames)")
         return [
             f"wrote {self.frames} frames, steps 0..{self.steps}{resumed}, to {self.output}",
-            f"{done} steps in {self.wall_seconds:.2f} s: compiling {self.compile_seconds:.2f} s, "
-            f"integrating {self.integrate_seconds:.2f} s ({rate:.3g} steps/s, "
-            f"{rate * self.bodies:.3g} body-steps/s)",
+            work,
             f"{self.energy_observable.replace('_', ' ')} {self.initial_energy:.12g} -> "
             f"{self.final_energy:.12g}, "
             f"max relative error {self.max_relative_energy_error:.3e}",
