@@ -9,6 +9,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import click
 import h5py
@@ -291,6 +292,40 @@ def test_plot_writes_nonempty_images(folder, reference):
         image = imread(folder / "plots" / name)
         assert image.shape[0] > 100 and image.shape[1] > 100
         assert float(np.std(image[..., :3])) > 0.01  # something is drawn
+
+
+def test_plot_of_an_n1_run_draws_its_bodies_as_rods_and_warns_nothing(folder):
+    """n = 1 (README: n = 1, 2, 3): bodies.png draws each body as its rod, one row per body
+    (no bodies.png had been written), and momenta.png has no panel for J - J^T, which n = 1
+    does not have (its empty legend had leaked matplotlib's "No artists with labels found to
+    put in legend")."""
+    import warnings
+
+    one = (TINY.replace("n = 2", "n = 1").replace("inertia = 0.5", "inertia = [[0.5]]")
+           .replace('expr = "(r - 1)**2 + 0.1*(M1 - 2)**2"', 'expr = "(r - 1)**2"')
+           .replace('expr = "2*(det - 1)**2 + 0.5*(trG - 2)**2"', 'expr = "2*(det - 1)**2"')
+           .replace("x = [[0.0, 0.0], [1.1, 0.0], [0.0, 0.9]]", "x = [[0.0], [1.1], [2.0]]")
+           .replace("momentum = [[0.1, 0.0], [0.0, -0.1], [-0.1, 0.1]]",
+                    "momentum = [[0.1], [0.0], [-0.1]]")
+           .replace("phi_momentum = [[[0.0, 0.1], [0.0, 0.0]], [[0.0, 0.0], [0.05, 0.0]], "
+                    "[[0.0, 0.0], [0.0, 0.02]]]", "phi_momentum = [[[0.1]], [[0.0]], [[-0.02]]]")
+           .replace("steps = 20000", "steps = 100").replace("every = 500", "every = 10")
+           .replace("checkpoint = 2000", "checkpoint = 100"))
+    (folder / "one.toml").write_text(one)
+    assert invoke("run", folder / "one.toml", "-o", folder / "one.h5", "--quiet").exit_code == 0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = invoke("plot", folder / "one.h5", "-o", folder / "one-plots")
+    assert result.exit_code == 0, result.stderr
+    assert [str(w.message) for w in caught] == [] and "warning" not in result.stderr
+    written = [Path(line).name for line in result.output.splitlines()]
+    assert written == ["energy.png", "momenta.png", "deformation.png", "temperature.png",
+                       "bodies.png"]
+    image = imread(folder / "one-plots" / "bodies.png")[..., :3]
+    red = (image[..., 0] > 0.6) & (image[..., 1] < 0.4) & (image[..., 2] < 0.4)
+    assert np.count_nonzero(red) > 20  # the material axes (C3) are drawn
+    with h5py.File(folder / "one.h5", "r") as f:
+        assert f["particles/bodies/phi/value"].shape[-2:] == (1, 1)
 
 
 def test_plot_of_a_file_without_its_energies_is_one_line(folder, reference):

@@ -3,16 +3,18 @@
 - ``energy.png``: total, kinetic and potential energy, and the relative error |E - E0| / |E0|;
 - ``momenta.png``: the momentum maps minus their initial values, component by component:
   total linear momentum P = sum_K p_K, affine momentum J = sum_K (x_K p_K^T + phi_K pi_K) and
-  angular momentum J - J^T (paper eqs. (103), (108), (109)); in a periodic box the box breaks
-  the rotation symmetry, so J - J^T changes physically and the figure says so;
+  angular momentum J - J^T (paper eqs. (103), (108), (109); none for n = 1); in a periodic box
+  the box breaks the rotation symmetry, so J - J^T changes physically and the figure says so;
 - ``deformation.png``: trace invariants K_a = Tr(G^a) of the Green tensor G = phi^T phi (17),
   volumes det phi_K and relative volumes det phi_K / det phi_1 (79), one labelled line per body
   for at most :data:`TRACED_BODIES` bodies (evenly sampled) and the band between the smallest
   and largest value over all bodies;
 - ``bodies.png``: first and last frame, each body drawn as the image of the ball of its drawing
-  radius under phi: for n = 2 an ellipse with the image of the material axis e_1 as a line,
-  for n = 3 a shaded ellipsoid {x + phi a : |a| <= r} (at most :data:`DRAWN_BODIES` bodies in
-  2D and :data:`DRAWN_ELLIPSOIDS` in 3D, evenly sampled, for large systems);
+  radius under phi: for n = 1 a rod [x - r|phi|, x + r|phi|] on the line, one row per body,
+  with the image phi e_1 of the material axis in red (its sign, on GL(1)), for n = 2 an
+  ellipse with the image of e_1 as a line, for n = 3 a shaded ellipsoid {x + phi a : |a| <= r}
+  (at most :data:`DRAWN_BODIES` bodies in 1D and 2D and :data:`DRAWN_ELLIPSOIDS` in 3D,
+  evenly sampled, for large systems);
 - optionally ``bodies.gif`` / ``bodies.mp4``: the animation of the n = 2 bodies.
 
 Every axis names its quantity and its unit, in the file's unit system (``units.UNIT_LABELS``:
@@ -38,7 +40,7 @@ from affinebody.units import UNIT_LABELS  # noqa: E402
 DPI = 110
 #: Bodies drawn as individual lines in deformation.png (the band covers all of them).
 TRACED_BODIES = 16
-#: Bodies drawn as ellipses in bodies.png and the animation.
+#: Bodies drawn as ellipses (rods for n = 1) in bodies.png and the animation.
 DRAWN_BODIES = 5000
 #: Bodies drawn as ellipsoids in the 3D bodies.png.
 DRAWN_ELLIPSOIDS = 400
@@ -160,7 +162,9 @@ def plot_momenta(trajectory: Trajectory, path: str | Path) -> Path:
          "action"),
         ("angular momentum L = J − Jᵀ", "L", "ΔL", obs["angular_momentum"], True, "action"),
     ]
-    fig, axes = plt.subplots(len(panels), 1, figsize=(7.5, 8.5), sharex=True)
+    if trajectory.n == 1:  # J - J^T of a 1 x 1 J has no components: nothing to draw
+        panels = panels[:2]
+    fig, axes = plt.subplots(len(panels), 1, figsize=(7.5, 8.5 * len(panels) / 3), sharex=True)
     for ax, (title, symbol, ylabel, values, skew, kind) in zip(axes, panels, strict=True):
         values = np.asarray(values)
         change = values - values[:1]
@@ -267,10 +271,47 @@ def _draw(ax, trajectory: Trajectory, frame: int, low, high, drawn):
     return shapes, axes
 
 
+def _draw_rods(ax, trajectory: Trajectory, frame: int, low, high, drawn):
+    """n = 1: body K the rod x_K + phi_K a, |a| <= r_K, on the row K + 1, its material axis's
+    image phi_K r_K e_1 from the centre in red (to the left where phi_K < 0)."""
+    x, phi = (a[drawn] for a in trajectory.configuration(frame))
+    radius = trajectory.radius[drawn]
+    rows = (np.asarray(drawn) + 1.0)[:, None]
+    half = np.abs(phi[:, :, 0]) * radius[:, None]
+    ax.add_collection(LineCollection(
+        np.stack([np.hstack([x - half, rows]), np.hstack([x + half, rows])], axis=1),
+        colors="C0", linewidths=5, alpha=0.7))
+    ax.add_collection(LineCollection(
+        np.stack([np.hstack([x, rows]), np.hstack([x + phi[:, :, 0] * radius[:, None], rows])],
+                 axis=1), colors="C3", linewidths=1.5))
+    ax.plot(x[:, 0], rows[:, 0], "k|", markersize=9)
+    ax.set_xlim(low[0], high[0])
+    ax.set_ylim(0.3, trajectory.bodies + 0.7)
+    ax.set_xlabel(f"x{_unit(trajectory, 'length')}")
+    ax.set_ylabel("body")
+    ax.set_title(_time(trajectory, frame), fontsize=9)
+
+
 def plot_bodies(trajectory: Trajectory, path: str | Path) -> Path:
-    """First and last frame of a 2D trajectory, bodies as ellipses phi(disc) (n = 2 only)."""
-    if trajectory.n != 2:
-        raise ValueError(f"bodies can be drawn for n = 2 only (got n = {trajectory.n})")
+    """First and last frame of a 1D or 2D trajectory: bodies as ellipses phi(disc) (n = 2) or
+    as rods phi([-r, r]) on the line, one row per body (n = 1)."""
+    if trajectory.n not in (1, 2):
+        raise ValueError(f"bodies are drawn by plot_bodies for n = 1 and 2 only (got "
+                         f"n = {trajectory.n}; n = 3: plot_ellipsoids)")
+    if trajectory.n == 1:
+        drawn = _sample(trajectory.bodies, DRAWN_BODIES)
+        frames = (0, trajectory.frames - 1)
+        low, high = _limits(trajectory, frames, drawn)
+        fig, axes = plt.subplots(1, 2, figsize=(10, 1.6 + 0.25 * min(len(drawn), 24)),
+                                 sharey=True)
+        for ax, frame in zip(axes, frames, strict=True):
+            _draw_rods(ax, trajectory, frame, low, high, drawn)
+        sample = (f" ({len(drawn)} of {trajectory.bodies} bodies)"
+                  if len(drawn) < trajectory.bodies else "")
+        fig.suptitle(f"bodies (n = 1): the rods x + φa, |a| ≤ r, one row per body; red: the "
+                     f"image φe₁ of the material axis e₁{sample}", fontsize=10)
+        fig.tight_layout()
+        return _save(fig, Path(path))
     drawn = _sample(trajectory.bodies, DRAWN_BODIES)
     frames = (0, trajectory.frames - 1)
     low, high = _limits(trajectory, frames, drawn)
@@ -395,7 +436,7 @@ def plot_all(trajectory: Trajectory, folder: str | Path, *, animate: str | None 
         paths.append(plot_pressure(trajectory, folder / "pressure.png"))
     if "internal_temperature" in trajectory.observables:  # files of earlier versions: none
         paths.append(plot_temperature(trajectory, folder / "temperature.png"))
-    if trajectory.n == 2:
+    if trajectory.n in (1, 2):
         paths.append(plot_bodies(trajectory, folder / "bodies.png"))
         if animate:
             paths.append(animate_bodies(trajectory, folder / f"bodies.{animate}", fps=fps))

@@ -43,7 +43,8 @@ SUMMARIES = {
     "demo": "Run the built-in example: a small 2D crystal of affine bodies; write H5MD, PNG "
             "and XYZ.",
     "plot": "Plot energy, momentum maps, deformation invariants, temperatures, pressure and "
-            "volume (NPT), and the bodies (ellipses for n = 2, ellipsoids for n = 3).",
+            "volume (NPT), and the bodies (rods for n = 1, ellipses for n = 2, ellipsoids for "
+            "n = 3).",
     "export": "Export a trajectory as extended XYZ with ellipsoid shapes and orientations.",
     "validate": "Check a config file without running it.",
     "sweep": "Run an ensemble / parameter sweep of CONFIG.toml ([sweep] table) on Dask.",

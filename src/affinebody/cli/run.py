@@ -197,7 +197,7 @@ def demo(output_dir, steps, quiet):
 @one_line_errors
 def plot(trajectory_file, output_dir, animate, fps):
     """Plot energy, momentum maps, deformation invariants, temperatures, pressure and volume
-    (NPT), and the bodies (ellipses for n = 2, ellipsoids for n = 3)."""
+    (NPT), and the bodies (rods for n = 1, ellipses for n = 2, ellipsoids for n = 3)."""
     from affinebody.plotting import plot_all
 
     enable_x64()
