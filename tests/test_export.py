@@ -101,6 +101,7 @@ def test_written_file_parses_with_the_declared_columns(tmp_path):
         assert f"Properties={PROPERTIES}" in header
         assert 'Lattice="4 0 0 0 5 0 0 0 1"' in header and 'pbc="T T F"' in header
         assert f"Step={traj.step[f]}" in header
+        assert [row[0] for row in rows] == ["body"] * bodies  # OVITO: no element (interop)
         values = np.array([[float(v) for v in row[1:]] for row in rows])
         np.testing.assert_allclose(values[:, :2], traj.x[f], rtol=1e-15)
         np.testing.assert_array_equal(values[:, 2], 0.0)
@@ -113,6 +114,18 @@ def test_written_file_parses_with_the_declared_columns(tmp_path):
                                    rtol=1e-12, atol=1e-13)
         deform = values[:, 10:].reshape(bodies, 3, 3).swapaxes(1, 2)  # column by column
         np.testing.assert_array_equal(deform[:, :2, :2], traj.phi[f])
+
+
+def test_the_species_is_one_word_given_to_every_body(tmp_path):
+    traj = Trajectory(step=np.array([0]), time=np.array([0.0]), x=np.zeros((1, 2, 1)),
+                      phi=np.ones((1, 2, 1, 1)), p=np.zeros((1, 2, 1)),
+                      pi=np.zeros((1, 2, 1, 1)), mass=np.ones(2), radius=np.ones(2), box=None)
+    write_xyz(traj, tmp_path / "a.xyz", species="Ar")
+    assert [row[0] for row in parse_xyz(tmp_path / "a.xyz")[0][1]] == ["Ar", "Ar"]
+    for bad in ("", "two words", "a\nb", "µ"):
+        with pytest.raises(ValueError, match="--species must be one word"):
+            write_xyz(traj, tmp_path / "b.xyz", species=bad)
+    assert not (tmp_path / "b.xyz").exists()
 
 
 def test_a_frame_with_a_non_finite_or_singular_phi_is_named_by_export_and_plot(tmp_path):

@@ -239,6 +239,11 @@ def test_ovito_reads_phi_the_ellipsoids_and_the_cell(reduced_file, tmp_path):
         np.testing.assert_allclose(np.asarray(particles["Position"]), state.x[k], rtol=1e-15)
         np.testing.assert_array_equal(np.asarray(data.cell[...])[:, :3], np.diag(BOX))
         assert list(data.cell.pbc) == [True, True, True]
+        # one particle type, "body", which OVITO takes for no chemical element (the species
+        # "B" had been boron: its colour, radius 2.01 and mass 10.811 on every body)
+        (kind,) = particles.particle_types.types
+        assert kind.name == "body" and set(np.asarray(particles.particle_types)) == {kind.id}
+        assert (kind.mass, kind.radius, kind.vdw_radius) == (0.0, 0.0, 0.0)
 
 
 # --------------------------------------------------------------------------- plots

@@ -6,6 +6,7 @@ SO(n) and D = diag(exp q), the image is the ellipsoid with semi-axes r * exp(q_a
 columns of L (R^T maps the ball onto itself; for det phi < 0 the extra reflection does too).
 So each frame line carries
 
+- ``species:S:1``           :data:`SPECIES` ("body"), a name OVITO takes for no element,
 - ``pos:R:3``               x (2D: z = 0),
 - ``aspherical_shape:R:3``  r * singular values of phi (2D: a thin third axis ``thickness * r``),
 - ``orientation:R:4``       the unit quaternion (x, y, z, w) of L, det L = +1, w >= 0,
@@ -32,6 +33,11 @@ from affinebody.checkpoint import replaced_atomically
 from affinebody.h5md import Trajectory
 
 PROPERTIES = "species:S:1:pos:R:3:aspherical_shape:R:3:orientation:R:4:deform:R:9"
+#: The species column of every body. OVITO's XYZ reader gives a type whose name begins with a
+#: capitalised element symbol that element's colour, radius and mass ("B", "Body", "Bq", "C1"
+#: are boron, boron, boron and carbon; "B" had made every body boron), and a lower-case name
+#: none: "body" is drawn by its aspherical_shape alone, in a colour of OVITO's own.
+SPECIES = "body"
 
 
 def quaternion_from_rotation(rotation: np.ndarray) -> np.ndarray:
@@ -144,9 +150,13 @@ def write_xyz(
     *,
     every: int = 1,
     thickness: float = 0.05,
-    species: str = "B",
+    species: str = SPECIES,
 ) -> int:
-    """Write every ``every``-th frame of ``trajectory`` as extended XYZ; returns frames written."""
+    """Write every ``every``-th frame of ``trajectory`` as extended XYZ; returns frames written.
+    ``species``: the species column of every body, one word (default :data:`SPECIES`)."""
+    if not species or species.split() != [species] or not species.isascii():
+        raise ValueError(f"--species must be one word of ASCII characters, such as {SPECIES!r} "
+                         f"(got {species!r})")
     if every < 1:
         raise ValueError(f"--every must be >= 1 (got {every})")
     if not (math.isfinite(thickness) and thickness > 0):
@@ -195,6 +205,6 @@ def _write_frames(trajectory: Trajectory, out, frames: range, boxes, n: int, thi
 
 
 __all__ = [
-    "PROPERTIES", "quaternion_from_rotation", "rotation_from_quaternion", "embed3", "ellipsoids",
-    "deform_columns", "write_xyz"
+    "PROPERTIES", "SPECIES", "quaternion_from_rotation", "rotation_from_quaternion", "embed3",
+    "ellipsoids", "deform_columns", "write_xyz"
 ]

@@ -31,6 +31,7 @@ from affinebody.config import (
     parse_config,
     uses_neighbor_list,
 )
+from affinebody.export import SPECIES
 from affinebody.h5md import open_trajectory, read_trajectory
 from affinebody.runner import demo_config_text, prepare_process, run_simulation
 
@@ -216,8 +217,11 @@ def plot(trajectory_file, output_dir, animate, fps):
 @click.option("--every", type=int, default=1, show_default=True, help="Keep every k-th frame.")
 @click.option("--thickness", type=float, default=0.05, show_default=True,
               help="Third semi-axis of 2D bodies, as a fraction of the radius.")
+@click.option("--species", default=SPECIES, show_default=True,
+              help="The species column of every body (OVITO gives a name that begins with a "
+                   "capitalised element symbol, e.g. B, that element's colour and radius).")
 @one_line_errors
-def export(trajectory_file, xyz_file, every, thickness):
+def export(trajectory_file, xyz_file, every, thickness, species):
     """Export a trajectory as extended XYZ with ellipsoid shapes and orientations."""
     from affinebody.export import write_xyz
 
@@ -225,7 +229,8 @@ def export(trajectory_file, xyz_file, every, thickness):
     refuse_writing_over(xyz_file, trajectory_file, "--xyz")
     check_output_file(xyz_file, "--xyz")
     with open_trajectory(trajectory_file) as trajectory:  # frames read one at a time
-        count = write_xyz(trajectory, xyz_file, every=every, thickness=thickness)
+        count = write_xyz(trajectory, xyz_file, every=every, thickness=thickness,
+                          species=species)
     click.echo(f"wrote {count} frames to {xyz_file}")
 
 
