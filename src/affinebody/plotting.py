@@ -298,30 +298,21 @@ def plot_bodies(trajectory: Trajectory, path: str | Path) -> Path:
     if trajectory.n not in (1, 2):
         raise ValueError(f"bodies are drawn by plot_bodies for n = 1 and 2 only (got "
                          f"n = {trajectory.n}; n = 3: plot_ellipsoids)")
-    if trajectory.n == 1:
-        drawn = _sample(trajectory.bodies, DRAWN_BODIES)
-        frames = (0, trajectory.frames - 1)
-        low, high = _limits(trajectory, frames, drawn)
-        fig, axes = plt.subplots(1, 2, figsize=(10, 1.6 + 0.25 * min(len(drawn), 24)),
-                                 sharey=True)
-        for ax, frame in zip(axes, frames, strict=True):
-            _draw_rods(ax, trajectory, frame, low, high, drawn)
-        sample = (f" ({len(drawn)} of {trajectory.bodies} bodies)"
-                  if len(drawn) < trajectory.bodies else "")
-        fig.suptitle(f"bodies (n = 1): the rods x + φa, |a| ≤ r, one row per body; red: the "
-                     f"image φe₁ of the material axis e₁{sample}", fontsize=10)
-        fig.tight_layout()
-        return _save(fig, Path(path))
     drawn = _sample(trajectory.bodies, DRAWN_BODIES)
     frames = (0, trajectory.frames - 1)
     low, high = _limits(trajectory, frames, drawn)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 5))
+    if trajectory.n == 1:
+        draw, shapes = _draw_rods, "bodies (n = 1): the rods x + φa, |a| ≤ r, one row per body"
+        fig, axes = plt.subplots(1, 2, figsize=(10, 1.6 + 0.25 * min(len(drawn), 24)),
+                                 sharey=True)
+    else:
+        draw, shapes = _draw, "bodies: the ellipses x + φa, |a| ≤ r"
+        fig, axes = plt.subplots(1, 2, figsize=(10, 5))
     for ax, frame in zip(axes, frames, strict=True):
-        _draw(ax, trajectory, frame, low, high, drawn)
+        draw(ax, trajectory, frame, low, high, drawn)
     sample = (f" ({len(drawn)} of {trajectory.bodies} bodies)"
               if len(drawn) < trajectory.bodies else "")
-    fig.suptitle(f"bodies: the ellipses x + φa, |a| ≤ r; red: the image φe₁ of the material "
-                 f"axis e₁{sample}", fontsize=10)
+    fig.suptitle(f"{shapes}; red: the image φe₁ of the material axis e₁{sample}", fontsize=10)
     fig.tight_layout()
     return _save(fig, Path(path))
 
