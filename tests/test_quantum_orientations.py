@@ -106,8 +106,9 @@ def test_thermal_mixture(oscillator):
     temperature = 0.15
     states, weights, tail = thermal_states(oscillator, temperature)
     # the last state computed is in N = 2; each state left out (N >= 3) weighs e^{-hbar omega
-    # / T} ~ 1e-3 of it
-    assert len(states) == 15
+    # / T} ~ 1e-3 of it. The 15 states are 8 reduced eigenfunctions (conjugate sectors share
+    # one: N = 1 has 2, N = 2 has 5), each once with its states' probabilities summed
+    assert len(states) == 8 and weights.sum() == pytest.approx(1.0, abs=1e-15)
     assert tail == pytest.approx(math.exp(-2 * HBAR * OMEGA / temperature), rel=1e-6)
     g11 = g_component_densities(list(zip(weights, states, strict=True)), points=7,
                                 components=("G11",))["G11"]
@@ -169,6 +170,39 @@ def test_every_state_of_a_degenerate_level_is_its_own_eigenvector(oscillator):
                   + sum(_hermite_moments(t[i])[0] * _hermite_moments(t[j])[0]
                         for i in range(4) for j in range(4) if i != j) for t in shell])
     assert np.mean(det2) == pytest.approx(r4 / 12, rel=1e-3)
+
+
+def test_density_command_temperature_solves_for_the_states_its_mixture_needs(tmp_path):
+    """affinebody density --temperature 0.15 with quantum.levels = 5 (N <= 1, whose last state
+    has e^{-hbar omega / T} = 1.3e-3 of the ground state's Boltzmann weight: a mixture
+    truncated far above the tolerance, which the command only warned of) doubles the levels
+    until the last state's factor is below the densities' tolerance: 5 -> 10 (15 states,
+    1.8e-6) -> 20 (N <= 3, 2.4e-9; at basis_size 9 some N = 3 states are unconverged and left
+    out, at that weight). Then no warning, exit 0, and G11 is the Gaussian thermal state's
+    exponential law to 1e-6 of its peak."""
+    path = tmp_path / "osc.toml"
+    path.write_text(f"""
+[system]
+n = 2
+[quantum]
+hbar = {HBAR}
+kinetic = "dalembert"
+inertia = {INERTIA}
+potential = "0.5*{K}*trG"
+basis_size = 9
+levels = 5
+density_points = 11
+""")
+    result = CliRunner().invoke(density, [str(path), "--temperature", "0.15", "-o",
+                                          str(tmp_path / "o")])
+    assert result.exit_code == 0, result.output
+    states = int(result.output.split("(thermal of ")[1].split()[0])
+    assert states > 15 and "warning" not in result.output
+    doc = json.loads((tmp_path / "o" / "orientation.json").read_text())
+    g11 = doc["densities"]["G11"]
+    s2t = S2 / math.tanh(HBAR * OMEGA / (2 * 0.15))
+    exact = np.exp(-np.asarray(g11["x"]) / (2 * s2t)) / (2 * s2t)
+    assert doc["warnings"] == [] and np.abs(g11["density"] - exact).max() < 1e-6 * exact.max()
 
 
 def test_density_command_superposition(tmp_path):

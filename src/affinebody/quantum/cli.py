@@ -76,6 +76,25 @@ def solve_config(config_path: str, levels: int | None):
         return solve(**kwargs), kwargs["levels"]
 
 
+def solve_thermal(config_path: str, temperature: float):
+    """Solve CONFIG for its thermal mixture at ``temperature``: quantum.levels states, doubled
+    (up to :data:`~affinebody.quantum.densities.MAX_THERMAL_STATES`) until the last converged
+    state's Boltzmann factor is below the densities' tolerance, or until a larger solve
+    converges no more states. A mixture still truncated is warned of where its densities are
+    computed (:func:`~affinebody.quantum.densities.truncation_warning`)."""
+    from affinebody.quantum.densities import G_TOLERANCE, MAX_THERMAL_STATES, boltzmann_factors
+
+    result, count = solve_config(config_path, None)
+    converged = 0
+    while True:
+        energies = [e for e in result.energies() if not math.isnan(e)]
+        if (not energies or len(energies) <= converged or count >= MAX_THERMAL_STATES
+                or boltzmann_factors(energies, temperature)[-1] <= G_TOLERANCE):
+            return result
+        converged, count = len(energies), min(2 * count, MAX_THERMAL_STATES)
+        result, _ = solve_config(config_path, count)
+
+
 @click.command("spectrum")
 @click.argument("config", type=click.Path(exists=True, dir_okay=False))
 @click.option("--levels", "levels", type=int, default=None, help="number of states K")
@@ -206,13 +225,18 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
             raise ValueError(f"--superpose: state indices must be from 0 to {MAX_LEVELS - 1} "
                              f"(got {sorted(superposition)})")
         qc = qconfig.load(config).quantum
-        result, _ = solve_config(config, None if superposition is None else max(superposition) + 1)
+        if superposition is None:
+            result = solve_thermal(config, temperature)
+        else:
+            result, _ = solve_config(config, max(superposition) + 1)
         payload = write_orientation(result, output, superposition=superposition,
                                     temperature=temperature, points=qc.density_points,
                                     green=green)
+        mixed = ("" if superposition is not None else
+                 f" of {sum(not math.isnan(e) for e in result.energies())} states")
         click.echo(json_text(payload) if as_json else
                    f"wrote {output}/orientation.json, orientation.npz, orientation.png "
-                   f"({payload['kind']})")
+                   f"({payload['kind']}{mixed})")
         for text in payload["warnings"]:
             click.echo(f"warning: {text}", err=True)
         if payload["warnings"]:
@@ -263,4 +287,4 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
         sys.exit(EXIT_STOPPED)  # orientation.json's densities: written, flagged (warned above)
 
 
-__all__ = ["finite_hamiltonian", "solve_config", "spectrum", "density"]
+__all__ = ["finite_hamiltonian", "solve_config", "solve_thermal", "spectrum", "density"]

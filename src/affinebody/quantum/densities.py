@@ -726,22 +726,57 @@ def pure_state(spectrum: Spectrum, amplitudes: dict[int, complex]) -> PureState:
                      np.asarray([sec.vorticity for _, sec in chosen]))
 
 
-def thermal_states(spectrum: Spectrum, temperature: float) -> tuple[list, np.ndarray, float]:
-    """The thermal mixture exp(-E / T) / Z over the converged states computed (k_B = 1):
-    (pure states [one eigenstate each], probabilities, the Boltzmann factor of the highest
-    state relative to the lowest, the order of the weight of each state left out)."""
+#: the most states ``affinebody density --temperature`` solves for: it doubles quantum.levels,
+#: up to this, until the last state of the thermal mixture has a Boltzmann factor below the
+#: densities' tolerance (:func:`boltzmann_factors`)
+MAX_THERMAL_STATES = 256
+
+
+def require_temperature(temperature: float) -> None:
+    """ValueError unless 0 < T < inf (k_B = 1)."""
     if not 0 < temperature < math.inf:
         raise ValueError(f"the temperature must be finite and > 0 (got {temperature})")
+
+
+def boltzmann_factors(energies, temperature: float) -> np.ndarray:
+    """exp(-(E - E_min) / T) of states of energies E (k_B = 1, not normalised): the last one's
+    is the order of the weight of each state above it that a mixture of these leaves out."""
+    require_temperature(temperature)
+    energies = np.asarray(energies, float)
+    return np.exp(-(energies - energies.min()) / temperature)
+
+
+def truncation_warning(count: int, tail: float) -> str:
+    """The warning of a thermal mixture of ``count`` states that leaves out a state of
+    Boltzmann factor ``tail`` relative to the first, above the tolerance."""
+    return (f"thermal mixture truncated at the {count} states computed: a state left out "
+            f"(above them, or unconverged among them) has up to {tail:.1e} of the Boltzmann "
+            f"weight of the first (raise quantum.levels, or quantum.basis_size; --temperature "
+            f"raises the levels up to {MAX_THERMAL_STATES} states)")
+
+
+def thermal_states(spectrum: Spectrum, temperature: float) -> tuple[list, np.ndarray, float]:
+    """The thermal mixture exp(-E / T) / Z over the converged states computed (k_B = 1):
+    (pure states, probabilities, the largest Boltzmann factor, relative to the lowest state,
+    of a state left out: an unconverged one, or the last computed, whose factor is the order
+    of that of each state above it).
+
+    A sector state's angular part is a character, uniform in both angles, so its densities
+    depend on its reduced eigenfunction alone: the states of conjugate sectors that share one
+    (one block, one index) are one entry, with their probabilities summed."""
     count = len(spectrum.energies())
     table = state_components(spectrum, count - 1)
-    states, energies = [], []
-    for k, (level, _) in enumerate(table):
-        if level.converged:
-            states.append(pure_state(spectrum, {k: 1.0}))
-            energies.append(level.energy)
-    energies = np.asarray(energies)
-    weights = np.exp(-(energies - energies.min()) / temperature)
-    return states, weights / weights.sum(), float(weights[-1] / weights[0])
+    factors = boltzmann_factors([level.energy for level, _ in table], temperature)
+    kept = [k for k, (level, _) in enumerate(table) if level.converged]
+    tail = max([factors[-1]] + [f for (level, _), f in zip(table, factors, strict=True)
+                                if not level.converged])
+    total = factors[kept].sum()
+    merged: dict[tuple, list] = {}
+    for k in kept:
+        level, _ = spectrum.state_eigenvector(k)
+        merged.setdefault((level.block, level.index), [k, 0.0])[1] += factors[k] / total
+    states = [pure_state(spectrum, {k: 1.0}) for k, _ in merged.values()]
+    return states, np.array([w for _, w in merged.values()]), float(tail)
 
 
 def _union_box(joints) -> np.ndarray:
@@ -1046,9 +1081,7 @@ def orientation_densities(spectrum: Spectrum, state: int | None = None,
         states, probabilities, tail = thermal_states(spectrum, temperature)
         mixture = list(zip(probabilities, states, strict=True))
         if tail > tolerance:
-            warnings.append(f"thermal mixture truncated at the {len(states)} states computed: "
-                            f"the last has {tail:.1e} of the Boltzmann weight of the first "
-                            f"(compute more levels)")
+            warnings.append(truncation_warning(len(states), tail))
         kind = "thermal"
     else:
         amplitudes = superposition if superposition is not None else {state: 1.0}
@@ -1072,6 +1105,8 @@ __all__ = [
     "joint_density", "Marginal", "density_at", "densities", "marginal_densities", "orientation",
     "ORIENTATION_NODES", "G_TOLERANCE", "G_COMPONENTS", "GRADING", "INTEGRAL_SLACK",
     "ZERO_PANELS", "G_CHUNK", "kronrod_panels", "PureState",
-    "state_components", "pure_state", "thermal_states", "angle_densities", "g_component_densities",
+    "state_components", "pure_state", "MAX_THERMAL_STATES", "require_temperature",
+    "boltzmann_factors",
+    "truncation_warning", "thermal_states", "angle_densities", "g_component_densities",
     "orientation_densities", "projected_triangle"
 ]

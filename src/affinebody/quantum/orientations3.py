@@ -41,7 +41,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from affinebody.quantum import covariants3 as cov
-from affinebody.quantum.densities import state_components
+from affinebody.quantum.densities import (
+    boltzmann_factors,
+    require_temperature,
+    state_components,
+    truncation_warning,
+)
 from affinebody.quantum.levels import Sector, Spectrum
 from affinebody.quantum.tensor_operators3 import wigner
 from affinebody.quantum.transitions import (
@@ -419,15 +424,11 @@ def state_mixture(spectrum: Spectrum, state: int | None = None,
             raise ValueError("densities: the states do not share one reduced quadrature")
         return ([(1.0, c / np.sqrt(np.sum(np.abs(c) ** 2)), [p for p, _ in picked])], weights,
                 kind, warnings)
-    if not 0 < temperature < math.inf:
-        raise ValueError(f"the temperature must be finite and > 0 (got {temperature})")
+    require_temperature(temperature)
     states, weights = level_multiplet_states(spectrum)
-    E = np.array([st.energy for st in states])
-    boltzmann = np.exp(-(E - E.min()) / temperature)
+    boltzmann = boltzmann_factors([st.energy for st in states], temperature)
     if boltzmann[-1] / boltzmann[0] > tolerance:
-        warnings.append(f"thermal mixture truncated at the {len(states)} states computed: "
-                        f"the last has {boltzmann[-1] / boltzmann[0]:.1e} of the Boltzmann "
-                        f"weight of the first (compute more levels)")
+        warnings.append(truncation_warning(len(states), boltzmann[-1] / boltzmann[0]))
     mixture = [(p, np.ones(1), [st]) for p, st in zip(boltzmann / boltzmann.sum(), states,
                                                       strict=True)]
     return mixture, weights, kind, warnings
