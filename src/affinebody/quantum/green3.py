@@ -42,11 +42,11 @@ them, which keeps the density finite and the rule convergent down to y = 0. The 
 integral depends on u only through b; it is tabulated per chamber direction on a grid in ln b
 and interpolated to the sphere's nodes.
 
-The integral of a density (:func:`g_densities3`, docs/theory/densities.md, "Integral (n = 3)")
-is the trapezoid rule in a variable xi in which p dy/dxi is smooth: over the output points
-y = c sinh(xi) (off-diagonal), or over :data:`INTEGRAL_NODES` nodes of its own y = c sinh^2(xi)
-from xi = 0 (diagonal: a d'Alembert density is sqrt(y) x a smooth function of y), with an
-error estimate (:func:`_xi_integral`).
+The integral of a density (:func:`g_densities3`; docs/theory/densities.md, "Components of G
+(n = 3)", its paragraph "Integral") is the trapezoid rule in a variable xi in which p dy/dxi
+is smooth: over the output points y = c sinh(xi) (off-diagonal), or over
+:data:`INTEGRAL_NODES` nodes of its own y = c sinh^2(xi) from xi = 0 (diagonal: a d'Alembert
+density is sqrt(y) x a smooth function of y), with an error estimate (:func:`_xi_integral`).
 """
 
 from __future__ import annotations
@@ -503,7 +503,8 @@ def _xi_integral(f: np.ndarray, change: np.ndarray, h: float, tail: float
     them) + sum_k w_k |change_k| (w the trapezoid weights, ``change`` the difference of the two
     density rules times dy/dxi: the density's own quadrature error) + ``tail`` (the mass beyond
     the grid). T_h converges at least as fast as T_2h, so |T_h - T_2h| bounds its error once
-    the rules resolve the density (docs/theory/densities.md, "Integral (n = 3)")."""
+    the rules resolve the density (docs/theory/densities.md, "Components of G (n = 3)", its
+    paragraph "Integral")."""
     w = np.full(len(f), h)
     w[[0, -1]] = h / 2
     even = f[::2]
