@@ -31,6 +31,20 @@ OMEGA = math.sqrt(K / INERTIA)
 S2 = HBAR / (2 * INERTIA * OMEGA)
 
 
+#: the oscillator as a config file, for the density command
+OSCILLATOR_CONFIG = f"""
+[system]
+n = 2
+[quantum]
+hbar = {HBAR}
+kinetic = "dalembert"
+inertia = {INERTIA}
+potential = "0.5*{K}*trG"
+basis_size = 9
+density_points = 11
+"""
+
+
 @pytest.fixture(scope="module")
 def oscillator():
     """Levels N = 0, 1, 2 of the R^4 oscillator (1 + 4 + 10 states)."""
@@ -181,18 +195,7 @@ def test_density_command_temperature_solves_for_the_states_its_mixture_needs(tmp
     out, at that weight). Then no warning, exit 0, and G11 is the Gaussian thermal state's
     exponential law to 1e-6 of its peak."""
     path = tmp_path / "osc.toml"
-    path.write_text(f"""
-[system]
-n = 2
-[quantum]
-hbar = {HBAR}
-kinetic = "dalembert"
-inertia = {INERTIA}
-potential = "0.5*{K}*trG"
-basis_size = 9
-levels = 5
-density_points = 11
-""")
+    path.write_text(OSCILLATOR_CONFIG + "levels = 5\n")
     result = CliRunner().invoke(density, [str(path), "--temperature", "0.15", "-o",
                                           str(tmp_path / "o")])
     assert result.exit_code == 0, result.output
@@ -211,17 +214,7 @@ def test_density_command_superposition(tmp_path):
     and each G density is the mean of the two states' (Laplace for the ground state's G12 at
     large |y| is not asserted here); orientation.json / .npz / .png written, exit 0."""
     path = tmp_path / "osc.toml"
-    path.write_text(f"""
-[system]
-n = 2
-[quantum]
-hbar = {HBAR}
-kinetic = "dalembert"
-inertia = {INERTIA}
-potential = "0.5*{K}*trG"
-basis_size = 9
-density_points = 11
-""")
+    path.write_text(OSCILLATOR_CONFIG)
     out = tmp_path / "o"
     result = CliRunner().invoke(density, [str(path), "--superpose", "0:1,1:1j", "-o", str(out),
                                           "--json"])
