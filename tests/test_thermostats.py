@@ -16,6 +16,7 @@
 
 import math
 import re
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -313,6 +314,24 @@ def test_af_af_and_incomplete_thermostats_are_refused_in_one_line():
                                                K.AffineAffine(1.0)))
     with pytest.raises(ValueError, match="no canonical ensemble"):
         run(system, rest(2), 0.01, 1, thermostat=th.Langevin(KT, 1.0))
+
+
+def test_a_temperature_in_kelvin_given_as_kt_in_kj_per_mol_is_warned_of():
+    """With system.units = "gromacs" a temperature is kT in kJ/mol (k_B = 1): 300 meant as
+    kelvin is 300 / 0.0083144626 = 36 082 K, which is warned of in one line with the value for
+    300 K (2.494 kJ/mol); kT = 2.494 and reduced units (no kelvin) are not."""
+    base = CONFIG.format(kind="langevin", parameter="friction").replace(
+        "n = 2\n", 'n = 2\nunits = "gromacs"\n', 1)
+    with pytest.warns(UserWarning) as caught:
+        check(parse_config(base.replace("temperature = 0.3", "temperature = 300")))
+    text = str(caught[0].message)
+    assert "36082 K" in text and "2.494" in text and "\n" not in text
+    assert 300 / 0.0083144626181532 == pytest.approx(36082, abs=0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check(parse_config(base.replace("temperature = 0.3", "temperature = 2.494")))
+        check(parse_config(CONFIG.format(kind="langevin", parameter="friction").replace(
+            "temperature = 0.3", "temperature = 300")))
 
 
 def test_the_noise_factors_are_each_bodys_hessian_without_a_batch_of_all_its_columns():

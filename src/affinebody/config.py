@@ -30,6 +30,7 @@ import json
 import math
 import os
 import tomllib
+import warnings
 from dataclasses import dataclass
 from dataclasses import field as dataclass_field
 from pathlib import Path
@@ -41,6 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from affinebody import integrators as _integrators
 from affinebody import kinetic as _kinetic
+from affinebody import units as _units
 from affinebody.groups import CONFIGURATION_SPACES
 from affinebody.units import UNIT_SYSTEMS
 
@@ -819,6 +821,14 @@ def check_thermostat(config: Config) -> None:
     if getattr(t, other) is not None:
         raise ConfigError(f"thermostat.{other} is not a parameter of the {t.kind} thermostat "
                           f"(it uses temperature, {needed}, seed)")
+    hot = _units.kelvin(config.system.units, t.temperature)
+    if hot is not None and hot > _units.PLAUSIBLE_KELVIN:
+        k_b = _units.BOLTZMANN[config.system.units]
+        warnings.warn(f"thermostat.temperature = {t.temperature:g} is kT in "
+                      f"{_units.UNIT_LABELS[config.system.units]['energy']} with system.units = "
+                      f"\"{config.system.units}\" (k_B = 1), that is {hot:.0f} K; for T in "
+                      f"kelvin give T x {k_b:.6g} (300 K: {300 * k_b:.4g})", UserWarning,
+                      stacklevel=2)
     if config.kinetic.internal == "af-af":
         raise ConfigError("thermostat: kinetic.internal 'af-af' (72) has an indefinite kinetic "
                           "energy, so no canonical ensemble exists; use a positive definite model")

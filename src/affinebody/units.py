@@ -27,4 +27,18 @@ UNIT_LABELS: dict[str, dict[str, str]] = {
                 "momentum": "u nm/ps", "action": "u nm²/ps"},
 }
 
-__all__ = ["UNIT_LABELS", "UNIT_SYSTEMS"]
+#: Boltzmann's constant in each system's energy unit per kelvin, where the system has one
+#: (k_B = 1 in the configs: a temperature is given as kT in energy units).
+BOLTZMANN: dict[str, float] = {"gromacs": 0.0083144626181532}  # kJ/mol/K (CODATA 2018)
+#: kT above this many kelvin is taken for a temperature given in kelvin by mistake (warned of):
+#: no affine body model is meant for a plasma
+PLAUSIBLE_KELVIN = 5000.0
+
+
+def kelvin(units: str, kT: float) -> float | None:
+    """The temperature in kelvin of kT in the energy unit of ``units``; None for reduced units,
+    which have no kelvin."""
+    return kT / BOLTZMANN[units] if units in BOLTZMANN else None
+
+
+__all__ = ["UNIT_LABELS", "UNIT_SYSTEMS", "BOLTZMANN", "PLAUSIBLE_KELVIN", "kelvin"]
