@@ -187,20 +187,22 @@ def test_every_state_of_a_degenerate_level_is_its_own_eigenvector(oscillator):
 
 
 def test_density_command_temperature_solves_for_the_states_its_mixture_needs(tmp_path):
-    """affinebody density --temperature 0.15 with quantum.levels = 5 (N <= 1, whose last state
-    has e^{-hbar omega / T} = 1.3e-3 of the ground state's Boltzmann weight: a mixture
-    truncated far above the tolerance, which the command only warned of) doubles the levels
-    until the last state's factor is below the densities' tolerance: 5 -> 10 (15 states,
-    1.8e-6) -> 20 (N <= 3, 2.4e-9; at basis_size 9 some N = 3 states are unconverged and left
-    out, at that weight). Then no warning, exit 0, and G11 is the Gaussian thermal state's
-    exponential law to 1e-6 of its peak."""
+    """affinebody density --temperature 0.15 with quantum.levels = 1 (the ground state: a
+    mixture truncated far above the tolerance, which the command only warned of) asks for more
+    states until the last state's Boltzmann factor is below the densities' tolerance, at least
+    twice as many and more than it has, since a level is solved whole: 1 (-> 1 state) -> 2 (the
+    N = 1 level: 5 states, 1.3e-3) -> 6 (N <= 2: 15, 1.8e-6) -> 16 (at basis_size 9 the N = 3
+    states come out unconverged: the request stops there, and the mixture of 15 states leaves
+    out states of factor 2.4e-9 each). Doubling the request alone stopped at 5 states (4 asked
+    for, 5 already had). Then no warning, exit 0,
+    and G11 is the Gaussian thermal state's exponential law to 1e-6 of its peak."""
     path = tmp_path / "osc.toml"
-    path.write_text(OSCILLATOR_CONFIG + "levels = 5\n")
+    path.write_text(OSCILLATOR_CONFIG + "levels = 1\n")
     result = CliRunner().invoke(density, [str(path), "--temperature", "0.15", "-o",
                                           str(tmp_path / "o")])
     assert result.exit_code == 0, result.output
     states = int(result.output.split("(thermal of ")[1].split()[0])
-    assert states > 15 and "warning" not in result.output
+    assert states >= 15 and "warning" not in result.output
     doc = json.loads((tmp_path / "o" / "orientation.json").read_text())
     g11 = doc["densities"]["G11"]
     s2t = S2 / math.tanh(HBAR * OMEGA / (2 * 0.15))

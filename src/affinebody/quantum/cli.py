@@ -91,7 +91,9 @@ def solve_thermal(config_path: str, temperature: float):
         if (not energies or len(energies) <= converged or count >= MAX_THERMAL_STATES
                 or boltzmann_factors(energies, temperature)[-1] <= G_TOLERANCE):
             return result
-        converged, count = len(energies), min(2 * count, MAX_THERMAL_STATES)
+        # a level is solved whole, so the states may already exceed twice the request
+        converged = len(energies)
+        count = min(max(2 * count, len(result.energies()) + 1), MAX_THERMAL_STATES)
         result, _ = solve_config(config_path, count)
 
 

@@ -752,7 +752,7 @@ def truncation_warning(count: int, tail: float) -> str:
     return (f"thermal mixture truncated at the {count} states computed: a state left out "
             f"(above them, or unconverged among them) has up to {tail:.1e} of the Boltzmann "
             f"weight of the first (raise quantum.levels, or quantum.basis_size; --temperature "
-            f"raises the levels up to {MAX_THERMAL_STATES} states)")
+            f"asks for up to {MAX_THERMAL_STATES} states, in whole levels)")
 
 
 def thermal_states(spectrum: Spectrum, temperature: float) -> tuple[list, np.ndarray, float]:
