@@ -77,8 +77,9 @@ def solve_config(config_path: str, levels: int | None):
 
 
 def solve_thermal(config_path: str, temperature: float):
-    """Solve CONFIG for its thermal mixture at ``temperature``: quantum.levels states, doubled
-    (up to :data:`~affinebody.quantum.densities.MAX_THERMAL_STATES`) until the last converged
+    """Solve CONFIG for its thermal mixture at ``temperature``: quantum.levels states, then
+    requests of at least twice as many and more than it has (a level is solved whole; up to
+    :data:`~affinebody.quantum.densities.MAX_THERMAL_STATES`) until the last converged
     state's Boltzmann factor is below the densities' tolerance, or until a larger solve
     converges no more states. A mixture still truncated is warned of where its densities are
     computed (:func:`~affinebody.quantum.densities.truncation_warning`)."""
@@ -235,7 +236,7 @@ def density(config: str, state: int | None, output: str, as_json: bool, orientat
                                     temperature=temperature, points=qc.density_points,
                                     green=green)
         mixed = ("" if superposition is not None else
-                 f" of {sum(not math.isnan(e) for e in result.energies())} states")
+                 f" of {len(result.energies()) - len(result.unknown_states())} states")
         click.echo(json_text(payload) if as_json else
                    f"wrote {output}/orientation.json, orientation.npz, orientation.png "
                    f"({payload['kind']}{mixed})")
