@@ -11,13 +11,17 @@ state independent normals of variance s^2 = hbar / (2 I omega), omega = sqrt(2 /
 - ``--state 5 --orientation``: an excited level (its G densities have no closed form here:
   only the integrals are checked);
 - ``--temperature 0.3``: the thermal mixture; G11 exponential with mean 2 s_T^2,
-  s_T^2 = s^2 coth(hbar omega / 2T).
+  s_T^2 = s^2 coth(hbar omega / 2T);
+- ``--temperature 0.3`` of the anharmonic V = Tr G + 0.25 (Tr G)^2 (:data:`QUARTIC`): no
+  closed form (integrals only); its eigenvectors fill the basis, where the oscillator's occupy
+  its first functions, so it times the thermal mixture of a general potential.
 
 n = 3 d'Alembert oscillator (V = Tr G / 2, inertia 1, hbar 1; s^2 = 1/2): ``--state 0``
 (Tr G / s^2 chi-square with 9 degrees of freedom) and ``--state 0 --orientation``.
 
 Each command runs as a subprocess (OPENBLAS_NUM_THREADS=1); reported: the whole command
-(start-up included), the start-up alone (``affinebody density --help``), the largest
+(start-up included), the start-up alone (a Python process importing the modules the command
+imports, JAX float64 on: ``density --help`` imports none of them), the largest
 |integral - 1| of its densities with the largest stated ``integral_error`` (G densities) and
 the largest deviation from the closed forms relative to the density's peak.
 
@@ -50,6 +54,8 @@ potential = "{potential}"
 """
 #: (n, inertia, hbar, potential, K): V = K Tr G / 2
 OSCILLATORS = {2: (2, 1.3, 0.8, "trG", 2.0), 3: (3, 1.0, 1.0, "0.5*trG", 1.0)}
+#: the n = 2 anharmonic potential of the last case
+QUARTIC = "trG + 0.25*trG**2"
 
 
 def command(args: list[str]) -> float:
@@ -61,6 +67,17 @@ def command(args: list[str]) -> float:
     if out.returncode not in (0, 3):
         raise SystemExit(f"affinebody {' '.join(args)} failed:\n{out.stderr}")
     return elapsed
+
+
+def startup() -> float:
+    """Wall time of a process that imports what `affinebody density` imports and turns on JAX's
+    float64 mode: the start-up of every command, before it reads its config."""
+    code = ("import affinebody.cli, affinebody.quantum.cli as cli, affinebody.quantum.config, "
+            "affinebody.quantum.spectra, affinebody.quantum.density_files; cli.enable_x64()")
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-c", code], check=True,
+                   env=dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1"))
+    return time.perf_counter() - t0
 
 
 def variance(n: int, temperature: float | None = None) -> float:
@@ -99,22 +116,24 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="n = 2, state 0 only")
     quick = parser.parse_args().quick
-    startup = command(["density", "--help"])
+    started = startup()
     cases = [(2, "state 0", ["--state", "0"], None),
              (2, "state 0 --orientation", ["--state", "0", "--orientation"], None)]
     if not quick:
         cases += [(2, "state 5 --orientation", ["--state", "5", "--orientation"], None),
                   (2, "--temperature 0.3", ["--temperature", "0.3"], 0.3),
+                  (2, "--temperature 0.3 quartic", ["--temperature", "0.3"], None),
                   (3, "state 0", ["--state", "0"], None),
                   (3, "state 0 --orientation", ["--state", "0", "--orientation"], None)]
     print(f"`affinebody density CONFIG ... -o DIR` on the d'Alembert oscillator (one BLAS "
-          f"thread); start-up alone {startup:.2f} s")
-    print(" n  arguments                command[s]   max|integral-1|   stated   "
+          f"thread); start-up alone {started:.2f} s")
+    print(" n  arguments                  command[s]   max|integral-1|   stated   "
           "max|p-exact|/peak")
     with tempfile.TemporaryDirectory() as tmp:
         for n, label, args, temperature in cases:
             n_, inertia, hbar, potential, _ = OSCILLATORS[n]
-            config = Path(tmp) / f"osc{n}.toml"
+            potential = QUARTIC if "quartic" in label else potential
+            config = Path(tmp) / f"osc{n}-{len(label)}.toml"
             config.write_text(CONFIG.format(n=n_, inertia=inertia, hbar=hbar,
                                             potential=potential))
             out = Path(tmp) / f"out-{n}-{len(label)}"
@@ -125,7 +144,7 @@ def main() -> None:
             forms = closed_forms(n, variance(n, temperature)) if known else {}
             deviation, stated, shape = summarise(files, forms)
             shape_text = f"{shape:17.1e}" if forms else f"{'-':>17s}"
-            print(f"{n:2d}  {label:24s} {elapsed:9.1f} {deviation:17.1e} {stated:8.0e}   "
+            print(f"{n:2d}  {label:26s} {elapsed:9.1f} {deviation:17.1e} {stated:8.0e}   "
                   f"{shape_text}", flush=True)
 
 

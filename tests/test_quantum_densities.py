@@ -439,6 +439,37 @@ def test_basis_functions_far_outside_their_support_are_zero_not_nan():
     assert np.all(far_r == 0) and np.all(far_x == 0)
 
 
+def test_separable_values_are_the_double_sum_and_leave_out_only_round_off():
+    """f_s(x) = sum_ij u_i(x0) C_sij v_j(x1) of states stacked per block, evaluated by
+    blocks of points from the first functions of each factor: equal to the plain double sum
+    over all 24 x 24 coefficients to round-off, also where the coefficients end (zero past a
+    row and a column, or 1e-17 of the largest there); the truncated recurrence gives the
+    first functions of the full one bit for bit."""
+    from affinebody.quantum.bases import Hermite1D, Radial2D
+    from affinebody.quantum.densities import coefficient_extent, separable_values
+
+    rng = np.random.default_rng(5)
+    radial, hermite = Radial2D(1, 24, 0.9, 40), Hermite1D(24, 0.7, 0.2, 40)
+    x = np.stack([rng.uniform(0, 4, 5000), rng.uniform(-3, 3, 5000)], -1)
+    u, v = radial.evaluate(x[:, 0]), hermite.evaluate(x[:, 1])
+    assert np.array_equal(radial.evaluate(x[:, 0], 7), u[:, :7])
+    assert np.array_equal(hermite.evaluate(x[:, 1], 5), v[:, :5])
+    C = np.zeros((3, 24, 24))
+    C[0, :6, :4] = rng.normal(size=(6, 4))
+    C[1, :3, :5] = rng.normal(size=(3, 5))
+    C[2] = rng.normal(size=(24, 24)) * np.exp(-0.5 * np.add.outer(np.arange(24), np.arange(24)))
+    C[2, 23, 23] = 0.0
+    C[1, 8, 2] = 1e-17 * np.abs(C[1]).max()  # below round-off of its state: left out
+    assert coefficient_extent(C[:2]) == (6, 5)
+    assert coefficient_extent(C) == (24, 24)
+    for stack in (C[:2], C, C[1:2]):
+        rows, cols = coefficient_extent(stack)
+        got = separable_values(u[:, :rows], v[:, :cols], stack)
+        exact = np.einsum("pi,sij,pj->ps", u, stack, v)
+        size = np.einsum("pi,sij,pj->ps", np.abs(u), np.abs(stack), np.abs(v)).max()
+        assert got.shape == exact.shape and np.max(np.abs(got - exact)) < 1e-14 * size
+
+
 def test_density_command_exits_3_on_a_non_finite_g_density(tmp_path, monkeypatch):
     """A G density that is not finite (as all were at the default n = 2 basis before the
     recurrence was rescaled) is written flagged, warned in one line and the command exits 3

@@ -65,11 +65,11 @@ def _scaled_recurrence(p0: np.ndarray, step, size: int, weight: np.ndarray,
     exp(log_front + shifts x 512 ln 2 + log_constant) (tiny or 0 where the function is). Points
     never rescaled (all points at ordinary arguments) keep ``weight`` itself: their values are
     those of the plain recurrence bit for bit."""
-    out = np.empty(p0.shape + (size,))
+    out = np.empty((size,) + p0.shape)  # row j contiguous: returned transposed, [P, size]
     p_prev, p = np.zeros_like(p0), p0
     shifts = None
     for j in range(size):
-        out[:, j] = p * weight
+        np.multiply(p, weight, out=out[j])
         if j + 1 == size:
             break
         p_prev, p = p, step(j, p, p_prev)
@@ -82,7 +82,7 @@ def _scaled_recurrence(p0: np.ndarray, step, size: int, weight: np.ndarray,
             shifts[big] += 1
             weight[big] = np.exp(log_front[big] + shifts[big] * (_RESCALE * math.log(2.0))
                                  + log_constant)
-    return out
+    return out.T
 
 
 @dataclass(frozen=True)
@@ -107,8 +107,9 @@ class Radial2D:
         T = np.diag(d) + np.diag(o, 1) + np.diag(o, -1)
         return (2 * np.diag(d) - T) / self.scale**2
 
-    def evaluate(self, r: np.ndarray) -> np.ndarray:
-        """u_j(r) at arbitrary r >= 0, shape [..., size], by the scaled recurrence of
+    def evaluate(self, r: np.ndarray, size: int | None = None) -> np.ndarray:
+        """u_j(r) at arbitrary r >= 0, shape [..., size] (the first ``size`` functions, all by
+        default), by the scaled recurrence of
         :func:`_scaled_recurrence` (finite and exact to round-off at any r: far out, where
         l_j(t) ~ t^j overflows long before e^{-t/2} is folded in, the values are the tiny or
         zero numbers they are, not inf x 0 = nan)."""
@@ -131,9 +132,10 @@ class Radial2D:
         def step(k, p, p_prev):
             return ((a[k] - t) * p - b_here[k] * p_prev) / b_next[k]
 
-        out = _scaled_recurrence(np.ones_like(t), step, self.size, weight, log_front,
+        size = self.size if size is None else size
+        out = _scaled_recurrence(np.ones_like(t), step, size, weight, log_front,
                                  math.log(math.sqrt(2) / self.scale))
-        return out.reshape(shape + (self.size,))
+        return out.reshape(shape + (size,))
 
 
 @dataclass(frozen=True)
@@ -158,8 +160,9 @@ class Hermite1D:
         X2 = (X @ X)[: self.size, : self.size]
         return (2 * np.diag(np.arange(self.size) + 0.5) - X2) / self.scale**2
 
-    def evaluate(self, x: np.ndarray) -> np.ndarray:
-        """h_j(x) at arbitrary x, shape [..., size] (the scaled recurrence of
+    def evaluate(self, x: np.ndarray, size: int | None = None) -> np.ndarray:
+        """h_j(x) at arbitrary x, shape [..., size] (the first ``size``, all by default; the
+        scaled recurrence of
         :func:`_scaled_recurrence`: finite at any x)."""
         with np.errstate(over="ignore"):  # |y| = inf: dead below
             y = (np.asarray(x, float) - self.centre) / self.scale
@@ -173,9 +176,10 @@ class Hermite1D:
         def step(j, p, p_prev):
             return math.sqrt(2.0 / (j + 1)) * y * p - math.sqrt(j / (j + 1)) * p_prev
 
-        out = _scaled_recurrence(np.full_like(y, math.pi**-0.25), step, self.size, weight,
+        size = self.size if size is None else size
+        out = _scaled_recurrence(np.full_like(y, math.pi**-0.25), step, size, weight,
                                  log_front, -0.5 * math.log(self.scale))
-        return out.reshape(shape + (self.size,))
+        return out.reshape(shape + (size,))
 
 
 # --------------------------------------------------------------------- reduced problems
