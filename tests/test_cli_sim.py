@@ -535,13 +535,51 @@ def test_help_lists_the_commands_as_click_would_without_importing_them(monkeypat
     eager = [CliRunner().invoke(cli.main, ["--help"], terminal_width=w).output for w in widths]
     assert lazy == eager
     assert set(cli.SUMMARIES) == set(cli.COMMANDS)
-    probe = ("import sys; from click.testing import CliRunner; from affinebody.cli import main; "
-             "assert CliRunner().invoke(main, ['--help']).exit_code == 0; "
-             "print(sorted(m for m in sys.modules if m == 'jax' or m.startswith("
-             "('affinebody.cli.', 'affinebody.quantum'))))")
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
-                         check=True).stdout
-    assert out.strip() == "[]", out
+    loaded = _in_a_fresh_process("assert CliRunner().invoke(main, ['--help']).exit_code == 0\n"
+                                 "print(sorted(m for m in sys.modules if m == 'jax' or "
+                                 "m.startswith(('affinebody.cli.', 'affinebody.quantum'))))")
+    assert loaded == "[]", loaded
+
+
+def _in_a_fresh_process(code: str) -> str:
+    """The stripped stdout of ``code`` run in a new Python process after ``import sys``, click's
+    CliRunner and affinebody.cli's ``main`` and ``COMMANDS``."""
+    head = ("import sys\nfrom click.testing import CliRunner\n"
+            "from affinebody.cli import COMMANDS, main\n")
+    return subprocess.run([sys.executable, "-c", head + code], capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def test_the_help_of_every_command_loads_no_jax_and_a_stopped_run_still_exits_3():
+    """``affinebody CMD --help`` imports the command's module only: no JAX, Numba, h5py,
+    matplotlib, SciPy or Dask (it imported JAX and the command's solvers, 2.6 s). The one-line
+    error policy still tells a stopped run (exit 3) from an internal error (exit 1) without
+    importing the runner itself."""
+    loaded = _in_a_fresh_process(
+        "for name in COMMANDS:\n"
+        "    result = CliRunner().invoke(main, [name, '--help'])\n"
+        "    assert result.exit_code == 0 and 'Usage:' in result.output, name\n"
+        "print(sorted(m for m in ('jax', 'numba', 'h5py', 'matplotlib', 'scipy', 'dask') "
+        "if m in sys.modules))")
+    assert loaded == "[]", loaded
+
+    from affinebody.cli.common import EXIT_STOPPED, one_line_errors
+    from affinebody.runner import SimulationStopped
+
+    @click.command()
+    @one_line_errors
+    def stops():
+        raise SimulationStopped("non-finite state at step 7")
+
+    @click.command()
+    @one_line_errors
+    def breaks():
+        raise RuntimeError("a bug")
+
+    stopped, broken = CliRunner().invoke(stops, []), CliRunner().invoke(breaks, [])
+    assert (stopped.exit_code, stopped.stderr) == (EXIT_STOPPED,
+                                                   "error: non-finite state at step 7\n")
+    assert broken.exit_code == 1 and broken.stderr.startswith("internal error: RuntimeError")
 
 
 def test_usage_errors_of_the_affinebody_command_are_one_line_with_exit_status_2(folder):

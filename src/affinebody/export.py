@@ -26,11 +26,12 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from affinebody.checkpoint import replaced_atomically
-from affinebody.h5md import Trajectory
+if TYPE_CHECKING:  # the command line reads SPECIES from here for its help: no JAX, no h5py
+    from affinebody.h5md import Trajectory
 
 PROPERTIES = "species:S:1:pos:R:3:aspherical_shape:R:3:orientation:R:4:deform:R:9"
 #: The species column of every body. OVITO's XYZ reader gives a type whose name begins with a
@@ -173,6 +174,8 @@ def write_xyz(
     # a file: written under a temporary name and renamed into place once complete, so a frame
     # that cannot be exported (a singular phi) leaves no partial file, and a previous export
     # to the same name intact
+    from affinebody.checkpoint import replaced_atomically
+
     mask = os.umask(0)
     os.umask(mask)
     with replaced_atomically(target, "w", permissions=0o666 & ~mask) as out:

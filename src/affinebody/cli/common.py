@@ -129,10 +129,26 @@ def output_console(**options):
     return _console_class()(**options)
 
 
+def enable_x64() -> None:
+    """:func:`affinebody._checks.enable_x64` for the command that runs, JAX imported then: a
+    command module imports it from here, so ``affinebody CMD --help`` loads no JAX."""
+    from affinebody._checks import enable_x64 as enable
+
+    enable()
+
+
+def _stopped_run(err: Exception) -> bool:
+    """Whether ``err`` is a run's :class:`affinebody.runner.SimulationStopped`. Only a command
+    that imported the runner can raise one, so the runner (JAX, Numba: seconds) is looked up,
+    never imported, here."""
+    runner = sys.modules.get("affinebody.runner")
+    return runner is not None and isinstance(err, runner.SimulationStopped)
+
+
 def one_line_errors(command):
     """Turn every exception of a command into one line on stderr and a non-zero exit, and
-    every warning into one line ``warning: ...`` on stderr (no source line)."""
-    from affinebody.runner import SimulationStopped
+    every warning into one line ``warning: ...`` on stderr (no source line). Nothing is
+    imported here: ``affinebody CMD --help`` loads no JAX (:func:`_stopped_run`)."""
 
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
@@ -140,8 +156,6 @@ def one_line_errors(command):
             with warnings.catch_warnings(), _interrupts_noted():
                 warnings.showwarning = _one_line_warning
                 return command(*args, **kwargs)
-        except SimulationStopped as err:
-            fail(f"error: {err}", EXIT_STOPPED)
         except KeyboardInterrupt as err:  # a command may say what it kept: KeyboardInterrupt(text)
             fail(f"interrupted: {str(err) or 'what was written so far is kept'}", EXIT_INTERRUPTED)
         except BrokenPipeError:  # the reader of stdout has gone (`affinebody ... | head`)
@@ -154,6 +168,8 @@ def one_line_errors(command):
         except (click.exceptions.Exit, click.ClickException, SystemExit):
             raise
         except Exception as err:  # noqa: BLE001 - the CLI never shows a traceback
+            if _stopped_run(err):
+                fail(f"error: {err}", EXIT_STOPPED)
             fail(f"internal error: {type(err).__name__}: {err}")
 
     return wrapper
@@ -210,4 +226,5 @@ def check_output_file(path, what: str, image: bool = False) -> None:
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_BROKEN_PIPE", "EXIT_INTERRUPTED", "EXIT_STOPPED", "fail",
            "not_finite_as", "one_line_errors", "raise_if_interrupted", "refuse_writing_over",
-           "check_output_file", "exit_broken_pipe", "broken_pipe_exits", "output_console"]
+           "check_output_file", "exit_broken_pipe", "broken_pipe_exits", "output_console",
+           "enable_x64"]

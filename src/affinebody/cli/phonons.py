@@ -11,9 +11,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from affinebody._checks import enable_x64
 from affinebody._json import json_text
-from affinebody.cli.common import not_finite_as, one_line_errors
+from affinebody.cli.common import enable_x64, not_finite_as, one_line_errors
 
 
 def _error(message: str):

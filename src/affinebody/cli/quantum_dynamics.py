@@ -34,9 +34,8 @@ import sys
 import click
 import numpy as np
 
-from affinebody._checks import enable_x64
 from affinebody._json import json_text
-from affinebody.cli.common import check_output_file, one_line_errors, output_console
+from affinebody.cli.common import check_output_file, enable_x64, one_line_errors, output_console
 
 
 def _numbers(text: str, flag: str, count: int) -> tuple[float, ...]:

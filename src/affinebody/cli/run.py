@@ -11,29 +11,22 @@ from __future__ import annotations
 import contextlib
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
-from affinebody._checks import enable_x64
-from affinebody.checkpoint import checkpoint_path
 from affinebody.cli.common import (
     check_output_file,
+    enable_x64,
     one_line_errors,
     output_console,
     raise_if_interrupted,
     refuse_writing_over,
 )
-from affinebody.config import (
-    Config,
-    build,
-    check_config,
-    load_config,
-    parse_config,
-    uses_neighbor_list,
-)
-from affinebody.export import SPECIES
-from affinebody.h5md import open_trajectory, read_trajectory
-from affinebody.runner import demo_config_text, prepare_process, run_simulation
+from affinebody.export import SPECIES  # NumPy only: the commands' help loads no JAX
+
+if TYPE_CHECKING:
+    from affinebody.config import Config
 
 
 def _progress_callback(quiet: bool):
@@ -87,6 +80,9 @@ def _run_with_progress(config: Config, output: Path, steps, resume: bool, quiet:
     """``run_simulation`` with the progress bar, stopped by the first Ctrl-C (checked after
     each chunk, :func:`~affinebody.cli.common.raise_if_interrupted`); an interrupted run
     (``resumable``: of a command with --resume) says whether it can be resumed."""
+    from affinebody.checkpoint import checkpoint_path
+    from affinebody.runner import run_simulation
+
     bar, update = _progress_callback(quiet)
 
     def progress(step: int, total: int, drift: float) -> None:
@@ -124,6 +120,10 @@ def _run_with_progress(config: Config, output: Path, steps, resume: bool, quiet:
 def run(config_file, output, steps, resume, overwrite, quiet, verbose):
     """Integrate the system of CONFIG.toml and write an H5MD trajectory."""
     started = time.perf_counter()
+    from affinebody.checkpoint import checkpoint_path
+    from affinebody.config import load_config
+    from affinebody.runner import prepare_process
+
     enable_x64()
     config = load_config(config_file)
     single_xla_thread = prepare_process(config)  # before JAX starts its backend
@@ -162,8 +162,11 @@ def run(config_file, output, steps, resume, overwrite, quiet, verbose):
 @one_line_errors
 def demo(output_dir, steps, quiet):
     """Run the built-in example: a small 2D crystal of affine bodies; write H5MD, PNG and XYZ."""
+    from affinebody.config import check_config, parse_config
     from affinebody.export import write_xyz
+    from affinebody.h5md import read_trajectory
     from affinebody.plotting import plot_all
+    from affinebody.runner import demo_config_text, prepare_process
 
     enable_x64()
     folder = Path(output_dir)
@@ -199,6 +202,7 @@ def demo(output_dir, steps, quiet):
 def plot(trajectory_file, output_dir, animate, fps):
     """Plot energy, momentum maps, deformation invariants, temperatures, pressure and volume
     (NPT), and the bodies (rods for n = 1, ellipses for n = 2, ellipsoids for n = 3)."""
+    from affinebody.h5md import open_trajectory
     from affinebody.plotting import plot_all
 
     enable_x64()
@@ -224,6 +228,7 @@ def plot(trajectory_file, output_dir, animate, fps):
 def export(trajectory_file, xyz_file, every, thickness, species):
     """Export a trajectory as extended XYZ with ellipsoid shapes and orientations."""
     from affinebody.export import write_xyz
+    from affinebody.h5md import open_trajectory
 
     enable_x64()
     refuse_writing_over(xyz_file, trajectory_file, "--xyz")
@@ -239,6 +244,8 @@ def export(trajectory_file, xyz_file, every, thickness, species):
 @one_line_errors
 def validate(config_file):
     """Check a config file without running it."""
+    from affinebody.config import build, load_config, uses_neighbor_list
+
     enable_x64()
     config = load_config(config_file)
     build(config)

@@ -11,11 +11,14 @@ from pathlib import Path
 
 import click
 
-from affinebody._checks import enable_x64
-from affinebody._host import keep_freed_memory
 from affinebody._json import json_text
-from affinebody.cli.common import EXIT_STOPPED, fail, one_line_errors, raise_if_interrupted
-from affinebody.sweep import run_sweep
+from affinebody.cli.common import (
+    EXIT_STOPPED,
+    enable_x64,
+    fail,
+    one_line_errors,
+    raise_if_interrupted,
+)
 
 
 def _format(value: float, digits: int = 3) -> str:
@@ -198,7 +201,9 @@ def _progress_bar(enabled: bool):
 @one_line_errors
 def sweep(config_file, samples, seed, scheduler, workers, output_dir, as_json):
     """Run an ensemble / parameter sweep of CONFIG.toml ([sweep] table) on Dask."""
+    from affinebody._host import keep_freed_memory
     from affinebody.config import load_config
+    from affinebody.sweep import run_sweep
 
     enable_x64()
     keep_freed_memory()  # samples run here too (without workers)

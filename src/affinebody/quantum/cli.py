@@ -34,9 +34,14 @@ import sys
 
 import click
 
-from affinebody._checks import enable_x64
 from affinebody._json import json_text
-from affinebody.cli.common import EXIT_STOPPED, not_finite_as, one_line_errors, output_console
+from affinebody.cli.common import (
+    EXIT_STOPPED,
+    enable_x64,
+    not_finite_as,
+    one_line_errors,
+    output_console,
+)
 
 
 def finite_hamiltonian(potential: str):
