@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:  # the command line reads SPECIES from here for its help: no JAX, no h5py
-    from affinebody.h5md import Trajectory
+    from affinebody import h5md
 
 PROPERTIES = "species:S:1:pos:R:3:aspherical_shape:R:3:orientation:R:4:deform:R:9"
 #: The species column of every body. OVITO's XYZ reader gives a type whose name begins with a
@@ -146,7 +146,7 @@ def _lattice(box: np.ndarray | None, n: int) -> str:
 
 
 def write_xyz(
-    trajectory: Trajectory,
+    trajectory: h5md.Trajectory,
     path: str | Path,
     *,
     every: int = 1,
@@ -183,8 +183,8 @@ def write_xyz(
     return len(frames)
 
 
-def _write_frames(trajectory: Trajectory, out, frames: range, boxes, n: int, thickness: float,
-                  species: str) -> None:
+def _write_frames(trajectory: h5md.Trajectory, out, frames: range, boxes, n: int,
+                  thickness: float, species: str) -> None:
     """The extended XYZ lines of ``frames`` to the open text file ``out``."""
     for frame in frames:  # one frame in memory at a time (open_trajectory reads lazily)
         lattice = _lattice(trajectory.box if boxes is None else boxes[frame], n)
