@@ -1,4 +1,5 @@
-"""Test oracles: independent solvers the reduced quantum spectra are checked against.
+"""Test oracles: independent solvers the reduced quantum spectra are checked against, and the
+d'Alembert oscillator (whose spectrum and densities are known in closed form) as a config file.
 
 Not library code: they exist only to test :mod:`affinebody.quantum` (and its benchmarks).
 """
@@ -13,6 +14,13 @@ from scipy.sparse.linalg import LinearOperator, eigsh
 
 from affinebody.quantum.bases import Hermite1D
 from affinebody.quantum.levels import Potential
+
+
+def oscillator_config(hbar: float, inertia: float, k: float, extra: str) -> str:
+    """The n = 2 d'Alembert oscillator V = (k/2) Tr G as the text of a config file, with the
+    lines ``extra`` ("key = value") added to its [quantum] table."""
+    return (f'[system]\nn = 2\n[quantum]\nhbar = {hbar}\nkinetic = "dalembert"\n'
+            f'inertia = {inertia}\npotential = "0.5*{k}*trG"\n{extra}\n')
 
 
 def cartesian_phi(abcd: np.ndarray) -> np.ndarray:

@@ -24,6 +24,7 @@ from affinebody.quantum.densities import (
     state_components,
     thermal_states,
 )
+from oracles import oscillator_config
 
 HBAR, INERTIA, K = 0.8, 1.3, 2.0
 OMEGA = math.sqrt(K / INERTIA)
@@ -32,17 +33,7 @@ S2 = HBAR / (2 * INERTIA * OMEGA)
 
 
 #: the oscillator as a config file, for the density command
-OSCILLATOR_CONFIG = f"""
-[system]
-n = 2
-[quantum]
-hbar = {HBAR}
-kinetic = "dalembert"
-inertia = {INERTIA}
-potential = "0.5*{K}*trG"
-basis_size = 9
-density_points = 11
-"""
+OSCILLATOR_CONFIG = oscillator_config(HBAR, INERTIA, K, "basis_size = 9\ndensity_points = 11")
 
 
 @pytest.fixture(scope="module")

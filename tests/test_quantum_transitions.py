@@ -31,6 +31,7 @@ from affinebody.quantum.transitions import (
     transitions,
     trk_sum,
 )
+from oracles import oscillator_config
 
 HBAR, INERTIA, K = 0.7, 1.3, 0.8
 OMEGA = math.sqrt(K / INERTIA)
@@ -433,17 +434,7 @@ def test_n3_non_polynomial_refusals(oscillator3, states3):
         assert "\n" not in str(err.value)
 
 
-CONFIG = f"""
-[system]
-n = 2
-[quantum]
-hbar = {HBAR}
-kinetic = "dalembert"
-inertia = {INERTIA}
-potential = "0.5*{K}*trG"
-levels = 15
-basis_size = 12
-"""
+CONFIG = oscillator_config(HBAR, INERTIA, K, "levels = 15\nbasis_size = 12")
 
 
 def test_cli_transitions_json_and_errors(tmp_path):

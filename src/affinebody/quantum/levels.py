@@ -176,6 +176,11 @@ class Spectrum:
 
     def level_of_state(self, k: int) -> Level:
         """The level holding the k-th entry (0-based) of :meth:`energies`."""
+        return self._converged_entry(k)[1]
+
+    def _converged_entry(self, k: int) -> tuple[range, Level]:
+        """(state numbers, level) of the :meth:`numbered` entry holding state k; ValueError
+        when k is past the states computed or its level is an unconverged candidate."""
         seen = 0
         for _, states, lv in self.numbered():
             seen = states.stop
@@ -185,7 +190,7 @@ class Spectrum:
                         f"--state {k} is not converged: its candidate at {lv.energy:.9g} has the "
                         f"error estimate {lv.error:.1e} above quantum.tolerance (raise "
                         f"quantum.basis_size)")
-                return lv
+                return states, lv
         raise ValueError(f"--state {k} is beyond the {seen} states computed")
 
     def state_eigenvector(self, k: int) -> tuple[Level, Sector]:
@@ -195,8 +200,8 @@ class Spectrum:
         sectors in order (:meth:`Level.eigenvectors`), each repeated by its dimension; a
         state is never another state's eigenvector, even where one block holds two of them
         at the level's energy. ValueError as :meth:`level_of_state`."""
-        level = self.level_of_state(k)
-        offset = k - next(states for _, states, lv in self.numbered() if lv is level).start
+        states, level = self._converged_entry(k)
+        offset = k - states.start
         for key, index, sectors in level.eigenvectors():
             for sector in sectors:
                 if offset < sector.dimension:
