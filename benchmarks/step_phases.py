@@ -45,6 +45,12 @@ Pallas' interpreter, a smoke test only): how ``BLOCK`` is to be chosen there; ea
 largest difference of its forces from ``forces``. tests/test_benchmarks.py runs these options
 (the first command of ``gpu_session.sh run``) on the CPU at 512 bodies.
 
+``--pair-parts``: on a GPU, the parts of one pass of the Triton program over its first chunk
+of pairs (``pair_kernels.pair_chunk`` pairs), each a jitted function of its inputs timed
+apart: the scalars kernel, f and its partials (XLA), the rows kernel, and the two scatters of
+the rows to the bodies (K's run sums, L's rows); with the whole pass for comparison (its
+parts overlap nothing, so they should add up to it).
+
 ``--pair-chunks`` and ``--candidate-chunks`` time the forces and the build at other pass sizes
 of the JAX kernels (how ``pair_kernels.ACCELERATOR_PAIR_CHUNK`` and
 ``neighbors._ACCELERATOR_CANDIDATES_PER_CHUNK`` were chosen on a GPU).
@@ -100,6 +106,8 @@ def main() -> None:
                         "the JAX kernel (one of pair_kernels.PAIR_PROGRAMS)")
     parser.add_argument("--triton-blocks", type=int, nargs="*", default=[],
                         help="pairs per program of the Triton kernels to compare")
+    parser.add_argument("--pair-parts", action="store_true",
+                        help="the parts of one pass of the Triton program over pairs (GPU)")
     parser.add_argument("--jax-kernel", action="store_true",
                         help="the JAX pair kernel on a CPU too (as on a GPU)")
     parser.add_argument("--profile", action="store_true",
@@ -188,6 +196,8 @@ def main() -> None:
             difference_to_forces(forces_again(f"forces, Triton block {block}"))
         pk.pair_program, _pair_triton.BLOCK, _pair_triton.WARPS = default
         _pair_triton._calls.cache_clear()
+    if args.pair_parts:
+        pair_parts(system, config.n, state, lst, report)
     for log2 in args.pair_chunks:
         pk.ACCELERATOR_PAIR_CHUNK = pk.PAIR_CHUNK = 1 << log2
         forces_again(f"forces, pair pass 2^{log2}")
@@ -215,6 +225,58 @@ def main() -> None:
         loop(system, state, config.run.dt, built.neighbors, args.loop_steps)
         if args.profile:
             xla_operations(system, state, config.run.dt, built.neighbors, args.loop_steps)
+
+
+def pair_parts(system, n: int, state, lst, report) -> None:
+    """The parts of the Triton program's pass over the list's first chunk of pairs, each
+    jitted and timed apart (``--pair-parts``), for the first pair term of ``system``."""
+    import jax
+    import jax.numpy as jnp
+
+    from affinebody import _linalg, _pair_triton
+    from affinebody import pair_kernels as pk
+    from affinebody.potentials import PairTerm, terms_of
+
+    pot = next(t for t in terms_of(system.potential) if isinstance(t, PairTerm))
+    interpret = jax.default_backend() != "gpu"
+    chunk = min(pk.pair_chunk(), lst.i.shape[0]) // _pair_triton.BLOCK * _pair_triton.BLOCK
+    bodies = state.x.shape[0]
+    i, j, valid = pk._valid_pairs(lst.i[:chunk], lst.j[:chunk], jnp.arange(chunk), lst.count,
+                                  bodies)
+    layout, padding = pk._triton_layout(pot, n)
+    first, second = _pair_triton._calls(layout, chunk, bodies, padding, interpret)
+    table = _pair_triton.table(state.phi, _linalg.inv(state.phi), _linalg.det(state.phi))
+    u = pot.space.displacement(state.x[i], state.x[j], None)
+    args = (u.reshape(-1), i.astype(jnp.int32), j.astype(jnp.int32), valid.astype(jnp.int32),
+            table)
+    values_and_partials = pk._scalar_values_and_partials(pot, n)
+
+    def partials_of(s):
+        energies, flat = _pair_triton.partials_of(layout, values_and_partials, s)
+        return jnp.sum(energies), flat
+
+    width = n + n * n
+    zero = jnp.zeros((bodies, width))
+    s = jax.jit(first)(*args)
+    _, flat = jax.jit(partials_of)(s)
+    side_k, k, side_l = jax.jit(second)(*args, flat)
+    report(f"pass of {chunk} pairs: scalars kernel", *timed(jax.jit(first), *args))
+    report("  f and partials (XLA)", *timed(jax.jit(partials_of), s))
+    report("  rows kernel", *timed(jax.jit(second), *args, flat))
+    report("  scatter of K's run sums", *timed(jax.jit(
+        lambda t, rows, k: t.at[k].add(rows.reshape(-1, width), mode="drop")), zero, side_k, k))
+    report("  scatter of L's rows", *timed(jax.jit(
+        lambda t, rows, j, valid: t.at[jnp.where(valid, j, bodies)].add(
+            rows.reshape(-1, width), mode="drop")), zero, side_l, j, valid))
+
+    def whole(t, x, table, i, j, valid):  # arguments, not constants: XLA would fold them
+        _, _, side_k, k, side_l = pk._triton_chunk(pot, pot.space, n, x, table, i, j, valid,
+                                                   None, interpret)
+        return t.at[k].add(side_k, mode="drop").at[jnp.where(valid, j, bodies)].add(
+            side_l, mode="drop")
+
+    report("  the whole pass (u, kernels, scatters)",
+           *timed(jax.jit(whole), zero, state.x, table, i, j, valid))
 
 
 def xla_operations(system, state, dt, neighbors, steps: int) -> None:

@@ -168,6 +168,25 @@ def test_triton_kernels_of_the_gpu_equal_all_pairs_in_the_pallas_interpreter(cas
                                atol=1e-12 * float(jnp.max(jnp.abs(reference))))
 
 
+def test_triton_run_sums_hold_for_pairs_in_any_order():
+    """The rows kernel sums body K's rows over runs of pairs of one K (_pair_triton._run_sums):
+    a list in the order of neighbors.build has one run per K, but the sums must not depend on
+    it. The same pairs reversed, interleaved (K in many short runs, one-pair runs, runs across
+    blocks) and shuffled give the all-pairs forces too."""
+    potential, n = CASES["all-variables-3d"]
+    x, phi = configuration(np.random.default_rng(11), n, potential.space)
+    _, nbrs = list_for(potential, x, phi)
+    count = int(nbrs.count)
+    i, j = np.asarray(nbrs.i[:count]), np.asarray(nbrs.j[:count])
+    rng = np.random.default_rng(3)
+    reference = all_pairs(potential, x, phi)
+    for order in (np.arange(count)[::-1], np.argsort(np.arange(count) % 7, kind="stable"),
+                  rng.permutation(count)):
+        result = pk.energy_and_gradients_jit(potential, potential.space, x, phi, i[order],
+                                             j[order], count, 256, program="triton-interpret")
+        assert_same(result, reference)
+
+
 #: The custom call through which XLA runs a Pallas Triton kernel on a GPU.
 TRITON_CALL = "__gpu$xla.gpu.triton"
 

@@ -39,10 +39,14 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-#: Pairs per program of the kernels (a power of two, as Triton wants).
-BLOCK = 128
-#: Warps per program: with BLOCK = 128 one pair per thread.
-WARPS = 4
+#: Pairs per program of the kernels (a power of two, as Triton wants). 256 rather than 128:
+#: the rows kernel's runs of one K (:func:`_run_sums`) are cut at a block's ends, so longer
+#: blocks leave fewer run sums to add; the forces at 10^6 bodies took 36.4 ms against 37.3
+#: on an H200 (2026-11-29, ``step_phases.py --triton-blocks``, one process; at 64, 128 and 256
+#: before the run sums they took 39.4, 39.3 and 39.4 ms).
+BLOCK = 256
+#: Warps per program: one pair per thread.
+WARPS = BLOCK // 32
 
 
 class Layout(NamedTuple):
@@ -194,8 +198,8 @@ def _scalars_kernel(layout: Layout, pairs: int, padding: tuple, u_ref, i_ref, j_
         s_ref[pl.ds(q * pairs + start, BLOCK)] = jnp.where(valid, values[key], padding[q])
 
 
-def _rows_kernel(layout: Layout, pairs: int, u_ref, i_ref, j_ref, valid_ref, t_ref, p_ref,
-                 out_k_ref, out_l_ref):
+def _rows_kernel(layout: Layout, pairs: int, bodies: int, u_ref, i_ref, j_ref, valid_ref,
+                 t_ref, p_ref, out_k_ref, k_index_ref, out_l_ref):
     n = layout.n
     start, lanes, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref,
                                                    valid_ref, t_ref)
@@ -248,9 +252,48 @@ def _rows_kernel(layout: Layout, pairs: int, u_ref, i_ref, j_ref, valid_ref, t_r
     side_k = g_u + [d_k[a][b] for a in range(n) for b in range(n)]
     side_l = [-g for g in g_u] + [d_l[a][b] for a in range(n) for b in range(n)]
     width = n + n * n
-    for q, (vk, vl) in enumerate(zip(side_k, side_l, strict=True)):
-        out_k_ref[lanes * width + q] = jnp.where(valid, vk, 0.0)
+    for q, vl in enumerate(side_l):
         out_l_ref[lanes * width + q] = jnp.where(valid, vl, 0.0)
+    body, first, last = _run_bounds(start, valid, i_ref, valid_ref, pairs)
+    for q, (vk, vl) in enumerate(zip(_run_sums(valid, first, last, side_k), side_l,
+                                     strict=True)):
+        out_k_ref[lanes * width + q] = vk
+        out_l_ref[lanes * width + q] = jnp.where(valid, vl, 0.0)
+    k_index_ref[pl.ds(start, BLOCK)] = jnp.where(valid & (first | last), body, bodies)
+
+
+def _run_bounds(start, valid, i_ref, valid_ref, pairs: int):
+    """Body K of each lane of this block, and the lanes that begin and that end a run of
+    one K (each lane of a run of one pair both)."""
+    lane = jnp.arange(BLOCK, dtype=jnp.int32)
+    body = i_ref[start + lane]
+    before = i_ref[jnp.maximum(start + lane - 1, 0)]
+    after = jnp.minimum(start + lane + 1, pairs - 1)
+    next_valid = (valid_ref[after] != 0) & (lane < BLOCK - 1)
+    first = (lane == 0) | (before != body)
+    last = ~next_valid | (i_ref[after] != body)
+    return body, first, last
+
+
+def _run_sums(valid, first, last, rows):
+    """Body K's rows of this block summed run by run, not left pair by pair.
+
+    The list holds the pairs of one body K one after the other (``neighbors.build``), so a
+    block of pairs is a few runs of one K each, and a scatter of each pair's row to K made a
+    GPU serialise ~40 float64 atomic adds on each body's numbers. With C the running sum of a
+    row over the block's lanes (C_e its value at lane e), the last lane of each run carries
+    C_e and the first lane, unless it is the block's first, -C_(e-1) = v_e - C_e: XLA then adds
+    only those lanes (:func:`_run_bounds`; the others' index is out of range), each run's body
+    getting C at its end minus C before its start, its run's sum, whatever the order of the
+    pairs (a K in two runs gets both sums)."""
+    lane = jnp.arange(BLOCK, dtype=jnp.int32)
+    out = []
+    for row in rows:
+        v = jnp.where(valid, row, 0.0)
+        running = jnp.cumsum(v)
+        out.append(jnp.where(last, running, 0.0)
+                   - jnp.where(first & (lane > 0), running - v, 0.0))
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -258,9 +301,10 @@ def _rows_kernel(layout: Layout, pairs: int, u_ref, i_ref, j_ref, valid_ref, t_r
 
 
 @functools.cache
-def _calls(layout: Layout, pairs: int, padding: tuple, interpret: bool):
-    """The two pallas_calls for chunks of ``pairs`` pairs (a multiple of BLOCK)."""
-    scalars, n = len(layout.scalars), layout.n
+def _calls(layout: Layout, pairs: int, bodies: int, padding: tuple, interpret: bool):
+    """The two pallas_calls for chunks of ``pairs`` pairs (a multiple of BLOCK) of ``bodies``
+    bodies."""
+    scalars, width = len(layout.scalars), layout.n + layout.n * layout.n
     params = dict(grid=(pairs // BLOCK,), interpret=interpret,
                   compiler_params=None if interpret else _triton_params())
     f64 = jnp.float64
@@ -269,9 +313,10 @@ def _calls(layout: Layout, pairs: int, padding: tuple, interpret: bool):
         functools.partial(_scalars_kernel, layout, pairs, padding),
         out_shape=jax.ShapeDtypeStruct((scalars * pairs,), f64),
         name="affinebody_pair_scalars", **params)
+    rows = jax.ShapeDtypeStruct((width * pairs,), f64)
     second = pl.pallas_call(
-        functools.partial(_rows_kernel, layout, pairs),
-        out_shape=(jax.ShapeDtypeStruct(((n + n * n) * pairs,), f64),) * 2,
+        functools.partial(_rows_kernel, layout, pairs, bodies),
+        out_shape=(rows, jax.ShapeDtypeStruct((pairs,), jnp.int32), rows),
         name="affinebody_pair_rows", **params)
     return first, second
 
@@ -282,27 +327,10 @@ def _triton_params():
     return plt.CompilerParams(num_warps=WARPS, num_stages=1)
 
 
-def chunk_rows(layout: Layout, values_and_partials, padding: tuple, u, i, j, valid,
-               body_table, interpret: bool = False):
-    """Energy of a chunk of pairs and its rows: (E, g_u [P, n], side_K [P, n + n^2],
-    side_L [P, n + n^2]), each side's row being (dV/dx, dV/dphi) of that pair for that body.
-
-    ``layout``: what to compute (:class:`Layout`); ``values_and_partials``: base -> (energies
-    [P], partials), f and its partials in XLA; ``padding``: each scalar's value for a padding
-    pair; ``u`` [P, n]; ``i``, ``j`` [P] int32; ``valid`` [P] bool; ``body_table``: the
-    bodies' :func:`table`; ``interpret``: run in Pallas' interpreter (CPU tests)."""
-    pairs, n = u.shape
-    size = -(-pairs // BLOCK) * BLOCK
-    if size != pairs:
-        extra = size - pairs
-        u = jnp.concatenate([u, jnp.zeros((extra, n), u.dtype)])
-        i, j = (jnp.concatenate([a, jnp.zeros(extra, a.dtype)]) for a in (i, j))
-        valid = jnp.concatenate([valid, jnp.zeros(extra, bool)])
-    first, second = _calls(layout, size, padding, interpret)
-    args = (u.reshape(-1), i.astype(jnp.int32), j.astype(jnp.int32), valid.astype(jnp.int32),
-            body_table)
-    s = first(*args)
-    rows = s.reshape(len(layout.scalars), size)
+def partials_of(layout: Layout, values_and_partials, scalars):
+    """(energies [P], partials [len(layout.scalars) * P]): f and its partials (XLA) from the
+    scalars kernel's output, the partials in the layout the rows kernel reads."""
+    rows = scalars.reshape(len(layout.scalars), -1)
     base = {}
     for q, (name, _) in enumerate(layout.scalars):
         base.setdefault(name, []).append(rows[q])
@@ -310,9 +338,34 @@ def chunk_rows(layout: Layout, values_and_partials, padding: tuple, u, i, j, val
             for name, vs in base.items()}
     energies, partials = values_and_partials(base)
     names = dict.fromkeys(name for name, _ in layout.scalars)  # in the scalars' order
-    flat = jnp.concatenate([partials[name].T.reshape(-1) for name in names])
-    side_k, side_l = second(*args, flat)
-    side_k = side_k.reshape(size, n + n * n)[:pairs]
-    side_l = side_l.reshape(size, n + n * n)[:pairs]
-    return jnp.sum(energies), side_k[:, :n], side_k, side_l
+    return energies, jnp.concatenate([partials[name].T.reshape(-1) for name in names])
 
+
+def chunk_rows(layout: Layout, values_and_partials, padding: tuple, u, i, j, valid,
+               body_table, interpret: bool = False):
+    """Energy of a chunk of pairs and its rows: (E, g_u [P, n], side_K [P, n + n^2], K [P],
+    side_L [P, n + n^2]): side_L holds each pair's row (dV/dx, dV/dphi) for its body L;
+    side_K the rows for body K summed over each run of pairs of one K (:func:`_run_sums`), to
+    be added to body K[p] (an index N, out of range, where a lane adds nothing).
+
+    ``layout``: what to compute (:class:`Layout`); ``values_and_partials``: base -> (energies
+    [P], partials), f and its partials in XLA; ``padding``: each scalar's value for a padding
+    pair; ``u`` [P, n]; ``i``, ``j`` [P] int32; ``valid`` [P] bool; ``body_table``: the
+    bodies' :func:`table`; ``interpret``: run in Pallas' interpreter (CPU tests)."""
+    pairs, n = u.shape
+    width = n + n * n
+    size = -(-pairs // BLOCK) * BLOCK
+    if size != pairs:
+        extra = size - pairs
+        u = jnp.concatenate([u, jnp.zeros((extra, n), u.dtype)])
+        i, j = (jnp.concatenate([a, jnp.zeros(extra, a.dtype)]) for a in (i, j))
+        valid = jnp.concatenate([valid, jnp.zeros(extra, bool)])
+    first, second = _calls(layout, size, body_table.shape[0] // layout.columns, padding,
+                           interpret)
+    args = (u.reshape(-1), i.astype(jnp.int32), j.astype(jnp.int32), valid.astype(jnp.int32),
+            body_table)
+    energies, flat = partials_of(layout, values_and_partials, first(*args))
+    side_k, k_index, side_l = second(*args, flat)
+    side_l = side_l.reshape(size, width)[:pairs]
+    return (jnp.sum(energies), -side_l[:, :n], side_k.reshape(size, width)[:pairs],
+            k_index[:pairs], side_l)
