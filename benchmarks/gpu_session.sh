@@ -63,7 +63,8 @@ run)
             --bodies 1000000 --loop-steps 0 2>&1 | tee -a "$OUT/rev_1e6.txt"
     fi
     python3 benchmarks/run_scale.py --bodies 1000000 --steps 200 2>&1 | tee "$OUT/scale_1e6.txt"
-    python3 benchmarks/step_phases.py --bodies 1000000 2>&1 | tee "$OUT/phases_1e6.txt"
+    # the parts of a step, and (--profile) the kernels the GPU ran per step of the loop
+    python3 benchmarks/step_phases.py --bodies 1000000 --profile 2>&1 | tee "$OUT/phases_1e6.txt"
     python3 benchmarks/run_scale.py --bodies 100000 --steps 1000 2>&1 | tee "$OUT/scale_1e5.txt"
     # the same command with the XLA program of the pair forces: the whole-command A/B
     AFFINEBODY_PAIR_PROGRAM=xla python3 benchmarks/run_scale.py --bodies 1000000 --steps 200 \

@@ -20,7 +20,9 @@ reported apart):
 ``--profile``: the loop once more under JAX's profiler, and what XLA ran on its thread per
 step outside the host kernels' callbacks: the time of its operations (summed, without the
 wrappers of the while loops and conditionals that hold them), their number, and the ten
-longest, named as in the optimised HLO (dumped with
+longest; on a GPU the kernels its streams ran instead, the fifteen longest (the Triton
+kernels by their names, ``affinebody_pair_scalars`` and ``affinebody_pair_rows``); named as
+in the optimised HLO (dumped with
 ``XLA_FLAGS=--xla_dump_to=DIR --xla_dump_hlo_as_text`` to see what they compute).
 
 ``--npt``: the same system under the barostat of ``run_scale.py --npt`` (a move every step),
@@ -280,9 +282,11 @@ def pair_parts(system, n: int, state, lst, report) -> None:
 
 
 def xla_operations(system, state, dt, neighbors, steps: int) -> None:
-    """What XLA's threads ran per step of ``simulate.run`` outside the host callbacks, from a
-    trace of JAX's profiler (its Perfetto export): the leaf operations (not the while loops,
-    conditionals and executors around them), summed and counted."""
+    """What XLA ran per step of ``simulate.run`` outside the host callbacks, from a trace of
+    JAX's profiler (its Perfetto export), summed and counted by name: on a CPU the leaf
+    operations of XLA's threads (not the while loops, conditionals and executors around
+    them); on a GPU the kernels of the device's streams (the processes named after the GPU;
+    where the trace has none, the process names it has are printed instead)."""
     import collections
     import gzip
     import json
@@ -297,19 +301,38 @@ def xla_operations(system, state, dt, neighbors, steps: int) -> None:
         with gzip.open(next(Path(folder).rglob("perfetto_trace.json.gz"))) as f:
             trace = json.load(f)
     events = trace["traceEvents"] if isinstance(trace, dict) else trace
-    names = {(e["pid"], e["tid"]): e["args"]["name"] for e in events
-             if e.get("ph") == "M" and e.get("name") == "thread_name"}
+
+    def named(kind):
+        return {(e["pid"], e.get("tid")) if kind == "thread_name" else e["pid"]:
+                e["args"]["name"] for e in events
+                if e.get("ph") == "M" and e.get("name") == kind}
+
+    threads, processes = named("thread_name"), named("process_name")
+    gpu = jax.default_backend() == "gpu"
     wrappers = ("ThunkExecutor", "cond", "while", "affinebody_host_callback")
+
+    def counted(e) -> bool:
+        if e.get("ph") != "X":
+            return False
+        if gpu:
+            return "gpu" in processes.get(e["pid"], "").lower()
+        return (threads.get((e["pid"], e["tid"]), "").startswith("tf_XLA")
+                and not e["name"].startswith(wrappers))
+
     time_of, count_of = collections.Counter(), collections.Counter()
-    for e in events:
-        if (e.get("ph") == "X" and names.get((e["pid"], e["tid"]), "").startswith("tf_XLA")
-                and not e["name"].startswith(wrappers)):
-            time_of[e["name"]] += e.get("dur", 0.0)
-            count_of[e["name"]] += 1
-    longest = ", ".join(f"{name} {t / steps:.0f}" for name, t in time_of.most_common(10))
-    print(f"  xla operations per step (profiler): {sum(time_of.values()) / steps:.0f} us in "
-          f"{sum(count_of.values()) / steps:.0f} operations; longest (us): {longest}",
-          flush=True)
+    for e in filter(counted, events):
+        time_of[e["name"]] += e.get("dur", 0.0)
+        count_of[e["name"]] += 1
+    if not time_of:
+        print(f"  profiler: no {'GPU kernels' if gpu else 'XLA operations'} found; processes "
+              f"in the trace: {sorted(set(processes.values()))}", flush=True)
+        return
+    longest = ", ".join(f"{name} {t / steps:.0f} ({count_of[name] / steps:.3g}x)"
+                        for name, t in time_of.most_common(15 if gpu else 10))
+    print(f"  {'gpu kernels' if gpu else 'xla operations'} per step (profiler): "
+          f"{sum(time_of.values()) / steps:.0f} us in {sum(count_of.values()) / steps:.0f} "
+          f"{'kernels' if gpu else 'operations'}; longest, us per step (times per step): "
+          f"{longest}", flush=True)
 
 
 def npt_loop(config, system, state, neighbors, steps: int) -> None:
