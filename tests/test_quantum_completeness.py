@@ -364,3 +364,25 @@ def test_an_incomplete_list_says_why():
     assert "not certified (certified: no level" in s.incomplete_because(1)
     s.certified, s.bounded_below = True, False
     assert "unbounded below" in s.incomplete_because(1) and not s.complete(1)
+
+
+def test_the_collectors_running_count_is_the_count_of_every_candidate():
+    """LevelCollector keeps its candidates' states and their ascending ladder as blocks come
+    (the search asks for the K-th energy before every block); at every point of a search its
+    count and K-th energy must be those of all candidates recounted (levels.kth_energy of
+    known()): converged and unconverged candidates, degenerate sectors, equal energies."""
+    from affinebody.quantum.levels import kth_energy
+
+    rng = np.random.default_rng(7)
+    found = LevelCollector(Settings())
+    for block in range(40):
+        size = int(rng.integers(1, 5))
+        energies = np.round(rng.uniform(0.0, 3.0, size), 1)  # ties across blocks
+        errors = np.where(rng.random(size) < 0.3, 1e-2, 1e-12)  # some unconverged
+        sectors = (Sector(block, 0, dimension=int(rng.integers(1, 4))),)
+        found.record(("block", block), sectors, None, energies, None, errors)
+        known = found.known()
+        assert found.state_count() == sum(s.dimension for e in known for s in e[2])
+        for count in range(1, found.state_count() + 2):
+            assert found.kth_energy(count) == kth_energy(known, count)
+    assert found.unconverged and found.entries  # both kinds were counted

@@ -16,8 +16,10 @@ with u = x_K - x_L (minimum image) from XLA:
 3. :func:`_rows_kernel`: gather the bodies again (and compute the scalars again instead of
    loading them: one input fewer; not yet timed against loading on a GPU), read the
    partials, apply the per-pair chain rule of ``_chunk_contributions`` and write each
-   pair's two rows of n + n^2 numbers (dV/dx, dV/dphi for body K and for body L), which XLA
-   then adds to the bodies (one scatter per side).
+   pair's row of n + n^2 numbers (dV/dx, dV/dphi) for body L, and body K's rows summed over
+   each run of pairs of one K (:func:`_run_sums`), which XLA then adds to the bodies (one
+   scatter per side). On an H200 at 10^6 bodies (2026-11-29) a pass over 2^22 pairs took
+   0.35 ms in the first kernel, 0.32 ms in f, 1.96 ms in this one.
 
 Triton wants power-of-two block shapes, so a matrix is not a [P, n, n] block but n^2 vectors
 of :data:`BLOCK` pairs (lists of lists), and every array a kernel reads or writes is one flat
