@@ -376,7 +376,8 @@ class LevelCollector:
 
     def kth_energy(self, count: int) -> float:
         """The ``count``-th lowest candidate energy, counted with multiplicity (inf if fewer):
-        :func:`kth_energy` of :meth:`known`, from the ladder in O(count)."""
+        :func:`affinebody.quantum.levels.kth_energy` of :meth:`known`, from the ladder in
+        O(count)."""
         total = 0
         for energy, states in self.ladder:
             total += states
