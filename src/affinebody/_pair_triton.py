@@ -254,8 +254,6 @@ def _rows_kernel(layout: Layout, pairs: int, bodies: int, u_ref, i_ref, j_ref, v
     side_k = g_u + [d_k[a][b] for a in range(n) for b in range(n)]
     side_l = [-g for g in g_u] + [d_l[a][b] for a in range(n) for b in range(n)]
     width = n + n * n
-    for q, vl in enumerate(side_l):
-        out_l_ref[lanes * width + q] = jnp.where(valid, vl, 0.0)
     body, first, last = _run_bounds(start, valid, i_ref, valid_ref, pairs)
     for q, (vk, vl) in enumerate(zip(_run_sums(valid, first, last, side_k), side_l,
                                      strict=True)):
@@ -281,8 +279,9 @@ def _run_sums(valid, first, last, rows):
     """Body K's rows of this block summed run by run, not left pair by pair.
 
     The list holds the pairs of one body K one after the other (``neighbors.build``), so a
-    block of pairs is a few runs of one K each, and a scatter of each pair's row to K made a
-    GPU serialise ~40 float64 atomic adds on each body's numbers. With C the running sum of a
+    block of pairs is a few runs of one K each, and a scatter of each pair's row to K put ~40
+    float64 atomic adds on each body's numbers one after another (the forces at 10^6 bodies on
+    an H200: 39.1 ms that way, 37.3 ms with these sums). With C the running sum of a
     row over the block's lanes (C_e its value at lane e), the last lane of each run carries
     C_e and the first lane, unless it is the block's first, -C_(e-1) = v_e - C_e: XLA then adds
     only those lanes (:func:`_run_bounds`; the others' index is out of range), each run's body

@@ -341,13 +341,14 @@ class LevelCollector:
     states: int = 0
 
     def _add(self, E: float, err: float, sectors: tuple, key: tuple, index: int) -> None:
+        states = state_count(sectors)
         if is_converged(E, err, self.settings):
             self.entries.append((float(E), float(err), sectors, key, index))
         else:
-            self.unconverged.append(Level(float(E), state_count(sectors), sectors, float(err),
-                                          key, index, converged=False))
-        bisect.insort(self.ladder, (float(E), state_count(sectors)))
-        self.states += state_count(sectors)
+            self.unconverged.append(Level(float(E), states, sectors, float(err), key, index,
+                                          converged=False))
+        bisect.insort(self.ladder, (float(E), states))
+        self.states += states
 
     def record(self, key: tuple, sectors: tuple, basis, E, vec, err) -> None:
         """One block whose eigenvectors all belong to ``sectors`` (level i: index i)."""
