@@ -47,11 +47,17 @@ Pallas' interpreter, a smoke test only): how ``BLOCK`` is to be chosen there; ea
 largest difference of its forces from ``forces``. tests/test_benchmarks.py runs these options
 (the first command of ``gpu_session.sh run``) on the CPU at 512 bodies.
 
+``--f-in-xla``: ``forces`` again with the Triton program's f and its partials computed by XLA
+between its two kernels (``pair_kernels.F_IN_TRITON`` off: the scalars kernel first) instead
+of inside its first kernel (the partials kernel), with the largest difference of its forces.
+
 ``--pair-parts``: on a GPU, the parts of one pass of the Triton program over its first chunk
 of pairs (``pair_kernels.pair_chunk`` pairs), each a jitted function of its inputs timed
-apart: the scalars kernel, f and its partials (XLA), the rows kernel, and the two scatters of
-the rows to the bodies (K's run sums, L's rows); with the whole pass for comparison (its
-parts overlap nothing, so they should add up to it).
+apart: the scalars kernel and f and its partials (XLA), or instead the partials kernel that
+does both (the product's where f allows), the rows kernel, and the two scatters of the rows
+to the bodies (K's run sums, L's rows); with the whole pass for comparison (its parts
+overlap nothing, so they should add up to it, with the partials kernel in place of the
+first two).
 
 ``--pair-chunks`` and ``--candidate-chunks`` time the forces and the build at other pass sizes
 of the JAX kernels (how ``pair_kernels.ACCELERATOR_PAIR_CHUNK`` and
@@ -108,6 +114,9 @@ def main() -> None:
                         "the JAX kernel (one of pair_kernels.PAIR_PROGRAMS)")
     parser.add_argument("--triton-blocks", type=int, nargs="*", default=[],
                         help="pairs per program of the Triton kernels to compare")
+    parser.add_argument("--f-in-xla", action="store_true",
+                        help="time the forces again with the Triton program's f in XLA "
+                             "between its kernels (pair_kernels.F_IN_TRITON off)")
     parser.add_argument("--pair-parts", action="store_true",
                         help="the parts of one pass of the Triton program over pairs (GPU)")
     parser.add_argument("--jax-kernel", action="store_true",
@@ -198,6 +207,12 @@ def main() -> None:
             difference_to_forces(forces_again(f"forces, Triton block {block}"))
         pk.pair_program, _pair_triton.BLOCK, _pair_triton.WARPS = default
         _pair_triton._calls.cache_clear()
+    if args.f_in_xla:
+        default = pk.pair_program, pk.F_IN_TRITON
+        program = "triton" if jax.default_backend() == "gpu" else "triton-interpret"
+        pk.pair_program, pk.F_IN_TRITON = (lambda *_: program), False
+        difference_to_forces(forces_again("forces, Triton with f in XLA"))
+        pk.pair_program, pk.F_IN_TRITON = default
     if args.pair_parts:
         pair_parts(system, config.n, state, lst, report)
     for log2 in args.pair_chunks:
@@ -246,7 +261,6 @@ def pair_parts(system, n: int, state, lst, report) -> None:
     i, j, valid = pk._valid_pairs(lst.i[:chunk], lst.j[:chunk], jnp.arange(chunk), lst.count,
                                   bodies)
     layout, padding = pk._triton_layout(pot, n)
-    first, second = _pair_triton._calls(layout, chunk, bodies, padding, interpret)
     table = _pair_triton.table(state.phi, _linalg.inv(state.phi), _linalg.det(state.phi))
     u = pot.space.displacement(state.x[i], state.x[j], None)
     args = (u.reshape(-1), i.astype(jnp.int32), j.astype(jnp.int32), valid.astype(jnp.int32),
@@ -259,11 +273,16 @@ def pair_parts(system, n: int, state, lst, report) -> None:
 
     width = n + n * n
     zero = jnp.zeros((bodies, width))
-    s = jax.jit(first)(*args)
+    scalars, second = _pair_triton._calls(layout, chunk, bodies, padding, interpret)
+    s = jax.jit(scalars)(*args)
     _, flat = jax.jit(partials_of)(s)
     side_k, k, side_l = jax.jit(second)(*args, flat)
-    report(f"pass of {chunk} pairs: scalars kernel", *timed(jax.jit(first), *args))
+    report(f"pass of {chunk} pairs: scalars kernel", *timed(jax.jit(scalars), *args))
     report("  f and partials (XLA)", *timed(jax.jit(partials_of), s))
+    energy = pk.triton_energy(pot, n, "triton-interpret" if interpret else "triton")
+    if energy is not None:  # the product's first kernel: scalars, f and partials in one
+        first, _ = _pair_triton._calls(layout, chunk, bodies, padding, interpret, energy)
+        report("  or instead partials kernel", *timed(jax.jit(first), *args))
     report("  rows kernel", *timed(jax.jit(second), *args, flat))
     report("  scatter of K's run sums", *timed(jax.jit(
         lambda t, rows, k: t.at[k].add(rows.reshape(-1, width), mode="drop")), zero, side_k, k))

@@ -1,8 +1,9 @@
 """The benchmark commands that a session lent a GPU machine runs first
 (``benchmarks/gpu_session.sh run``: ``step_phases.py`` with ``--pair-program``,
-``--triton-blocks`` and ``--pair-parts``), run here on the CPU at 512 bodies with the JAX
-pair kernel (the GPU's kernel): they must run through, and the forces of the Triton kernels
-(in Pallas' interpreter here) and of the XLA program must be those of the product's forces.
+``--f-in-xla``, ``--triton-blocks`` and ``--pair-parts``), run here on the CPU at 512 bodies
+with the JAX pair kernel (the GPU's kernel): they must run through, and the forces of the
+Triton kernels (in Pallas' interpreter here; f inside the first kernel or in XLA) and of the
+XLA program must be those of the product's forces.
 A GPU session has a few minutes; a benchmark option broken by a change of the library (as
 the patched ``pair_kernels.pair_program`` was once, when it gained arguments) would spend
 them."""
@@ -21,14 +22,16 @@ def test_the_gpu_sessions_first_command_runs_and_its_programs_agree():
     env.pop("AFFINEBODY_PAIR_PROGRAM", None)
     done = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "step_phases.py"), "--bodies", "512",
-         "--loop-steps", "0", "--pair-program", "xla", "--triton-blocks", "64",
+         "--loop-steps", "0", "--pair-program", "xla", "--f-in-xla", "--triton-blocks", "64",
          "--jax-kernel", "--pair-parts"],
         capture_output=True, text=True, env=env, cwd=ROOT, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     out = done.stdout
     assert "forces, pair program xla" in out and "forces, Triton block 64" in out
-    assert "rows kernel" in out and "the whole pass" in out  # --pair-parts ran through
+    assert "forces, Triton with f in XLA" in out
+    assert "partials kernel" in out and "rows kernel" in out and "the whole pass" in out
     differences = [float(d) for d in re.findall(r"\(largest difference, relative\)\s+(\S+)",
                                                  out)]
-    assert len(differences) == 2  # the XLA program and the Triton kernels, each against forces
+    # the XLA program, the Triton kernels with f in XLA and at block 64, each against forces
+    assert len(differences) == 3
     assert all(d <= 1e-12 for d in differences), out

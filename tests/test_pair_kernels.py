@@ -168,11 +168,14 @@ def test_triton_kernels_of_the_gpu_equal_all_pairs_in_the_pallas_interpreter(cas
                                atol=1e-12 * float(jnp.max(jnp.abs(reference))))
 
 
-def test_triton_run_sums_hold_for_pairs_in_any_order():
+def test_triton_run_sums_hold_for_pairs_in_any_order(monkeypatch):
     """The rows kernel sums body K's rows over runs of pairs of one K (_pair_triton._run_sums):
     a list in the order of neighbors.build has one run per K, but the sums must not depend on
     it. The same pairs reversed, interleaved (K in many short runs, one-pair runs, runs across
-    blocks) and shuffled give the all-pairs forces too."""
+    blocks) and shuffled give the all-pairs forces too. With f and its partials in XLA
+    between the kernels (the way for an f that Triton cannot run; the test above runs f in
+    the first kernel)."""
+    monkeypatch.setattr(pk, "F_IN_TRITON", False)
     potential, n = CASES["all-variables-3d"]
     x, phi = configuration(np.random.default_rng(11), n, potential.space)
     _, nbrs = list_for(potential, x, phi)
@@ -192,19 +195,21 @@ TRITON_CALL = "__gpu$xla.gpu.triton"
 
 
 def export_chunk_for_cuda(potential, n: int, pairs: int = 1024, bodies: int = 50,
-                          batch: int | None = None):
+                          batch: int | None = None, f_in_kernel: bool = False):
     """jax.export of one chunk of the Triton program of ``potential`` for the "cuda"
     platform, an H100 named as the target device (JAX 0.12 asks for one where no GPU is
-    present); with ``batch``, vmapped over that many systems (the samples of a sweep); also
-    what tools/triton_offline.py compiles."""
+    present); with ``batch``, vmapped over that many systems (the samples of a sweep); with
+    ``f_in_kernel`` f and its partials in the first kernel (the partials kernel) instead of
+    in XLA between the two; also what tools/triton_offline.py compiles."""
     from jax import export
     from jax.sharding import AbstractDevice, AbstractMesh, use_abstract_mesh
 
     layout, padding = pk._triton_layout(potential, n)
+    energy = pk._pair_triton.ColumnEnergy(potential, layout) if f_in_kernel else None
 
     def chunk(u, i, j, valid, table):
         return pk._pair_triton.chunk_rows(layout, pk._scalar_values_and_partials(potential, n),
-                                          padding, u, i, j, valid, table)
+                                          padding, u, i, j, valid, table, energy=energy)
 
     lead = () if batch is None else (batch,)
     shapes = [jax.ShapeDtypeStruct(lead + shape, dtype) for shape, dtype in (
@@ -220,13 +225,20 @@ def export_chunk_for_cuda(potential, n: int, pairs: int = 1024, bodies: int = 50
 def test_triton_kernels_lower_to_triton_for_a_cuda_gpu():
     """Without a GPU, the kernels still go through Pallas' Triton lowering for CUDA
     (:func:`export_chunk_for_cuda`): every operation they use has a Triton form, and a chunk
-    of the JAX kernel is XLA around two Triton calls (scalars, then rows). Vmapped, as the
+    of the JAX kernel is XLA around two Triton calls (scalars, or with f inside the partials,
+    then rows). Vmapped, as the
     samples of a sweep run them, each call gets a second grid axis over the batch."""
     import re
 
     potential, n = CASES["all-variables-3d"]  # every scalar: the kernels' every operation
-    exported = export_chunk_for_cuda(potential, n)
-    assert exported.mlir_module().count(f"custom_call @{TRITON_CALL}(") == 2
+    for f_in_kernel, first in ((False, "scalars"), (True, "partials")):
+        module = export_chunk_for_cuda(potential, n, f_in_kernel=f_in_kernel).mlir_module()
+        assert module.count(f"custom_call @{TRITON_CALL}(") == 2
+        assert f"affinebody_pair_{first}" in module and "affinebody_pair_rows" in module
+    # the demo's f (exp, a power, negated literals) inside a kernel
+    demo, n3 = CASES["demo-3d"]
+    assert "affinebody_pair_partials" in export_chunk_for_cuda(
+        demo, n3, f_in_kernel=True).mlir_module()
     batched = export_chunk_for_cuda(potential, n, batch=3).mlir_module()
     grids = re.findall(r"grid_x = (\d+) : i32, grid_y = (\d+) : i32", batched)
     assert grids == [(str(1024 // pk._pair_triton.BLOCK), "3")] * 2
@@ -263,6 +275,34 @@ def test_a_gpu_where_the_triton_kernels_do_not_build_runs_the_xla_program(monkey
                                                           "triton-interpret")))
     assert bool(traced())
     pk.triton_builds.cache_clear()  # no CPU verdict left for a later test
+
+
+def test_f_runs_in_the_triton_kernel_only_where_it_builds_there(monkeypatch):
+    """The Triton program computes f and its partials in its first kernel (pk.triton_energy)
+    for an f of scalars only; an f of a whole array K or M gets XLA's f between the kernels,
+    and so does an f that does not build inside a kernel on the GPU (checked once, with one
+    warning that says so; here the backend claims to be a GPU, where a compiled Pallas kernel
+    cannot build). $AFFINEBODY_PAIR_PROGRAM skips the check."""
+    morse, n = CASES["morse-r-2d"]
+    assert morse.columnwise and not CASES["harmonic-M-3d"][0].columnwise
+    assert pk.triton_energy(*CASES["harmonic-M-3d"], "triton-interpret") is None
+    energy = pk.triton_energy(morse, n, "triton-interpret")
+    assert isinstance(energy, pk._pair_triton.ColumnEnergy)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.delenv(pk.PAIR_PROGRAM_VARIABLE, raising=False)
+    pk.triton_builds.cache_clear()
+    try:
+        with pytest.warns(RuntimeWarning, match="f in the Triton pair kernel does not build "
+                                                "here .*f in XLA between them"):
+            assert pk.triton_energy(morse, n, "triton") is None
+        monkeypatch.setenv(pk.PAIR_PROGRAM_VARIABLE, "triton")
+        assert pk.triton_energy(morse, n, "triton") == energy
+        # what `affinebody run --verbose` prints
+        assert pk.kernel_in_use(morse, n) == "JAX kernel, triton program (f in the first kernel)"
+        assert (pk.kernel_in_use(*CASES["harmonic-M-3d"])
+                == "JAX kernel, triton program (f in XLA between the kernels)")
+    finally:
+        pk.triton_builds.cache_clear()  # no verdict of the pretended GPU left for later tests
 
 
 def test_the_pair_program_variable_chooses_the_program_or_says_what_is_wrong(monkeypatch):

@@ -88,10 +88,12 @@ def pair_terms_of_the_tests():
     return [(label, potential, n) for label, (potential, n) in CASES.items()]
 
 
-def triton_modules(potential, n: int, batch: int | None = None) -> list[str]:
-    """The Triton modules (text) of the two kernels of one chunk, lowered for CUDA by the
-    tests' ``export_chunk_for_cuda`` (Pallas' lowering, kept as it passes); with ``batch``
-    vmapped over that many systems, as a sweep's samples run them."""
+def triton_modules(potential, n: int, batch: int | None = None,
+                   f_in_kernel: bool = False) -> list[str]:
+    """The Triton modules (text) of the two kernels of one chunk (the scalars kernel, or with
+    ``f_in_kernel`` the partials kernel; the rows kernel), lowered for CUDA by the tests'
+    ``export_chunk_for_cuda`` (Pallas' lowering, kept as it passes); with ``batch`` vmapped
+    over that many systems, as a sweep's samples run them."""
     from jax._src.pallas.triton import lowering
 
     sys.path.insert(0, str(TESTS))
@@ -107,7 +109,7 @@ def triton_modules(potential, n: int, batch: int | None = None) -> list[str]:
 
     lowering.lower_jaxpr_to_triton_module = keeping
     try:
-        export_chunk_for_cuda(potential, n, batch=batch)
+        export_chunk_for_cuda(potential, n, batch=batch, f_in_kernel=f_in_kernel)
     finally:
         lowering.lower_jaxpr_to_triton_module = lower
     return modules
@@ -168,8 +170,11 @@ def main() -> None:
     for k, (label, potential, n) in enumerate(terms):
         for batch in (None,) if args.batch is None else (None, args.batch):
             tag = "" if batch is None else f" x{batch}"
-            for name, module in zip(("scalars", "rows"), triton_modules(potential, n, batch),
-                                    strict=True):
+            kernels = list(zip(("scalars", "rows"), triton_modules(potential, n, batch),
+                               strict=True))
+            if potential.columnwise:  # f in the first kernel (the product's, for such an f)
+                kernels.append(("partials", triton_modules(potential, n, batch, True)[0]))
+            for name, module in kernels:
                 path = folder / f"{k:02d}-{name}{tag.replace(' x', '-batch')}.ttir"
                 path.write_text(module)
                 paths.append((label + tag, n, name, path))

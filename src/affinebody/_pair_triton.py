@@ -7,25 +7,34 @@ XLA compiles the per-pair arithmetic of a chunk as about a dozen fused loops, ea
 per-pair results in GPU memory for the next; here one loop per stage. For a chunk of P pairs,
 with u = x_K - x_L (minimum image) from XLA:
 
-1. :func:`_scalars_kernel`: gather phi, B = phi^-1 and det phi of both bodies and write the
+1. :func:`_partials_kernel`: gather phi, B = phi^-1 and det phi of both bodies, compute the
    scalars f needs (r, D, det Gamma, K_a, M_a, M'_a, in the order of
    :func:`affinebody.pair_kernels.scalar_columns`; a padding pair gets
-   :func:`affinebody.pair_kernels.padding_value`);
-2. XLA: f and its partials from those scalars (``jax.vjp`` of ``PairTerm.energy_from_scalars``,
-   elementwise, one fused loop), so that any pair potential, a user's callable included, runs;
-3. :func:`_rows_kernel`: gather the bodies again (and compute the scalars again instead of
+   :func:`affinebody.pair_kernels.padding_value`), then f and its partials with respect to
+   them (``jax.vjp`` of ``PairTerm.energy_from_values`` traced into the kernel,
+   :class:`ColumnEnergy`), and write the pair energies and the partials;
+2. :func:`_rows_kernel`: gather the bodies again (and compute the scalars again instead of
    loading them: one input fewer; not yet timed against loading on a GPU), read the
    partials, apply the per-pair chain rule of ``_chunk_contributions`` and write each
    pair's row of n + n^2 numbers (dV/dx, dV/dphi) for body L, and body K's rows summed over
    each run of pairs of one K (:func:`_run_sums`), which XLA then adds to the bodies (one
-   scatter per side). On an H200 at 10^6 bodies (2026-11-29) a pass over 2^22 pairs took
-   0.35 ms in the first kernel, 0.32 ms in f, 1.96 ms in this one.
+   scatter per side).
+
+Where f reads a whole array K or M (``PairTerm.columnwise`` false: Triton has no [BLOCK, 3]
+blocks) or does not lower to Triton, the first kernel is :func:`_scalars_kernel`, which writes
+the scalars, and XLA computes f and its partials from them between the two kernels
+(``jax.vjp`` of ``PairTerm.energy_from_scalars``, one fused elementwise loop), so that any
+pair potential, a user's callable included, runs. On an H200 at 10^6 bodies (2026-11-29) a
+pass over 2^22 pairs took 0.35 ms in the scalars kernel, 0.32 ms in XLA's f, 1.96 ms in the
+rows kernel; f inside the first kernel (after that run) saves XLA's loop and its reads and
+writes of every scalar, for 116 registers per thread in place of 99 (sm_90, compiled
+offline: ``tools/triton_offline.py``; as many warps per SM as the rows kernel's 128).
 
 Triton wants power-of-two block shapes, so a matrix is not a [P, n, n] block but n^2 vectors
 of :data:`BLOCK` pairs (lists of lists), and every array a kernel reads or writes is one flat
 vector indexed by hand: the bodies' table (:func:`table`) as ``body * C + column``, u and the
 rows pair by pair (``pair * width + column``, the layout XLA's scatter reads), the scalars and
-partials scalar by scalar (``q * P + pair``, the layout of XLA's elementwise loop).
+partials scalar by scalar (``q * P + pair``).
 
 On a CPU the same kernels run in Pallas' interpreter (``interpret=True``): that is how the
 tests check them against all-pairs autodiff, and they check that the kernels go through
@@ -34,6 +43,7 @@ Pallas' Triton lowering for CUDA; the product runs them on a GPU only.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import operator
 from typing import NamedTuple
@@ -200,22 +210,49 @@ def _scalars_kernel(layout: Layout, pairs: int, padding: tuple, u_ref, i_ref, j_
         s_ref[pl.ds(q * pairs + start, BLOCK)] = jnp.where(valid, values[key], padding[q])
 
 
+def _partials_kernel(layout: Layout, pairs: int, padding: tuple, energy, u_ref, i_ref, j_ref,
+                     valid_ref, t_ref, e_ref, p_ref):
+    """The scalars of each pair, then f (``energy``: :class:`ColumnEnergy`) and its reverse
+    pass on them: the pair energies (0 for padding) and df/dscalar, scalar by scalar."""
+    start, _, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref,
+                                               valid_ref, t_ref)
+    values, _ = _scalar_values(layout, u, k, l)
+    scalars = tuple(jnp.where(valid, values[key], padding[q])
+                    for q, key in enumerate(layout.scalars))
+    energies, pullback = jax.vjp(energy, scalars)
+    (partials,) = pullback(jnp.ones_like(energies))
+    pl = _pallas()
+    e_ref[pl.ds(start, BLOCK)] = jnp.where(valid, energies, 0.0)
+    for q, value in enumerate(partials):
+        p_ref[pl.ds(q * pairs + start, BLOCK)] = value
+
+
 def _rows_kernel(layout: Layout, pairs: int, bodies: int, u_ref, i_ref, j_ref, valid_ref,
                  t_ref, p_ref, out_k_ref, k_index_ref, out_l_ref):
-    n = layout.n
     start, lanes, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref,
                                                    valid_ref, t_ref)
-    (phi_k, b_k, _), (phi_l, b_l, _) = k, l
-    # computed again, not loaded: a few flops per scalar against a read of memory (which is
-    # faster is for a GPU run to show; the kernels are not yet timed on one)
+    # computed again, not loaded: a few flops per scalar against a read of memory
     values, kept = _scalar_values(layout, u, k, l)
-    row = {key: q for q, key in enumerate(layout.scalars)}
-    scalar = values.__getitem__
     pl = _pallas()
+    row = {key: q for q, key in enumerate(layout.scalars)}
 
-    def partial(key):
+    def partial(key):  # loaded where used: loaded first, they would hold registers throughout
         return p_ref[pl.ds(row[key] * pairs + start, BLOCK)]
 
+    _store_rows(layout, pairs, bodies, start, lanes, valid, u, k, l, values, kept, partial,
+                i_ref, valid_ref, out_k_ref, k_index_ref, out_l_ref)
+
+
+def _store_rows(layout: Layout, pairs: int, bodies: int, start, lanes, valid, u, k, l, values,
+                kept, partial, i_ref, valid_ref, out_k_ref, k_index_ref, out_l_ref):
+    """The per-pair chain rule of ``_chunk_contributions`` from the partials of f by scalar
+    (``partial``: (name, a) -> [BLOCK]): each pair's row of n + n^2 numbers (dV/dx, dV/dphi)
+    for body L, and body K's rows summed over each run of pairs of one K (:func:`_run_sums`),
+    stored for XLA to add to the bodies (one scatter per side)."""
+    n = layout.n
+    (phi_k, b_k, _), (phi_l, b_l, _) = k, l
+    scalar = values.__getitem__
+    pl = _pallas()
     zero = 0.0 * u[0]
     g_u = [zero] * n
     d_k = [[zero] * n for _ in range(n)]
@@ -302,23 +339,30 @@ def _run_sums(valid, first, last, rows):
 
 
 @functools.cache
-def _calls(layout: Layout, pairs: int, bodies: int, padding: tuple, interpret: bool):
+def _calls(layout: Layout, pairs: int, bodies: int, padding: tuple, interpret: bool,
+           energy=None):
     """The two pallas_calls for chunks of ``pairs`` pairs (a multiple of BLOCK) of ``bodies``
-    bodies."""
+    bodies: the partials kernel with ``energy`` (a :class:`ColumnEnergy`), else the scalars
+    kernel; then the rows kernel."""
     scalars, width = len(layout.scalars), layout.n + layout.n * layout.n
     params = dict(grid=(pairs // BLOCK,), interpret=interpret,
                   compiler_params=None if interpret else _triton_params())
     f64 = jnp.float64
     pl = _pallas()
-    first = pl.pallas_call(
-        functools.partial(_scalars_kernel, layout, pairs, padding),
-        out_shape=jax.ShapeDtypeStruct((scalars * pairs,), f64),
-        name="affinebody_pair_scalars", **params)
     rows = jax.ShapeDtypeStruct((width * pairs,), f64)
+    index = jax.ShapeDtypeStruct((pairs,), jnp.int32)
+    scalar_rows = jax.ShapeDtypeStruct((scalars * pairs,), f64)
+    if energy is not None:
+        first = pl.pallas_call(
+            functools.partial(_partials_kernel, layout, pairs, padding, energy),
+            out_shape=(jax.ShapeDtypeStruct((pairs,), f64), scalar_rows),
+            name="affinebody_pair_partials", **params)
+    else:
+        first = pl.pallas_call(functools.partial(_scalars_kernel, layout, pairs, padding),
+                               out_shape=scalar_rows, name="affinebody_pair_scalars", **params)
     second = pl.pallas_call(
         functools.partial(_rows_kernel, layout, pairs, bodies),
-        out_shape=(rows, jax.ShapeDtypeStruct((pairs,), jnp.int32), rows),
-        name="affinebody_pair_rows", **params)
+        out_shape=(rows, index, rows), name="affinebody_pair_rows", **params)
     return first, second
 
 
@@ -343,16 +387,18 @@ def partials_of(layout: Layout, values_and_partials, scalars):
 
 
 def chunk_rows(layout: Layout, values_and_partials, padding: tuple, u, i, j, valid,
-               body_table, interpret: bool = False):
+               body_table, interpret: bool = False, energy=None):
     """Energy of a chunk of pairs and its rows: (E, g_u [P, n], side_K [P, n + n^2], K [P],
     side_L [P, n + n^2]): side_L holds each pair's row (dV/dx, dV/dphi) for its body L;
     side_K the rows for body K summed over each run of pairs of one K (:func:`_run_sums`), to
     be added to body K[p] (an index N, out of range, where a lane adds nothing).
 
     ``layout``: what to compute (:class:`Layout`); ``values_and_partials``: base -> (energies
-    [P], partials), f and its partials in XLA; ``padding``: each scalar's value for a padding
-    pair; ``u`` [P, n]; ``i``, ``j`` [P] int32; ``valid`` [P] bool; ``body_table``: the
-    bodies' :func:`table`; ``interpret``: run in Pallas' interpreter (CPU tests)."""
+    [P], partials), f and its partials in XLA between the two kernels; ``padding``: each
+    scalar's value for a padding pair; ``u`` [P, n]; ``i``, ``j`` [P] int32; ``valid`` [P]
+    bool; ``body_table``: the bodies' :func:`table`; ``interpret``: run in Pallas'
+    interpreter (CPU tests); ``energy``: None, or f as a :class:`ColumnEnergy`, which the
+    first kernel then evaluates (``values_and_partials`` is not used)."""
     pairs, n = u.shape
     width = n + n * n
     size = -(-pairs // BLOCK) * BLOCK
@@ -361,12 +407,38 @@ def chunk_rows(layout: Layout, values_and_partials, padding: tuple, u, i, j, val
         u = jnp.concatenate([u, jnp.zeros((extra, n), u.dtype)])
         i, j = (jnp.concatenate([a, jnp.zeros(extra, a.dtype)]) for a in (i, j))
         valid = jnp.concatenate([valid, jnp.zeros(extra, bool)])
-    first, second = _calls(layout, size, body_table.shape[0] // layout.columns, padding,
-                           interpret)
+    calls = _calls(layout, size, body_table.shape[0] // layout.columns, padding, interpret,
+                   energy)
     args = (u.reshape(-1), i.astype(jnp.int32), j.astype(jnp.int32), valid.astype(jnp.int32),
             body_table)
-    energies, flat = partials_of(layout, values_and_partials, first(*args))
+    first, second = calls
+    if energy is not None:
+        energies, flat = first(*args)
+    else:
+        energies, flat = partials_of(layout, values_and_partials, first(*args))
     side_k, k_index, side_l = second(*args, flat)
     side_l = side_l.reshape(size, width)[:pairs]
     return (jnp.sum(energies), -side_l[:, :n], side_k.reshape(size, width)[:pairs],
             k_index[:pairs], side_l)
+
+
+@dataclasses.dataclass(frozen=True)
+class ColumnEnergy:
+    """f of a pair term as the partials kernel evaluates it: the pair energies [BLOCK] from one
+    vector per scalar, in the order of ``layout.scalars`` (``PairTerm.energy_from_values``:
+    the swapped order, cut-off and switch included). For a term whose f reads only scalars
+    (``PairTerm.columnwise``), not a whole array K or M: Triton has no [BLOCK, 3] blocks."""
+
+    term: object
+    layout: Layout
+
+    def __call__(self, scalars):
+        values, swapped = {}, {}
+        for (name, a), value in zip(self.layout.scalars, scalars, strict=True):
+            if name in self.layout.plain:
+                values[name] = value
+            elif name == "Ms":
+                swapped[f"M{a + 1}"] = value
+            else:
+                values[f"{name}{a + 1}"] = value
+        return self.term.energy_from_values(values, swapped or None, self.layout.n)

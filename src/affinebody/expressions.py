@@ -130,10 +130,9 @@ class _Compiler:
         if isinstance(node, ast.UnaryOp) and type(node.op) in _UNARY:
             fn, _ = _UNARY[type(node.op)]
             operand, value = self.compile(node.operand, depth + 1)
-            folded = None
-            if value is not None:
-                folded = -value if isinstance(node.op, ast.USub) else value
-            return (lambda env: fn(operand(env))), folded
+            if value is not None:  # a constant, as a literal is (exact: a sign)
+                return self.literal(-value if isinstance(node.op, ast.USub) else value)
+            return (lambda env: fn(operand(env))), None
         if isinstance(node, ast.BinOp) and type(node.op) in _BINARY:
             return self.binary(node, depth)
         if isinstance(node, ast.Call):
@@ -162,6 +161,13 @@ class _Compiler:
             raise self.fail(f"number literal '{_describe(node, self.text)}' is too large") from None
         if not math.isfinite(number):
             raise self.fail(f"number literal '{_describe(node, self.text)}' is not finite")
+        return self.literal(number)
+
+    @staticmethod
+    def literal(number: float) -> _Node:
+        """A constant node: no operation on constants is left for run time (Pallas' Triton
+        lowering has no rule for some of them, e.g. the negation of a literal in ``-3*r``,
+        which the fused GPU pair kernel would meet)."""
         return (lambda env: jnp.asarray(number, dtype=jnp.float64)), number
 
     def name(self, node: ast.Name) -> _Node:
@@ -194,6 +200,8 @@ class _Compiler:
         folded = None
         if lvalue is not None and rvalue is not None:
             folded = self.fold(node, _float_op(symbol, lvalue, rvalue))
+            if symbol != "**":  # correctly rounded in Python as in XLA: the same float
+                return self.literal(folded)
         return (lambda env: fn(left(env), right(env))), folded
 
     def call(self, node: ast.Call, depth: int) -> _Node:

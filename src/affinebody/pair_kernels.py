@@ -332,12 +332,15 @@ def pair_program(pot=None, n: int | None = None) -> str:
 
 
 @functools.cache
-def triton_builds(layout, padding: tuple, program: str = "triton") -> bool:
+def triton_builds(layout, padding: tuple, program: str = "triton", energy=None) -> bool:
     """Whether the Triton kernels of ``layout`` build and run on the default backend (once per
     process and layout: one small chunk, compiled and run). A JAX whose Pallas has no Triton
     backend, or an XLA whose Triton rejects a kernel, would otherwise stop every run on a
     GPU; here it gives a warning, and the forces run as XLA programs (``"xla"``), which are
-    the same formulas. ``program``: ``"triton-interpret"`` checks the interpreter instead."""
+    the same formulas. ``program``: ``"triton-interpret"`` checks the interpreter instead.
+    ``energy``: f as the partials kernel evaluates it (:class:`_pair_triton.ColumnEnergy`),
+    checked with that kernel in place of the scalars kernel (where it does not build, f and
+    its partials run in XLA between the two kernels instead)."""
     import warnings
 
     n, pairs = layout.n, _pair_triton.BLOCK
@@ -351,19 +354,46 @@ def triton_builds(layout, padding: tuple, program: str = "triton") -> bool:
         return _pair_triton.chunk_rows(layout, lambda base: (
             sum(jnp.sum(v, axis=tuple(range(1, v.ndim))) for v in base.values()),
             {name: jnp.ones_like(v) for name, v in base.items()}),
-            padding, u, i, j, valid, table, interpret=program == "triton-interpret")
+            padding, u, i, j, valid, table, interpret=program == "triton-interpret",
+            energy=energy)
 
     try:
         compiled = jax.jit(chunk).lower(*args).compile()
         jax.block_until_ready(compiled(*args))
     except Exception as err:  # noqa: BLE001 - whatever stops them, the XLA programs run
         first = (str(err).strip().splitlines() or [""])[0][:200]
-        warnings.warn(f"the Triton pair kernels do not build here ({type(err).__name__}: "
-                      f"{first}); the pair forces run as XLA programs instead (the same "
-                      f"formulas; {PAIR_PROGRAM_VARIABLE}=xla skips this check)",
-                      RuntimeWarning, stacklevel=2)
+        what, instead = (("f in the Triton pair kernel does", "the Triton kernels with f in XLA "
+                          "between them") if energy is not None
+                         else ("the Triton pair kernels do", "XLA programs"))
+        warnings.warn(f"{what} not build here ({type(err).__name__}: {first}); the pair "
+                      f"forces run as {instead} (the same formulas; "
+                      f"{PAIR_PROGRAM_VARIABLE}=xla skips this check)", RuntimeWarning,
+                      stacklevel=2)
         return False
     return True
+
+
+#: Whether the Triton program computes f and its partials in its first kernel where the pair
+#: term allows it (f reads only scalars, ``PairTerm.columnwise``) rather than in XLA between
+#: its two kernels (``benchmarks/step_phases.py --f-in-xla`` times the other way too).
+F_IN_TRITON = True
+
+
+def triton_energy(pot, n: int, program: str):
+    """f of ``pot`` for the Triton program's first kernel (:class:`_pair_triton.ColumnEnergy`),
+    or None where XLA computes f between the kernels: f reads a whole array K or M,
+    :data:`F_IN_TRITON` is off, or (on a GPU, the program not chosen by
+    ``$AFFINEBODY_PAIR_PROGRAM``) the kernel with this f does not build there
+    (:func:`triton_builds`: a user's f may use an operation that Triton lacks)."""
+    import os
+
+    if not (F_IN_TRITON and pot.columnwise):
+        return None
+    layout, padding = _triton_layout(pot, n)
+    energy = _pair_triton.ColumnEnergy(pot, layout)
+    if program != "triton" or os.environ.get(PAIR_PROGRAM_VARIABLE, "").strip():
+        return energy
+    return energy if triton_builds(layout, padding, program, energy) else None
 
 
 def _triton_layout(pot, n: int):
@@ -379,11 +409,13 @@ def _triton_layout(pot, n: int):
 def _triton_chunk(pot, space: Space, n, x, table, i, j, valid, cell, interpret: bool):
     """(E, g_u, side_K, K, side_L) of a chunk from the Triton kernels (``table``: the
     bodies'; side_K summed over runs of one K, to be added to bodies K,
-    :func:`_pair_triton.chunk_rows`)."""
+    :func:`_pair_triton.chunk_rows`): f in the first kernel where :func:`triton_energy`
+    gives it, else in XLA between the two."""
     layout, padding = _triton_layout(pot, n)
     u = space.displacement(x[i], x[j], cell)
+    energy = triton_energy(pot, n, "triton-interpret" if interpret else "triton")
     return _pair_triton.chunk_rows(layout, _scalar_values_and_partials(pot, n), padding, u, i,
-                                   j, valid, table, interpret)
+                                   j, valid, table, interpret, energy)
 
 
 def energy_and_gradients(pot, space: Space, x, phi, i, j, count, chunk: int | None = None,
@@ -896,7 +928,12 @@ def kernel_in_use(pot, n: int) -> str:
         f = ("f compiled into it" if fused_on_host(pot, n)
              else "f in XLA between two callbacks")
         return f"host kernel (Numba, {_host.host_threads()} threads, {f})"
-    return f"JAX kernel, {pair_program(pot, n)} program"
+    program = pair_program(pot, n)
+    if program == "triton":
+        f = ("f in the first kernel" if triton_energy(pot, n, program) is not None
+             else "f in XLA between the kernels")
+        return f"JAX kernel, triton program ({f})"
+    return f"JAX kernel, {program} program"
 
 
 def pair_sum(pot, space: Space, x, phi, i, j, count, cell=None, virial: bool = False):
@@ -916,4 +953,5 @@ __all__ = [
     "energy_and_gradients", "energy_and_gradients_host", "fused_on_host", "host_kernel_in_use",
     "host_threads", "kernel_in_use", "neighbor_energy", "padding_value", "pair_chunk",
     "pair_program", "pair_sum", "pair_virial", "scalar_columns", "triton_builds",
+    "triton_energy",
 ]

@@ -263,15 +263,33 @@ class PairTerm(AbstractPotentialTerm):
                 values[letter] = array
                 for a in range(array.shape[-1]):
                     values[f"{letter}{a + 1}"] = array[..., a]
+        swapped = None
+        if "Ms" in base:
+            swapped = {"M": base["Ms"]}
+            for a in range(base["Ms"].shape[-1]):
+                swapped[f"M{a + 1}"] = base["Ms"][..., a]
+        return self.energy_from_values(values, swapped, n)
+
+    @property
+    def columnwise(self) -> bool:
+        """Whether f reads only scalars of each pair (r, D, det, K1.., M1..), not a whole array
+        K or M: then :meth:`energy_from_values` runs on one vector per scalar, as the fused
+        GPU pair kernel evaluates it (``affinebody._pair_triton``)."""
+        return not {"K", "M"} & set(self.variables)
+
+    def energy_from_values(self, values: Mapping[str, jax.Array],
+                           swapped_m: Mapping[str, jax.Array] | None, n: int) -> jax.Array:
+        """:meth:`energy_from_scalars` from the variables by name: ``values`` maps r, D, det,
+        K1.., M1.. (and K, M where f reads the whole array) to arrays [..., P] (K, M
+        [..., P, k or m]); ``swapped_m``: the M entries of the swapped order M_a[phi_L,
+        phi_K] by the same names, where :attr:`asymmetric` f uses M, else None."""
         orders = [values]
         if self.asymmetric:  # average f over (K, L) and (L, K): eq. (59) with a single f
             swapped = dict(values)
             if "det" in values:
                 swapped["det"] = 1.0 / values["det"]
-            if "Ms" in base:
-                swapped["M"] = base["Ms"]
-                for a in range(base["Ms"].shape[-1]):
-                    swapped[f"M{a + 1}"] = base["Ms"][..., a]
+            if swapped_m is not None:
+                swapped.update(swapped_m)
             orders.append(swapped)
         if self.cutoff is None:
             energies = [self.term(v) for v in orders]
