@@ -56,7 +56,8 @@ run)
     # XLA) with their forces compared, and the parts of a pass of the Triton program: a
     # failing Triton compile shows here, in a minute
     python3 benchmarks/step_phases.py --bodies 1000000 --loop-steps 0 --pair-program xla \
-        --f-in-xla --triton-blocks 128 512 --pair-parts 2>&1 | tee "$OUT/programs_1e6.txt"
+        --f-in-xla --no-padding-skip --triton-blocks 128 512 --pair-parts 2>&1 \
+        | tee "$OUT/programs_1e6.txt"
     if [ -d .whl/rev/src ]; then  # the same forces from the source tree of `fetch REV`
         echo "source tree of $(cat .whl/rev/commit):" | tee "$OUT/rev_1e6.txt"
         PYTHONPATH="$PWD/.whl/rev/src:${PYTHONPATH#*:}" python3 benchmarks/step_phases.py \

@@ -51,6 +51,10 @@ largest difference of its forces from ``forces``. tests/test_benchmarks.py runs 
 between its two kernels (``pair_kernels.F_IN_TRITON`` off: the scalars kernel first) instead
 of inside its first kernel (the partials kernel), with the largest difference of its forces.
 
+``--no-padding-skip``: ``forces`` again with a pass over every chunk of the list, those that
+hold only its padding (its spare capacity) included (``pair_kernels.SKIP_PADDING_PASSES``
+off): what the skip saves, and what its conditional per pass costs, on a GPU.
+
 ``--pair-parts``: on a GPU, the parts of one pass of the Triton program over its first chunk
 of pairs (``pair_kernels.pair_chunk`` pairs), each a jitted function of its inputs timed
 apart: the scalars kernel and f and its partials (XLA), or instead the partials kernel that
@@ -117,6 +121,10 @@ def main() -> None:
     parser.add_argument("--f-in-xla", action="store_true",
                         help="time the forces again with the Triton program's f in XLA "
                              "between its kernels (pair_kernels.F_IN_TRITON off)")
+    parser.add_argument("--no-padding-skip", action="store_true",
+                        help="time the forces again with every pass over the list's chunks, "
+                             "padding-only ones included (pair_kernels.SKIP_PADDING_PASSES "
+                             "off)")
     parser.add_argument("--pair-parts", action="store_true",
                         help="the parts of one pass of the Triton program over pairs (GPU)")
     parser.add_argument("--jax-kernel", action="store_true",
@@ -213,6 +221,10 @@ def main() -> None:
         pk.pair_program, pk.F_IN_TRITON = (lambda *_: program), False
         difference_to_forces(forces_again("forces, Triton with f in XLA"))
         pk.pair_program, pk.F_IN_TRITON = default
+    if args.no_padding_skip:
+        pk.SKIP_PADDING_PASSES = False
+        difference_to_forces(forces_again("forces, no pass skipped"))
+        pk.SKIP_PADDING_PASSES = True
     if args.pair_parts:
         pair_parts(system, config.n, state, lst, report)
     for log2 in args.pair_chunks:

@@ -44,7 +44,6 @@ from affinebody import integrators as _integrators
 from affinebody import kinetic as _kinetic
 from affinebody import units as _units
 from affinebody.groups import CONFIGURATION_SPACES
-from affinebody.units import UNIT_SYSTEMS
 
 #: Internal kinetic models and the parameters each one takes (paper's names, section 3: the
 #: registry ``kinetic.MODELS``, each model class declaring its ``parameters``).
@@ -67,7 +66,7 @@ MOST_PATH_POINTS = 100_000
 #: The largest integer a count or a seed may be: H5MD attributes, NumPy and JAX hold int64.
 INT64_MAX = 2**63 - 1
 #: The names ``system.units`` accepts (``units.UNIT_SYSTEMS``).
-UnitSystem = Literal[tuple(UNIT_SYSTEMS)]
+UnitSystem = Literal[tuple(_units.UNIT_SYSTEMS)]
 
 
 class ConfigError(ValueError):

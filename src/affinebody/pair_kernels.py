@@ -279,6 +279,10 @@ def _pair_pass(pot, x, phi, i, j, chunk: int | None):
     return bodies, n, linalg.inv(phi), linalg.det(phi), _pair_chunks(i, j, chunk)
 
 
+#: Whether :func:`_over_chunks` passes over the chunks of a list that hold only padding.
+SKIP_PADDING_PASSES = True
+
+
 def _over_chunks(step, init, chunks, starts, count):
     """``lax.scan`` of ``step(carry, chunk)`` over ``chunks`` (final carry only), passing
     over (``lax.cond``) each chunk whose first position ``starts[k]`` is at or past
@@ -286,9 +290,13 @@ def _over_chunks(step, init, chunks, starts, count):
     10^6 bodies 57.5 M pairs for 40.8 M in use: 14 passes where 10 hold pairs), and a pass
     over padding runs the same arithmetic as a pass over pairs (the JAX kernel's forces at
     32 768 bodies on a CPU: 660-684 ms with the skip, 772-860 ms without; docs/performance.md,
-    "Running on an NVIDIA GPU")."""
+    "Running on an NVIDIA GPU"). With :data:`SKIP_PADDING_PASSES` off, every chunk is passed
+    over (a GPU may pay for a conditional per pass: ``step_phases.py --no-padding-skip``
+    times both there)."""
     def filled(carry, chunk):
         start, block = chunk
+        if not SKIP_PADDING_PASSES:
+            return step(carry, block), None
         return lax.cond(start < count, lambda c: step(c, block), lambda c: c, carry), None
 
     return lax.scan(filled, init, (starts, chunks))[0]
@@ -862,7 +870,7 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
     columns = g.columns(chunk)
     geometry_shapes = tuple(f64(shape) for shape in columns.values())
     sum_shapes = (f64(x.shape), f64(phi.shape), f64(phi.shape), f64((bodies,)))
-    partials_of = _scalar_values_and_partials(pot, n)
+    values_and_partials = _scalar_values_and_partials(pot, n)
     rows = jnp.arange(chunk)
 
     def step(carry, k):
@@ -878,7 +886,7 @@ def _host_pair_sum(pot, space: Space, x, phi, i, j, count, gradients: bool = Tru
         if not (gradients or virial):
             energies = pot.energy_from_scalars(base, n)
             return energy + jnp.sum(jnp.where(inside, energies, 0.0)), w, sums
-        energies, partials = partials_of(base)
+        energies, partials = values_and_partials(base)
         partials = tuple(partials[key] for key in columns)
         if virial:
             w = w + _host.callback(partial(_host_virial, g), f64((n, n)), x, binv, ii, jj,
