@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.linalg
 
 from affinebody import _linalg as la
 from affinebody import kinetic as kin
@@ -259,19 +260,36 @@ def test_expm_of_a_large_batch_compiles_without_lapack_calls():
 
 def test_fused_products_of_the_gpu_path_are_the_same_matrices(monkeypatch):
     """The GPU form of tiny products (elementwise, ``fused_products``) computes the same
-    matrices as ``@``: products, the exponential and an exact af-is drift agree to round-off
-    with the CPU form, exercised here on the CPU by forcing the switch."""
+    matrices as ``@``: products, the exponential (entry by entry, its squarings a loop: also
+    its gradient) and an exact af-is drift agree to round-off with the CPU form, exercised
+    here on the CPU by forcing the switch. The GPU form runs on arrays with one more leading
+    axis: new shapes, so that the jitted expm is traced anew with the switch on."""
     rng = np.random.default_rng(7)
     a, b = rng.normal(size=(2, 40, 3, 3))
     phi = np.eye(3) + 0.2 * rng.normal(size=(40, 3, 3))
     state = State(jnp.zeros((40, 3)), jnp.asarray(phi), jnp.zeros((40, 3)),
                   jnp.asarray(rng.normal(size=(40, 3, 3))))
     model = kin.AffineIsotropic(1.0, 0.2, 0.1)
-    plain = (la.matmul(a, b), la.expm(3.0 * a), model.flow(state, 0.3))
+    # 3 a: norms up to ~30, so that some matrices take squarings and some none
+    weights = jnp.asarray(rng.normal(size=(40, 3, 3)))
+
+    def gradient(expm, x):
+        return jax.grad(lambda y: jnp.sum(weights * expm(y)))(x)
+
+    plain = (la.matmul(a, b), la.expm(3.0 * a), model.flow(state, 0.3),
+             gradient(la.expm, 3.0 * a))
     monkeypatch.setattr(la, "fused_products", lambda: True)
-    fused = (la.matmul(a, b), la.expm(3.0 * a), model.flow(state, 0.3))
+    state1 = jax.tree.map(lambda v: v[None], state)
+    fused = (la.matmul(a, b), la.expm(3.0 * a[None])[0],
+             jax.tree.map(lambda v: v[0], model.flow(state1, 0.3)),
+             gradient(lambda y: la.expm(y[None])[0], 3.0 * a))
     np.testing.assert_allclose(fused[0], np.asarray(a) @ np.asarray(b), rtol=0, atol=1e-14)
-    np.testing.assert_allclose(fused[1], plain[1], rtol=1e-13, atol=1e-13 * np.max(
-        np.abs(plain[1])))
+    scale = np.max(np.abs(plain[1]))
+    assert np.max(np.abs(plain[1])) > 100  # squarings were taken
+    np.testing.assert_allclose(fused[1], plain[1], rtol=1e-13, atol=1e-13 * scale)
+    np.testing.assert_allclose(fused[1], scipy.linalg.expm(3.0 * a), rtol=1e-12,
+                               atol=1e-13 * scale)
     for mine, theirs in zip(fused[2], plain[2], strict=True):
         np.testing.assert_allclose(mine, theirs, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(fused[3], plain[3], rtol=1e-11,
+                               atol=1e-12 * np.max(np.abs(plain[3])))

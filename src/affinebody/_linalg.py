@@ -34,6 +34,7 @@ project). For n > 3 they fall back to ``jnp.linalg``.
 from __future__ import annotations
 
 import functools
+import operator
 
 import jax
 import jax.numpy as jnp
@@ -72,6 +73,72 @@ def matmul(a: jax.Array, b: jax.Array) -> jax.Array:
     if fused_products() and a.shape[-1] <= CLOSED_FORM_MAX_N:
         return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
     return a @ b
+
+
+# --------------------------------------------------------------------------------------------
+# Tiny matrices as entries: an n x m matrix as a list of n rows of m arrays [...] (one number
+# per body or pair), every operation on them elementwise. The Triton pair kernels
+# (``affinebody._pair_triton``) compute on blocks of pairs this way, and :func:`expm` on a GPU.
+
+
+def entries(a: jax.Array) -> list:
+    """The entries of a [..., n, m] as a list of rows of arrays [...]."""
+    return [[a[..., i, j] for j in range(a.shape[-1])] for i in range(a.shape[-2])]
+
+
+def from_entries(rows: list) -> jax.Array:
+    """The matrix [..., n, m] of entries (rows of arrays [...])."""
+    return jnp.stack([jnp.stack(row, -1) for row in rows], -2)
+
+
+def entries_sum(terms):
+    """The sum of ``terms`` (a non-empty iterable), left to right."""
+    return functools.reduce(operator.add, terms)
+
+
+def entries_matmul(a: list, b: list) -> list:
+    """a b of entries (a n x k, b k x m)."""
+    return [[entries_sum(a[i][k] * b[k][j] for k in range(len(b))) for j in range(len(b[0]))]
+            for i in range(len(a))]
+
+
+def entries_transpose(a: list) -> list:
+    """a^T of entries."""
+    return [list(row) for row in zip(*a, strict=True)]
+
+
+def entries_combination(terms, identity=None) -> list:
+    """sum_t c_t M_t (+ ``identity`` Id) of entries: ``terms`` [(c_t, M_t)] with scalar or
+    array [...] coefficients c_t."""
+    n, m = len(terms[0][1]), len(terms[0][1][0])
+    out = [[entries_sum(c * mat[i][j] for c, mat in terms) for j in range(m)] for i in range(n)]
+    if identity is not None:
+        for i in range(n):
+            out[i][i] = out[i][i] + identity
+    return out
+
+
+def entries_solve(a: list, b: list) -> list:
+    """x of entries with a x = b (a n x n, b n x k): the Gaussian elimination with partial
+    pivoting of :func:`_eliminate` (``where`` selects), then back substitution."""
+    n = len(a)
+    rows = [list(a[i]) + list(b[i]) for i in range(n)]
+    for col in range(n - 1):
+        for i in range(col + 1, n):  # the largest |entry| of the column becomes the pivot
+            swap = jnp.abs(rows[i][col]) > jnp.abs(rows[col][col])
+            pairs = list(zip(rows[i], rows[col], strict=True))
+            rows[col] = [jnp.where(swap, p, q) for p, q in pairs]
+            rows[i] = [jnp.where(swap, q, p) for p, q in pairs]
+        for i in range(col + 1, n):
+            factor = rows[i][col] / rows[col][col]
+            rows[i] = [r - factor * p for r, p in zip(rows[i], rows[col], strict=True)]
+    x: list = [None] * n
+    for i in reversed(range(n)):
+        r = rows[i][n:]
+        for j in range(i + 1, n):
+            r = [v - rows[i][j] * w for v, w in zip(r, x[j], strict=True)]
+        x[i] = [v / rows[i][i] for v in r]
+    return x
 
 
 def _square(a, name: str = "a") -> jax.Array:
@@ -254,6 +321,8 @@ def expm(a) -> jax.Array:
     n = a.shape[-1]
     if n > CLOSED_FORM_MAX_N:
         return jax.scipy.linalg.expm(a)
+    if fused_products():
+        return from_entries(_entries_expm(entries(a)))
     norm = jnp.max(jnp.sum(jnp.abs(a), axis=-2), axis=-1)  # 1-norm, [...]
     ratio = jnp.where(norm > 0, norm / THETA13, 1.0)
     s = jnp.clip(jnp.ceil(jnp.log2(ratio)), 0, MAX_SQUARINGS)
@@ -271,5 +340,39 @@ def expm(a) -> jax.Array:
 
     def square(i, m):
         return jnp.where((i < s)[..., None, None], mm(m, m), m)
-    # unrolled where products are fused: one kernel instead of a device loop of 20 trips
-    return jax.lax.fori_loop(0, MAX_SQUARINGS, square, r, unroll=fused_products())
+    return jax.lax.fori_loop(0, MAX_SQUARINGS, square, r)
+
+
+def _entries_expm(a: list) -> list:
+    """:func:`expm` of entries, the same algorithm, for a GPU: each product there, written as
+    a sum over an axis, is a reduction that ends XLA's fusion, so the unrolled form ran every
+    product and masked squaring as a kernel of its own over the batch (the af-is drift: two
+    exponentials a step). Entry by entry, the Pade step is elementwise arithmetic that XLA
+    fuses, and the squarings are a loop whose body is one fused squaring; not unrolled, as
+    XLA recomputes every entry at each of its uses through a fused chain of products (on a
+    CPU, 8 unrolled squarings took 51 s to compile, 12 more than 8 GB). On one CPU core at
+    10^5 matrices: 84 ms against 524 ms for the unrolled form and 194 ms for the batched
+    dots of the CPU (docs/performance.md)."""
+    n = len(a)
+    norm = functools.reduce(jnp.maximum, [entries_sum(jnp.abs(a[i][j]) for i in range(n))
+                                          for j in range(n)])  # 1-norm, [...]
+    ratio = jnp.where(norm > 0, norm / THETA13, 1.0)
+    s = jnp.clip(jnp.ceil(jnp.log2(ratio)), 0, MAX_SQUARINGS)
+    x = [[v / 2.0**s for v in row] for row in a]
+    b = PADE13
+    mm = entries_matmul
+    x2 = mm(x, x)
+    x4 = mm(x2, x2)
+    x6 = mm(x4, x2)
+    u = mm(x, entries_combination([(1.0, mm(x6, entries_combination(
+        [(b[13], x6), (b[11], x4), (b[9], x2)]))), (b[7], x6), (b[5], x4), (b[3], x2)], b[1]))
+    v = entries_combination([(1.0, mm(x6, entries_combination(
+        [(b[12], x6), (b[10], x4), (b[8], x2)]))), (b[6], x6), (b[4], x4), (b[2], x2)], b[0])
+    r = entries_solve(entries_combination([(1.0, v), (-1.0, u)]),
+                      entries_combination([(1.0, v), (1.0, u)]))
+
+    def square(i, m):
+        squared = mm(m, m)
+        return [[jnp.where(i < s, p, q) for p, q in zip(row_p, row_q, strict=True)]
+                for row_p, row_q in zip(squared, m, strict=True)]
+    return jax.lax.fori_loop(0, MAX_SQUARINGS, square, r)

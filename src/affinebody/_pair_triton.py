@@ -45,11 +45,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import operator
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+
+from affinebody import _linalg
 
 #: Pairs per program of the kernels (a power of two, as Triton wants). 256 rather than 128:
 #: the rows kernel's runs of one K (:func:`_run_sums`) are cut at a block's ends, so longer
@@ -88,20 +89,10 @@ def table(phi: jax.Array, binv: jax.Array, det: jax.Array) -> jax.Array:
 
 
 # --------------------------------------------------------------------------------------------
-# n x n matrices as lists of lists of [BLOCK] vectors
+# n x n matrices as lists of lists of [BLOCK] vectors (``_linalg.entries``)
 
 
-def _sum(terms):
-    return functools.reduce(operator.add, terms)
-
-
-def _mm(a, b):
-    n = len(a)
-    return [[_sum(a[i][k] * b[k][j] for k in range(n)) for j in range(n)] for i in range(n)]
-
-
-def _t(a):
-    return [list(row) for row in zip(*a, strict=True)]
+_sum, _mm, _t = _linalg.entries_sum, _linalg.entries_matmul, _linalg.entries_transpose
 
 
 def _add(a, b):
