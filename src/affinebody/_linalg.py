@@ -350,9 +350,9 @@ def _entries_expm(a: list) -> list:
     exponentials a step). Entry by entry, the Pade step is elementwise arithmetic that XLA
     fuses, and the squarings are a loop whose body is one fused squaring; not unrolled, as
     XLA recomputes every entry at each of its uses through a fused chain of products (on a
-    CPU, 8 unrolled squarings took 51 s to compile, 12 more than 8 GB). On one CPU core at
-    10^5 matrices: 84 ms against 524 ms for the unrolled form and 194 ms for the batched
-    dots of the CPU (docs/performance.md)."""
+    CPU, 8 unrolled squarings took 51 s to compile, 12 more than 8 GB). Forced on one CPU
+    core at 10^5 matrices (an indication only: a CPU runs the batched dots): 84 ms against
+    524 ms for the unrolled form (docs/performance.md, "The rest of a step")."""
     n = len(a)
     norm = functools.reduce(jnp.maximum, [entries_sum(jnp.abs(a[i][j]) for i in range(n))
                                           for j in range(n)])  # 1-norm, [...]
