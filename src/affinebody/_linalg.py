@@ -352,7 +352,7 @@ def _entries_expm(a: list) -> list:
     XLA recomputes every entry at each of its uses through a fused chain of products (on a
     CPU, 8 unrolled squarings took 51 s to compile, 12 more than 8 GB). Forced on one CPU
     core at 10^5 matrices (an indication only: a CPU runs the batched dots): 84 ms against
-    524 ms for the unrolled form (docs/performance.md, "The rest of a step")."""
+    524 ms for the unrolled form (docs/performance.md, "Running on an NVIDIA GPU")."""
     n = len(a)
     norm = functools.reduce(jnp.maximum, [entries_sum(jnp.abs(a[i][j]) for i in range(n))
                                           for j in range(n)])  # 1-norm, [...]
