@@ -369,9 +369,12 @@ def test_an_incomplete_list_says_why():
 def test_the_collectors_running_count_is_the_count_of_every_candidate():
     """LevelCollector keeps its candidates' states and their ascending ladder as blocks come
     (the search asks for the K-th energy before every block); at every point of a search its
-    count and K-th energy must be those of all candidates recounted (levels.kth_energy of
-    known()): converged and unconverged candidates, degenerate sectors, equal energies."""
-    from affinebody.quantum.levels import kth_energy
+    count and K-th energy must be those of all candidates recounted (every state's energy,
+    sorted): converged and unconverged candidates, degenerate sectors, equal energies."""
+
+    def kth_energy(known, count):  # the reference: every state listed and sorted
+        values = sorted(e for e, sectors in known for s in sectors for _ in range(s.dimension))
+        return values[count - 1] if len(values) >= count else np.inf
 
     rng = np.random.default_rng(7)
     found = LevelCollector(Settings())
@@ -381,8 +384,9 @@ def test_the_collectors_running_count_is_the_count_of_every_candidate():
         errors = np.where(rng.random(size) < 0.3, 1e-2, 1e-12)  # some unconverged
         sectors = (Sector(block, 0, dimension=int(rng.integers(1, 4))),)
         found.record(("block", block), sectors, None, energies, None, errors)
-        known = found.known()
-        assert found.state_count() == sum(s.dimension for e in known for s in e[2])
+        known = ([(e[0], e[2]) for e in found.entries]
+                 + [(lv.energy, lv.sectors) for lv in found.unconverged])
+        assert found.state_count() == sum(s.dimension for _, sectors in known for s in sectors)
         for count in range(1, found.state_count() + 2):
             assert found.kth_energy(count) == kth_energy(known, count)
     assert found.unconverged and found.entries  # both kinds were counted

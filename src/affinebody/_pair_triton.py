@@ -191,25 +191,32 @@ def _scalar_values(layout: Layout, u, k, l):
     return values, kept
 
 
+def _padded_scalars(layout: Layout, pairs: int, padding: tuple, u_ref, i_ref, j_ref,
+                    valid_ref, t_ref):
+    """(start, valid, the scalars of this block's pairs in the order of ``layout.scalars``),
+    each padding pair's scalars :func:`affinebody.pair_kernels.padding_value`."""
+    start, _, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref, valid_ref,
+                                               t_ref)
+    values, _ = _scalar_values(layout, u, k, l)
+    return start, valid, tuple(jnp.where(valid, values[key], padding[q])
+                               for q, key in enumerate(layout.scalars))
+
+
 def _scalars_kernel(layout: Layout, pairs: int, padding: tuple, u_ref, i_ref, j_ref,
                     valid_ref, t_ref, s_ref):
-    start, _, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref,
-                                               valid_ref, t_ref)
-    values, _ = _scalar_values(layout, u, k, l)
+    start, _, scalars = _padded_scalars(layout, pairs, padding, u_ref, i_ref, j_ref,
+                                        valid_ref, t_ref)
     pl = _pallas()
-    for q, key in enumerate(layout.scalars):
-        s_ref[pl.ds(q * pairs + start, BLOCK)] = jnp.where(valid, values[key], padding[q])
+    for q, value in enumerate(scalars):
+        s_ref[pl.ds(q * pairs + start, BLOCK)] = value
 
 
 def _partials_kernel(layout: Layout, pairs: int, padding: tuple, energy, u_ref, i_ref, j_ref,
                      valid_ref, t_ref, e_ref, p_ref):
     """The scalars of each pair, then f (``energy``: :class:`ColumnEnergy`) and its reverse
     pass on them: the pair energies (0 for padding) and df/dscalar, scalar by scalar."""
-    start, _, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref,
-                                               valid_ref, t_ref)
-    values, _ = _scalar_values(layout, u, k, l)
-    scalars = tuple(jnp.where(valid, values[key], padding[q])
-                    for q, key in enumerate(layout.scalars))
+    start, valid, scalars = _padded_scalars(layout, pairs, padding, u_ref, i_ref, j_ref,
+                                            valid_ref, t_ref)
     energies, pullback = jax.vjp(energy, scalars)
     (partials,) = pullback(jnp.ones_like(energies))
     pl = _pallas()
@@ -220,6 +227,10 @@ def _partials_kernel(layout: Layout, pairs: int, padding: tuple, energy, u_ref, 
 
 def _rows_kernel(layout: Layout, pairs: int, bodies: int, u_ref, i_ref, j_ref, valid_ref,
                  t_ref, p_ref, out_k_ref, k_index_ref, out_l_ref):
+    """The per-pair chain rule of ``_chunk_contributions`` from the partials of f by scalar:
+    each pair's row of n + n^2 numbers (dV/dx, dV/dphi) for body L, and body K's rows summed
+    over each run of pairs of one K (:func:`_run_sums`), stored for XLA to add to the bodies
+    (one scatter per side)."""
     start, lanes, valid, u, k, l = _pair_of_bodies(layout, pairs, u_ref, i_ref, j_ref,
                                                    valid_ref, t_ref)
     # computed again, not loaded: a few flops per scalar against a read of memory
@@ -230,20 +241,9 @@ def _rows_kernel(layout: Layout, pairs: int, bodies: int, u_ref, i_ref, j_ref, v
     def partial(key):  # loaded where used: loaded first, they would hold registers throughout
         return p_ref[pl.ds(row[key] * pairs + start, BLOCK)]
 
-    _store_rows(layout, pairs, bodies, start, lanes, valid, u, k, l, values, kept, partial,
-                i_ref, valid_ref, out_k_ref, k_index_ref, out_l_ref)
-
-
-def _store_rows(layout: Layout, pairs: int, bodies: int, start, lanes, valid, u, k, l, values,
-                kept, partial, i_ref, valid_ref, out_k_ref, k_index_ref, out_l_ref):
-    """The per-pair chain rule of ``_chunk_contributions`` from the partials of f by scalar
-    (``partial``: (name, a) -> [BLOCK]): each pair's row of n + n^2 numbers (dV/dx, dV/dphi)
-    for body L, and body K's rows summed over each run of pairs of one K (:func:`_run_sums`),
-    stored for XLA to add to the bodies (one scatter per side)."""
     n = layout.n
     (phi_k, b_k, _), (phi_l, b_l, _) = k, l
     scalar = values.__getitem__
-    pl = _pallas()
     zero = 0.0 * u[0]
     g_u = [zero] * n
     d_k = [[zero] * n for _ in range(n)]
@@ -398,11 +398,10 @@ def chunk_rows(layout: Layout, values_and_partials, padding: tuple, u, i, j, val
         u = jnp.concatenate([u, jnp.zeros((extra, n), u.dtype)])
         i, j = (jnp.concatenate([a, jnp.zeros(extra, a.dtype)]) for a in (i, j))
         valid = jnp.concatenate([valid, jnp.zeros(extra, bool)])
-    calls = _calls(layout, size, body_table.shape[0] // layout.columns, padding, interpret,
-                   energy)
+    first, second = _calls(layout, size, body_table.shape[0] // layout.columns, padding,
+                           interpret, energy)
     args = (u.reshape(-1), i.astype(jnp.int32), j.astype(jnp.int32), valid.astype(jnp.int32),
             body_table)
-    first, second = calls
     if energy is not None:
         energies, flat = first(*args)
     else:

@@ -167,7 +167,7 @@ class _Compiler:
     def literal(number: float) -> _Node:
         """A constant node: no operation on constants is left for run time (Pallas' Triton
         lowering has no rule for some of them, e.g. the negation of a literal in ``-3*r``,
-        which the fused GPU pair kernel would meet)."""
+        which the GPU pair kernel that evaluates f would meet)."""
         return (lambda env: jnp.asarray(number, dtype=jnp.float64)), number
 
     def name(self, node: ast.Name) -> _Node:

@@ -273,8 +273,8 @@ class PairTerm(AbstractPotentialTerm):
     @property
     def columnwise(self) -> bool:
         """Whether f reads only scalars of each pair (r, D, det, K1.., M1..), not a whole array
-        K or M: then :meth:`energy_from_values` runs on one vector per scalar, as the fused
-        GPU pair kernel evaluates it (``affinebody._pair_triton``)."""
+        K or M: then :meth:`energy_from_values` runs on one vector per scalar, as the GPU pair
+        kernel that evaluates f does (``affinebody._pair_triton``)."""
         return not {"K", "M"} & set(self.variables)
 
     def energy_from_values(self, values: Mapping[str, jax.Array],

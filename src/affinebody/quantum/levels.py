@@ -300,12 +300,6 @@ def merge_levels(entries: list[tuple[float, float, tuple[Sector, ...], tuple, in
             levels.append(Level(E, state_count(sectors), sectors, err, key, idx))
     return levels
 
-def kth_energy(entries, count: int) -> float:
-    """The ``count``-th lowest energy of the entries counted with their states (inf if fewer)."""
-    values = sorted(v for e in entries for v in [e[0]] * state_count(e[2]))
-    return values[count - 1] if len(values) >= count else np.inf
-
-
 def truncate_levels(levels: list[Level], count: int) -> list[Level]:
     """The lowest levels that hold the first ``count`` states (the last may hold more)."""
     out, total = [], 0
@@ -366,18 +360,13 @@ class LevelCollector:
             self.blocks[one] = Block(one, sec, basis, E[i:i + 1], vec[:, i:i + 1], err[i:i + 1])
             self._add(E[i], err[i], sec, one, 0)
 
-    def known(self) -> list:
-        """Entries of every candidate, converged or not (a bound on what is still missing)."""
-        return self.entries + [(lv.energy, lv.error, lv.sectors, lv.block, 0)
-                               for lv in self.unconverged]
-
     def state_count(self) -> int:
         """Number of states of every candidate found, converged or not."""
         return self.states
 
     def kth_energy(self, count: int) -> float:
-        """The ``count``-th lowest candidate energy, counted with multiplicity (inf if fewer):
-        :func:`affinebody.quantum.levels.kth_energy` of :meth:`known`, from the ladder in
+        """The ``count``-th lowest candidate energy, converged or not, counted with
+        multiplicity (inf if fewer): a bound on what is still missing; from the ladder in
         O(count)."""
         total = 0
         for energy, states in self.ladder:
@@ -402,5 +391,5 @@ class LevelCollector:
 __all__ = [
     "Potential", "MODELS", "Sector", "state_count", "Level", "Block", "Spectrum", "Settings",
     "AffineInertia", "is_converged", "same_level", "states_text", "level_starts", "merge_levels",
-    "kth_energy", "truncate_levels", "eigen_parity", "LevelCollector"
+    "truncate_levels", "eigen_parity", "LevelCollector"
 ]
